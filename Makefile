@@ -1,0 +1,40 @@
+# qpctl — two commands on a fresh machine: `make demo` and `make test`.
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+
+.PHONY: all env demo test soak bench bench-quick lint clean
+
+all: test
+
+# The environment is built from pyproject.toml only; it is rebuilt when pyproject.toml changes.
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e '.[dev]'
+	touch $(STAMP)
+
+env: $(STAMP)
+
+# The paper reproduction: tables and figures into results/paper and README-ready Markdown.
+demo: $(STAMP)
+	MPLBACKEND=Agg $(PY) -m qpctl.reproduce --out results/paper
+
+test: $(STAMP)
+	MPLBACKEND=Agg $(PY) -m pytest -q -x -p no:cacheprovider
+
+soak: $(STAMP)
+	MPLBACKEND=Agg $(PY) -m pytest -q -m slow -p no:cacheprovider
+
+bench: $(STAMP)
+	MPLBACKEND=Agg $(VENV)/bin/qpctl bench --out results/bench
+
+bench-quick: $(STAMP)
+	MPLBACKEND=Agg $(VENV)/bin/qpctl bench --quick --out results/bench-quick
+
+lint: $(STAMP)
+	$(VENV)/bin/ruff check qpctl baselines benchmarks tests
+
+clean:
+	rm -rf $(VENV) results build *.egg-info

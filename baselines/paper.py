@@ -1,0 +1,38 @@
+"""The paper's law (baseline ``paper``): resolved-acceleration control, inertia-weighted pseudo-inverse.
+
+Equations implemented (paper numbering; the OCR's ``J^1`` is read as J⁺):
+
+    a   = ẍ_d + K_v ė + K_p e − J̇ q̇                                           (7)
+    J⁺  = W⁻¹Jᵀ(J W⁻¹ Jᵀ)⁻¹,  W = MᵀM (Kazerounian–Nedungadi), damped by SVD     (5), (6)
+    e_N = (I − J_b⁺ J)(g − q̇),  J_b⁺ weighted by W_b = Σ J_iᵀ J_i (Ryu)          (12), (19)
+    q̈₀  = −M⁻¹N + K_N e_N                                                       (18), (19)
+    q̈   = J⁺(a [+ J̇ e_N]) + (I − J⁺J) q̈₀,   τ = M q̈ + N                       (19)
+
+The sign of the M⁻¹N term is the one that lowers torque: with q̈₀ = −M⁻¹N the null-space part of
+τ − N cancels the null-space part of the bias, so τ = M q̈ + N is the least-‖τ‖ choice in W's metric
+for the given task acceleration. The bracketed J̇ e_N term is ``LawGains.jdot_en``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from qpctl.controllers.base import ControlOutput, Controller
+from qpctl.law import closed_form_acceleration, law_terms
+from qpctl.state import TickState
+
+
+class PaperController(Controller):
+    """The paper's inertia-weighted law (eq. 19); ``weighted = False`` gives Hsu's law."""
+
+    kind = "paper"
+    weighted = True
+
+    def control(self, state: TickState) -> ControlOutput:
+        ref = self.path(state.t)
+        terms = law_terms(state, ref, self.gains, weighted=self.weighted)
+        qdd, singular = closed_form_acceleration(state, terms, self.gains, weighted=self.weighted)
+        tau = state.M @ qdd + state.N
+        return ControlOutput(tau=tau, qdd=qdd, ref=ref, x=state.x, e_null=terms.e_null,
+                             clearance=state.clearance, singular=singular,
+                             info={"g_norm": float(np.linalg.norm(terms.g))})

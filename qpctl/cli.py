@@ -1,0 +1,82 @@
+"""The ``qpctl`` command line: ``simulate``, ``bench``, ``solvers``.
+
+Any :class:`~qpctl.errors.QpctlError` becomes one line on stderr and exit status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from qpctl.errors import QpctlError
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from qpctl.run import simulate, write_outputs
+    from qpctl.scenario import Scenario
+
+    scenario = Scenario.load(args.scenario, args.set or [])
+    result = simulate(scenario, kind=args.controller, solver=args.solver, simulator=args.sim,
+                      progress=not args.quiet)
+    out = Path(args.out) if args.out else Path("results") / f"{scenario.name}-{result.controller.kind}"
+    write_outputs(result, out, figures=not args.no_figures)
+    m = result.metrics
+    print(f"{scenario.name} / {m['controller']} ({m['solver']}, {m['simulator']}): "
+          f"max tracking error {m['max_tracking_error']:.3g} m, max |τ| {m['max_abs_torque']:.4g} N·m, "
+          f"min clearance {m['min_clearance'] if m['min_clearance'] is None else round(m['min_clearance'], 4)} m, "
+          f"collided {m['collided']}, tick median {m['tick_us_median']:.0f} µs -> {out}")
+    return 0
+
+
+def _cmd_solvers(args: argparse.Namespace) -> int:
+    from qpctl.solvers import describe_solvers
+
+    for line in describe_solvers():
+        print(line)
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from benchmarks.harness import main as bench_main
+
+    return int(bench_main(quick=args.quick, out=Path(args.out)) or 0)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="qpctl", description=__doc__.splitlines()[0] if __doc__ else None)
+    sub = p.add_subparsers(dest="command", required=True)
+    s = sub.add_parser("simulate", help="run a scenario and write trajectory.npz, metrics.json, figures")
+    s.add_argument("scenario", help="path to a .toml scenario or the name of a packaged one (e.g. paper)")
+    s.add_argument("--controller", choices=["paper", "hsu", "qp"], help="override controller.kind")
+    s.add_argument("--solver", help="override controller.solver (see `qpctl solvers`)")
+    s.add_argument("--sim", choices=["builtin", "mujoco"], help="override sim.simulator")
+    s.add_argument("--out", help="output folder (default results/<scenario>-<controller>)")
+    s.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a scenario key by dotted path")
+    s.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=_cmd_simulate)
+    b = sub.add_parser("bench", help="benchmark the controllers side by side")
+    b.add_argument("--quick", action="store_true", help="a run of under two minutes")
+    b.add_argument("--out", default="results/bench", help="output folder")
+    b.set_defaults(func=_cmd_bench)
+    v = sub.add_parser("solvers", help="list the installed QP solvers and their fast paths")
+    v.set_defaults(func=_cmd_solvers)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args))
+    except QpctlError as exc:
+        print(f"qpctl: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("qpctl: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,80 @@
+"""Exceptions raised by qpctl.
+
+Every error the library raises on purpose derives from :class:`QpctlError`, so a caller can catch
+one type; the command line turns any of them into a one-line message and a non-zero exit.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+class QpctlError(Exception):
+    """Base class of every error qpctl raises on purpose."""
+
+
+class ConfigError(QpctlError, ValueError):
+    """A scenario file, a ``--set`` override or a constructor argument is invalid.
+
+    ``source`` names the file (or "--set", or the class) and ``key`` the dotted key at fault.
+    """
+
+    def __init__(self, message: str, *, source: str | None = None, key: str | None = None) -> None:
+        self.source = source
+        self.key = key
+        where = ""
+        if source and key:
+            where = f"{source}: {key}: "
+        elif source:
+            where = f"{source}: "
+        elif key:
+            where = f"{key}: "
+        super().__init__(where + message)
+
+
+class InvalidStateError(QpctlError, ValueError):
+    """A joint state or time handed to a controller is NaN/inf or wrongly shaped."""
+
+
+class UnknownFrameError(QpctlError, KeyError):
+    """A frame name does not exist in the robot model; the message lists those that do."""
+
+    def __init__(self, name: str, available: list[str]) -> None:
+        self.name = name
+        self.available = list(available)
+        super().__init__(f"unknown frame {name!r}; the model has: {', '.join(self.available)}")
+
+    def __str__(self) -> str:  # KeyError would quote the whole message
+        return str(self.args[0])
+
+
+class UnknownSolverError(QpctlError, ValueError):
+    """A QP solver name is not installed or not known; the message lists the available ones."""
+
+    def __init__(self, name: str, available: list[str]) -> None:
+        self.name = name
+        self.available = list(available)
+        super().__init__(
+            f"unknown or unavailable QP solver {name!r}; available: {', '.join(self.available)} "
+            "(others can be installed with pip, e.g. `pip install qpsolvers[open_source_solvers]`)"
+        )
+
+
+class SolverError(QpctlError, RuntimeError):
+    """The QP solver failed on a tick (numerical error, iteration limit, infeasibility).
+
+    ``problem`` holds the stacked QP and ``status`` the solver's own word, for debugging.
+    """
+
+    def __init__(self, message: str, *, status: str = "error", problem: Any = None) -> None:
+        self.status = status
+        self.problem = problem
+        super().__init__(message)
+
+
+class InfeasibleError(SolverError):
+    """The QP has no solution that satisfies its hard constraints."""
+
+
+class SimulationError(QpctlError, RuntimeError):
+    """The simulated state diverged (non-finite state) or the integrator cannot go on."""

@@ -1,0 +1,132 @@
+"""Obstacles: python-fcl shapes with a pose that may move in time.
+
+Shapes and sizes (all in metres):
+
+* ``sphere``: ``radius``. In the planar scenarios a sphere centred in the plane is a circle.
+* ``box``: ``size`` = full extents (x, y, z).
+* ``capsule`` / ``cylinder``: ``radius`` and ``length`` (of the axis), axis along ``axis``
+  (a unit vector, default z — in the planar scenarios a z-axis cylinder is a disc in the plane).
+
+Motion: constant ``velocity`` [m/s] and/or a sinusoidal sway ``amplitude`` [m] at
+``frequency`` [Hz]: p(t) = p₀ + v t + A sin(2π f t).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import fcl
+import numpy as np
+
+from qpctl.errors import ConfigError
+
+SHAPES = ("sphere", "box", "capsule", "cylinder")
+
+
+def _vec3(value: Sequence[float] | np.ndarray, key: str) -> np.ndarray:
+    arr = np.asarray(value, dtype=float).reshape(-1)
+    if arr.shape == (2,):
+        arr = np.append(arr, 0.0)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise ConfigError(f"must be 2 or 3 finite numbers, got {value!r}", key=key)
+    return arr
+
+
+def rotation_z_to(axis: np.ndarray) -> np.ndarray:
+    """A rotation matrix taking the z axis onto the unit vector ``axis``."""
+    a = axis / np.linalg.norm(axis)
+    z = np.array([0.0, 0.0, 1.0])
+    c = float(z @ a)
+    if c > 1 - 1e-12:
+        return np.eye(3)
+    if c < -1 + 1e-12:
+        return np.diag([1.0, -1.0, -1.0])
+    v = np.cross(z, a)
+    s = np.linalg.norm(v)
+    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]]) / s
+    return np.eye(3) + s * k + (1 - c) * k @ k
+
+
+@dataclass
+class Obstacle:
+    """An obstacle for python-fcl distance queries (see module docstring for shapes and units)."""
+
+    shape: str
+    position: np.ndarray
+    radius: float = 0.0
+    size: np.ndarray | None = None
+    length: float = 0.0
+    axis: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    amplitude: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    frequency: float = 0.0
+    name: str = ""
+
+    def __post_init__(self) -> None:
+        key = f"obstacles.{self.name}" if self.name else "obstacles"
+        if self.shape not in SHAPES:
+            raise ConfigError(f"unknown shape {self.shape!r}; one of {', '.join(SHAPES)}", key=f"{key}.shape")
+        self.position = _vec3(self.position, f"{key}.position")
+        self.velocity = _vec3(self.velocity, f"{key}.velocity")
+        self.amplitude = _vec3(self.amplitude, f"{key}.amplitude")
+        self.axis = _vec3(self.axis, f"{key}.axis")
+        if np.linalg.norm(self.axis) == 0:
+            raise ConfigError("axis must be non-zero", key=f"{key}.axis")
+        if not (np.isfinite(self.frequency) and self.frequency >= 0):
+            raise ConfigError(f"must be >= 0, got {self.frequency}", key=f"{key}.frequency")
+        if self.shape in ("sphere", "capsule", "cylinder"):
+            if not (np.isfinite(self.radius) and self.radius > 0):
+                raise ConfigError(f"radius must be positive, got {self.radius}", key=f"{key}.radius")
+        if self.shape in ("capsule", "cylinder"):
+            if not (np.isfinite(self.length) and self.length > 0):
+                raise ConfigError(f"length must be positive, got {self.length}", key=f"{key}.length")
+        if self.shape == "box":
+            if self.size is None:
+                raise ConfigError("a box needs size = [x, y, z]", key=f"{key}.size")
+            self.size = _vec3(self.size, f"{key}.size")
+            if np.any(self.size <= 0):
+                raise ConfigError(f"box size must be positive, got {self.size.tolist()}", key=f"{key}.size")
+        self._rotation = rotation_z_to(self.axis)
+
+    @property
+    def moving(self) -> bool:
+        return bool(np.any(self.velocity) or (np.any(self.amplitude) and self.frequency > 0))
+
+    def geometry(self) -> fcl.CollisionGeometry:
+        """A new python-fcl geometry for this shape."""
+        if self.shape == "sphere":
+            return fcl.Sphere(self.radius)
+        if self.shape == "box":
+            assert self.size is not None
+            return fcl.Box(*self.size)
+        if self.shape == "capsule":
+            return fcl.Capsule(self.radius, self.length)
+        return fcl.Cylinder(self.radius, self.length)
+
+    def transform(self, t: float) -> fcl.Transform:
+        return fcl.Transform(self._rotation, self.position_at(t))
+
+    def position_at(self, t: float) -> np.ndarray:
+        """Centre position [m] at time t [s]."""
+        w = 2 * np.pi * self.frequency
+        return self.position + self.velocity * t + self.amplitude * np.sin(w * t)
+
+    def velocity_at(self, t: float) -> np.ndarray:
+        """Velocity [m/s] at time t [s] (the obstacle translates; it does not rotate)."""
+        w = 2 * np.pi * self.frequency
+        return self.velocity + self.amplitude * w * np.cos(w * t)
+
+    def acceleration_at(self, t: float) -> np.ndarray:
+        """Acceleration [m/s²] at time t [s]."""
+        w = 2 * np.pi * self.frequency
+        return -self.amplitude * w * w * np.sin(w * t)
+
+    def bounding_radius(self) -> float:
+        """Radius [m] of a sphere about the centre that contains the shape."""
+        if self.shape == "sphere":
+            return self.radius
+        if self.shape == "box":
+            assert self.size is not None
+            return float(np.linalg.norm(self.size) / 2)
+        return float(np.hypot(self.radius, self.length / 2) + (self.radius if self.shape == "capsule" else 0))

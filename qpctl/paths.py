@@ -1,0 +1,85 @@
+"""Reference paths for the task point: straight segments through waypoints, quintic time scaling.
+
+Each segment from p_k to p_{k+1} takes T_k seconds and follows p(t) = p_k + s(τ)(p_{k+1} − p_k),
+τ = (t − t_k)/T_k, s(τ) = 10τ³ − 15τ⁴ + 6τ⁵, so velocity and acceleration are zero at every waypoint
+(the paper's "zero initial and final velocities"). Before the start and after the end the
+reference holds still.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Sequence
+
+import numpy as np
+
+from qpctl.errors import ConfigError
+
+
+class Reference(NamedTuple):
+    """x_d [m], ẋ_d [m/s], ẍ_d [m/s²] at one time."""
+
+    x: np.ndarray
+    xd: np.ndarray
+    xdd: np.ndarray
+
+
+def quintic(tau: float) -> tuple[float, float, float]:
+    """s, ds/dτ, d²s/dτ² of the quintic 10τ³ − 15τ⁴ + 6τ⁵ on [0, 1] (clamped outside)."""
+    if tau <= 0.0:
+        return 0.0, 0.0, 0.0
+    if tau >= 1.0:
+        return 1.0, 0.0, 0.0
+    t2 = tau * tau
+    return (t2 * tau * (10 - 15 * tau + 6 * t2), 30 * t2 * (1 - tau) ** 2, 60 * tau * (1 - tau) * (1 - 2 * tau))
+
+
+class WaypointPath:
+    """Straight segments through ``points`` ((k+1, m) [m]), each with quintic timing.
+
+    Args:
+        points: the start point followed by the waypoints.
+        durations: seconds per segment; or
+        duration: total seconds, shared among segments in proportion to their length.
+        start_time: when the first segment starts [s].
+        dwell: pause at each intermediate waypoint [s].
+    """
+
+    def __init__(self, points: Sequence[Sequence[float]] | np.ndarray, *, duration: float | None = None,
+                 durations: Sequence[float] | None = None, start_time: float = 0.0, dwell: float = 0.0):
+        pts = np.asarray(points, dtype=float)
+        if pts.ndim != 2 or pts.shape[0] < 2 or not np.all(np.isfinite(pts)):
+            raise ConfigError("needs a start point and at least one finite waypoint", key="path.waypoints")
+        self.points = pts
+        lengths = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        if durations is not None:
+            T = np.asarray(durations, dtype=float)
+            if T.shape != lengths.shape:
+                raise ConfigError(f"needs {lengths.size} durations, got {T.size}", key="path.durations")
+        else:
+            if duration is None:
+                raise ConfigError("give duration or durations", key="path.duration")
+            total = float(lengths.sum())
+            T = np.full(lengths.size, duration / lengths.size) if total == 0 else duration * lengths / total
+        if not np.all(np.isfinite(T)) or np.any(T <= 0) and np.any(lengths[T <= 0] > 0):
+            raise ConfigError(f"segment durations must be positive, got {T.tolist()}", key="path.duration")
+        if not (np.isfinite(dwell) and dwell >= 0):
+            raise ConfigError(f"must be >= 0, got {dwell}", key="path.dwell")
+        self.durations = np.maximum(T, 1e-9)
+        starts = [start_time]
+        for Tk in self.durations[:-1]:
+            starts.append(starts[-1] + Tk + dwell)
+        self.starts = np.array(starts)
+        self.end_time = float(self.starts[-1] + self.durations[-1])
+
+    @property
+    def dim(self) -> int:
+        return int(self.points.shape[1])
+
+    def __call__(self, t: float) -> Reference:
+        """The reference at time t [s]."""
+        k = int(np.searchsorted(self.starts, t, side="right") - 1)
+        k = min(max(k, 0), len(self.durations) - 1)
+        T = self.durations[k]
+        s, ds, dds = quintic((t - self.starts[k]) / T)
+        delta = self.points[k + 1] - self.points[k]
+        return Reference(self.points[k] + s * delta, (ds / T) * delta, (dds / T**2) * delta)

@@ -1,0 +1,257 @@
+"""Robot models: a Pinocchio model, the task frame, link collision capsules and limits.
+
+Every rigid-body quantity in qpctl comes from Pinocchio; this module only builds the models.
+
+* :func:`planar_arm` — the paper's arm: ``n`` revolute joints about z, uniform thin rods of length
+  ``l`` [m] and mass ``m`` [kg] (centre of mass at mid-link, I_c = m l²/12 about the axes normal to
+  the rod), in the vertical x–y plane with gravity along −y.
+* :func:`panda` — the Franka Emika Panda from the URDF shipped by the ``example-robot-data``
+  package (found on disk through the installed package's file list, never fetched), fingers
+  locked, with a capsule approximation of each link and the URDF's torque, velocity and joint
+  limits.
+* :meth:`RobotModel.from_urdf` — any URDF.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import pinocchio as pin
+
+from qpctl.errors import ConfigError, UnknownFrameError
+
+
+@dataclass(frozen=True)
+class LinkCapsule:
+    """A capsule attached to a joint's frame: the segment p0–p1 [m] (in that frame) swept by ``radius`` [m]."""
+
+    name: str
+    joint_id: int
+    p0: np.ndarray
+    p1: np.ndarray
+    radius: float
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.radius) and self.radius > 0):
+            raise ConfigError(f"capsule radius must be positive, got {self.radius}", key=self.name)
+
+
+@dataclass
+class RobotModel:
+    """A Pinocchio model with what the controllers need on top of it.
+
+    Attributes:
+        name: short name ("planar3", "panda", or the URDF's).
+        model: the Pinocchio model (``nq == nv``: revolute/prismatic joints only).
+        ee_frame: name of the frame whose origin is the task point.
+        task_axes: which world axes form the task (``(0, 1)`` planar x–y, ``(0, 1, 2)`` spatial).
+        capsules: link collision shapes for python-fcl, one per link that can collide.
+        q_min, q_max: joint position limits [rad or m] (±inf where unlimited).
+        v_max: joint speed limits [rad/s] (inf where unlimited).
+        tau_max: joint torque limits [N·m] (inf where unlimited); symmetric, ``|τ| ≤ tau_max``.
+        q_home: a default configuration.
+    """
+
+    name: str
+    model: pin.Model
+    ee_frame: str
+    task_axes: tuple[int, ...]
+    capsules: list[LinkCapsule]
+    q_min: np.ndarray
+    q_max: np.ndarray
+    v_max: np.ndarray
+    tau_max: np.ndarray
+    q_home: np.ndarray
+    joint_names: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if self.model.nq != self.model.nv:
+            raise ConfigError("only models with nq == nv (revolute/prismatic joints) are supported",
+                              key="robot")
+        self.ee_frame_id = self.frame_id(self.ee_frame)
+        if not self.joint_names:
+            self.joint_names = [self.model.names[i] for i in range(1, self.model.njoints)]
+        for name in ("q_min", "q_max", "v_max", "tau_max", "q_home"):
+            arr = np.asarray(getattr(self, name), dtype=float).reshape(-1)
+            if arr.shape != (self.nv,):
+                raise ConfigError(f"{name} must have {self.nv} entries, got {arr.shape[0]}", key=name)
+            setattr(self, name, arr)
+
+    @property
+    def nv(self) -> int:
+        """Number of joints (degrees of freedom)."""
+        return int(self.model.nv)
+
+    @property
+    def m(self) -> int:
+        """Task dimension (2 planar, 3 spatial)."""
+        return len(self.task_axes)
+
+    def frame_id(self, name: str) -> int:
+        """Pinocchio id of frame ``name``; :class:`UnknownFrameError` lists the frames that exist."""
+        if not self.model.existFrame(name):
+            raise UnknownFrameError(name, [f.name for f in self.model.frames])
+        return int(self.model.getFrameId(name))
+
+    def with_limits(self, *, tau_max: Sequence[float] | float | None = None,
+                    v_max: Sequence[float] | float | None = None) -> "RobotModel":
+        """Return a copy with torque and/or speed limits replaced (a scalar applies to every joint)."""
+        out = RobotModel(self.name, self.model, self.ee_frame, self.task_axes, list(self.capsules),
+                         self.q_min.copy(), self.q_max.copy(), self.v_max.copy(), self.tau_max.copy(),
+                         self.q_home.copy(), list(self.joint_names))
+        if tau_max is not None:
+            out.tau_max = np.broadcast_to(np.asarray(tau_max, float), (self.nv,)).copy()
+        if v_max is not None:
+            out.v_max = np.broadcast_to(np.asarray(v_max, float), (self.nv,)).copy()
+        return out
+
+    @classmethod
+    def from_urdf(cls, path: str | Path, ee_frame: str, *, capsules: list[LinkCapsule] | None = None,
+                  locked_joints: Sequence[str] = (), capsule_radius: float = 0.05,
+                  gravity: Sequence[float] = (0.0, 0.0, -9.81), q_home: Sequence[float] | None = None,
+                  ee_offset: Sequence[float] | None = None, name: str | None = None) -> "RobotModel":
+        """Load a URDF. Without ``capsules``, each link gets a capsule from its joint to the next joint.
+
+        ``ee_offset`` [m] adds a frame ``<ee_frame>_tcp`` at that offset in ``ee_frame`` and uses it.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"URDF not found: {path}", key="robot.urdf")
+        full = pin.buildModelFromUrdf(str(path))
+        if locked_joints:
+            ids = []
+            for jn in locked_joints:
+                if not full.existJointName(jn):
+                    raise ConfigError(f"no joint {jn!r} in {path.name}", key="robot.locked_joints")
+                ids.append(full.getJointId(jn))
+            model = pin.buildReducedModel(full, ids, pin.neutral(full))
+        else:
+            model = full
+        model.gravity.linear = np.asarray(gravity, float)
+        if not model.existFrame(ee_frame):
+            raise UnknownFrameError(ee_frame, [f.name for f in model.frames])
+        if ee_offset is not None:
+            parent = model.frames[model.getFrameId(ee_frame)]
+            placement = parent.placement * pin.SE3(np.eye(3), np.asarray(ee_offset, float))
+            tcp = f"{ee_frame}_tcp"
+            model.addFrame(pin.Frame(tcp, parent.parentJoint, model.getFrameId(ee_frame), placement,
+                                     pin.FrameType.OP_FRAME))
+            ee_frame = tcp
+        if capsules is None:
+            capsules = []
+            for j in range(1, model.njoints):
+                children = [c for c in range(j + 1, model.njoints) if model.parents[c] == j]
+                p1 = model.jointPlacements[children[0]].translation.copy() if children else np.zeros(3)
+                capsules.append(LinkCapsule(model.names[j], j, np.zeros(3), p1, capsule_radius))
+        nv = model.nv
+        return cls(
+            name=name or path.stem, model=model, ee_frame=ee_frame, task_axes=(0, 1, 2), capsules=capsules,
+            q_min=np.where(np.isfinite(model.lowerPositionLimit), model.lowerPositionLimit, -np.inf)[:nv],
+            q_max=np.where(np.isfinite(model.upperPositionLimit), model.upperPositionLimit, np.inf)[:nv],
+            v_max=np.where(model.velocityLimit > 0, model.velocityLimit, np.inf)[:nv],
+            tau_max=np.where(model.effortLimit > 0, model.effortLimit, np.inf)[:nv],
+            q_home=np.asarray(q_home, float) if q_home is not None else pin.neutral(model),
+        )
+
+
+def planar_arm(n: int = 3, *, length: float = 1.0, mass: float = 10.0, radius: float = 0.05,
+               gravity: float | Sequence[float] = 9.81,
+               tau_max: float | Sequence[float] = np.inf) -> RobotModel:
+    """The paper's planar arm: ``n`` uniform thin rods in the vertical x–y plane, gravity along −y.
+
+    Joint i rotates about z at the tip of link i−1; link i points along its joint frame's x axis.
+    The task point is the tip of the last link (frame ``"ee"``); the task is its (x, y) position.
+    ``gravity`` is a magnitude [m/s²] along −y, or a 3-vector.
+    """
+    if n < 2:
+        raise ConfigError("a planar arm needs at least 2 links", key="robot.links")
+    for key, val in (("robot.length", length), ("robot.mass", mass), ("robot.radius", radius)):
+        if not (np.isfinite(val) and val > 0):
+            raise ConfigError(f"must be a positive number, got {val}", key=key)
+    model = pin.Model()
+    model.name = f"planar{n}"
+    g = np.asarray(gravity, float)
+    model.gravity.linear = np.array([0.0, -float(g), 0.0]) if g.ndim == 0 else g.reshape(3)
+    izz = mass * length**2 / 12.0
+    parent, placement = 0, pin.SE3.Identity()
+    capsules = []
+    for i in range(n):
+        jid = model.addJoint(parent, pin.JointModelRZ(), placement, f"joint{i + 1}")
+        # Thin rod along x: no inertia about its own axis (a tiny value keeps the tensor valid).
+        inertia = pin.Inertia(mass, np.array([length / 2, 0.0, 0.0]), np.diag([1e-12 * izz, izz, izz]))
+        model.appendBodyToJoint(jid, inertia, pin.SE3.Identity())
+        model.addFrame(pin.Frame(f"link{i + 1}", jid, 0, pin.SE3.Identity(), pin.FrameType.BODY))
+        capsules.append(LinkCapsule(f"link{i + 1}", jid, np.zeros(3), np.array([length, 0, 0]), radius))
+        parent, placement = jid, pin.SE3(np.eye(3), np.array([length, 0.0, 0.0]))
+    model.addFrame(pin.Frame("ee", parent, 0, placement, pin.FrameType.OP_FRAME))
+    inf = np.full(n, np.inf)
+    return RobotModel(
+        name=f"planar{n}", model=model, ee_frame="ee", task_axes=(0, 1), capsules=capsules,
+        q_min=-inf, q_max=inf, v_max=inf.copy(),
+        tau_max=np.broadcast_to(np.asarray(tau_max, float), (n,)).copy(),
+        q_home=np.array([np.pi, np.pi / 2] + [0.0] * (n - 2)),
+    )
+
+
+def example_robot_data_path(relative: str) -> Path:
+    """Absolute path of a file shipped by the installed ``example-robot-data`` package.
+
+    ``relative`` is below the package's ``robots/`` folder, e.g. ``panda_description/urdf/panda.urdf``.
+    """
+    try:
+        files = importlib.metadata.files("example-robot-data") or []
+    except importlib.metadata.PackageNotFoundError as exc:
+        raise ConfigError("the example-robot-data package is not installed (pip install example-robot-data)",
+                          key="robot") from exc
+    suffix = "example-robot-data/robots/" + relative
+    for f in files:
+        if str(f).replace("\\", "/").endswith(suffix):
+            return Path(f.locate()).resolve()
+    raise ConfigError(f"example-robot-data has no file {relative}", key="robot")
+
+
+# Capsules approximating the Panda's links, in each joint's frame [m]. Measured against the
+# collision meshes of example-robot-data's panda_description (segments along the link's long axis).
+_PANDA_CAPSULES: list[tuple[str, tuple[float, float, float], tuple[float, float, float], float]] = [
+    ("panda_joint1", (0.0, 0.0, -0.19), (0.0, 0.0, -0.03), 0.07),
+    ("panda_joint2", (0.0, 0.0, -0.06), (0.0, -0.18, 0.0), 0.07),
+    ("panda_joint3", (0.0, 0.0, -0.17), (0.08, 0.0, -0.01), 0.065),
+    ("panda_joint4", (0.0, 0.0, 0.0), (-0.08, 0.10, 0.0), 0.065),
+    ("panda_joint5", (0.0, 0.08, -0.23), (0.0, 0.0, -0.03), 0.06),
+    ("panda_joint6", (0.0, 0.0, 0.0), (0.085, 0.0, 0.0), 0.055),
+    ("panda_joint7", (0.0, 0.0, 0.07), (0.0, 0.0, 0.20), 0.06),
+]
+
+
+def panda(*, gravity: Sequence[float] = (0.0, 0.0, -9.81)) -> RobotModel:
+    """The Franka Panda (7 DoF, fingers locked) from example-robot-data, task point between the fingertips."""
+    urdf = example_robot_data_path("panda_description/urdf/panda.urdf")
+    locked = ["panda_finger_joint1", "panda_finger_joint2"]
+    robot = RobotModel.from_urdf(urdf, "panda_hand", locked_joints=locked, gravity=gravity,
+                                 ee_offset=(0.0, 0.0, 0.1034), name="panda",
+                                 q_home=[0.0, -0.785, 0.0, -2.356, 0.0, 1.571, 0.785], capsules=[])
+    model = robot.model
+    robot.capsules = [LinkCapsule(jn, int(model.getJointId(jn)), np.array(a), np.array(b), r)
+                      for jn, a, b, r in _PANDA_CAPSULES]
+    return robot
+
+
+def load_robot(kind: str, **kwargs: object) -> RobotModel:
+    """Build a robot by name: ``"planar3"`` (or ``"planarN"``), ``"panda"``, or a path to a URDF."""
+    if kind.startswith("planar"):
+        n = int(kind[6:] or 3) if kind[6:].isdigit() or not kind[6:] else None
+        if n is None:
+            raise ConfigError(f"unknown robot {kind!r}; use planar3, panda or a URDF path", key="robot.kind")
+        return planar_arm(n, **kwargs)  # type: ignore[arg-type]
+    if kind == "panda":
+        return panda(**kwargs)  # type: ignore[arg-type]
+    if kind.endswith(".urdf"):
+        ee = kwargs.pop("ee_frame", None)
+        if not isinstance(ee, str):
+            raise ConfigError("a URDF robot needs robot.ee_frame", key="robot.ee_frame")
+        return RobotModel.from_urdf(kind, ee, **kwargs)  # type: ignore[arg-type]
+    raise ConfigError(f"unknown robot {kind!r}; use planar3, panda or a path to a .urdf file", key="robot.kind")

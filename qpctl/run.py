@@ -1,0 +1,98 @@
+"""Run a scenario end to end and write its outputs (``trajectory.npz``, ``metrics.json``, figures).
+
+Outputs are written to a temporary folder beside ``out`` and moved into place only when the run
+has finished, so a failed run leaves nothing half-written.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from qpctl.controllers.base import Controller
+from qpctl.scenario import Scenario
+from qpctl.simulation.metrics import compute_metrics
+from qpctl.simulation.simulator import Simulator, Trajectory
+
+
+@dataclass
+class RunResult:
+    scenario: Scenario
+    controller: Controller
+    trajectory: Trajectory
+    metrics: dict[str, Any]
+
+
+def link_segments(controller: Controller, q: np.ndarray) -> np.ndarray:
+    """(T, L, 2, 3) link axes for each recorded configuration."""
+    robot = controller.robot
+    data = robot.model.createData()
+    out = np.empty((len(q), len(robot.capsules), 2, 3))
+    for k, qk in enumerate(q):
+        pin.forwardKinematics(robot.model, data, qk)
+        for i, c in enumerate(robot.capsules):
+            out[k, i] = data.oMi[c.joint_id].act(c.p0), data.oMi[c.joint_id].act(c.p1)
+    return out
+
+
+def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None = None,
+             simulator: str | None = None, progress: bool = False) -> RunResult:
+    """Build the scenario's controller and run it in the chosen simulator (built-in RK4 by default)."""
+    controller = scenario.build_controller(kind, solver)
+    sim_cfg = scenario.data["sim"]
+    which = simulator or sim_cfg["simulator"]
+    q0 = scenario.q0(controller.robot)
+    if which == "mujoco":
+        from qpctl.adapters.mujoco import MujocoSimulator
+
+        traj = MujocoSimulator(controller, dt=sim_cfg["dt"], duration=sim_cfg["duration"],
+                               progress=progress).run(q0)
+    elif which == "builtin":
+        traj = Simulator(controller, dt=sim_cfg["dt"], duration=sim_cfg["duration"],
+                         integrator=sim_cfg["integrator"], progress=progress).run(q0)
+    else:
+        from qpctl.errors import ConfigError
+
+        raise ConfigError(f"unknown simulator {which!r}; one of builtin, mujoco", source=scenario.source,
+                          key="sim.simulator")
+    metrics: dict[str, Any] = {
+        "scenario": scenario.name,
+        "controller": controller.kind,
+        "solver": getattr(controller, "solver", "closed-form"),
+        "simulator": which,
+        "gravity": controller.robot.model.gravity.linear.tolist(),
+    }
+    metrics.update(compute_metrics(traj, d_safe=controller.gains.d_safe))
+    return RunResult(scenario, controller, traj, metrics)
+
+
+def write_outputs(result: RunResult, out: Path, *, figures: bool = True) -> list[Path]:
+    """Write trajectory.npz, metrics.json and the figures into ``out`` atomically (folder-wise)."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        result.trajectory.save(tmp / "trajectory.npz")
+        (tmp / "metrics.json").write_text(json.dumps(result.metrics, indent=2) + "\n")
+        if figures:
+            from qpctl.plots import write_figures
+
+            segs = link_segments(result.controller, result.trajectory.q)
+            label = f"{result.scenario.name}, {result.controller.kind}"
+            write_figures(tmp, result.trajectory, segs, result.controller.obstacles, label)
+        out.mkdir(parents=True, exist_ok=True)
+        written = []
+        for f in sorted(tmp.iterdir()):
+            dest = out / f.name
+            shutil.move(str(f), dest)
+            written.append(dest)
+        return written
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

@@ -1,0 +1,410 @@
+"""Scenario files: TOML, validated on load, overridable by ``--set key.path=value``.
+
+A scenario names the robot, the reference path, the obstacles, the controller and the simulation
+(DESIGN.md §3–4; every key is documented in the README). Unknown keys, wrong types and missing
+values raise :class:`~qpctl.errors.ConfigError` naming the file and the dotted key.
+"""
+
+from __future__ import annotations
+
+import copy
+import sys
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from qpctl.errors import ConfigError
+from qpctl.geometry.obstacles import Obstacle
+from qpctl.law import LawGains
+from qpctl.paths import WaypointPath
+from qpctl.robot.model import RobotModel, load_robot
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+# ---------------------------------------------------------------------------------------------
+# Schema: each leaf is a (checker, default) pair; a checker returns the value or raises TypeError.
+# ---------------------------------------------------------------------------------------------
+REQUIRED = object()
+
+
+def _num(v: Any) -> float:
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise TypeError("a number")
+    return float(v)
+
+
+def _int(v: Any) -> int:
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise TypeError("an integer")
+    return v
+
+
+def _bool(v: Any) -> bool:
+    if not isinstance(v, bool):
+        raise TypeError("true or false")
+    return v
+
+
+def _str(v: Any) -> str:
+    if not isinstance(v, str):
+        raise TypeError("a string")
+    return v
+
+
+def _vec(v: Any) -> list[float]:
+    if not isinstance(v, list) or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
+        raise TypeError("a list of numbers")
+    return [float(x) for x in v]
+
+
+def _num_or_vec(v: Any) -> float | list[float]:
+    try:
+        return _num(v)
+    except TypeError:
+        try:
+            return _vec(v)
+        except TypeError:
+            raise TypeError("a number or a list of numbers") from None
+
+
+def _points(v: Any) -> list[list[float]]:
+    if not isinstance(v, list) or not v:
+        raise TypeError("a non-empty list of points ([[x, y], ...])")
+    pts = [_vec(p) for p in v]
+    if len({len(p) for p in pts}) != 1:
+        raise TypeError("points of equal length")
+    return pts
+
+
+def _str_list(v: Any) -> list[str]:
+    if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
+        raise TypeError("a list of strings")
+    return v
+
+
+def _table(v: Any) -> dict[str, Any]:
+    if not isinstance(v, dict):
+        raise TypeError("a table")
+    return v
+
+
+Checker = Callable[[Any], Any]
+
+OBSTACLE_SCHEMA: dict[str, tuple[Checker, Any]] = {
+    "shape": (_str, REQUIRED),
+    "position": (_vec, REQUIRED),
+    "radius": (_num, 0.0),
+    "size": (_vec, None),
+    "length": (_num, 0.0),
+    "axis": (_vec, [0.0, 0.0, 1.0]),
+    "velocity": (_vec, [0.0, 0.0, 0.0]),
+    "amplitude": (_vec, [0.0, 0.0, 0.0]),
+    "frequency": (_num, 0.0),
+    "name": (_str, ""),
+    "area": (_str, ""),
+}
+
+SCHEMA: dict[str, Any] = {
+    "name": (_str, "scenario"),
+    "description": (_str, ""),
+    "robot": {
+        "kind": (_str, "planar3"),
+        "links": (_int, 3),
+        "length": (_num, 1.0),
+        "mass": (_num, 10.0),
+        "radius": (_num, 0.05),
+        "gravity": (_vec, None),
+        "urdf": (_str, ""),
+        "ee_frame": (_str, ""),
+        "q0": (_vec, None),
+        "tau_max": (_num_or_vec, None),
+        "v_max": (_num_or_vec, None),
+    },
+    "path": {
+        "start": (_vec, None),
+        "waypoints": (_points, REQUIRED),
+        "duration": (_num, None),
+        "durations": (_vec, None),
+        "start_time": (_num, 0.0),
+        "dwell": (_num, 0.0),
+    },
+    "obstacles": OBSTACLE_SCHEMA,  # array of tables
+    "controller": {
+        "kind": (_str, "paper"),
+        "solver": (_str, "proxqp"),
+        "kp": (_num, 100.0),
+        "kv": (_num, 20.0),
+        "kn": (_num, 10.0),
+        "v_ref": (_num, 0.5),
+        "d_influence": (_num, 0.3),
+        "d_safe": (_num, 0.05),
+        "g_damping": (_num, 0.05),
+        "pinv_eps": (_num, 1e-3),
+        "jdot_en": (_bool, False),
+        "torque_limits": (_bool, True),
+        "joint_limits": (_bool, True),
+        "barrier_k0": (_num, 400.0),
+        "barrier_k1": (_num, 40.0),
+        "joint_k0": (_num, 100.0),
+        "joint_k1": (_num, 20.0),
+        "velocity_gain": (_num, 50.0),
+        "slack_l1": (_num, 1e6),
+        "slack_l2": (_num, 1e2),
+        "max_pairs": (_int, 0),
+        "posture_weight": (_num, 0.0),
+        "posture": (_vec, None),
+        "fallback": (_str_list, []),
+        "tick_budget_us": (_num, 0.0),
+        "broadphase": (_str, "auto"),
+        "solver_settings": (_table, {}),
+    },
+    "sim": {
+        "dt": (_num, 1e-3),
+        "duration": (_num, 5.0),
+        "integrator": (_str, "rk4"),
+        "seed": (_int, 0),
+        "simulator": (_str, "builtin"),
+    },
+}
+
+CONTROLLER_KINDS = ("paper", "hsu", "qp")
+
+
+def _validate_table(raw: Any, schema: dict[str, Any], source: str, prefix: str) -> dict[str, Any]:
+    if not isinstance(raw, dict):
+        raise ConfigError("must be a table", source=source, key=prefix or "<top level>")
+    out: dict[str, Any] = {}
+    for key in raw:
+        if key not in schema:
+            where = f"{prefix}.{key}" if prefix else key
+            known = ", ".join(sorted(schema))
+            raise ConfigError(f"unknown key (known here: {known})", source=source, key=where)
+    for key, spec in schema.items():
+        where = f"{prefix}.{key}" if prefix else key
+        if key == "obstacles" and not prefix:
+            items = raw.get(key, [])
+            if not isinstance(items, list):
+                raise ConfigError("must be an array of tables ([[obstacles]])", source=source, key=where)
+            out[key] = [_validate_table(item, OBSTACLE_SCHEMA, source, f"{where}[{i}]")
+                        for i, item in enumerate(items)]
+        elif isinstance(spec, dict):
+            out[key] = _validate_table(raw.get(key, {}), spec, source, where)
+        else:
+            checker, default = spec
+            if key not in raw:
+                if default is REQUIRED:
+                    raise ConfigError("missing value", source=source, key=where)
+                out[key] = copy.deepcopy(default)
+                continue
+            try:
+                out[key] = checker(raw[key])
+            except TypeError as exc:
+                raise ConfigError(f"must be {exc}, got {raw[key]!r}", source=source, key=where) from None
+    return out
+
+
+def parse_override(item: str) -> tuple[list[str], Any]:
+    """``"controller.v_ref=0.4"`` → (["controller", "v_ref"], 0.4); values are read as TOML, else text."""
+    if "=" not in item:
+        raise ConfigError(f"expected KEY=VALUE, got {item!r}", source="--set")
+    key, _, text = item.partition("=")
+    key = key.strip()
+    if not key:
+        raise ConfigError(f"empty key in {item!r}", source="--set")
+    try:
+        value = tomllib.loads(f"v = {text.strip()}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = text.strip()
+    return key.split("."), value
+
+
+def apply_overrides(raw: dict[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
+    """Set each dotted key in the raw scenario; the key must exist in the schema."""
+    raw = copy.deepcopy(raw)
+    for item in overrides:
+        path, value = parse_override(item)
+        dotted = ".".join(path)
+        schema: Any = SCHEMA
+        node = raw
+        for i, part in enumerate(path):
+            last = i == len(path) - 1
+            if part.startswith("obstacles[") or (part == "obstacles" and not last):
+                raise ConfigError("obstacles cannot be overridden with --set; edit the file", source="--set",
+                                  key=dotted)
+            if not isinstance(schema, dict) or part not in schema:
+                raise ConfigError("unknown key", source="--set", key=dotted)
+            schema = schema[part]
+            if last:
+                if isinstance(schema, dict) and part != "solver_settings":
+                    raise ConfigError("is a table; set one of its keys", source="--set", key=dotted)
+                node[part] = value
+            else:
+                if part == "controller" and path[i + 1] == "solver_settings" and i + 2 < len(path):
+                    node = node.setdefault(part, {}).setdefault("solver_settings", {})
+                    node[".".join(path[i + 2:])] = value
+                    break
+                node = node.setdefault(part, {})
+                if not isinstance(node, dict):
+                    raise ConfigError("is not a table", source="--set", key=".".join(path[: i + 1]))
+    return raw
+
+
+def packaged_scenarios() -> list[str]:
+    """Names of the scenarios shipped with qpctl."""
+    folder = resources.files("qpctl") / "scenarios"
+    return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
+
+
+@dataclass
+class Scenario:
+    """A validated scenario; ``data`` mirrors the TOML with every default filled in."""
+
+    data: dict[str, Any]
+    source: str
+
+    @classmethod
+    def load(cls, spec: str | Path, overrides: Sequence[str] = ()) -> "Scenario":
+        """Load a TOML file, or a packaged scenario by name, and apply ``--set`` overrides."""
+        path = Path(spec)
+        if path.suffix == ".toml" or path.exists():
+            if not path.is_file():
+                raise ConfigError(f"scenario file not found: {path}")
+            source, text = str(path), path.read_text()
+        else:
+            res = resources.files("qpctl") / "scenarios" / f"{spec}.toml"
+            if not res.is_file():
+                raise ConfigError(f"no scenario named {str(spec)!r}; packaged: {', '.join(packaged_scenarios())}"
+                                  " (or give a path to a .toml file)")
+            source, text = f"{spec} (packaged)", res.read_text()
+        try:
+            raw = tomllib.loads(text)
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"not valid TOML: {exc}", source=source) from None
+        return cls.from_dict(raw, source=source, overrides=overrides)
+
+    @classmethod
+    def from_dict(cls, raw: dict[str, Any], *, source: str = "<dict>", overrides: Sequence[str] = ()) -> "Scenario":
+        raw = apply_overrides(raw, overrides) if overrides else raw
+        data = _validate_table(raw, SCHEMA, source, "")
+        kind = data["controller"]["kind"]
+        if kind not in CONTROLLER_KINDS:
+            raise ConfigError(f"unknown controller {kind!r}; one of {', '.join(CONTROLLER_KINDS)}", source=source,
+                              key="controller.kind")
+        scen = cls(data, source)
+        scen._check_values()
+        return scen
+
+    def _err(self, key: str, message: str) -> ConfigError:
+        return ConfigError(message, source=self.source, key=key)
+
+    def _check_values(self) -> None:
+        sim = self.data["sim"]
+        for key in ("dt", "duration"):
+            if not (np.isfinite(sim[key]) and sim[key] > 0):
+                raise self._err(f"sim.{key}", f"must be a positive number of seconds, got {sim[key]}")
+        if sim["dt"] > sim["duration"]:
+            raise self._err("sim.dt", f"step {sim['dt']} s exceeds the duration {sim['duration']} s")
+        path = self.data["path"]
+        if path["duration"] is None and path["durations"] is None:
+            raise self._err("path.duration", "missing value (give duration or durations)")
+        try:
+            self.gains()
+        except ConfigError as exc:
+            raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key) from None
+
+    @property
+    def name(self) -> str:
+        return str(self.data["name"])
+
+    # -- builders -------------------------------------------------------------------------------
+    def build_robot(self) -> RobotModel:
+        r = self.data["robot"]
+        try:
+            if r["kind"].startswith("planar"):
+                kwargs: dict[str, Any] = {"length": r["length"], "mass": r["mass"], "radius": r["radius"]}
+                if r["gravity"] is not None:
+                    kwargs["gravity"] = r["gravity"]
+                robot = load_robot(f"planar{r['links']}" if r["kind"] == "planar" else r["kind"], **kwargs)
+            elif r["kind"] == "urdf":
+                kw: dict[str, Any] = {"ee_frame": r["ee_frame"], "capsule_radius": r["radius"]}
+                if r["gravity"] is not None:
+                    kw["gravity"] = r["gravity"]
+                robot = load_robot(r["urdf"], **kw)
+            else:
+                kw = {"gravity": r["gravity"]} if r["gravity"] is not None else {}
+                robot = load_robot(r["kind"], **kw)
+            if r["tau_max"] is not None or r["v_max"] is not None:
+                robot = robot.with_limits(tau_max=r["tau_max"], v_max=r["v_max"])
+        except ConfigError as exc:
+            raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key or "robot") from None
+        return robot
+
+    def q0(self, robot: RobotModel) -> np.ndarray:
+        q0 = self.data["robot"]["q0"]
+        if q0 is None:
+            return robot.q_home.copy()
+        if len(q0) != robot.nv:
+            raise self._err("robot.q0", f"needs {robot.nv} joint values, got {len(q0)}")
+        return np.array(q0, float)
+
+    def build_path(self, robot: RobotModel, q0: np.ndarray) -> WaypointPath:
+        p = self.data["path"]
+        if p["start"] is not None:
+            start = np.array(p["start"], float)
+        else:
+            import pinocchio as pin
+
+            data = robot.model.createData()
+            pin.framesForwardKinematics(robot.model, data, q0)
+            start = data.oMf[robot.ee_frame_id].translation[list(robot.task_axes)].copy()
+        pts = [list(start)] + p["waypoints"]
+        if any(len(w) != robot.m for w in pts):
+            raise self._err("path.waypoints", f"each point needs {robot.m} coordinates for robot {robot.name}")
+        try:
+            return WaypointPath(pts, duration=p["duration"], durations=p["durations"], start_time=p["start_time"],
+                                dwell=p["dwell"])
+        except ConfigError as exc:
+            raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key) from None
+
+    def build_obstacles(self) -> list[Obstacle]:
+        out = []
+        for i, o in enumerate(self.data["obstacles"]):
+            kwargs = {k: v for k, v in o.items() if k != "area"}
+            kwargs["name"] = o["name"] or f"obstacle{i}"
+            try:
+                out.append(Obstacle(**kwargs))
+            except ConfigError as exc:
+                raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source,
+                                  key=f"obstacles[{i}].{(exc.key or '').rsplit('.', 1)[-1]}") from None
+        return out
+
+    def gains(self) -> LawGains:
+        c = self.data["controller"]
+        return LawGains(kp=c["kp"], kv=c["kv"], kn=c["kn"], v_ref=c["v_ref"], d_influence=c["d_influence"],
+                        d_safe=c["d_safe"], g_damping=c["g_damping"], pinv_eps=c["pinv_eps"], jdot_en=c["jdot_en"])
+
+    def build_controller(self, kind: str | None = None, solver: str | None = None,
+                         robot: RobotModel | None = None) -> Any:
+        """The scenario's controller (``kind``/``solver`` override the file)."""
+        from qpctl.controllers.factory import make_controller
+
+        robot = robot or self.build_robot()
+        q0 = self.q0(robot)
+        c = dict(self.data["controller"])
+        if kind is not None:
+            c["kind"] = kind
+        if solver is not None:
+            c["solver"] = solver
+        if c["kind"] not in CONTROLLER_KINDS:
+            raise self._err("controller.kind", f"unknown controller {c['kind']!r}; one of {', '.join(CONTROLLER_KINDS)}")
+        bp = {"auto": None, "on": True, "off": False}.get(c["broadphase"], "bad")
+        if bp == "bad":
+            raise self._err("controller.broadphase", f"must be auto, on or off, got {c['broadphase']!r}")
+        return make_controller(c, robot, self.build_path(robot, q0), self.build_obstacles(), self.gains(),
+                               broadphase=bp, source=self.source)  # type: ignore[arg-type]

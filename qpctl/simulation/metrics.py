@@ -1,0 +1,54 @@
+"""Scalar metrics of a run (DESIGN.md §4, ``metrics.json``)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from typing import Any
+
+import numpy as np
+
+from qpctl.simulation.simulator import Trajectory
+
+
+def _finite_or_none(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None
+
+
+def compute_metrics(traj: Trajectory, *, d_safe: float = 0.0) -> dict[str, Any]:
+    """Tracking [m], torque [N·m] and torque rate [N·m/s], clearance [m], compute time [µs], QP stats."""
+    err = np.linalg.norm(traj.x_ref - traj.x, axis=1)
+    dt = float(np.median(np.diff(traj.t))) if traj.t.size > 1 else 1.0
+    rate = np.abs(np.diff(traj.tau, axis=0)) / dt if traj.t.size > 1 else np.zeros((1, traj.tau.shape[1]))
+    min_clear = float(np.min(traj.clearance)) if traj.clearance.size else float("inf")
+    tick = traj.tick_us
+    out: dict[str, Any] = {
+        "rms_tracking_error": float(np.sqrt(np.mean(err**2))),
+        "max_tracking_error": float(np.max(err)),
+        "final_tracking_error": float(err[-1]),
+        "max_abs_torque": float(np.max(np.abs(traj.tau))),
+        "max_abs_torque_per_joint": np.max(np.abs(traj.tau), axis=0).tolist(),
+        "max_abs_torque_rate": float(np.max(rate)),
+        "min_clearance": _finite_or_none(min_clear),
+        "collided": bool(min_clear < 0.0),
+        "safety_violated": bool(min_clear < d_safe - 1e-9),
+        "final_null_space_error": float(np.linalg.norm(traj.e_null[-1])),
+        "singular_ticks": int(np.count_nonzero(traj.singular)),
+        "tick_us_median": float(np.median(tick)),
+        "tick_us_p99": float(np.percentile(tick, 99)),
+        "tick_us_max": float(np.max(tick)),
+        "duration_s": float(traj.t[-1]),
+        "ticks": int(traj.t.size),
+    }
+    qp = [i for i in traj.infos if "status" in i]
+    if qp:
+        out["qp_status_counts"] = dict(Counter(str(i["status"]) for i in qp))
+        out["qp_iterations_max"] = int(max(int(i.get("iterations", 0)) for i in qp))
+        out["qp_slack_max"] = float(max(float(i.get("slack_norm", 0.0)) for i in qp))
+        out["qp_active_max"] = int(max(int(i.get("active", 0)) for i in qp))
+        for stage in ("state_us", "build_us", "solve_us"):
+            vals = [float(i[stage]) for i in qp if stage in i]
+            if vals:
+                out[f"{stage[:-3]}_us_median"] = float(np.median(vals))
+        fb = [i.get("fallback") for i in qp if i.get("fallback")]
+        out["qp_fallbacks"] = dict(Counter(str(f) for f in fb))
+    return out

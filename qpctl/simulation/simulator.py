@@ -1,0 +1,160 @@
+"""Fixed-step simulation: the controller is sampled once per step, its torque held (zero-order hold)
+while RK4 (as in the paper) integrates q̇ = v, v̇ = ABA(q, v, τ) from Pinocchio.
+
+The world's clearance is measured by its own python-fcl distance engine over every link–obstacle
+pair (exact, not limited to the controller's influence distance), outside the controller's timing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import pinocchio as pin
+
+from qpctl.controllers.base import Controller
+from qpctl.errors import ConfigError, SimulationError
+from qpctl.geometry.distance import DistanceEngine
+
+INTEGRATORS = ("rk4", "euler")
+
+
+def rk4_step(f: Callable[[np.ndarray, np.ndarray], np.ndarray], q: np.ndarray, v: np.ndarray,
+             dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """One classical Runge–Kutta step of q̇ = v, v̇ = f(q, v)."""
+    k1q, k1v = v, f(q, v)
+    k2q, k2v = v + 0.5 * dt * k1v, f(q + 0.5 * dt * k1q, v + 0.5 * dt * k1v)
+    k3q, k3v = v + 0.5 * dt * k2v, f(q + 0.5 * dt * k2q, v + 0.5 * dt * k2v)
+    k4q, k4v = v + dt * k3v, f(q + dt * k3q, v + dt * k3v)
+    return (q + dt / 6 * (k1q + 2 * k2q + 2 * k3q + k4q), v + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v))
+
+
+def euler_step(f: Callable[[np.ndarray, np.ndarray], np.ndarray], q: np.ndarray, v: np.ndarray,
+               dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Semi-implicit Euler: v ← v + dt f(q, v), q ← q + dt v."""
+    v1 = v + dt * f(q, v)
+    return q + dt * v1, v1
+
+
+@dataclass
+class Trajectory:
+    """Recorded arrays (DESIGN.md §4); T samples, n joints, m task coordinates."""
+
+    t: np.ndarray
+    q: np.ndarray
+    v: np.ndarray
+    tau: np.ndarray
+    x: np.ndarray
+    x_ref: np.ndarray
+    xd_ref: np.ndarray
+    xdd_ref: np.ndarray
+    clearance: np.ndarray
+    e_null: np.ndarray
+    tick_us: np.ndarray
+    singular: np.ndarray
+    infos: list[dict[str, Any]] = field(default_factory=list, repr=False)
+
+    ARRAYS = ("t", "q", "v", "tau", "x", "x_ref", "xd_ref", "xdd_ref", "clearance", "e_null", "tick_us",
+              "singular")
+
+    def save(self, path: str | Path) -> None:
+        np.savez_compressed(path, **{k: getattr(self, k) for k in self.ARRAYS})
+
+    @classmethod
+    def load(cls, path: str | Path) -> "Trajectory":
+        with np.load(path) as data:
+            return cls(**{k: data[k] for k in cls.ARRAYS if k in data.files})
+
+
+def world_clearance(engine: DistanceEngine) -> float:
+    return engine.min_distance()
+
+
+class Simulator:
+    """Runs a controller on the robot it controls, in the scene it knows.
+
+    Args:
+        controller: any :class:`~qpctl.controllers.base.Controller`.
+        dt: step [s] (the control period too).
+        duration: simulated time [s].
+        integrator: ``"rk4"`` (default, the paper's) or ``"euler"`` (semi-implicit).
+        progress: show a progress bar.
+    """
+
+    def __init__(self, controller: Controller, *, dt: float = 1e-3, duration: float = 5.0,
+                 integrator: str = "rk4", progress: bool = False) -> None:
+        if not (np.isfinite(dt) and dt > 0):
+            raise ConfigError(f"must be a positive number of seconds, got {dt}", key="sim.dt")
+        if not (np.isfinite(duration) and duration > 0):
+            raise ConfigError(f"must be a positive number of seconds, got {duration}", key="sim.duration")
+        if integrator not in INTEGRATORS:
+            raise ConfigError(f"unknown integrator {integrator!r}; one of {', '.join(INTEGRATORS)}",
+                              key="sim.integrator")
+        self.controller = controller
+        self.robot = controller.robot
+        self.dt = float(dt)
+        self.duration = float(duration)
+        self.integrator = rk4_step if integrator == "rk4" else euler_step
+        self.progress = progress
+        self._data = self.robot.model.createData()
+        self._world = DistanceEngine([c.radius for c in self.robot.capsules], controller.obstacles)
+
+    def _segments(self, q: np.ndarray) -> np.ndarray:
+        model, data = self.robot.model, self._data
+        pin.forwardKinematics(model, data, q)
+        return np.array([[data.oMi[c.joint_id].act(c.p0), data.oMi[c.joint_id].act(c.p1)]
+                         for c in self.robot.capsules])
+
+    def clearance(self, q: np.ndarray, t: float) -> float:
+        """Exact least distance [m] between any link and any obstacle at (q, t)."""
+        if not self.controller.obstacles:
+            return float("inf")
+        self._world.update(self._segments(q), t)
+        return world_clearance(self._world)
+
+    def run(self, q0: np.ndarray, v0: np.ndarray | None = None) -> Trajectory:
+        n = self.robot.nv
+        q = np.asarray(q0, float).copy()
+        v = np.zeros(n) if v0 is None else np.asarray(v0, float).copy()
+        steps = int(round(self.duration / self.dt)) + 1
+        m = self.robot.m
+        rec = {k: np.zeros((steps, n)) for k in ("q", "v", "tau", "e_null")}
+        rec.update({k: np.zeros((steps, m)) for k in ("x", "x_ref", "xd_ref", "xdd_ref")})
+        t_arr, clear, tick_us = np.zeros(steps), np.zeros(steps), np.zeros(steps)
+        singular = np.zeros(steps, bool)
+        infos: list[dict[str, Any]] = []
+        model, data = self.robot.model, self._data
+        ctrl = self.controller
+        ctrl.reset()
+        tau = np.zeros(n)
+
+        def accel(qq: np.ndarray, vv: np.ndarray) -> np.ndarray:
+            return pin.aba(model, data, qq, vv, tau)
+
+        iterator: Any = range(steps)
+        if self.progress:
+            from tqdm import tqdm
+
+            iterator = tqdm(iterator, desc=f"simulate {ctrl.kind}", unit="tick", leave=False)
+        for k in iterator:
+            t = k * self.dt
+            out = ctrl.step(q, v, t)
+            tau = out.tau
+            if not np.all(np.isfinite(tau)):
+                raise SimulationError(f"controller {ctrl.kind} returned non-finite torque at t = {t:.4f} s")
+            t_arr[k] = t
+            rec["q"][k], rec["v"][k], rec["tau"][k], rec["e_null"][k] = q, v, tau, out.e_null
+            rec["x"][k], rec["x_ref"][k] = out.x, out.ref.x
+            rec["xd_ref"][k], rec["xdd_ref"][k] = out.ref.xd, out.ref.xdd
+            clear[k] = self.clearance(q, t)
+            tick_us[k] = out.compute_us
+            singular[k] = out.singular
+            infos.append(out.info)
+            if k + 1 < steps:
+                q, v = self.integrator(accel, q, v, self.dt)
+                if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v))):
+                    raise SimulationError(f"state diverged at t = {t + self.dt:.4f} s")
+        return Trajectory(t_arr, rec["q"], rec["v"], rec["tau"], rec["x"], rec["x_ref"], rec["xd_ref"],
+                          rec["xdd_ref"], clear, rec["e_null"], tick_us, singular, infos)
