@@ -93,9 +93,13 @@ def reference_velocity(state: TickState, gains: LawGains) -> np.ndarray:
     d = pairs.distance[active]
     alpha = np.clip((gains.d_influence - d) / (gains.d_influence - gains.d_safe), 0.0, 1.0)
     u = (gains.v_ref * alpha)[:, None] * pairs.normal[active]  # (k, 3)
-    A = state.pair_jac[active].reshape(-1, state.n)
+    # Each pair's rows weigh α (rows and targets scaled by √α): a pair entering the influence
+    # distance (α = 0) then changes g continuously instead of adding a full-weight "stay still" row.
+    w = np.sqrt(alpha)[:, None, None]
+    A = (w * state.pair_jac[active]).reshape(-1, state.n)
+    b = (w[:, :, 0] * u).reshape(-1)
     H = A.T @ A + gains.g_damping**2 * np.eye(state.n)
-    return np.linalg.solve(H, A.T @ u.reshape(-1))
+    return np.linalg.solve(H, A.T @ b)
 
 
 def ryu_weight(state: TickState) -> np.ndarray:

@@ -138,6 +138,8 @@ class RobotModel:
             parent = model.frames[model.getFrameId(ee_frame)]
             placement = parent.placement * pin.SE3(np.eye(3), np.asarray(ee_offset, float))
             tcp = f"{ee_frame}_tcp"
+            while model.existFrame(tcp):  # the URDF may already name a frame so (example-robot-data ≥ 4.2)
+                tcp = f"{tcp}_offset"
             model.addFrame(pin.Frame(tcp, parent.parentJoint, model.getFrameId(ee_frame), placement,
                                      pin.FrameType.OP_FRAME))
             ee_frame = tcp

@@ -1,0 +1,126 @@
+"""Hard constraints on q̈ that no closed form can hold (DESIGN.md §2, "QP law").
+
+* :class:`TorqueLimit` — −τ_max ≤ M q̈ + N ≤ τ_max.
+* :class:`JointLimit` — joint positions and speeds kept inside their limits by second-order
+  (position) and first-order (speed) barriers expressed as bounds on q̈.
+* :class:`ObstacleBarrier` — for each (link, obstacle) pair within the influence distance,
+  ḧ + k₁ḣ + k₀h ≥ 0 with h = d − d_s, ḣ = nᵀ(J_p q̇ − v_obs), ḧ ≈ nᵀ(J_p q̈ + J̇_p q̇ − a_obs)
+  (the normal's own rate is neglected). A fixed number of rows: inactive rows have −inf bounds.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+
+import numpy as np
+
+from qpctl.errors import ConfigError
+from qpctl.law import LawTerms
+from qpctl.qp import Bounds, Inequality
+from qpctl.state import TickState
+
+
+def _positive(name: str, value: float) -> float:
+    if not (np.isfinite(value) and value > 0):
+        raise ConfigError(f"must be a positive number, got {value}", key=name)
+    return float(value)
+
+
+class Constraint(ABC):
+    """A constraint returns a fixed number of rows (``rows``) or bounds on q̈ every tick."""
+
+    name: str = "constraint"
+    rows: int = 0  # rows of C it contributes (0 for Bounds)
+
+    @abstractmethod
+    def compute(self, state: TickState, terms: LawTerms) -> Inequality | Bounds:
+        """The constraint at this tick."""
+
+
+class TorqueLimit(Constraint):
+    """|M q̈ + N| ≤ τ_max [N·m] per joint (n rows)."""
+
+    name = "torque_limits"
+
+    def __init__(self, tau_max: np.ndarray) -> None:
+        tau_max = np.asarray(tau_max, float).reshape(-1)
+        if np.any(np.isnan(tau_max)) or np.any(tau_max <= 0):
+            raise ConfigError(f"torque limits must be positive, got {tau_max.tolist()}", key="robot.tau_max")
+        self.tau_max = tau_max
+        self.rows = tau_max.size
+
+    def compute(self, state: TickState, terms: LawTerms) -> Inequality:
+        return Inequality(state.M, -self.tau_max - state.N, self.tau_max - state.N)
+
+
+class JointLimit(Constraint):
+    """Position limits by ḧ + k₁ḣ + k₀h ≥ 0 (h = q − q_min, q_max − q), speed limits by
+    ḣ + k_v h ≥ 0 (h = v_max ∓ q̇), both as bounds on q̈ [rad/s²].
+
+    Where the two bounds cross (a state already outside its limits) both are set to their mean.
+    """
+
+    name = "joint_limits"
+
+    def __init__(self, q_min: np.ndarray, q_max: np.ndarray, v_max: np.ndarray, *, k0: float = 100.0,
+                 k1: float = 20.0, kv: float = 50.0) -> None:
+        self.q_min, self.q_max, self.v_max = (np.asarray(a, float) for a in (q_min, q_max, v_max))
+        self.k0 = _positive("controller.joint_k0", k0)
+        self.k1 = _positive("controller.joint_k1", k1)
+        self.kv = _positive("controller.velocity_gain", kv)
+
+    def compute(self, state: TickState, terms: LawTerms) -> Bounds:
+        q, v = state.q, state.v
+        with np.errstate(invalid="ignore"):
+            lo = np.maximum(-self.k1 * v - self.k0 * (q - self.q_min), -self.kv * (self.v_max + v))
+            hi = np.minimum(-self.k1 * v + self.k0 * (self.q_max - q), self.kv * (self.v_max - v))
+        lo = np.where(np.isnan(lo), -np.inf, lo)
+        hi = np.where(np.isnan(hi), np.inf, hi)
+        cross = lo > hi
+        if np.any(cross):
+            mid = 0.5 * (lo + hi)
+            lo, hi = np.where(cross, mid, lo), np.where(cross, mid, hi)
+        return Bounds(lo, hi)
+
+
+class ObstacleBarrier(Constraint):
+    """nᵀJ_p q̈ ≥ −k₁ḣ − k₀h − nᵀJ̇_p q̇ + nᵀa_obs for up to ``capacity`` nearest pairs within d_i.
+
+    k₀ [1/s²] and k₁ [1/s] set how fast the arm may approach: h ≥ 0 is kept when h(0) ≥ 0 and
+    s² + k₁s + k₀ is Hurwitz with real roots (k₁² ≥ 4k₀ avoids overshoot into the safety margin).
+    """
+
+    name = "obstacles"
+
+    def __init__(self, capacity: int, d_safe: float, *, k0: float = 400.0, k1: float = 40.0) -> None:
+        if capacity < 1:
+            raise ConfigError(f"must be >= 1, got {capacity}", key="controller.max_pairs")
+        self.rows = int(capacity)
+        self.d_safe = float(d_safe)
+        self.k0 = _positive("controller.barrier_k0", k0)
+        self.k1 = _positive("controller.barrier_k1", k1)
+        self.dropped = 0
+
+    def compute(self, state: TickState, terms: LawTerms) -> Inequality:
+        n = state.n
+        C = np.zeros((self.rows, n))
+        lower = np.full(self.rows, -np.inf)
+        upper = np.full(self.rows, np.inf)
+        pairs = state.pairs
+        k = len(pairs)
+        if k == 0:
+            self.dropped = 0
+            return Inequality(C, lower, upper)
+        order = np.argsort(pairs.distance)[: self.rows]
+        self.dropped = max(k - self.rows, 0)
+        nrm = pairs.normal[order]  # (r, 3)
+        Jp = state.pair_jac[order]  # (r, 3, n)
+        rows = np.einsum("ri,rin->rn", nrm, Jp)
+        h = pairs.distance[order] - self.d_safe
+        hdot = rows @ state.v - np.einsum("ri,ri->r", nrm, pairs.v_obstacle[order])
+        rhs = (-self.k1 * hdot - self.k0 * h - np.einsum("ri,ri->r", nrm, state.pair_drift[order])
+               + np.einsum("ri,ri->r", nrm, pairs.a_obstacle[order]))
+        r = order.size
+        C[:r] = rows
+        lower[:r] = rhs
+        return Inequality(C, lower, upper)

@@ -1,0 +1,123 @@
+"""Solver interface, registry and the generic qpsolvers path."""
+
+from __future__ import annotations
+
+import time
+from abc import ABC, abstractmethod
+from typing import Any
+
+import numpy as np
+
+from qpctl.errors import ConfigError, UnknownSolverError
+from qpctl.qp import Problem, Solution
+
+# Settings applied unless configuration says otherwise: tight enough for the exact-reduction
+# guarantee (the QP equals the paper law to 1e-6 relative when no inequality is active).
+DEFAULT_SETTINGS: dict[str, dict[str, Any]] = {
+    "proxqp": {"eps_abs": 1e-9, "eps_rel": 0.0, "max_iter": 1000},
+    "osqp": {"eps_abs": 1e-7, "eps_rel": 1e-7, "max_iter": 4000, "polishing": True, "polish_refine_iter": 5},
+    "clarabel": {"tol_gap_abs": 1e-9, "tol_gap_rel": 1e-9, "tol_feas": 1e-9},
+}
+
+FAST_PATHS = ("proxqp", "osqp")
+
+
+class QPSolver(ABC):
+    """Solves the stacked :class:`~qpctl.qp.Problem` of a tick."""
+
+    name: str = ""
+    fast_path: bool = False
+
+    def __init__(self, settings: dict[str, Any] | None = None) -> None:
+        self.settings = dict(DEFAULT_SETTINGS.get(self.name, {}))
+        self.settings.update(settings or {})
+
+    @abstractmethod
+    def solve(self, problem: Problem) -> Solution:
+        """Solve; never raises for a failed solve (``found`` is False and ``status`` says why)."""
+
+    def reset(self) -> None:
+        """Drop warm-start data (the problem's shape changed, or a new run starts)."""
+
+
+def _installed() -> list[str]:
+    import qpsolvers
+
+    return list(qpsolvers.available_solvers)
+
+
+def available_solvers() -> list[str]:
+    """Solver names usable in ``controller.solver`` (fast paths first)."""
+    inst = _installed()
+    names = [n for n in FAST_PATHS if n in inst]
+    names += [n for n in inst if n not in FAST_PATHS]
+    return names
+
+
+def describe_solvers() -> list[str]:
+    """One line per installed solver: name and path (what ``qpctl solvers`` prints)."""
+    lines = []
+    for name in available_solvers():
+        path = "fast path (problem reused, warm-started)" if name in FAST_PATHS else "generic qpsolvers path"
+        lines.append(f"{name:<12} {path}")
+    return lines
+
+
+class GenericSolver(QPSolver):
+    """Any qpsolvers backend: rows with two infinite bounds are dropped, double-sided rows split."""
+
+    def __init__(self, backend: str, settings: dict[str, Any] | None = None) -> None:
+        self.name = backend
+        super().__init__(settings)
+        self.backend = backend
+
+    def solve(self, problem: Problem) -> Solution:
+        import qpsolvers
+
+        start = time.perf_counter()
+        C, lo, hi = problem.C, problem.l, problem.u
+        up, dn = np.isfinite(hi), np.isfinite(lo)
+        G = np.vstack([C[up], -C[dn]])
+        h = np.concatenate([hi[up], -lo[dn]])
+        lb = np.where(np.isfinite(problem.lb), problem.lb, -1e20 if self.backend == "quadprog" else -np.inf)
+        ub = np.where(np.isfinite(problem.ub), problem.ub, 1e20 if self.backend == "quadprog" else np.inf)
+        qp = qpsolvers.Problem(problem.P, problem.c, G if G.size else None, h if h.size else None,
+                               problem.A if problem.A.size else None, problem.b if problem.b.size else None,
+                               lb, ub)
+        try:
+            sol = qpsolvers.solve_problem(qp, solver=self.backend, **self.settings)
+        except Exception as exc:  # a backend's own error: report it as a failed solve
+            return Solution(False, np.zeros(problem.n_var), f"error: {type(exc).__name__}: {exc}",
+                            solve_us=(time.perf_counter() - start) * 1e6, solver=self.name)
+        us = (time.perf_counter() - start) * 1e6
+        found = bool(sol.found) and sol.x is not None and bool(np.all(np.isfinite(sol.x)))
+        iters = 0
+        extras = getattr(sol, "extras", {}) or {}
+        for key in ("iter", "iterations", "n_iter"):
+            if key in extras:
+                try:
+                    iters = int(extras[key])
+                except (TypeError, ValueError):
+                    pass
+        x = np.asarray(sol.x, float) if found else np.zeros(problem.n_var)
+        return Solution(found, x, "solved" if found else "failed", iters, us, self.name)
+
+
+def make_solver(name: str, settings: dict[str, Any] | None = None) -> QPSolver:
+    """The solver called ``name``; :class:`UnknownSolverError` lists the available ones."""
+    if not isinstance(name, str):
+        raise ConfigError(f"solver name must be a string, got {name!r}", key="controller.solver")
+    inst = _installed()
+    force_generic = name.startswith("qpsolvers:")
+    base = name.split(":", 1)[1] if force_generic else name
+    if base not in inst:
+        raise UnknownSolverError(name, available_solvers())
+    if not force_generic and base == "proxqp":
+        from qpctl.solvers.proxqp_ import ProxQPSolver
+
+        return ProxQPSolver(settings)
+    if not force_generic and base == "osqp":
+        from qpctl.solvers.osqp_ import OSQPSolver
+
+        return OSQPSolver(settings)
+    return GenericSolver(base, settings)

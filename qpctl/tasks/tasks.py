@@ -1,0 +1,91 @@
+"""Tasks: the paper's law as QP costs and rows (DESIGN.md §2, "QP law").
+
+* :class:`AccelerationTask` — ½‖M(q̈ − q̈₀)‖², the inertia-weighted acceleration cost (= ½‖τ − τ₀‖²
+  with τ₀ = M q̈₀ + N): its minimiser under the task rows is the paper's J_M⁺ law (eq. 6, 19).
+* :class:`EndEffectorTask` — J q̈ = a (eq. 3 with a from eq. 7), softened by an exact ℓ₁ slack
+  so that obstacles and torque limits (hard) win when they conflict with the path.
+* :class:`PostureTask` — ½ w ‖q̈ − (K_p(q_ref − q) − K_d q̇)‖², an optional extra.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Sequence
+
+import numpy as np
+
+from qpctl.errors import ConfigError
+from qpctl.law import LawTerms
+from qpctl.qp import Equality, Objective
+from qpctl.state import TickState
+
+
+class Task(ABC):
+    """A task reads the tick's state and law terms and returns a cost or rows on q̈."""
+
+    name: str = "task"
+
+    @abstractmethod
+    def compute(self, state: TickState, terms: LawTerms) -> Objective | Equality:
+        """The task's contribution at this tick."""
+
+
+class AccelerationTask(Task):
+    """½ w ‖M(q̈ − q̈₀)‖² [w·(N·m)²]: stay as close as possible, in torque, to the null-space target q̈₀."""
+
+    name = "acceleration"
+
+    def __init__(self, weight: float = 1.0) -> None:
+        if not (np.isfinite(weight) and weight > 0):
+            raise ConfigError(f"weight must be positive, got {weight}", key="AccelerationTask.weight")
+        self.weight = float(weight)
+
+    def compute(self, state: TickState, terms: LawTerms) -> Objective:
+        W = self.weight * (state.M.T @ state.M)
+        return Objective(W, -W @ terms.qdd0)
+
+
+class EndEffectorTask(Task):
+    """J q̈ = a [m/s²] (a includes the PD feedback and −J̇q̇), with slack weights ℓ₁ and ℓ₂.
+
+    ``slack_l1`` [(N·m)²/(m/s²)] must exceed the task's multiplier for the slack to vanish when the
+    problem is feasible; ``slack_l1 = slack_l2 = 0`` makes the rows hard.
+    """
+
+    name = "end_effector"
+
+    def __init__(self, slack_l1: float = 1e6, slack_l2: float = 1e2) -> None:
+        for key, val in (("slack_l1", slack_l1), ("slack_l2", slack_l2)):
+            if not (np.isfinite(val) and val >= 0):
+                raise ConfigError(f"must be a number >= 0, got {val}", key=f"controller.{key}")
+        self.slack_l1 = float(slack_l1)
+        self.slack_l2 = float(slack_l2)
+
+    def compute(self, state: TickState, terms: LawTerms) -> Equality:
+        return Equality(state.J, terms.a, self.slack_l1, self.slack_l2)
+
+
+class PostureTask(Task):
+    """½ w ‖q̈ − q̈_p‖², q̈_p = K_p (q_ref − q) − K_d q̇: pull the joints towards ``q_ref`` [rad].
+
+    ``weight`` is in the units of the acceleration cost ((N·m)²/(rad/s²)² when combined with
+    :class:`AccelerationTask`), so useful values scale with ‖M‖².
+    """
+
+    name = "posture"
+
+    def __init__(self, q_ref: Sequence[float] | np.ndarray, weight: float = 1.0, kp: float = 25.0,
+                 kd: float = 10.0) -> None:
+        self.q_ref = np.asarray(q_ref, float).reshape(-1)
+        if not np.all(np.isfinite(self.q_ref)):
+            raise ConfigError("q_ref must be finite", key="PostureTask.q_ref")
+        for key, val in (("weight", weight), ("kp", kp), ("kd", kd)):
+            if not (np.isfinite(val) and val >= 0):
+                raise ConfigError(f"must be a number >= 0, got {val}", key=f"PostureTask.{key}")
+        self.weight, self.kp, self.kd = float(weight), float(kp), float(kd)
+
+    def compute(self, state: TickState, terms: LawTerms) -> Objective:
+        if self.q_ref.shape != state.q.shape:
+            raise ConfigError(f"q_ref has {self.q_ref.size} entries, the robot {state.n}", key="PostureTask.q_ref")
+        target = self.kp * (self.q_ref - state.q) - self.kd * state.v
+        return Objective(self.weight * np.eye(state.n), -self.weight * target)
