@@ -1,6 +1,7 @@
 """The ``qpctl`` command line: ``simulate``, ``bench``, ``solvers``.
 
-Any :class:`~qpctl.errors.QpctlError` becomes one line on stderr and exit status 2.
+Any :class:`~qpctl.errors.QpctlError` (or an ``OSError`` reading or writing files) becomes one line on
+stderr and exit status 2.
 """
 
 from __future__ import annotations
@@ -71,6 +72,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args))
     except QpctlError as exc:
+        print(f"qpctl: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # an output folder that cannot be written, a file that cannot be read
         print(f"qpctl: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:

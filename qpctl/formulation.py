@@ -27,7 +27,8 @@ class Formulation:
         self.n_in = sum(c.rows for c in self.constraints)
         self.row_names = [c.name for c in self.constraints for _ in range(c.rows)]
 
-    def build(self, state: TickState, terms: LawTerms) -> Problem:
+    def build(self, state: TickState, terms: LawTerms, *, relax: bool = True) -> Problem:
+        """The tick's QP; with ``relax=False`` soft equalities are kept hard (no slack variables)."""
         n = self.n
         H = np.zeros((n, n))
         c = np.zeros(n)
@@ -39,7 +40,7 @@ class Formulation:
                 c += out.c
             else:
                 eqs.append(out)
-        n_soft = sum(e.A.shape[0] for e in eqs if e.soft)
+        n_soft = sum(e.A.shape[0] for e in eqs if e.soft) if relax else 0
         n_eq = sum(e.A.shape[0] for e in eqs)
         nv = n + 2 * n_soft
         P = np.zeros((nv, nv))
@@ -53,7 +54,7 @@ class Formulation:
             k = e.A.shape[0]
             A[r : r + k, :n] = e.A
             b[r : r + k] = e.b
-            if e.soft:
+            if e.soft and relax:
                 idx_p = np.arange(s, s + k)
                 idx_m = np.arange(s + n_soft, s + n_soft + k)
                 A[r : r + k, s : s + k] = np.eye(k)

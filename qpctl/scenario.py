@@ -151,11 +151,13 @@ SCHEMA: dict[str, Any] = {
         "joint_limits": (_bool, True),
         "barrier_k0": (_num, 400.0),
         "barrier_k1": (_num, 40.0),
+        "barrier_drift": (_str, "exact"),
         "joint_k0": (_num, 100.0),
         "joint_k1": (_num, 20.0),
         "velocity_gain": (_num, 50.0),
         "slack_l1": (_num, 1e6),
         "slack_l2": (_num, 1e2),
+        "task_relaxation": (_str, "auto"),
         "max_pairs": (_int, 0),
         "posture_weight": (_num, 0.0),
         "posture": (_vec, None),
@@ -313,10 +315,18 @@ class Scenario:
         path = self.data["path"]
         if path["duration"] is None and path["durations"] is None:
             raise self._err("path.duration", "missing value (give duration or durations)")
+        if sim["integrator"] not in ("rk4", "euler"):
+            raise self._err("sim.integrator", f"must be rk4 or euler, got {sim['integrator']!r}")
+        if sim["simulator"] not in ("builtin", "mujoco"):
+            raise self._err("sim.simulator", f"must be builtin or mujoco, got {sim['simulator']!r}")
         try:
             self.gains()
         except ConfigError as exc:
             raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key) from None
+        # Validated on load (DESIGN.md §4), not when the run starts: obstacles, robot, q0, path.
+        self.build_obstacles()
+        robot = self.build_robot()
+        self.build_path(robot, self.q0(robot))
 
     @property
     def name(self) -> str:

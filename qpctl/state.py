@@ -48,6 +48,7 @@ class TickState:
     clearance: float  # least signed distance over the pairs (inf when none within the cutoff)
     _dynamics: "Dynamics | None" = field(default=None, repr=False)
     _jdot: np.ndarray | None = field(default=None, repr=False)
+    _barrier_drift: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def n(self) -> int:
@@ -59,6 +60,18 @@ class TickState:
             assert self._dynamics is not None
             self._jdot = self._dynamics.task_jacobian_derivative(self.q, self.v)
         return self._jdot
+
+    def barrier_drift(self) -> np.ndarray:
+        """(k,) the part of each pair's ḧ that does not depend on q̈ [m/s²], computed on first use.
+
+        With ḣ(q, q̇, t) = nᵀ(J_p q̇ − v_obs), ḧ = nᵀJ_p q̈ + ∂ḣ/∂q q̇ + ∂ḣ/∂t; this returns the last two
+        terms, which include what the rigid-point drift nᵀ(J̇_p q̇ − a_obs) leaves out: the normal's
+        rotation and the witness points sliding over the surfaces.
+        """
+        if self._barrier_drift is None:
+            assert self._dynamics is not None
+            self._barrier_drift = self._dynamics.barrier_drift(self)
+        return self._barrier_drift
 
 
 def validate_state(q: np.ndarray, v: np.ndarray, t: float, n: int) -> tuple[np.ndarray, np.ndarray, float]:
@@ -94,6 +107,10 @@ class Dynamics:
         self.obstacles = list(obstacles)
         self.cutoff = float(cutoff)
         self.engine = DistanceEngine([c.radius for c in robot.capsules], self.obstacles, broadphase)
+        # a second engine and data for the barrier drift's look-ahead, so the tick's own stay intact
+        self._probe = DistanceEngine([c.radius for c in robot.capsules], self.obstacles, broadphase=False)
+        self._probe_data = robot.model.createData()
+        self.drift_step = 2e-3  # [s] look-ahead of the barrier drift's finite difference
         self._axes = list(robot.task_axes)
         self._caps = [(c.joint_id, c.p0, c.p1) for c in robot.capsules]
 
@@ -149,6 +166,38 @@ class Dynamics:
         clearance = float(pairs.distance.min()) if k else float("inf")
         return TickState(t, q, v, M, N, x, J @ v, J, drift, link_jac, segments, pairs, pair_jac, pair_drift,
                          clearance, _dynamics=self)
+
+    def barrier_drift(self, state: TickState) -> np.ndarray:
+        """∂ḣ/∂q q̇ + ∂ḣ/∂t per pair by a forward difference along the motion (q + δq̇, t + δ).
+
+        ḣ is re-evaluated with the witness points and normal recomputed by python-fcl at the
+        look-ahead state and the same q̇; δ = ``drift_step`` balances truncation (O(δ)) and the
+        distance query's noise (O(1e-8/δ)).
+        """
+        pairs = state.pairs
+        k = len(pairs)
+        if k == 0:
+            return np.zeros(0)
+        delta = self.drift_step
+        q1, t1 = state.q + delta * state.v, state.t + delta
+        model, data = self.model, self._probe_data
+        pin.forwardKinematics(model, data, q1, state.v)
+        segments = np.empty_like(state.segments)
+        for i, (jid, p0, p1) in enumerate(self._caps):
+            segments[i, 0] = data.oMi[jid].act(p0)
+            segments[i, 1] = data.oMi[jid].act(p1)
+        self._probe.update(segments, t1)
+        hdot0 = np.einsum("ri,rin,n->r", pairs.normal, state.pair_jac, state.v) - np.einsum(
+            "ri,ri->r", pairs.normal, pairs.v_obstacle)
+        hdot1 = np.empty(k)
+        for r in range(k):
+            i, j = int(pairs.link[r]), int(pairs.obstacle[r])
+            _, n, p_link, _ = self._probe.pair(i, j)
+            jid = self._caps[i][0]
+            vw = data.oMi[jid].act(data.v[jid])
+            v_point = vw.linear + np.cross(vw.angular, p_link)
+            hdot1[r] = n @ (v_point - self.obstacles[j].velocity_at(t1))
+        return (hdot1 - hdot0) / delta
 
     def task_jacobian_derivative(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
         """J̇ (m, n) of the task point at (q, v)."""

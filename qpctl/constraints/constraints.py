@@ -4,8 +4,12 @@
 * :class:`JointLimit` — joint positions and speeds kept inside their limits by second-order
   (position) and first-order (speed) barriers expressed as bounds on q̈.
 * :class:`ObstacleBarrier` — for each (link, obstacle) pair within the influence distance,
-  ḧ + k₁ḣ + k₀h ≥ 0 with h = d − d_s, ḣ = nᵀ(J_p q̇ − v_obs), ḧ ≈ nᵀ(J_p q̈ + J̇_p q̇ − a_obs)
-  (the normal's own rate is neglected). A fixed number of rows: inactive rows have −inf bounds.
+  ḧ + k₁ḣ + k₀h ≥ 0 with h = d − d_s, ḣ = nᵀ(J_p q̇ − v_obs), ḧ = nᵀJ_p q̈ + (∂ḣ/∂q q̇ + ∂ḣ/∂t).
+  The drift in brackets is :meth:`TickState.barrier_drift` (``drift="exact"``, the default), which
+  includes the normal's rotation and the witness points sliding over the surfaces, or the rigid-point
+  approximation nᵀ(J̇_p q̇ − a_obs) of DESIGN.md §2 (``drift="rigid"``), which leaves out a term of
+  order ρω² (ρ the distance from the link's joint, ω its angular rate) and so lets a fast-turning
+  link settle a few millimetres inside d_s. A fixed number of rows: inactive rows have −inf bounds.
 """
 
 from __future__ import annotations
@@ -92,7 +96,11 @@ class ObstacleBarrier(Constraint):
 
     name = "obstacles"
 
-    def __init__(self, capacity: int, d_safe: float, *, k0: float = 400.0, k1: float = 40.0) -> None:
+    def __init__(self, capacity: int, d_safe: float, *, k0: float = 400.0, k1: float = 40.0,
+                 drift: str = "exact") -> None:
+        if drift not in ("exact", "rigid"):
+            raise ConfigError(f"must be exact or rigid, got {drift!r}", key="controller.barrier_drift")
+        self.drift = drift
         if capacity < 1:
             raise ConfigError(f"must be >= 1, got {capacity}", key="controller.max_pairs")
         self.rows = int(capacity)
@@ -118,8 +126,11 @@ class ObstacleBarrier(Constraint):
         rows = np.einsum("ri,rin->rn", nrm, Jp)
         h = pairs.distance[order] - self.d_safe
         hdot = rows @ state.v - np.einsum("ri,ri->r", nrm, pairs.v_obstacle[order])
-        rhs = (-self.k1 * hdot - self.k0 * h - np.einsum("ri,ri->r", nrm, state.pair_drift[order])
-               + np.einsum("ri,ri->r", nrm, pairs.a_obstacle[order]))
+        if self.drift == "exact":
+            drift = state.barrier_drift()[order]
+        else:
+            drift = np.einsum("ri,ri->r", nrm, state.pair_drift[order] - pairs.a_obstacle[order])
+        rhs = -self.k1 * hdot - self.k0 * h - drift
         r = order.size
         C[:r] = rows
         lower[:r] = rhs

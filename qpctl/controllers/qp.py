@@ -46,9 +46,13 @@ class QPConfig:
 
     solver: a name from ``qpctl solvers``; solver_settings: passed to it (tolerances, max_iter...).
     torque_limits / joint_limits: include those constraints when the robot has finite limits.
-    barrier_k0 [1/s²], barrier_k1 [1/s]: obstacle barrier gains; joint_k0, joint_k1: joint-position
+    barrier_k0 [1/s²], barrier_k1 [1/s]: obstacle barrier gains; barrier_drift: "exact" (look-ahead
+    finite difference of ḣ, default) or "rigid" (nᵀJ̇_p q̇ only, DESIGN.md §2's approximation); joint_k0, joint_k1: joint-position
     barrier gains; velocity_gain [1/s]: joint-speed barrier gain.
     slack_l1, slack_l2: task slack weights (ℓ₁ exact penalty, ℓ₂ regulariser).
+    task_relaxation: "always" — solve with the task slack every tick; "on_failure" — solve with the
+    task hard first and with the slack only when that fails (infeasible); "auto" — "on_failure" for
+    osqp (ADMM converges slowly and its polishing fails with the ℓ₁ slack), "always" otherwise.
     max_pairs: obstacle rows (0: 4 per link, at most links × obstacles).
     fallback: what to use when the solver fails, tried in order: solver names, "closed-form"
     (the paper law, torques clipped to the limits) or "brake" (τ = N − M·k q̇, clipped).
@@ -63,12 +67,14 @@ class QPConfig:
     joint_limits: bool = True
     barrier_k0: float = 400.0
     barrier_k1: float = 40.0
+    barrier_drift: str = "exact"
     joint_k0: float = 100.0
     joint_k1: float = 20.0
     velocity_gain: float = 50.0
     slack_l1: float = 1e6
     slack_l2: float = 1e2
     max_pairs: int = 0
+    task_relaxation: str = "auto"
     fallback: list[str] = field(default_factory=lambda: [FALLBACK_CLOSED_FORM])
     tick_budget_us: float = 0.0
     posture: list[float] | None = None
@@ -93,6 +99,10 @@ class QPController(Controller):
         self.config = config or QPConfig()
         cfg = self.config
         self._solver = make_solver(cfg.solver, cfg.solver_settings)
+        self._solver_soft = make_solver(cfg.solver, cfg.solver_settings)
+        if cfg.task_relaxation not in ("auto", "always", "on_failure"):
+            raise ConfigError(f"must be auto, always or on_failure, got {cfg.task_relaxation!r}",
+                              key="controller.task_relaxation")
         for name in cfg.fallback:
             if name not in (FALLBACK_CLOSED_FORM, FALLBACK_BRAKE):
                 make_solver(name)  # unknown names fail now, not in the middle of a run
@@ -112,7 +122,8 @@ class QPController(Controller):
                                               k1=cfg.joint_k1, kv=cfg.velocity_gain))
             if self.obstacles:
                 cap = cfg.max_pairs or len(robot.capsules) * min(len(self.obstacles), 4)
-                constraints.append(ObstacleBarrier(cap, self.gains.d_safe, k0=cfg.barrier_k0, k1=cfg.barrier_k1))
+                constraints.append(ObstacleBarrier(cap, self.gains.d_safe, k0=cfg.barrier_k0, k1=cfg.barrier_k1,
+                                                   drift=cfg.barrier_drift))
         self.tasks: list[Task] = list(tasks)
         self.constraints: list[Constraint] = list(constraints)
         self._formulation: Formulation | None = None
@@ -154,11 +165,13 @@ class QPController(Controller):
     def set_solver(self, name: str, settings: dict[str, Any] | None = None) -> None:
         """Swap the solver (its warm start starts afresh)."""
         self._solver = make_solver(name, settings)
+        self._solver_soft = make_solver(name, settings)
         self.config.solver = name
 
     def reset(self) -> None:
         super().reset()
         self._solver.reset()
+        self._solver_soft.reset()
         for s in self._fallback_solvers.values():
             s.reset()
 
@@ -167,7 +180,16 @@ class QPController(Controller):
         if self._formulation is None:
             self._formulation = Formulation(self.n, self.tasks, self.constraints)
             self._solver.reset()
+            self._solver_soft.reset()
         return self._formulation
+
+    @property
+    def relaxation(self) -> str:
+        """The task-relaxation strategy in force ("always" or "on_failure")."""
+        mode = self.config.task_relaxation
+        if mode == "auto":
+            return "on_failure" if self._solver.name == "osqp" else "always"
+        return mode
 
     def _fallback(self, name: str, state: TickState, terms: Any, problem: Problem) -> tuple[np.ndarray, Solution | None]:
         if name == FALLBACK_CLOSED_FORM:
@@ -186,12 +208,24 @@ class QPController(Controller):
         ref = self.path(state.t)
         terms = law_terms(state, ref, self.gains, weighted=True)
         t0 = time.perf_counter()
-        problem = self.formulation().build(state, terms)
+        form = self.formulation()
+        hard_first = self.relaxation == "on_failure"
+        problem = form.build(state, terms, relax=not hard_first)
         t1 = time.perf_counter()
-        sol = self._solver.solve(problem)
+        sol = (self._solver if hard_first else self._solver_soft).solve(problem)
         t2 = time.perf_counter()
-        info: dict[str, Any] = {"status": sol.status, "iterations": sol.iterations, "solver": sol.solver,
-                                "build_us": (t1 - t0) * 1e6, "solve_us": (t2 - t1) * 1e6}
+        build_us, solve_us = (t1 - t0) * 1e6, (t2 - t1) * 1e6
+        info: dict[str, Any] = {"status": sol.status, "iterations": sol.iterations, "solver": sol.solver}
+        if hard_first and not sol.found:  # the task conflicts with the hard rows: let it give way
+            problem = form.build(state, terms, relax=True)
+            t3 = time.perf_counter()
+            sol = self._solver_soft.solve(problem)
+            t4 = time.perf_counter()
+            build_us += (t3 - t2) * 1e6
+            solve_us += (t4 - t3) * 1e6
+            info.update(relaxed=True, hard_status=info["status"], status=sol.status,
+                        iterations=info["iterations"] + sol.iterations)
+        info["build_us"], info["solve_us"] = build_us, solve_us
         if sol.found:
             qdd = sol.x[:n]
             x = sol.x

@@ -89,8 +89,8 @@ class DistanceEngine:
         self._inflated: list[fcl.CollisionObject] = []
         self._inflate = np.nan
         self._t = 0.0
+        self._by_position: dict[tuple[float, ...], list[int]] | None = None
         if self.broadphase:
-            self._obs_index = {id(o): i for i, o in enumerate(self._obs_objs)}
             self._manager = fcl.DynamicAABBTreeCollisionManager()
             self._manager.registerObjects(self._obs_objs)
             self._manager.setup()
@@ -116,6 +116,7 @@ class DistanceEngine:
                 self._obs_objs[j].setTransform(self.obstacles[j].transform(t))
             if self.broadphase and self._moving:
                 self._manager.update()
+                self._by_position = None
         self._t = t
 
     # -- queries ------------------------------------------------------------------------------
@@ -127,20 +128,58 @@ class DistanceEngine:
             self._inflated = [fcl.CollisionObject(fcl.Capsule(r + cutoff, max(L, 1e-9)))
                               for r, L in zip(self.radii, self._link_len)]
             self._inflate = cutoff
+        # python-fcl hands the callback new wrappers of the registered objects (their ids differ),
+        # so obstacles are recognised by their exact current translation; a shared translation
+        # only adds candidates, which the exact distance query then filters.
+        if self._by_position is None:
+            self._by_position = {}
+            for j, o in enumerate(self._obs_objs):
+                self._by_position.setdefault(tuple(o.getTranslation()), []).append(j)
+        lookup = self._by_position
         found: list[tuple[int, int]] = []
         for i, (obj, infl) in enumerate(zip(self._link_objs, self._inflated)):
             infl.setTransform(obj.getTransform())
             hits: list[int] = []
 
-            def callback(o1: fcl.CollisionObject, o2: fcl.CollisionObject, _data: object) -> bool:
-                j = self._obs_index.get(id(o1), self._obs_index.get(id(o2)))
-                if j is not None and fcl.collide(o1, o2, fcl.CollisionRequest(), fcl.CollisionResult()):
-                    hits.append(j)
+            def callback(o1: fcl.CollisionObject, o2: fcl.CollisionObject, _data: object,
+                         hits: list[int] = hits) -> bool:
+                if fcl.collide(o1, o2, fcl.CollisionRequest(), fcl.CollisionResult()):
+                    for o in (o1, o2):
+                        hits.extend(lookup.get(tuple(o.getTranslation()), ()))
                 return False
 
             self._manager.collide(infl, None, callback)
             found.extend((i, j) for j in sorted(set(hits)))
         return found
+
+    def pair(self, i: int, j: int) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        """Signed distance d [m], unit normal n (obstacle → link), witness points on link and obstacle."""
+        d, res = signed_distance(self._link_objs[i], self._obs_objs[j])
+        return (d, *self._witness(i, j, d, res))
+
+    def _witness(self, i: int, j: int, d: float, res: fcl.DistanceResult
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        p_link, p_obs = np.asarray(res.nearest_points[0]), np.asarray(res.nearest_points[1])
+        diff = p_link - p_obs
+        nd = float(np.linalg.norm(diff))
+        if d > 1e-6:
+            # GJK's witness point on a capsule can be off by ~1e-4 m along the axis (the flat
+            # direction); the exact one is the axis point closest to the obstacle's witness,
+            # pushed out by the radius. It matters for the barrier's drift (ḣ to ~1e-6 m/s).
+            a, b = self._segments[i]
+            w = closest_point_on_segment(a, b, p_obs) - p_obs
+            wn = float(np.linalg.norm(w))
+            n = w / wn if wn > 1e-9 else diff / max(nd, 1e-12)
+            p_link = p_obs + n * (wn - self.radii[i]) if wn > 1e-9 else p_link
+        elif nd > 1e-6 and abs(d) > 1e-9:
+            n = np.sign(d) * diff / nd
+        else:  # touching (witness points < 1 µm apart, their direction is rounding noise):
+            # fall back on the direction from the obstacle's centre to the link's axis
+            c = self.obstacles[j].position_at(self._t)
+            a, b = self._segments[i]
+            w = closest_point_on_segment(a, b, c) - c
+            n = w / max(float(np.linalg.norm(w)), 1e-12)
+        return n, p_link, p_obs
 
     def pairs(self, cutoff: float = np.inf) -> PairSet:
         """All pairs with signed distance below ``cutoff`` [m]."""
@@ -149,16 +188,7 @@ class DistanceEngine:
             d, res = signed_distance(self._link_objs[i], self._obs_objs[j])
             if d >= cutoff:
                 continue
-            p_link, p_obs = np.asarray(res.nearest_points[0]), np.asarray(res.nearest_points[1])
-            diff = p_link - p_obs
-            nd = float(np.linalg.norm(diff))
-            if nd > 1e-9 and abs(d) > 1e-9:
-                n = np.sign(d) * diff / nd
-            else:  # touching: fall back on the direction from the obstacle's centre to the link's axis
-                c = self.obstacles[j].position_at(self._t)
-                a, b = self._segments[i]
-                w = closest_point_on_segment(a, b, c) - c
-                n = w / max(float(np.linalg.norm(w)), 1e-12)
+            n, p_link, p_obs = self._witness(i, j, d, res)
             rows.append((i, j, d, n, p_link, p_obs))
         if not rows:
             return PairSet.empty()

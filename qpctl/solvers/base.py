@@ -15,7 +15,7 @@ from qpctl.qp import Problem, Solution
 # guarantee (the QP equals the paper law to 1e-6 relative when no inequality is active).
 DEFAULT_SETTINGS: dict[str, dict[str, Any]] = {
     "proxqp": {"eps_abs": 1e-9, "eps_rel": 0.0, "max_iter": 1000},
-    "osqp": {"eps_abs": 1e-7, "eps_rel": 1e-7, "max_iter": 4000, "polishing": True, "polish_refine_iter": 5},
+    "osqp": {"eps_abs": 1e-5, "eps_rel": 1e-5, "max_iter": 4000, "polishing": True, "polish_refine_iter": 5},
     "clarabel": {"tol_gap_abs": 1e-9, "tol_gap_rel": 1e-9, "tol_feas": 1e-9},
 }
 

@@ -75,7 +75,7 @@ class OSQPSolver(QPSolver):
         else:
             Pvals, Avals = self._values(problem)
             self._solver.update(q=problem.c, l=lo, u=hi, Px=Pvals, Ax=Avals)
-        res = self._solver.solve()
+        res = self._solver.solve(raise_error=False)
         status = str(res.info.status)
         x = np.asarray(res.x, float) if res.x is not None else np.full(nv, np.nan)
         ok = status in ("solved", "solved inaccurate") and bool(np.all(np.isfinite(x)))
