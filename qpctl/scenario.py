@@ -161,7 +161,7 @@ SCHEMA: dict[str, Any] = {
         "max_pairs": (_int, 0),
         "posture_weight": (_num, 0.0),
         "posture": (_vec, None),
-        "fallback": (_str_list, []),
+        "fallback": (_str_list, ["closed-form"]),
         "tick_budget_us": (_num, 0.0),
         "broadphase": (_str, "auto"),
         "solver_settings": (_table, {}),

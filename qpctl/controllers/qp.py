@@ -242,8 +242,10 @@ class QPController(Controller):
                 qdd = -self.gains.kv * state.v
                 info["fallback"] = FALLBACK_BRAKE
         tau = state.M @ qdd + state.N
-        limit = self.robot.tau_max
-        clipped = np.clip(tau, -limit, limit)
+        # The solver meets the torque rows to its tolerance; clip that residue (and any fallback's
+        # excess) so the commanded torque never exceeds a limit the controller was asked to hold.
+        limit = next((c.tau_max for c in self.constraints if isinstance(c, TorqueLimit)), None)
+        clipped = tau if limit is None else np.clip(tau, -limit, limit)
         if np.any(clipped != tau):
             info["clipped"] = float(np.max(np.abs(clipped - tau)))
             tau = clipped
