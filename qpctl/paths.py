@@ -60,7 +60,8 @@ class WaypointPath:
                 raise ConfigError("give duration or durations", key="path.duration")
             total = float(lengths.sum())
             T = np.full(lengths.size, duration / lengths.size) if total == 0 else duration * lengths / total
-        if not np.all(np.isfinite(T)) or np.any(T <= 0) and np.any(lengths[T <= 0] > 0):
+        # A zero duration is allowed only on a zero-length segment; a negative one never.
+        if not np.all(np.isfinite(T)) or np.any(T < 0) or np.any(lengths[T <= 0] > 0):
             raise ConfigError(f"segment durations must be positive, got {T.tolist()}", key="path.duration")
         if not (np.isfinite(dwell) and dwell >= 0):
             raise ConfigError(f"must be >= 0, got {dwell}", key="path.dwell")

@@ -1,0 +1,53 @@
+"""Every exported name resolves; the controller interface is the same for every law."""
+
+from __future__ import annotations
+
+import importlib
+
+import numpy as np
+import pytest
+
+PACKAGES = ["qpctl", "baselines", "qpctl.robot", "qpctl.geometry", "qpctl.simulation", "qpctl.controllers"]
+
+
+@pytest.mark.parametrize("package", PACKAGES)
+def test_all_names_resolve(package):
+    mod = importlib.import_module(package)
+    names = mod.__all__
+    assert len(names) == len(set(names)), "duplicate names in __all__"
+    for name in names:
+        assert getattr(mod, name, None) is not None, f"{package}.{name} does not resolve"
+
+
+def test_star_import_works():
+    ns: dict = {}
+    exec("from qpctl import *", ns)  # noqa: S102
+    exec("from baselines import *", ns)  # noqa: S102
+    import baselines
+    import qpctl
+
+    for name in qpctl.__all__ + baselines.__all__:
+        assert name in ns
+
+
+def test_errors_share_one_base():
+    import qpctl
+
+    for name in ("ConfigError", "InvalidStateError", "UnknownFrameError", "UnknownSolverError", "SolverError",
+                 "InfeasibleError", "SimulationError"):
+        assert issubclass(getattr(qpctl, name), qpctl.QpctlError)
+
+
+def test_baselines_share_the_controller_interface(planar):
+    import baselines
+    import qpctl
+
+    path = qpctl.WaypointPath([[-1.0, -2.0], [-0.5, -1.5]], duration=1.0)
+    for name in baselines.__all__:
+        cls = getattr(baselines, name)
+        assert issubclass(cls, qpctl.Controller)
+        ctrl = cls(planar, path)
+        tau = ctrl.torque(planar.q_home, np.zeros(3), 0.0)
+        assert tau.shape == (3,) and np.all(np.isfinite(tau))
+        with pytest.raises(qpctl.InvalidStateError):
+            ctrl.torque(np.full(3, np.nan), np.zeros(3), 0.0)
