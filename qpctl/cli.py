@@ -1,12 +1,14 @@
 """The ``qpctl`` command line: ``simulate``, ``bench``, ``solvers``.
 
 Any :class:`~qpctl.errors.QpctlError` (or an ``OSError`` reading or writing files) becomes one line on
-stderr and exit status 2.
+stderr and exit status 2; any other exception (a bug) one line and exit status 3, with the traceback
+only when the environment sets ``QPCTL_DEBUG=1``.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -72,14 +74,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return int(args.func(args))
     except QpctlError as exc:
-        print(f"qpctl: error: {exc}", file=sys.stderr)
+        print(f"qpctl: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except OSError as exc:  # an output folder that cannot be written, a file that cannot be read
-        print(f"qpctl: error: {exc}", file=sys.stderr)
+        print(f"qpctl: error: {_one_line(exc)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("qpctl: interrupted", file=sys.stderr)
         return 130
+    except Exception as exc:  # a bug, but still one line (QPCTL_DEBUG=1 shows the traceback)
+        if os.environ.get("QPCTL_DEBUG"):
+            raise
+        print(f"qpctl: internal error: {type(exc).__name__}: {_one_line(exc)} "
+              "(a bug: please report it; QPCTL_DEBUG=1 shows the traceback)", file=sys.stderr)
+        return 3
+
+
+def _one_line(exc: BaseException) -> str:
+    return " ".join(str(exc).splitlines())
 
 
 if __name__ == "__main__":

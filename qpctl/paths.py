@@ -65,6 +65,8 @@ class WaypointPath:
             raise ConfigError(f"segment durations must be positive, got {T.tolist()}", key="path.duration")
         if not (np.isfinite(dwell) and dwell >= 0):
             raise ConfigError(f"must be >= 0, got {dwell}", key="path.dwell")
+        if not np.isfinite(start_time):
+            raise ConfigError(f"must be a finite number of seconds, got {start_time}", key="path.start_time")
         self.durations = np.maximum(T, 1e-9)
         starts = [start_time]
         for Tk in self.durations[:-1]:

@@ -7,6 +7,7 @@ has finished, so a failed run leaves nothing half-written.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import tempfile
 from dataclasses import dataclass
@@ -87,9 +88,15 @@ def write_outputs(result: RunResult, out: Path, *, figures: bool = True) -> list
             segs = link_segments(result.controller, result.trajectory.q)
             label = f"{result.scenario.name}, {result.controller.kind}"
             write_figures(tmp, result.trajectory, segs, result.controller.obstacles, label)
-        out.mkdir(parents=True, exist_ok=True)
+        names = sorted(f.name for f in tmp.iterdir())
+        if not out.exists():  # the usual case: one rename, so the folder appears complete or not at all
+            mask = os.umask(0)
+            os.umask(mask)
+            tmp.chmod(0o777 & ~mask)  # mkdtemp made it private; give it a new folder's usual mode
+            tmp.rename(out)
+            return [out / name for name in names]
         written = []
-        for f in sorted(tmp.iterdir()):
+        for f in sorted(tmp.iterdir()):  # an existing folder: each file replaced by a rename
             dest = out / f.name
             shutil.move(str(f), dest)
             written.append(dest)

@@ -178,6 +178,30 @@ SCHEMA: dict[str, Any] = {
 CONTROLLER_KINDS = ("paper", "hsu", "qp")
 
 
+def arm_reach(robot: RobotModel) -> tuple[np.ndarray, float] | None:
+    """(centre [m], radius [m]) of a sphere that holds every position of the task point, or None.
+
+    For a chain of revolute joints the first joint's origin stays put and each further joint origin
+    (and the task frame) sits at a fixed distance from the previous one, so the task point is never
+    farther from the first joint's origin than the sum of those distances. Prismatic or other joints
+    give no such bound (None).
+    """
+    model = robot.model
+    frame = model.frames[robot.ee_frame_id]
+    radius = float(np.linalg.norm(frame.placement.translation))
+    j = int(frame.parentJoint)
+    if j == 0:
+        return None
+    while True:
+        if not model.joints[j].shortname().startswith("JointModelR"):
+            return None
+        parent = int(model.parents[j])
+        if parent == 0:
+            return np.asarray(model.jointPlacements[j].translation, float).copy(), radius
+        radius += float(np.linalg.norm(model.jointPlacements[j].translation))
+        j = parent
+
+
 def _validate_table(raw: Any, schema: dict[str, Any], source: str, prefix: str) -> dict[str, Any]:
     if not isinstance(raw, dict):
         raise ConfigError("must be a table", source=source, key=prefix or "<top level>")
@@ -323,10 +347,72 @@ class Scenario:
             self.gains()
         except ConfigError as exc:
             raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key) from None
+        self._check_controller()
         # Validated on load (DESIGN.md §4), not when the run starts: obstacles, robot, q0, path.
-        self.build_obstacles()
+        obstacles = self.build_obstacles()
         robot = self.build_robot()
-        self.build_path(robot, self.q0(robot))
+        q0 = self.q0(robot)
+        self._check_reach(robot, self.build_path(robot, q0))
+        self._check_start_clear(robot, obstacles, q0)
+
+    def _check_controller(self) -> None:
+        """The QP's keys, whichever controller the file names (``--controller qp`` may pick it later)."""
+        from qpctl.controllers.qp import FALLBACK_BRAKE, FALLBACK_CLOSED_FORM, QPConfig
+        from qpctl.errors import UnknownSolverError
+        from qpctl.solvers import make_solver
+
+        c = self.data["controller"]
+        for key in ("barrier_k0", "barrier_k1", "joint_k0", "joint_k1", "velocity_gain"):
+            if not (np.isfinite(c[key]) and c[key] > 0):
+                raise self._err(f"controller.{key}", f"must be a positive number, got {c[key]}")
+        try:
+            QPConfig.from_dict(c)
+        except ConfigError as exc:
+            raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key) from None
+        for name in c["fallback"]:
+            if name not in (FALLBACK_CLOSED_FORM, FALLBACK_BRAKE):
+                try:
+                    make_solver(name)
+                except UnknownSolverError as exc:
+                    raise self._err("controller.fallback", f"{exc} (or closed-form, brake)") from None
+        r = self.data["robot"]
+        for key in ("tau_max", "v_max"):
+            if r[key] is not None and not np.all(np.asarray(r[key], float) > 0):  # inf allowed, NaN not
+                raise self._err(f"robot.{key}", f"must be positive (inf: no limit), got {r[key]}")
+
+    def _check_reach(self, robot: RobotModel, path: WaypointPath) -> None:
+        """Every waypoint within the arm's reach (a sphere about its first joint; revolute arms only)."""
+        reach = arm_reach(robot)
+        if reach is None:
+            return
+        centre, radius = reach
+        axes = list(robot.task_axes)
+        for i, w in enumerate(path.points[1:]):
+            d = float(np.linalg.norm(w - centre[axes]))
+            if d > radius * (1 + 1e-9) + 1e-9:
+                raise self._err("path.waypoints", f"waypoint {i} {w.tolist()} is out of reach: {d:.3f} m from the "
+                                f"arm's base {centre[axes].tolist()}, which reaches at most {radius:.3f} m")
+
+    def _check_start_clear(self, robot: RobotModel, obstacles: list[Obstacle], q0: np.ndarray) -> None:
+        """No obstacle penetrates a link at the start (q0, t = 0): no controller could recover from that."""
+        if not obstacles:
+            return
+        import pinocchio as pin
+
+        from qpctl.geometry.distance import DistanceEngine
+
+        data = robot.model.createData()
+        pin.forwardKinematics(robot.model, data, q0)
+        segments = np.array([[data.oMi[c.joint_id].act(c.p0), data.oMi[c.joint_id].act(c.p1)]
+                             for c in robot.capsules])
+        engine = DistanceEngine([c.radius for c in robot.capsules], obstacles, broadphase=False)
+        engine.update(segments, 0.0)
+        for j, obs in enumerate(obstacles):
+            for i, cap in enumerate(robot.capsules):
+                d = engine.pair(i, j)[0]
+                if d < 0:
+                    raise self._err(f"obstacles[{j}]", f"obstacle {obs.name!r} penetrates link {cap.name!r} by "
+                                    f"{-d:.4f} m at the start configuration (robot.q0, t = 0)")
 
     @property
     def name(self) -> str:
@@ -361,7 +447,15 @@ class Scenario:
             return robot.q_home.copy()
         if len(q0) != robot.nv:
             raise self._err("robot.q0", f"needs {robot.nv} joint values, got {len(q0)}")
-        return np.array(q0, float)
+        q = np.array(q0, float)
+        if not np.all(np.isfinite(q)):
+            raise self._err("robot.q0", f"must be finite numbers, got {q0}")
+        outside = np.flatnonzero((q < robot.q_min) | (q > robot.q_max))
+        if outside.size:
+            i = int(outside[0])
+            raise self._err("robot.q0", f"joint {robot.joint_names[i]} = {q[i]} is outside its limits "
+                            f"[{robot.q_min[i]}, {robot.q_max[i]}]")
+        return q
 
     def build_path(self, robot: RobotModel, q0: np.ndarray) -> WaypointPath:
         p = self.data["path"]

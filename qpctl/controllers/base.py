@@ -21,6 +21,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from qpctl.errors import ConfigError
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.law import LawGains
 from qpctl.paths import Reference, WaypointPath
@@ -60,8 +61,6 @@ class Controller(ABC):
         self.obstacles = list(obstacles)
         self.gains = gains or LawGains()
         if path.dim != robot.m:
-            from qpctl.errors import ConfigError
-
             raise ConfigError(f"path points have {path.dim} coordinates but the robot's task has {robot.m}",
                               key="path.waypoints")
         self.dynamics = Dynamics(robot, self.obstacles, cutoff=self.cutoff, broadphase=broadphase)

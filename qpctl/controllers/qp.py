@@ -28,7 +28,7 @@ from qpctl.controllers.base import ControlOutput, Controller
 from qpctl.errors import ConfigError
 from qpctl.formulation import Formulation
 from qpctl.geometry.obstacles import Obstacle
-from qpctl.law import LawGains, closed_form_acceleration, law_terms
+from qpctl.law import LawGains, LawTerms, closed_form_acceleration, law_terms
 from qpctl.paths import WaypointPath
 from qpctl.qp import Problem, Solution
 from qpctl.robot.model import RobotModel
@@ -38,6 +38,13 @@ from qpctl.tasks.tasks import AccelerationTask, EndEffectorTask, PostureTask, Ta
 
 FALLBACK_CLOSED_FORM = "closed-form"
 FALLBACK_BRAKE = "brake"
+
+
+def _finite_problem(problem: Problem) -> bool:
+    """No NaN anywhere and no infinity outside the bounds (where ±inf means "no bound")."""
+    data = (problem.P, problem.c, problem.A, problem.b, problem.C)
+    bounds = (problem.l, problem.u, problem.lb, problem.ub)
+    return all(np.all(np.isfinite(a)) for a in data) and not any(np.any(np.isnan(a)) for a in bounds)
 
 
 @dataclass
@@ -54,10 +61,29 @@ class QPConfig:
     task hard first and with the slack only when that fails (infeasible); "auto" — "on_failure" for
     osqp (ADMM converges slowly and its polishing fails with the ℓ₁ slack), "always" otherwise.
     max_pairs: obstacle rows (0: 4 per link, at most links × obstacles).
-    fallback: what to use when the solver fails, tried in order: solver names, "closed-form"
-    (the paper law, torques clipped to the limits) or "brake" (τ = N − M·k q̇, clipped).
-    tick_budget_us: solver time budget per tick [µs] (0: none); passed as the solver's time limit
-    where it has one.
+    fallback: the failure policy — what produces the torque when the solver fails (infeasible,
+    iteration or time limit, numerical error, non-finite data), tried in order:
+
+    * a solver name (``qpctl solvers``), e.g. ``"daqp"``: that solver on the same tick's QP (with the
+      task slack), skipped once the tick budget is spent;
+    * ``"closed-form"`` — the closed form with brake: the paper law (eq. 19) when it is safe, i.e. no
+      link is within d_safe of an obstacle and its q̈ meets every obstacle-barrier row of the tick's
+      QP; otherwise the brake below;
+    * ``"brake"`` — q̈ = k_v (g − q̇): come to rest, except that links within d_influence back away
+      along the obstacle sensor's reference velocity g (g = 0 when no obstacle is near), k_v the
+      task's velocity gain [1/s].
+
+    ``"closed-form"`` and ``"brake"`` always produce a torque, so entries after them are never used;
+    when every entry fails, the brake is used. Any fallback's q̈ is clipped to the joint-limit bounds
+    and its torque to ±τ_max. The tick's ``info`` records ``fallback`` (what produced the torque),
+    ``fallback_reason`` (the QP's status) and ``fallback_tried`` ("name:status" of the entries
+    that failed); the run's metrics count ``qp_fallbacks`` by name.
+    tick_budget_us: wall-time budget of a tick [µs] (0: none), from the start of
+    :meth:`QPController.step` (state, QP build and every solver attempt). Each solver attempt gets
+    what is left as its time limit (osqp, clarabel: their own; proxqp: an iteration cap from its
+    measured cost per iteration; daqp, quadprog: cannot be stopped, the clock is checked after);
+    once it is spent no further solver is tried and the chain goes on with its first
+    ``"closed-form"``/``"brake"`` entry (tens of µs). ``info["budget_exhausted"]`` marks such ticks.
     posture / posture_weight: an optional PostureTask.
     """
 
@@ -79,6 +105,17 @@ class QPConfig:
     tick_budget_us: float = 0.0
     posture: list[float] | None = None
     posture_weight: float = 0.0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.fallback, str) or not all(isinstance(x, str) for x in self.fallback):
+            raise ConfigError(f"must be a list of names, got {self.fallback!r}", key="controller.fallback")
+        self.fallback = list(self.fallback)
+        for key in ("tick_budget_us", "slack_l1", "slack_l2", "posture_weight"):
+            val = getattr(self, key)
+            if isinstance(val, bool) or not isinstance(val, (int, float)) or not (np.isfinite(val) and val >= 0):
+                raise ConfigError(f"must be a number >= 0, got {val!r}", key=f"controller.{key}")
+        if isinstance(self.max_pairs, bool) or not isinstance(self.max_pairs, int) or self.max_pairs < 0:
+            raise ConfigError(f"must be an integer >= 0, got {self.max_pairs!r}", key="controller.max_pairs")
 
     @classmethod
     def from_dict(cls, cfg: dict[str, Any]) -> "QPConfig":
@@ -103,10 +140,10 @@ class QPController(Controller):
         if cfg.task_relaxation not in ("auto", "always", "on_failure"):
             raise ConfigError(f"must be auto, always or on_failure, got {cfg.task_relaxation!r}",
                               key="controller.task_relaxation")
-        for name in cfg.fallback:
-            if name not in (FALLBACK_CLOSED_FORM, FALLBACK_BRAKE):
-                make_solver(name)  # unknown names fail now, not in the middle of a run
-        self._fallback_solvers: dict[str, QPSolver] = {}
+        # Fallback solvers are built now: an unknown name fails here, not in the middle of a run.
+        self._fallback_solvers: dict[str, QPSolver] = {
+            name: make_solver(name) for name in cfg.fallback if name not in (FALLBACK_CLOSED_FORM, FALLBACK_BRAKE)}
+        self._tick_start: float | None = None
         if tasks is None:
             tasks = [AccelerationTask(), EndEffectorTask(cfg.slack_l1, cfg.slack_l2)]
             if cfg.posture_weight > 0:
@@ -191,60 +228,182 @@ class QPController(Controller):
             return "on_failure" if self._solver.name == "osqp" else "always"
         return mode
 
-    def _fallback(self, name: str, state: TickState, terms: Any, problem: Problem) -> tuple[np.ndarray, Solution | None]:
-        if name == FALLBACK_CLOSED_FORM:
-            qdd, _ = closed_form_acceleration(state, terms, self.gains, weighted=True)
-            return qdd, None
+    # -- failure policy (QPConfig.fallback, QPConfig.tick_budget_us) -----------------------------
+    def step(self, q: np.ndarray, v: np.ndarray, t: float) -> ControlOutput:
+        self._tick_start = time.perf_counter()  # the tick budget counts from here
+        try:
+            return super().step(q, v, t)
+        finally:
+            self._tick_start = None
+
+    def _attempt(self, solver: QPSolver, problem: Problem, deadline: float) -> Solution:
+        """One solve within what is left of the tick budget; a backend's exception is a failed solve."""
+        left_us = (deadline - time.perf_counter()) * 1e6
+        if left_us <= 0:
+            return Solution(False, np.zeros(problem.n_var), "time_limit", solver=solver.name)
+        solver.set_time_limit(left_us if np.isfinite(left_us) else None)
+        try:
+            sol = solver.solve(problem)
+        except ConfigError:  # bad solver settings: a configuration error, not a failed tick
+            raise
+        except Exception as exc:  # noqa: BLE001 — a backend's own error must not end the run
+            solver.reset()
+            return Solution(False, np.zeros(problem.n_var), f"error: {type(exc).__name__}", solver=solver.name)
+        if sol.found and not np.all(np.isfinite(sol.x)):
+            return Solution(False, np.zeros(problem.n_var), "nonfinite_solution", sol.iterations, sol.solve_us,
+                            solver.name)
+        return sol
+
+    def _brake(self, state: TickState, terms: LawTerms) -> np.ndarray:
+        """q̈ = k_v (g − q̇) [rad/s²]: to rest, links near obstacles backing away along g."""
+        g = terms.g if np.all(np.isfinite(terms.g)) else np.zeros(self.n)
+        return self.gains.kv * (g - state.v)
+
+    def _torque_limit(self) -> np.ndarray | None:
+        return next((c.tau_max for c in self.constraints if isinstance(c, TorqueLimit)), None)
+
+    def _scale_to_torque_limits(self, state: TickState, qdd: np.ndarray) -> np.ndarray:
+        """s·q̈ with the largest s ∈ [0, 1] that keeps M s q̈ + N within ±τ_max (direction kept, unlike a
+        per-joint clip; s = 0, gravity compensation alone, when N itself is beyond a limit)."""
+        limit = self._torque_limit()
+        if limit is None or not np.all(np.isfinite(qdd)):
+            return qdd
+        d = state.M @ qdd
+        with np.errstate(divide="ignore", invalid="ignore"):
+            hi = np.where(d > 0, (limit - state.N) / d, np.inf)
+            lo = np.where(d < 0, (-limit - state.N) / d, np.inf)
+        scale = float(np.clip(np.min(np.concatenate([hi, lo, [1.0]])), 0.0, 1.0))
+        return qdd * scale
+
+    def _closed_form_is_safe(self, state: TickState, qdd: np.ndarray, problem: Problem) -> str:
+        """"" when the paper law's q̈ may be used, else why not (the brake is used instead)."""
+        if not np.all(np.isfinite(qdd)):
+            return "nonfinite"
+        if state.clearance < self.gains.d_safe:
+            return "within_d_safe"
+        rows = [i for i, name in enumerate(problem.row_names) if name == ObstacleBarrier.name]
+        if rows:
+            lo = problem.l[rows]
+            lhs = problem.C[rows, : self.n] @ qdd
+            with np.errstate(invalid="ignore"):
+                if np.any(lhs < lo - 1e-6 * (1.0 + np.abs(lo))):
+                    return "barrier_violated"
+        return ""
+
+    def _fallback(self, name: str, state: TickState, terms: LawTerms, problem: Problem, *,
+                  deadline: float = np.inf) -> tuple[np.ndarray | None, Solution | None, str]:
+        """Try one entry of the fallback chain: (q̈ or None if it failed, its solution if a solver, what was
+        used or why it failed). ``problem`` is the tick's QP with the task slack."""
         if name == FALLBACK_BRAKE:
-            return -self.gains.kv * state.v, None
-        solver = self._fallback_solvers.get(name)
-        if solver is None:
-            solver = self._fallback_solvers[name] = make_solver(name)
-        sol = solver.solve(problem)
-        return sol.x[: self.n], sol
+            return self._brake(state, terms), None, FALLBACK_BRAKE
+        if name == FALLBACK_CLOSED_FORM:
+            try:
+                qdd, _ = closed_form_acceleration(state, terms, self.gains, weighted=True)
+            except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+                qdd = np.full(self.n, np.nan)
+            why = self._closed_form_is_safe(state, qdd, problem)
+            if why:
+                return self._brake(state, terms), None, f"{FALLBACK_BRAKE} ({why})"
+            return qdd, None, FALLBACK_CLOSED_FORM
+        if not _finite_problem(problem):
+            return None, None, "nonfinite_problem"
+        sol = self._attempt(self._fallback_solvers[name], problem, deadline)
+        return (sol.x[: self.n], sol, name) if sol.found else (None, sol, sol.status)
+
+    def _run_fallbacks(self, state: TickState, terms: LawTerms, problem: Problem, is_relaxed: bool,
+                       deadline: float, info: dict[str, Any]) -> tuple[np.ndarray, Solution | None, Problem]:
+        """Walk the fallback chain (the QP has failed); returns q̈, the solution used (if a solver's) and
+        the problem it solved."""
+        tried: list[str] = []
+        relaxed: Problem | None = problem if is_relaxed else None
+        for name in self.config.fallback:
+            if name in (FALLBACK_BRAKE, FALLBACK_CLOSED_FORM):
+                qdd, fsol, used = self._fallback(name, state, terms, problem, deadline=deadline)
+            else:
+                if relaxed is None:  # fallback solvers get the task slack, so only hard rows can conflict
+                    relaxed = self.formulation().build(state, terms, relax=True)
+                qdd, fsol, used = self._fallback(name, state, terms, relaxed, deadline=deadline)
+            if qdd is None:
+                tried.append(f"{name}:{used}")
+                if used == "time_limit":
+                    info["budget_exhausted"] = True
+                continue
+            if used != name:  # "closed-form" chose to brake
+                tried.append(f"{name}:{used.split('(')[-1].rstrip(')')}")
+                used = FALLBACK_BRAKE
+            info["fallback"] = used
+            if tried:
+                info["fallback_tried"] = tried
+            return qdd, fsol, (relaxed if fsol is not None and relaxed is not None else problem)
+        info["fallback"] = FALLBACK_BRAKE
+        if tried:
+            info["fallback_tried"] = tried
+        return self._brake(state, terms), None, problem
 
     def control(self, state: TickState) -> ControlOutput:
         n = self.n
+        t0 = time.perf_counter()
+        budget = self.config.tick_budget_us
+        start = self._tick_start if self._tick_start is not None else t0
+        deadline = start + budget * 1e-6 if budget > 0 else np.inf
         ref = self.path(state.t)
         terms = law_terms(state, ref, self.gains, weighted=True)
-        t0 = time.perf_counter()
         form = self.formulation()
         hard_first = self.relaxation == "on_failure"
         problem = form.build(state, terms, relax=not hard_first)
+        finite = _finite_problem(problem)
         t1 = time.perf_counter()
-        sol = (self._solver if hard_first else self._solver_soft).solve(problem)
+        primary = self._solver if hard_first else self._solver_soft
+        if finite:
+            sol = self._attempt(primary, problem, deadline)
+        else:  # non-finite data (e.g. a degenerate distance query): no solver can be trusted with it
+            sol = Solution(False, np.zeros(problem.n_var), "nonfinite_problem", solver=primary.name)
         t2 = time.perf_counter()
         build_us, solve_us = (t1 - t0) * 1e6, (t2 - t1) * 1e6
         info: dict[str, Any] = {"status": sol.status, "iterations": sol.iterations, "solver": sol.solver}
-        if hard_first and not sol.found:  # the task conflicts with the hard rows: let it give way
+        if hard_first and not sol.found and finite:  # the task conflicts with the hard rows: let it give way
             problem = form.build(state, terms, relax=True)
             t3 = time.perf_counter()
-            sol = self._solver_soft.solve(problem)
+            sol = self._attempt(self._solver_soft, problem, deadline)
             t4 = time.perf_counter()
             build_us += (t3 - t2) * 1e6
             solve_us += (t4 - t3) * 1e6
             info.update(relaxed=True, hard_status=info["status"], status=sol.status,
                         iterations=info["iterations"] + sol.iterations)
-        info["build_us"], info["solve_us"] = build_us, solve_us
+        if sol.status == "time_limit":
+            info["budget_exhausted"] = True
+        x: np.ndarray | None
         if sol.found:
             qdd = sol.x[:n]
             x = sol.x
         else:
-            qdd, x = None, None
-            for name in self.config.fallback:
-                cand, fsol = self._fallback(name, state, terms, problem)
-                if fsol is None or fsol.found:
-                    qdd = cand
-                    x = fsol.x if fsol is not None else None
-                    info["fallback"] = name
-                    break
-            if qdd is None:
-                qdd = -self.gains.kv * state.v
-                info["fallback"] = FALLBACK_BRAKE
+            info["fallback_reason"] = sol.status
+            t5 = time.perf_counter()
+            is_relaxed = not hard_first or bool(info.get("relaxed"))
+            qdd, fsol, problem = self._run_fallbacks(state, terms, problem, is_relaxed, deadline, info)
+            info["fallback_us"] = (time.perf_counter() - t5) * 1e6
+            x = fsol.x if fsol is not None else None
+            if fsol is not None:
+                sol = fsol
+            # the joint-limit bounds (the QP's bounds on q̈) hold a fallback too, where they are finite
+            lb, ub = problem.lb[:n], problem.ub[:n]
+            qdd = np.minimum(np.maximum(qdd, np.where(np.isfinite(lb), lb, qdd)), np.where(np.isfinite(ub), ub, qdd))
+            if fsol is None:
+                qdd = self._scale_to_torque_limits(state, qdd)
+        info["build_us"], info["solve_us"] = build_us, solve_us
         tau = state.M @ qdd + state.N
+        if not np.all(np.isfinite(tau)):  # last line of defence: never command a non-finite torque
+            info["nonfinite_replaced"] = True
+            info["fallback"] = FALLBACK_BRAKE
+            x = None
+            qdd = self._brake(state, terms)
+            tau = state.M @ qdd + state.N
+            if not np.all(np.isfinite(tau)):
+                tau = np.where(np.isfinite(tau), tau, 0.0)
+                qdd = np.linalg.solve(state.M, tau - state.N)
         # The solver meets the torque rows to its tolerance; clip that residue (and any fallback's
         # excess) so the commanded torque never exceeds a limit the controller was asked to hold.
-        limit = next((c.tau_max for c in self.constraints if isinstance(c, TorqueLimit)), None)
+        limit = self._torque_limit()
         clipped = tau if limit is None else np.clip(tau, -limit, limit)
         if np.any(clipped != tau):
             info["clipped"] = float(np.max(np.abs(clipped - tau)))

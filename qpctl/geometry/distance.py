@@ -8,17 +8,21 @@ increases d (∂d/∂p_link = nᵀ).
 With many obstacles a broad phase prunes the far pairs first: the link capsules, inflated by the
 cutoff, are collided against python-fcl's dynamic AABB tree of obstacles, and only the pairs that
 touch get an exact distance query — so obstacles farther than the cutoff cost (almost) nothing.
+Before any exact query, a vectorised bound drops the pairs whose bounding spheres are farther apart
+than the cutoff (segment-to-centre distance less the capsule and bounding radii): a lower bound on
+the distance, so the pairs it drops are exactly those the exact query would have dropped.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Sequence
 
 import fcl
 import numpy as np
 
-from qpctl.geometry.obstacles import Obstacle, rotation_z_to
+from qpctl.geometry.obstacles import Obstacle, quaternion_z_to
 
 _UNSIGNED = fcl.DistanceRequest(enable_nearest_points=True, enable_signed_distance=False)
 _SIGNED = fcl.DistanceRequest(enable_nearest_points=True, enable_signed_distance=True)
@@ -62,10 +66,12 @@ class PairSet:
 
 
 def closest_point_on_segment(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
-    ab = b - a
-    denom = float(ab @ ab)
-    s = 0.0 if denom == 0 else float(np.clip((p - a) @ ab / denom, 0.0, 1.0))
-    return a + s * ab
+    """The point of segment [a, b] closest to p (3-vectors [m]; plain floats inside, it runs per pair)."""
+    (ax, ay, az), (bx, by, bz), (px, py, pz) = a.tolist(), b.tolist(), p.tolist()
+    dx, dy, dz = bx - ax, by - ay, bz - az
+    denom = dx * dx + dy * dy + dz * dz
+    s = 0.0 if denom == 0 else min(max(((px - ax) * dx + (py - ay) * dy + (pz - az) * dz) / denom, 0.0), 1.0)
+    return np.array([ax + s * dx, ay + s * dy, az + s * dz])
 
 
 class DistanceEngine:
@@ -88,7 +94,16 @@ class DistanceEngine:
         self._link_len = np.full(len(self.radii), np.nan)
         self._inflated: list[fcl.CollisionObject] = []
         self._inflate = np.nan
+        self._link_quat = [(1.0, 0.0, 0.0, 0.0)] * len(self.radii)
         self._t = 0.0
+        # obstacle centres, bounding radii, velocities and accelerations (rows per obstacle) for the
+        # vectorised bound and the PairSet; every (link, obstacle) index pair, link-major
+        self._centres = np.array([o.position_at(0.0) for o in self.obstacles]).reshape(-1, 3)
+        self._bound = np.array([o.bounding_radius() for o in self.obstacles])
+        self._vel = np.array([o.velocity_at(0.0) for o in self.obstacles]).reshape(-1, 3)
+        self._acc = np.array([o.acceleration_at(0.0) for o in self.obstacles]).reshape(-1, 3)
+        self._all_links = np.repeat(np.arange(len(self.radii)), len(self.obstacles))
+        self._all_obstacles = np.tile(np.arange(len(self.obstacles)), len(self.radii))
         self._by_position: dict[tuple[float, ...], list[int]] | None = None
         if self.broadphase:
             self._manager = fcl.DynamicAABBTreeCollisionManager()
@@ -96,61 +111,83 @@ class DistanceEngine:
             self._manager.setup()
 
     # -- pose updates -------------------------------------------------------------------------
-    def _capsule_pose(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-        axis = b - a
-        length = float(np.linalg.norm(axis))
-        rot = rotation_z_to(axis) if length > 1e-12 else np.eye(3)
-        return rot, (a + b) / 2, length
-
     def update(self, segments: np.ndarray, t: float) -> None:
         """Set the link segments ((L, 2, 3) world endpoints [m]) and the obstacles' poses at time t [s]."""
         self._segments = segments
-        for i, (a, b) in enumerate(segments):
-            rot, mid, length = self._capsule_pose(a, b)
+        self._mids = 0.5 * (segments[:, 0] + segments[:, 1])
+        for i, ((ax, ay, az), (bx, by, bz)) in enumerate(segments.tolist()):
+            dx, dy, dz = bx - ax, by - ay, bz - az
+            length = math.sqrt(dx * dx + dy * dy + dz * dz)
             if not abs(length - self._link_len[i]) <= 1e-12:  # first call (NaN) or a new length: rebuild
                 self._link_objs[i] = fcl.CollisionObject(fcl.Capsule(self.radii[i], max(length, 1e-9)))
                 self._link_len[i] = length
-            self._link_objs[i].setTransform(fcl.Transform(rot, mid))
+                self._inflate = np.nan  # the broad phase's inflated capsules too
+            # the capsule's axis is its local z: a quaternion and a translation, no matrices
+            self._link_quat[i] = quaternion_z_to(dx, dy, dz) if length > 1e-12 else (1.0, 0.0, 0.0, 0.0)
+            self._link_objs[i].setQuatRotation(self._link_quat[i])
+            self._link_objs[i].setTranslation(self._mids[i])
         if t != self._t or not self._moving:
             for j in self._moving:
-                self._obs_objs[j].setTransform(self.obstacles[j].transform(t))
+                o = self.obstacles[j]
+                self._obs_objs[j].setTransform(o.transform(t))
+                self._centres[j], self._vel[j], self._acc[j] = o.position_at(t), o.velocity_at(t), o.acceleration_at(t)
             if self.broadphase and self._moving:
                 self._manager.update()
                 self._by_position = None
         self._t = t
 
     # -- queries ------------------------------------------------------------------------------
-    def _candidates(self, cutoff: float) -> list[tuple[int, int]]:
-        nl, no = len(self._link_objs), len(self._obs_objs)
-        if not self.broadphase or not np.isfinite(cutoff):
-            return [(i, j) for i in range(nl) for j in range(no)]
+    def _candidates(self, cutoff: float) -> tuple[np.ndarray, np.ndarray]:
+        """(link, obstacle) index arrays of the pairs that may lie within ``cutoff`` [m], link-major."""
+        if not np.isfinite(cutoff):
+            return self._all_links, self._all_obstacles
+        links, obstacles = self._tree_candidates(cutoff) if self.broadphase else (self._all_links,
+                                                                                   self._all_obstacles)
+        keep = self._sphere_bound(links, obstacles) < cutoff
+        return links[keep], obstacles[keep]
+
+    def _sphere_bound(self, links: np.ndarray, obstacles: np.ndarray) -> np.ndarray:
+        """A lower bound [m] on each pair's distance: the link axis to the obstacle's centre, less the
+        capsule radius and the obstacle's bounding radius (less 1e-9 m for rounding)."""
+        a = self._segments[links, 0]
+        ab = self._segments[links, 1] - a
+        p = self._centres[obstacles] - a
+        s = np.clip((p * ab).sum(axis=1) / np.maximum((ab * ab).sum(axis=1), 1e-300), 0.0, 1.0)
+        gap = p - s[:, None] * ab
+        return np.sqrt((gap * gap).sum(axis=1)) - self.radii[links] - self._bound[obstacles] - 1e-9
+
+    def _tree_candidates(self, cutoff: float) -> tuple[np.ndarray, np.ndarray]:
+        """The pairs whose inflated link capsule's AABB overlaps the obstacle's, from fcl's AABB tree."""
+        nl = len(self._link_objs)
         if self._inflate != cutoff or len(self._inflated) != nl:
             self._inflated = [fcl.CollisionObject(fcl.Capsule(r + cutoff, max(L, 1e-9)))
                               for r, L in zip(self.radii, self._link_len)]
             self._inflate = cutoff
         # python-fcl hands the callback new wrappers of the registered objects (their ids differ),
         # so obstacles are recognised by their exact current translation; a shared translation
-        # only adds candidates, which the exact distance query then filters.
+        # only adds candidates, which the bound and the exact distance query then filter.
         if self._by_position is None:
             self._by_position = {}
             for j, o in enumerate(self._obs_objs):
                 self._by_position.setdefault(tuple(o.getTranslation()), []).append(j)
         lookup = self._by_position
-        found: list[tuple[int, int]] = []
-        for i, (obj, infl) in enumerate(zip(self._link_objs, self._inflated)):
-            infl.setTransform(obj.getTransform())
-            hits: list[int] = []
+        links: list[int] = []
+        obstacles: list[int] = []
+        for i, infl in enumerate(self._inflated):
+            infl.setQuatRotation(self._link_quat[i])
+            infl.setTranslation(self._mids[i])
+            hits: set[int] = set()
 
             def callback(o1: fcl.CollisionObject, o2: fcl.CollisionObject, _data: object,
-                         hits: list[int] = hits) -> bool:
-                if fcl.collide(o1, o2, fcl.CollisionRequest(), fcl.CollisionResult()):
-                    for o in (o1, o2):
-                        hits.extend(lookup.get(tuple(o.getTranslation()), ()))
+                         hits: set[int] = hits) -> bool:
+                hits.update(lookup.get(tuple(o1.getTranslation()), ()))
+                hits.update(lookup.get(tuple(o2.getTranslation()), ()))
                 return False
 
             self._manager.collide(infl, None, callback)
-            found.extend((i, j) for j in sorted(set(hits)))
-        return found
+            links += [i] * len(hits)
+            obstacles += sorted(hits)
+        return np.array(links, dtype=int), np.array(obstacles, dtype=int)
 
     def pair(self, i: int, j: int) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
         """Signed distance d [m], unit normal n (obstacle → link), witness points on link and obstacle."""
@@ -161,14 +198,14 @@ class DistanceEngine:
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         p_link, p_obs = np.asarray(res.nearest_points[0]), np.asarray(res.nearest_points[1])
         diff = p_link - p_obs
-        nd = float(np.linalg.norm(diff))
+        nd = math.hypot(*diff.tolist())
         if d > 1e-6:
             # GJK's witness point on a capsule can be off by ~1e-4 m along the axis (the flat
             # direction); the exact one is the axis point closest to the obstacle's witness,
             # pushed out by the radius. It matters for the barrier's drift (ḣ to ~1e-6 m/s).
             a, b = self._segments[i]
             w = closest_point_on_segment(a, b, p_obs) - p_obs
-            wn = float(np.linalg.norm(w))
+            wn = math.hypot(*w.tolist())
             n = w / wn if wn > 1e-9 else diff / max(nd, 1e-12)
             p_link = p_obs + n * (wn - self.radii[i]) if wn > 1e-9 else p_link
         elif nd > 1e-6 and abs(d) > 1e-9:
@@ -184,7 +221,8 @@ class DistanceEngine:
     def pairs(self, cutoff: float = np.inf) -> PairSet:
         """All pairs with signed distance below ``cutoff`` [m]."""
         rows = []
-        for i, j in self._candidates(cutoff):
+        links, obstacles = self._candidates(cutoff)
+        for i, j in zip(links.tolist(), obstacles.tolist()):
             d, res = signed_distance(self._link_objs[i], self._obs_objs[j])
             if d >= cutoff:
                 continue
@@ -194,8 +232,8 @@ class DistanceEngine:
             return PairSet.empty()
         link = np.array([r[0] for r in rows], int)
         obs = np.array([r[1] for r in rows], int)
-        v = np.array([self.obstacles[j].velocity_at(self._t) for j in obs])
-        a = np.array([self.obstacles[j].acceleration_at(self._t) for j in obs])
+        v = self._vel[obs]
+        a = self._acc[obs]
         return PairSet(link, obs, np.array([r[2] for r in rows], float), np.array([r[3] for r in rows]),
                        np.array([r[4] for r in rows]), np.array([r[5] for r in rows]), v, a)
 
@@ -203,8 +241,14 @@ class DistanceEngine:
         """Least signed distance [m] between any link and any obstacle (inf with no obstacles)."""
         if not self._obs_objs:
             return float("inf")
+        links, obstacles = self._all_links, self._all_obstacles
+        if getattr(self, "_segments", None) is None:  # no pose set yet: nothing to bound with
+            bound = np.full(links.size, -np.inf)
+        else:
+            bound = self._sphere_bound(links, obstacles)
         best = float("inf")
-        for lo in self._link_objs:
-            for oo in self._obs_objs:
-                best = min(best, signed_distance(lo, oo)[0])
+        for k in np.argsort(bound, kind="stable").tolist():  # nearest bounds first; stop once none can win
+            if bound[k] >= best:
+                break
+            best = min(best, signed_distance(self._link_objs[links[k]], self._obs_objs[obstacles[k]])[0])
         return best

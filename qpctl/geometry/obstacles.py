@@ -13,6 +13,7 @@ Motion: constant ``velocity`` [m/s] and/or a sinusoidal sway ``amplitude`` [m] a
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Sequence
 
@@ -33,19 +34,29 @@ def _vec3(value: Sequence[float] | np.ndarray, key: str) -> np.ndarray:
     return arr
 
 
-def rotation_z_to(axis: np.ndarray) -> np.ndarray:
-    """A rotation matrix taking the z axis onto the unit vector ``axis``."""
-    a = axis / np.linalg.norm(axis)
-    z = np.array([0.0, 0.0, 1.0])
-    c = float(z @ a)
+def quaternion_z_to(x: float, y: float, z: float) -> tuple[float, float, float, float]:
+    """(w, x, y, z) of the shortest rotation taking the z axis onto the non-zero direction (x, y, z).
+
+    With a = (x, y, z)/‖·‖ and c = a_z: q = (1 + c, z × a)/√(2(1 + c)), z × a = (−a_y, a_x, 0); a
+    half turn about x when a = −z. Plain floats: it runs for every link capsule at every tick.
+    """
+    norm = math.sqrt(x * x + y * y + z * z)
+    c = z / norm
     if c > 1 - 1e-12:
-        return np.eye(3)
+        return (1.0, 0.0, 0.0, 0.0)
     if c < -1 + 1e-12:
-        return np.diag([1.0, -1.0, -1.0])
-    v = np.cross(z, a)
-    s = np.linalg.norm(v)
-    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]]) / s
-    return np.eye(3) + s * k + (1 - c) * k @ k
+        return (0.0, 1.0, 0.0, 0.0)
+    w = 1.0 + c
+    s = math.sqrt(2.0 * w) * norm
+    return (w * norm / s, -y / s, x / s, 0.0)
+
+
+def rotation_z_to(axis: np.ndarray) -> np.ndarray:
+    """A rotation matrix taking the z axis onto the unit vector ``axis`` (see :func:`quaternion_z_to`)."""
+    w, x, y, z = quaternion_z_to(*(float(c) for c in axis))
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
 
 
 @dataclass

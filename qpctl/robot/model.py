@@ -216,16 +216,26 @@ def example_robot_data_path(relative: str) -> Path:
     raise ConfigError(f"example-robot-data has no file {relative}", key="robot")
 
 
-# Capsules approximating the Panda's links, in each joint's frame [m]. Measured against the
-# collision meshes of example-robot-data's panda_description (segments along the link's long axis).
+# Capsules approximating the Panda's links, in each joint's frame [m], one per link. Measured against
+# the collision meshes of example-robot-data's panda_description (meshes/collision/link{1..7}.stl,
+# read as binary STL; each is a union of r = 0.055 m cylinders): for each link a minimax fit — the
+# segment minimising (largest vertex-to-segment distance + 0.05 × segment length), scipy Nelder–Mead
+# from 40 random starts — rounded to 5 mm, then the radius rounded up to 5 mm so that every vertex
+# lies inside. Link 7's capsule also covers the hand (hand.stl, in the link-7 frame at z = 0.107 m
+# turned −45° about z) and the locked, closed fingers (finger.stl at z = 0.0584 m in the hand frame),
+# since the reduced model rigidly attaches them to joint 7. Result: 100 % of the vertices inside on
+# every link; largest vertex distance / radius [m]: 0.078/0.08, 0.077/0.08, 0.071/0.075,
+# 0.071/0.075, 0.069/0.07, 0.076/0.08, 0.088/0.09 (link 7 + hand). The previous table held only
+# 11–57 % of each mesh's vertices (up to 0.11 m outside). tests/test_panda_capsules.py repeats the
+# measurement. A tighter fit needs two capsules on the L-shaped links and a separate hand capsule.
 _PANDA_CAPSULES: list[tuple[str, tuple[float, float, float], tuple[float, float, float], float]] = [
-    ("panda_joint1", (0.0, 0.0, -0.19), (0.0, 0.0, -0.03), 0.07),
-    ("panda_joint2", (0.0, 0.0, -0.06), (0.0, -0.18, 0.0), 0.07),
-    ("panda_joint3", (0.0, 0.0, -0.17), (0.08, 0.0, -0.01), 0.065),
-    ("panda_joint4", (0.0, 0.0, 0.0), (-0.08, 0.10, 0.0), 0.065),
-    ("panda_joint5", (0.0, 0.08, -0.23), (0.0, 0.0, -0.03), 0.06),
-    ("panda_joint6", (0.0, 0.0, 0.0), (0.085, 0.0, 0.0), 0.055),
-    ("panda_joint7", (0.0, 0.0, 0.07), (0.0, 0.0, 0.20), 0.06),
+    ("panda_joint1", (0.0, -0.005, -0.145), (0.0, -0.055, 0.0), 0.08),
+    ("panda_joint2", (0.0, -0.165, 0.015), (0.0, 0.005, 0.055), 0.08),
+    ("panda_joint3", (0.095, 0.05, 0.015), (0.0, 0.0, -0.08), 0.075),
+    ("panda_joint4", (0.0, 0.0, 0.045), (-0.08, 0.085, 0.0), 0.075),
+    ("panda_joint5", (0.0, 0.01, -0.245), (0.0, 0.065, 0.0), 0.07),
+    ("panda_joint6", (0.09, 0.01, 0.0), (0.015, 0.015, 0.01), 0.08),
+    ("panda_joint7", (-0.03, -0.03, 0.15), (0.03, 0.03, 0.105), 0.09),
 ]
 
 
@@ -245,10 +255,10 @@ def panda(*, gravity: Sequence[float] = (0.0, 0.0, -9.81)) -> RobotModel:
 def load_robot(kind: str, **kwargs: object) -> RobotModel:
     """Build a robot by name: ``"planar3"`` (or ``"planarN"``), ``"panda"``, or a path to a URDF."""
     if kind.startswith("planar"):
-        n = int(kind[6:] or 3) if kind[6:].isdigit() or not kind[6:] else None
-        if n is None:
+        suffix = kind[len("planar"):]
+        if suffix and not suffix.isdigit():
             raise ConfigError(f"unknown robot {kind!r}; use planar3, panda or a URDF path", key="robot.kind")
-        return planar_arm(n, **kwargs)  # type: ignore[arg-type]
+        return planar_arm(int(suffix or 3), **kwargs)  # type: ignore[arg-type]
     if kind == "panda":
         return panda(**kwargs)  # type: ignore[arg-type]
     if kind.endswith(".urdf"):

@@ -21,12 +21,18 @@ DEFAULT_SETTINGS: dict[str, dict[str, Any]] = {
 
 FAST_PATHS = ("proxqp", "osqp")
 
+# The generic path's backends that take a wall-time limit [s], and the name of that setting.
+TIME_LIMIT_SETTING = {"clarabel": "time_limit", "osqp": "time_limit", "highs": "time_limit",
+                      "scs": "time_limit_secs"}
+
 
 class QPSolver(ABC):
     """Solves the stacked :class:`~qpctl.qp.Problem` of a tick."""
 
     name: str = ""
     fast_path: bool = False
+    # Wall-time limit of the next solves [µs] (None: none); the controller sets it from its tick budget.
+    time_limit_us: float | None = None
 
     def __init__(self, settings: dict[str, Any] | None = None) -> None:
         self.settings = dict(DEFAULT_SETTINGS.get(self.name, {}))
@@ -38,6 +44,16 @@ class QPSolver(ABC):
 
     def reset(self) -> None:
         """Drop warm-start data (the problem's shape changed, or a new run starts)."""
+
+    def set_time_limit(self, us: float | None) -> None:
+        """Limit the next solves to ``us`` microseconds of wall time (None or inf: no limit).
+
+        Backends with a time limit get it as their setting (osqp, clarabel, highs, scs); proxqp turns it
+        into an iteration cap from its measured cost per iteration; the others (daqp, quadprog, ...)
+        cannot be stopped, and the controller checks the clock before it tries anything else.
+        A solve stopped by the limit reports ``found = False`` and status ``"time_limit"``.
+        """
+        self.time_limit_us = None if us is None or not np.isfinite(us) else max(float(us), 0.0)
 
 
 def _installed() -> list[str]:
@@ -84,8 +100,15 @@ class GenericSolver(QPSolver):
         qp = qpsolvers.Problem(problem.P, problem.c, G if G.size else None, h if h.size else None,
                                problem.A if problem.A.size else None, problem.b if problem.b.size else None,
                                lb, ub)
+        settings = dict(self.settings)
+        key = TIME_LIMIT_SETTING.get(self.backend)
+        if key and self.time_limit_us is not None:
+            left_s = self.time_limit_us * 1e-6 - (time.perf_counter() - start)
+            if left_s <= 0:
+                return Solution(False, np.zeros(problem.n_var), "time_limit", solver=self.name)
+            settings[key] = left_s
         try:
-            sol = qpsolvers.solve_problem(qp, solver=self.backend, **self.settings)
+            sol = qpsolvers.solve_problem(qp, solver=self.backend, **settings)
         except Exception as exc:  # a backend's own error: report it as a failed solve
             return Solution(False, np.zeros(problem.n_var), f"error: {type(exc).__name__}: {exc}",
                             solve_us=(time.perf_counter() - start) * 1e6, solver=self.name)
@@ -100,7 +123,10 @@ class GenericSolver(QPSolver):
                 except (TypeError, ValueError):
                     pass
         x = np.asarray(sol.x, float) if found else np.zeros(problem.n_var)
-        return Solution(found, x, "solved" if found else "failed", iters, us, self.name)
+        status = "solved" if found else "failed"
+        if not found and self.time_limit_us is not None and us >= self.time_limit_us:
+            status = "time_limit"
+        return Solution(found, x, status, iters, us, self.name)
 
 
 def make_solver(name: str, settings: dict[str, Any] | None = None) -> QPSolver:

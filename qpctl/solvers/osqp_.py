@@ -18,6 +18,8 @@ from qpctl.errors import ConfigError
 from qpctl.qp import Problem, Solution
 from qpctl.solvers.base import QPSolver
 
+NO_TIME_LIMIT_S = 1e10  # OSQP's default time_limit [s] (it must be positive: this is "none")
+
 
 def _dense_pattern_csc(rows: int, cols: int) -> sp.csc_matrix:
     """A CSC matrix with every entry structurally present (data in column-major order)."""
@@ -34,9 +36,11 @@ class OSQPSolver(QPSolver):
         super().__init__(settings)
         self._solver: Any = None
         self._shape: tuple[int, int, int] | None = None
+        self._time_limit_s = float(self.settings.get("time_limit", NO_TIME_LIMIT_S))  # in force [s]
 
     def reset(self) -> None:
         self._solver, self._shape = None, None
+        self._time_limit_s = float(self.settings.get("time_limit", NO_TIME_LIMIT_S))
 
     def _setup_pattern(self, nv: int, rows: int) -> None:
         self._P = sp.triu(_dense_pattern_csc(nv, nv), format="csc")
@@ -75,8 +79,19 @@ class OSQPSolver(QPSolver):
         else:
             Pvals, Avals = self._values(problem)
             self._solver.update(q=problem.c, l=lo, u=hi, Px=Pvals, Ax=Avals)
+        limit_s = float(self.settings.get("time_limit", NO_TIME_LIMIT_S))
+        if self.time_limit_us is not None:
+            limit_s = min(limit_s, (self.time_limit_us - (time.perf_counter() - start) * 1e6) * 1e-6)
+            if limit_s <= 0:
+                return Solution(False, np.zeros(nv), "time_limit", 0, (time.perf_counter() - start) * 1e6,
+                                self.name)
+        if limit_s != self._time_limit_s:
+            self._solver.update_settings(time_limit=limit_s)
+            self._time_limit_s = limit_s
         res = self._solver.solve(raise_error=False)
         status = str(res.info.status)
+        if status == "run time limit reached":
+            status = "time_limit"
         x = np.asarray(res.x, float) if res.x is not None else np.full(nv, np.nan)
         ok = status in ("solved", "solved inaccurate") and bool(np.all(np.isfinite(x)))
         return Solution(ok, x if ok else np.zeros(nv), status.replace(" ", "_"), int(res.info.iter),

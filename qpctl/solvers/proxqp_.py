@@ -37,6 +37,18 @@ class ProxQPSolver(QPSolver):
         self._qp: Any = None
         self._shape: tuple[int, int, int] | None = None
         self._warm: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        # Running estimate of one outer iteration's wall time [µs] (inner iterations and overhead
+        # included, so on the safe side): proxsuite has no time limit, so a time limit becomes a cap
+        # on outer iterations (``max_iter``) of (time left) / (this estimate).
+        self.us_per_iter = 20.0
+
+    def _iteration_cap(self, elapsed_us: float) -> tuple[int, bool]:
+        """(max_iter for this solve, whether the time limit lowered it below the configured one)."""
+        configured = int(self.settings.get("max_iter", 10000))
+        if self.time_limit_us is None:
+            return configured, False
+        fit = int((self.time_limit_us - elapsed_us) / self.us_per_iter)
+        return (fit, True) if fit < configured else (configured, False)
 
     def reset(self) -> None:
         self._qp, self._shape, self._warm = None, None, None
@@ -62,12 +74,23 @@ class ProxQPSolver(QPSolver):
             self._shape, self._warm = shape, None
         else:
             self._qp.update(problem.P, problem.c, problem.A, problem.b, C, lo, hi)
+        t_solve = time.perf_counter()
+        cap, capped = self._iteration_cap((t_solve - start) * 1e6)
+        if cap < 1:  # the time limit is spent before the first iteration
+            return Solution(False, np.zeros(nv), "time_limit", 0, (t_solve - start) * 1e6, self.name)
+        self._qp.settings.max_iter = cap
         if self._warm is None:
             self._qp.solve(np.zeros(nv), np.zeros(shape[1]), np.zeros(shape[2]))
         else:
             self._qp.solve(*self._warm)
         res = self._qp.results
+        outer = int(res.info.iter_ext)
+        if outer >= 3:
+            per = (time.perf_counter() - t_solve) * 1e6 / outer
+            self.us_per_iter = float(np.clip(0.7 * self.us_per_iter + 0.3 * per, 0.5, 1e4))
         status = _STATUS.get(res.info.status.name, res.info.status.name)
+        if capped and status == "max_iter":
+            status = "time_limit"
         x = np.array(res.x)
         found = status == "solved" and bool(np.all(np.isfinite(x)))
         self._warm = (x, np.array(res.y), np.array(res.z)) if found else None

@@ -1,0 +1,238 @@
+"""The MuJoCo adapter: the generated MJCF is Pinocchio's robot, and a controller behaves the same in
+MuJoCo as in the built-in simulator.
+
+* Dynamics of the generated MJCF: M(q) (``mj_fullM``) and the bias forces C(q, q̇)q̇ + G(q)
+  (``qfrc_bias``) against Pinocchio's CRBA and ``nonLinearEffects`` on random states, for the planar
+  arm and the Panda. Measured: relative differences ≤ 1.6e-15 (round-off); bound 1e-12. The Panda is
+  also compiled by MuJoCo itself from the mesh-stripped URDF (fingers fixed), an independent reading
+  of the same file: measured ≤ 2.2e-15; bound 1e-12.
+* Agreement of whole runs. Both simulators hold the torque over the step (zero-order hold) and run
+  classical RK4 on the same model with the same step, so they differ only by round-off: MuJoCo's
+  stage 1 reuses the ``mj_forward`` at the start state and stages 2–4 call ``mj_forwardSkip``, its
+  accelerations come from the CRB inertia's LDLᵀ factorisation instead of Pinocchio's ABA. Measured
+  on the paper scenario, 1 s (1001 ticks), largest differences over the run (paper law / hsu):
+  q 6.7e-16 / 4.2e-17 rad, q̇ 6.7e-15 / 1.4e-16 rad/s, τ 9.0e-13 / 5.7e-13 N·m,
+  x 1.4e-15 / 2.2e-16 m, clearance 1.0e-15 / 0 m. Bounds: 10× the larger (paper law) figure.
+  The QP (proxqp), same run: q 4.4e-16 rad, q̇ 7.1e-15 rad/s, τ 1.0e-11 N·m, x 8.9e-16 m; bounds
+  about 10× (osqp measured 4.4e-16 rad / 1.5e-12 N·m, daqp 4.9e-15 rad / 8.3e-11 N·m).
+  For scale, a real mismatch is many orders larger: MuJoCo's Euler against our RK4 differs by
+  1.3e-3 rad in q over the same second. Over the full 5 s the paper law's difference grows to
+  8e-6 rad when obstacle B enters the influence distance (the sensor's ramp and the closest points
+  amplify round-off), which is why the check uses 1 s.
+  On the Panda (panda_canopy, 0.5 s) the hsu law agrees to 6.4e-17 rad; the paper law to 2.5e-11 rad
+  — its null-space self-motion under gravity amplifies round-off (see README); bounds 10×.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+mujoco = pytest.importorskip("mujoco")
+
+from qpctl import ConfigError, Obstacle, Scenario, Simulator, WaypointPath  # noqa: E402
+from qpctl.adapters import JointMap  # noqa: E402
+from qpctl.adapters.mujoco import (  # noqa: E402
+    MujocoJoints,
+    MujocoSimulator,
+    build_model,
+    full_inertia,
+    robot_mjcf,
+)
+from qpctl.robot.model import example_robot_data_path  # noqa: E402
+
+# Bounds on max |builtin − MuJoCo| over a run (see module docstring for the measurements).
+PAPER_BOUNDS = {"q": 1e-14, "v": 1e-13, "tau": 1e-11, "x": 1e-14, "clearance": 1e-14}
+QP_BOUNDS = {"q": 5e-15, "v": 7e-14, "tau": 1e-10, "x": 1e-14}
+PANDA_BOUNDS = {"hsu": {"q": 1e-15, "tau": 4e-13}, "paper": {"q": 3e-10, "tau": 2e-8}}
+
+
+def _pinocchio_terms(robot, q, v):
+    data = robot.model.createData()
+    M = pin.crba(robot.model, data, q)
+    M = np.triu(M) + np.triu(M, 1).T
+    return M, pin.nonLinearEffects(robot.model, data, q, v)
+
+
+def _mujoco_terms(mj_model, robot, q, v):
+    data = mujoco.MjData(mj_model)
+    joints = MujocoJoints.for_robot(mj_model, robot)
+    joints.write_state(data, q, v)
+    mujoco.mj_forward(mj_model, data)
+    return joints.select(full_inertia(mj_model, data)), data.qfrc_bias[joints.dof_adr].copy()
+
+
+def _assert_same_dynamics(mj_model, robot, states):
+    for q, v in states:
+        M_mj, b_mj = _mujoco_terms(mj_model, robot, q, v)
+        M_pin, b_pin = _pinocchio_terms(robot, q, v)
+        np.testing.assert_allclose(M_mj, M_pin, rtol=0, atol=1e-12 * np.abs(M_pin).max())
+        np.testing.assert_allclose(b_mj, b_pin, rtol=0, atol=1e-12 * max(1.0, np.abs(b_pin).max()))
+
+
+@pytest.mark.parametrize("robot_name", ["planar", "panda_robot"])
+def test_generated_mjcf_has_pinocchios_dynamics(robot_name, request, random_states):
+    robot = request.getfixturevalue(robot_name)
+    mj_model = build_model(robot)
+    assert mj_model.nv == robot.nv and np.allclose(mj_model.opt.gravity, robot.model.gravity.linear)
+    assert not np.any(mj_model.dof_damping) and not np.any(mj_model.dof_armature)
+    np.testing.assert_allclose(mj_model.body_mass[1:], [robot.model.inertias[j].mass
+                                                        for j in range(1, robot.model.njoints)])
+    _assert_same_dynamics(mj_model, robot, random_states(robot, 10))
+
+
+def test_panda_urdf_compiled_by_mujoco_matches_pinocchio(panda_robot, random_states):
+    """MuJoCo's own reading of the URDF (meshes stripped, fingers fixed) against Pinocchio's reduced model."""
+    text = example_robot_data_path("panda_description/urdf/panda.urdf").read_text()
+    text = re.sub(r"<(visual|collision)>.*?</\1>", "", text, flags=re.S)
+    text = re.sub(r"<mimic[^>]*/>", "", text)
+    text = re.sub(r'(<joint name="panda_finger_joint\d" )type="prismatic"', r'\1type="fixed"', text)
+    text = re.sub(r"<robot ([^>]*)>", r'<robot \1><mujoco><compiler fusestatic="true"/></mujoco>', text, count=1)
+    mj_model = mujoco.MjModel.from_xml_string(text)
+    assert mj_model.nv == 7
+    _assert_same_dynamics(mj_model, panda_robot, random_states(panda_robot, 10))
+
+
+def _both(scenario, kind, duration):
+    ctrl = scenario.build_controller(kind)
+    q0 = scenario.q0(ctrl.robot)
+    dt = scenario.data["sim"]["dt"]
+    builtin = Simulator(ctrl, dt=dt, duration=duration).run(q0)
+    mj = MujocoSimulator(scenario.build_controller(kind), dt=dt, duration=duration).run(q0)
+    return builtin, mj
+
+
+def _max_diff(a, b, key):
+    return float(np.max(np.abs(getattr(a, key) - getattr(b, key))))
+
+
+@pytest.mark.parametrize("kind", ["paper", "hsu"])
+def test_paper_scenario_agrees_with_builtin_simulator(kind):
+    scenario = Scenario.load("paper", ["sim.duration=1.0"])
+    builtin, mj = _both(scenario, kind, 1.0)
+    np.testing.assert_array_equal(builtin.t, mj.t)
+    for key, bound in PAPER_BOUNDS.items():
+        assert _max_diff(builtin, mj, key) <= bound, (key, _max_diff(builtin, mj, key))
+    np.testing.assert_allclose(mj.x_ref, builtin.x_ref, rtol=0, atol=0)
+
+
+def test_qp_agrees_with_builtin_simulator():
+    """The QP controller (proxqp) runs unchanged in MuJoCo."""
+    pytest.importorskip("qpctl.controllers.qp")
+    scenario = Scenario.load("paper", ["sim.duration=1.0", "controller.solver=proxqp"])
+    builtin, mj = _both(scenario, "qp", 1.0)
+    for key, bound in QP_BOUNDS.items():
+        assert _max_diff(builtin, mj, key) <= bound, (key, _max_diff(builtin, mj, key))
+
+
+@pytest.mark.parametrize("kind", ["hsu", "paper"])
+def test_panda_canopy_agrees_with_builtin_simulator(kind):
+    scenario = Scenario.load("panda_canopy", ["sim.duration=0.5"])
+    builtin, mj = _both(scenario, kind, 0.5)
+    for key, bound in PANDA_BOUNDS[kind].items():
+        assert _max_diff(builtin, mj, key) <= bound, (key, _max_diff(builtin, mj, key))
+
+
+def test_simulate_writes_the_same_outputs_under_mujoco(tmp_path):
+    from qpctl.run import simulate, write_outputs
+
+    scenario = Scenario.load("paper", ["sim.duration=0.05"])
+    written = {}
+    for sim in ("builtin", "mujoco"):
+        result = simulate(scenario, simulator=sim)
+        write_outputs(result, tmp_path / sim, figures=False)
+        written[sim] = (np.load(tmp_path / sim / "trajectory.npz"),
+                        json.loads((tmp_path / sim / "metrics.json").read_text()))
+    (npz_b, met_b), (npz_m, met_m) = written["builtin"], written["mujoco"]
+    assert sorted(npz_b.files) == sorted(npz_m.files)
+    for key in npz_b.files:
+        if key != "tick_us":
+            np.testing.assert_allclose(npz_m[key], npz_b[key], rtol=0, atol=1e-10, err_msg=key)
+    assert set(met_b) == set(met_m) and met_m["simulator"] == "mujoco"
+    assert met_m["max_tracking_error"] == pytest.approx(met_b["max_tracking_error"], abs=1e-12)
+
+
+# -- joint map ----------------------------------------------------------------------------------
+def test_joint_map_permutes_and_round_trips():
+    jm = JointMap.from_names(["c", "a", "b"], ["a", "b", "c"])
+    np.testing.assert_array_equal(jm.sim_index, [1, 2, 0])
+    np.testing.assert_array_equal(jm.to_model(np.array([3.0, 1.0, 2.0])), [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(jm.to_sim(np.array([1.0, 2.0, 3.0])), [3.0, 1.0, 2.0])
+    assert not jm.identity and JointMap.from_names(["a", "b"], ["a", "b"]).identity
+
+
+def test_joint_map_mismatch_names_both_sets():
+    with pytest.raises(ConfigError) as exc:
+        JointMap.from_names(["joint1", "elbow", "joint3", "gripper"], ["joint1", "joint2", "joint3"])
+    msg = str(exc.value)
+    for name in ("joint1", "joint2", "joint3", "elbow", "gripper"):
+        assert name in msg
+    assert "missing from the simulator: joint2" in msg and "unknown to the model: elbow, gripper" in msg
+    with pytest.raises(ConfigError, match="missing from the simulator: joint2"):
+        JointMap.from_names(["joint1", "elbow", "joint3"], ["joint1", "joint2", "joint3"], allow_extra=True)
+    with pytest.raises(ConfigError, match="repeats joint1"):
+        JointMap.from_names(["joint1", "joint1", "joint2", "joint3"], ["joint1", "joint2", "joint3"])
+
+
+def test_mujoco_model_with_other_joint_names_is_refused(planar):
+    xml = robot_mjcf(planar).replace('name="joint2"', 'name="elbow"')
+    path = WaypointPath([[-1.0, -2.0], [-0.5, -1.5]], duration=1.0)
+    from baselines.paper import PaperController
+
+    with pytest.raises(ConfigError) as exc:
+        MujocoSimulator(PaperController(planar, path), model=mujoco.MjModel.from_xml_string(xml))
+    assert "joint2" in str(exc.value) and "elbow" in str(exc.value)
+
+
+def test_extra_mujoco_joints_are_mapped_by_address(planar):
+    """A free-floating body before the arm shifts qpos by 7 and qvel by 6; the run must not change."""
+    from baselines.paper import PaperController
+
+    extra = ('<body name="apple" pos="1 1 0"><freejoint name="apple"/>'
+             '<inertial pos="0 0 0" mass="0.1" diaginertia="1e-4 1e-4 1e-4"/></body>')
+    xml = re.sub(r"(<worldbody>)", r"\1" + extra, robot_mjcf(planar), count=1)
+    model = mujoco.MjModel.from_xml_string(xml)
+    path = WaypointPath([[-1.0, -2.0], [-0.5, -1.5]], duration=0.2)
+    with pytest.raises(ConfigError, match="unknown to the model: apple"):
+        MujocoSimulator(PaperController(planar, path), model=model)
+    ref = MujocoSimulator(PaperController(planar, path), dt=1e-3, duration=0.2).run(planar.q_home)
+    sim = MujocoSimulator(PaperController(planar, path), dt=1e-3, duration=0.2, model=model, allow_extra_joints=True)
+    np.testing.assert_array_equal(sim.joints.qpos_adr, [7, 8, 9])
+    np.testing.assert_array_equal(sim.joints.dof_adr, [6, 7, 8])
+    out = sim.run(planar.q_home)
+    np.testing.assert_allclose(out.q, ref.q, rtol=0, atol=1e-14)
+
+
+def test_obstacles_are_contact_free_geoms_and_moving_ones_follow_their_motion(planar):
+    from baselines.paper import PaperController
+
+    obstacles = [Obstacle("sphere", np.array([0.0, -1.2, 0.0]), radius=0.15, name="A"),
+                 Obstacle("capsule", np.array([0.6, -0.6, 0.0]), radius=0.05, length=0.4, name="B",
+                          axis=np.array([1.0, 0.0, 0.0]), amplitude=np.array([0.1, 0.0, 0.0]), frequency=2.0),
+                 Obstacle("box", np.array([2.0, 0.0, 0.0]), size=np.array([0.2, 0.4, 0.6]))]
+    path = WaypointPath([[-1.0, -2.0], [-0.5, -1.5]], duration=0.1)
+    sim = MujocoSimulator(PaperController(planar, path, obstacles), dt=1e-3, duration=0.1)
+    model = sim.model
+    assert not np.any(model.geom_contype) and not np.any(model.geom_conaffinity)
+    box = model.geom("obstacle2")
+    np.testing.assert_allclose(box.size, [0.1, 0.2, 0.3])
+    traj = sim.run(planar.q_home)
+    mocap = model.body("B").mocapid[0]
+    np.testing.assert_allclose(sim.data.mocap_pos[mocap], obstacles[1].position_at(traj.t[-1]), atol=1e-12)
+    assert np.all(np.isfinite(traj.clearance))
+
+
+def test_bad_arguments_raise_config_errors(planar):
+    from baselines.paper import PaperController
+
+    path = WaypointPath([[-1.0, -2.0], [-0.5, -1.5]], duration=1.0)
+    with pytest.raises(ConfigError, match="integrator"):
+        MujocoSimulator(PaperController(planar, path), integrator="verlet")
+    with pytest.raises(ConfigError, match="sim.dt"):
+        MujocoSimulator(PaperController(planar, path), dt=0.0)
+    with pytest.raises(ConfigError, match="q0"):
+        MujocoSimulator(PaperController(planar, path), duration=0.01).run(np.zeros(2))
