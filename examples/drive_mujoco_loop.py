@@ -33,16 +33,16 @@ def main(duration: float) -> float:
     data.qpos[qpos] = scenario.q0(robot)
     mujoco.mj_forward(model, data)
 
-    for k in range(int(round(duration / model.opt.timestep))):
+    for k in range(round(duration / model.opt.timestep)):
         t = k * model.opt.timestep
         tau = controller.torque(data.qpos[qpos], data.qvel[dofs], t)
         data.qfrc_applied[dofs] = tau  # held over the whole step, all four RK4 stages
         mujoco.mj_step(model, data)
 
     error = float(np.linalg.norm(controller.last.ref.x - controller.last.x))
-    print(f"t = {data.time:.3f} s, tracking error {error:.2e} m, last τ = {np.round(controller.last.tau, 2)} N·m")
+    print(f"t = {data.time:.3f} s, tracking error {error:.2e} m, τ = {np.round(controller.last.tau, 2)} N·m")
     return error
 
 
 if __name__ == "__main__":
-    main(float(sys.argv[1]) if len(sys.argv) > 1 else float(os.environ.get("QPCTL_EXAMPLE_DURATION", 5.0)))
+    main(float(sys.argv[1]) if len(sys.argv) > 1 else float(os.environ.get("QPCTL_EXAMPLE_DURATION", "5.0")))

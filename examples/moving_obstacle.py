@@ -24,19 +24,21 @@ from qpctl.controllers.qp import QPController
 def main(duration: float) -> dict[str, float]:
     robot = planar_arm()  # the paper's arm, q0 = (π, π/2, 0), gripper at (−1, −2) m
     path = WaypointPath([[-1.0, -2.0], [1.0, -1.5]], duration=4.0)
-    branch = Obstacle("capsule", np.array([0.3, -1.0, 0.0]), radius=0.08, length=0.5,  # axis z: a disc in the plane
+    # A capsule along z is a disc in the arm's plane; it sways ±0.3 m along x at 0.5 Hz.
+    branch = Obstacle("capsule", np.array([0.3, -1.0, 0.0]), radius=0.08, length=0.5,
                       amplitude=np.array([0.3, 0.0, 0.0]), frequency=0.5, name="swaying_branch")
     gains = LawGains(v_ref=0.5, d_influence=0.3, d_safe=0.05)
 
     clearance = {}
-    for controller in (PaperController(robot, path, [branch], gains), QPController(robot, path, [branch], gains)):
+    for law in (PaperController, QPController):
+        controller = law(robot, path, [branch], gains)
         traj = Simulator(controller, dt=1e-3, duration=duration).run(robot.q_home)
         clearance[controller.kind] = float(traj.clearance.min())
         error = np.linalg.norm(traj.x_ref - traj.x, axis=1).max()
-        print(f"{controller.kind:6s} min clearance {clearance[controller.kind]:+.3f} m (d_safe {gains.d_safe} m)   "
-              f"max tracking error {error:.1e} m")
+        print(f"{controller.kind:6s} min clearance {clearance[controller.kind]:+.3f} m "
+              f"(d_safe {gains.d_safe} m)   max tracking error {error:.1e} m")
     return clearance
 
 
 if __name__ == "__main__":
-    main(float(sys.argv[1]) if len(sys.argv) > 1 else float(os.environ.get("QPCTL_EXAMPLE_DURATION", 4.5)))
+    main(float(sys.argv[1]) if len(sys.argv) > 1 else float(os.environ.get("QPCTL_EXAMPLE_DURATION", "4.5")))

@@ -30,7 +30,8 @@ def main(duration: float) -> dict[str, float]:
         reference = traj.tau if reference is None else reference
         spread[name] = float(np.max(np.abs(traj.tau - reference)))
         error = np.linalg.norm(traj.x_ref - traj.x, axis=1).max()
-        print(f"{name:10s} tick median {np.median(traj.tick_us):7.0f} µs   max tracking error {error:.2e} m   "
+        print(f"{name:10s} tick median {np.median(traj.tick_us):7.0f} µs   "
+              f"max tracking error {error:.2e} m   "
               f"max |τ − τ_{available_solvers()[0]}| {spread[name]:.1e} N·m")
 
     controller = scenario.build_controller("qp", solver="proxqp")
@@ -40,4 +41,4 @@ def main(duration: float) -> dict[str, float]:
 
 
 if __name__ == "__main__":
-    main(float(sys.argv[1]) if len(sys.argv) > 1 else float(os.environ.get("QPCTL_EXAMPLE_DURATION", 1.0)))
+    main(float(sys.argv[1]) if len(sys.argv) > 1 else float(os.environ.get("QPCTL_EXAMPLE_DURATION", "1.0")))

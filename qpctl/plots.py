@@ -1,18 +1,22 @@
-"""Figures of a run: joint torques, the arm's configurations over the obstacles, tracking error."""
+"""Figures of a run: joint torques, the arm's configurations over the obstacles, tracking error.
+
+:func:`write_figures` writes one run's figures; :func:`torque_comparison` and
+:func:`configuration_panels` put several runs side by side (the paper reproduction's Figs. 1–4).
+"""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
 
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from qpctl.geometry.obstacles import Obstacle  # noqa: E402
-from qpctl.simulation.simulator import Trajectory  # noqa: E402
+from qpctl.geometry.obstacles import Obstacle
+from qpctl.simulation.simulator import Trajectory
 
 
 def plot_torques(ax: plt.Axes, traj: Trajectory, title: str = "") -> None:
@@ -27,6 +31,7 @@ def plot_torques(ax: plt.Axes, traj: Trajectory, title: str = "") -> None:
 
 
 def draw_obstacles(ax: plt.Axes, obstacles: Sequence[Obstacle], t: float = 0.0) -> None:
+    """Obstacles in the x–y plane at time t [s]: boxes as rectangles, the other shapes as circles."""
     for o in obstacles:
         c = o.position_at(t)
         if o.shape == "box" and o.size is not None:
@@ -39,19 +44,28 @@ def draw_obstacles(ax: plt.Axes, obstacles: Sequence[Obstacle], t: float = 0.0) 
 
 
 def plot_configurations(ax: plt.Axes, traj: Trajectory, segments: np.ndarray, obstacles: Sequence[Obstacle],
-                        every: int = 200, title: str = "") -> None:
+                        every: int = 200, title: str = "", mark_collisions: bool = False) -> None:
     """The paper's figure style: the arm drawn every ``every`` samples, the path, the obstacles.
 
-    ``segments``: (T, L, 2, 3) link axes over time.
+    ``segments``: (T, L, 2, 3) link axes over time. With ``mark_collisions``, the configurations
+    drawn while a link penetrates an obstacle (``traj.clearance`` < 0) are red, and the first
+    colliding configuration is drawn whether or not it falls on the ``every`` grid.
     """
     draw_obstacles(ax, obstacles)
     idx = list(range(0, len(traj.t), every)) + [len(traj.t) - 1]
+    hit = np.flatnonzero(traj.clearance < 0) if mark_collisions else np.zeros(0, int)
+    if hit.size:
+        idx = sorted(set(idx) | {int(hit[0])})
     for k, i in enumerate(idx):
         shade = 0.25 + 0.75 * k / max(len(idx) - 1, 1)
         pts = np.vstack([segments[i, 0, 0], segments[i, :, 1]])
-        ax.plot(pts[:, 0], pts[:, 1], "-o", color=(0.1, 0.2, 0.6, shade), ms=2, lw=1)
+        colliding = mark_collisions and traj.clearance[i] < 0
+        color = (0.85, 0.1, 0.1, max(shade, 0.6)) if colliding else (0.1, 0.2, 0.6, shade)
+        ax.plot(pts[:, 0], pts[:, 1], "-o", color=color, ms=2, lw=1.4 if colliding else 1)
     ax.plot(traj.x_ref[:, 0], traj.x_ref[:, 1], "--", color="tab:green", lw=1, label="reference")
     ax.plot(traj.x[:, 0], traj.x[:, 1], "-", color="tab:orange", lw=1, label="end effector")
+    if hit.size:
+        ax.plot([], [], "-", color=(0.85, 0.1, 0.1), lw=1.4, label="in collision")
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
@@ -96,3 +110,47 @@ def write_figures(out: Path, traj: Trajectory, segments: np.ndarray, obstacles: 
     fig.savefig(files[-1], dpi=120)
     plt.close(fig)
     return files
+
+
+def torque_comparison(runs: Sequence[tuple[str, Trajectory]], path: Path, *, zoom: float = 1.0,
+                      dpi: int = 80) -> Path:
+    """Joint torques of several runs side by side (the paper's Figs. 1–2): the whole run on top, the
+    first ``zoom`` seconds below, each row on a shared torque axis so the columns compare directly."""
+    fig, axes = plt.subplots(2, len(runs), figsize=(4.6 * len(runs), 6.2), sharey="row", squeeze=False)
+    for col, (label, traj) in enumerate(runs):
+        plot_torques(axes[0, col], traj, label)
+        plot_torques(axes[1, col], traj, f"{label}: first {zoom:g} s")
+        axes[1, col].set_xlim(0.0, zoom)
+        for row in range(2):
+            if col:
+                axes[row, col].set_ylabel("")
+                axes[row, col].get_legend().remove()
+    if runs:
+        k = int(np.searchsorted(runs[0][1].t, zoom, side="right"))
+        lo = min(float(np.min(tr.tau[:k])) for _, tr in runs)
+        hi = max(float(np.max(tr.tau[:k])) for _, tr in runs)
+        pad = 0.05 * max(hi - lo, 1.0)
+        axes[1, 0].set_ylim(lo - pad, hi + pad)
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return Path(path)
+
+
+def configuration_panels(panels: Sequence[tuple[str, Trajectory, np.ndarray]], obstacles: Sequence[Obstacle],
+                         path: Path, *, snapshots: int = 24, dpi: int = 80) -> Path:
+    """The arm's configurations over the obstacles for several runs side by side (Figs. 3–4 style);
+    ``panels`` holds (title, trajectory, (T, L, 2, 3) link axes). Colliding configurations are red."""
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.3 * len(panels), 4.8), sharex=True, sharey=True,
+                             squeeze=False)
+    for ax, (title, traj, segments) in zip(axes[0], panels):
+        every = max(len(traj.t) // snapshots, 1)
+        plot_configurations(ax, traj, segments, obstacles, every=every, title=title, mark_collisions=True)
+    for ax in axes[0, 1:]:
+        ax.set_ylabel("")
+        if ax.get_legend() is not None:
+            ax.get_legend().remove()
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return Path(path)

@@ -34,16 +34,16 @@ import pytest
 
 mujoco = pytest.importorskip("mujoco")
 
-from qpctl import ConfigError, Obstacle, Scenario, Simulator, WaypointPath  # noqa: E402
-from qpctl.adapters import JointMap  # noqa: E402
-from qpctl.adapters.mujoco import (  # noqa: E402
+from qpctl import ConfigError, Obstacle, Scenario, Simulator, WaypointPath
+from qpctl.adapters import JointMap
+from qpctl.adapters.mujoco import (
     MujocoJoints,
     MujocoSimulator,
     build_model,
     full_inertia,
     robot_mjcf,
 )
-from qpctl.robot.model import example_robot_data_path  # noqa: E402
+from qpctl.robot.model import example_robot_data_path
 
 # Bounds on max |builtin − MuJoCo| over a run (see module docstring for the measurements).
 PAPER_BOUNDS = {"q": 1e-14, "v": 1e-13, "tau": 1e-11, "x": 1e-14, "clearance": 1e-14}
@@ -88,10 +88,11 @@ def test_generated_mjcf_has_pinocchios_dynamics(robot_name, request, random_stat
 def test_panda_urdf_compiled_by_mujoco_matches_pinocchio(panda_robot, random_states):
     """MuJoCo's own reading of the URDF (meshes stripped, fingers fixed) against Pinocchio's reduced model."""
     text = example_robot_data_path("panda_description/urdf/panda.urdf").read_text()
-    text = re.sub(r"<(visual|collision)>.*?</\1>", "", text, flags=re.S)
+    text = re.sub(r"<(visual|collision)>.*?</\1>", "", text, flags=re.DOTALL)
     text = re.sub(r"<mimic[^>]*/>", "", text)
     text = re.sub(r'(<joint name="panda_finger_joint\d" )type="prismatic"', r'\1type="fixed"', text)
-    text = re.sub(r"<robot ([^>]*)>", r'<robot \1><mujoco><compiler fusestatic="true"/></mujoco>', text, count=1)
+    fuse = '<mujoco><compiler fusestatic="true"/></mujoco>'
+    text = re.sub(r"<robot ([^>]*)>", r"<robot \1>" + fuse, text, count=1)
     mj_model = mujoco.MjModel.from_xml_string(text)
     assert mj_model.nv == 7
     _assert_same_dynamics(mj_model, panda_robot, random_states(panda_robot, 10))
@@ -200,7 +201,8 @@ def test_extra_mujoco_joints_are_mapped_by_address(planar):
     with pytest.raises(ConfigError, match="unknown to the model: apple"):
         MujocoSimulator(PaperController(planar, path), model=model)
     ref = MujocoSimulator(PaperController(planar, path), dt=1e-3, duration=0.2).run(planar.q_home)
-    sim = MujocoSimulator(PaperController(planar, path), dt=1e-3, duration=0.2, model=model, allow_extra_joints=True)
+    sim = MujocoSimulator(PaperController(planar, path), dt=1e-3, duration=0.2, model=model,
+                          allow_extra_joints=True)
     np.testing.assert_array_equal(sim.joints.qpos_adr, [7, 8, 9])
     np.testing.assert_array_equal(sim.joints.dof_adr, [6, 7, 8])
     out = sim.run(planar.q_home)

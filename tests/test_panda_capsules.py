@@ -42,7 +42,9 @@ def segment_distance(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.nda
 
 
 def link_vertices(i: int) -> np.ndarray:
-    mesh = lambda name: read_binary_stl(example_robot_data_path(f"panda_description/meshes/collision/{name}.stl"))
+    def mesh(name: str) -> np.ndarray:
+        return read_binary_stl(example_robot_data_path(f"panda_description/meshes/collision/{name}.stl"))
+
     verts = mesh(f"link{i}")
     if i == 7:
         finger = mesh("finger")
@@ -53,7 +55,8 @@ def link_vertices(i: int) -> np.ndarray:
 
 @pytest.mark.parametrize("link", range(1, 8))
 def test_capsule_holds_every_mesh_vertex(panda_robot, link):
-    caps = [c for c in panda_robot.capsules if c.joint_id == panda_robot.model.getJointId(f"panda_joint{link}")]
+    joint_id = panda_robot.model.getJointId(f"panda_joint{link}")
+    caps = [c for c in panda_robot.capsules if c.joint_id == joint_id]
     assert len(caps) == 1
     cap = caps[0]
     d = segment_distance(link_vertices(link), cap.p0, cap.p1)

@@ -9,8 +9,8 @@ sets.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 
@@ -33,7 +33,7 @@ class JointMap:
 
     @classmethod
     def from_names(cls, sim_joint_names: Sequence[str], model_joint_names: Sequence[str], *,
-                   allow_extra: bool = False) -> "JointMap":
+                   allow_extra: bool = False) -> JointMap:
         """Match the simulator's joints to the model's by name.
 
         Args:
@@ -85,7 +85,7 @@ class JointMap:
         return np.asarray(sim_values, float)[self.sim_index]
 
     def to_sim(self, model_values: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
-        """Values in the model's order (n,) → the simulator's order; extra joints keep ``out``'s entries (0)."""
+        """Values in the model's order (n,) → the simulator's; extra joints keep ``out``'s entries (0)."""
         if out is None:
             out = np.zeros(len(self.sim_names))
         out[self.sim_index] = model_values

@@ -41,7 +41,8 @@ round-off — amplified by the closed loop — not by a method error (see ``test
 from __future__ import annotations
 
 import xml.etree.ElementTree as ET
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -57,8 +58,8 @@ from qpctl.simulation.simulator import Trajectory
 try:
     import mujoco
 except ImportError as exc:  # pragma: no cover - exercised only without the extra
-    raise ImportError("the MuJoCo adapter needs MuJoCo: pip install 'qpctl[mujoco]' (or pip install mujoco)") \
-        from exc
+    raise ImportError("the MuJoCo adapter needs MuJoCo: pip install 'qpctl[mujoco]' (or pip install mujoco)"
+                      ) from exc
 
 INTEGRATORS = {
     "rk4": "RK4",
@@ -67,8 +68,9 @@ INTEGRATORS = {
     "implicitfast": "implicitfast",
 }
 
-_REVOLUTE = {"JointModelRX": (1.0, 0.0, 0.0), "JointModelRY": (0.0, 1.0, 0.0), "JointModelRZ": (0.0, 0.0, 1.0)}
-_PRISMATIC = {"JointModelPX": (1.0, 0.0, 0.0), "JointModelPY": (0.0, 1.0, 0.0), "JointModelPZ": (0.0, 0.0, 1.0)}
+_AXES = {"X": (1.0, 0.0, 0.0), "Y": (0.0, 1.0, 0.0), "Z": (0.0, 0.0, 1.0)}
+_REVOLUTE = {f"JointModelR{k}": axis for k, axis in _AXES.items()}
+_PRISMATIC = {f"JointModelP{k}": axis for k, axis in _AXES.items()}
 
 
 def _fmt(values: Sequence[float] | np.ndarray) -> str:
@@ -141,7 +143,8 @@ def robot_mjcf(robot: RobotModel, obstacles: Sequence[Obstacle] = (), *, timeste
     model = robot.model
     root = ET.Element("mujoco", {"model": robot.name})
     ET.SubElement(root, "compiler", {"angle": "radian", "inertiafromgeom": "false", "autolimits": "true"})
-    option = ET.SubElement(root, "option", {"timestep": f"{timestep:.17g}", "integrator": INTEGRATORS[integrator],
+    option = ET.SubElement(root, "option", {"timestep": f"{timestep:.17g}",
+                                            "integrator": INTEGRATORS[integrator],
                                             "gravity": _fmt(model.gravity.linear)})
     flags = {"contact": "disable"}
     if not joint_limits:
@@ -161,12 +164,12 @@ def robot_mjcf(robot: RobotModel, obstacles: Sequence[Obstacle] = (), *, timeste
         if not inertia.mass > 0:
             raise ConfigError(f"joint {model.names[j]} moves a body without mass; MuJoCo cannot simulate it",
                               key="robot")
-        I = inertia.inertia  # noqa: E741 - rotational inertia at the COM, body axes [kg·m²]
+        ic = inertia.inertia  # rotational inertia about the COM, body axes [kg·m²]
+        full = [ic[0, 0], ic[1, 1], ic[2, 2], ic[0, 1], ic[0, 2], ic[1, 2]]  # MJCF's order
         ET.SubElement(body, "inertial", {"pos": _fmt(inertia.lever), "mass": f"{inertia.mass:.17g}",
-                                         "fullinertia": _fmt([I[0, 0], I[1, 1], I[2, 2], I[0, 1], I[0, 2],
-                                                              I[1, 2]])})
+                                         "fullinertia": _fmt(full)})
         jtype, axis = _joint_type_axis(model.joints[j])
-        jattrs = {"name": model.names[j], "type": jtype, "axis": _fmt(axis)}
+        jattrs = {"name": robot.joint_names[j - 1], "type": jtype, "axis": _fmt(axis)}
         i = model.joints[j].idx_v
         if joint_limits and np.isfinite(robot.q_min[i]) and np.isfinite(robot.q_max[i]):
             jattrs["range"] = _fmt([robot.q_min[i], robot.q_max[i]])
@@ -180,8 +183,8 @@ def robot_mjcf(robot: RobotModel, obstacles: Sequence[Obstacle] = (), *, timeste
             attrs.update(type="sphere", pos=_fmt(cap.p0))
         ET.SubElement(bodies[cap.joint_id], "geom", attrs)
     ee = model.frames[robot.ee_frame_id]
-    ET.SubElement(bodies[ee.parentJoint], "site", {"name": robot.ee_frame, "pos": _fmt(ee.placement.translation),
-                                                    "size": "0.01", "rgba": "1 0 0 1"})
+    ET.SubElement(bodies[ee.parentJoint], "site", {"name": robot.ee_frame, "size": "0.01", "rgba": "1 0 0 1",
+                                                    "pos": _fmt(ee.placement.translation)})
     for i, obs in enumerate(obstacles):
         name = obs.name or f"obstacle{i}"
         if obs.moving:
@@ -193,7 +196,7 @@ def robot_mjcf(robot: RobotModel, obstacles: Sequence[Obstacle] = (), *, timeste
     return ET.tostring(root, encoding="unicode")
 
 
-def build_model(robot: RobotModel, obstacles: Sequence[Obstacle] = (), **kwargs: Any) -> "mujoco.MjModel":
+def build_model(robot: RobotModel, obstacles: Sequence[Obstacle] = (), **kwargs: Any) -> mujoco.MjModel:
     """Compile :func:`robot_mjcf` (same arguments) into a ``mujoco.MjModel``."""
     xml = robot_mjcf(robot, obstacles, **kwargs)
     try:
@@ -202,7 +205,7 @@ def build_model(robot: RobotModel, obstacles: Sequence[Obstacle] = (), **kwargs:
         raise ConfigError(f"MuJoCo rejected the generated model of {robot.name}: {exc}", key="robot") from exc
 
 
-def full_inertia(model: "mujoco.MjModel", data: "mujoco.MjData") -> np.ndarray:
+def full_inertia(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
     """Dense joint-space inertia M(q) (nv, nv) [kg·m²] of the last ``mj_forward``/``mj_step``."""
     M = np.zeros((model.nv, model.nv))
     try:
@@ -219,30 +222,32 @@ class MujocoJoints:
     likes; only hinge and slide joints can stand for the model's revolute/prismatic joints.
     """
 
-    def __init__(self, mj_model: "mujoco.MjModel", joint_names: Sequence[str], *, allow_extra: bool = False):
+    def __init__(self, mj_model: mujoco.MjModel, joint_names: Sequence[str], *, allow_extra: bool = False):
         sim_names = [mj_model.joint(i).name for i in range(mj_model.njnt)]
         self.map = JointMap.from_names(sim_names, joint_names, allow_extra=allow_extra)
         ids = self.map.sim_index
-        bad = [sim_names[i] for i in ids
-               if int(mj_model.jnt_type[i]) not in (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))]
+        scalar = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
+        bad = [sim_names[i] for i in ids if int(mj_model.jnt_type[i]) not in scalar]
         if bad:
-            raise ConfigError(f"MuJoCo joints {', '.join(bad)} are not hinge or slide joints", key="joint_map")
+            raise ConfigError(f"MuJoCo joints {', '.join(bad)} are not hinge or slide joints",
+                              key="joint_map")
         self.qpos_adr = np.asarray(mj_model.jnt_qposadr[ids], int)
         self.dof_adr = np.asarray(mj_model.jnt_dofadr[ids], int)
 
     @classmethod
-    def for_robot(cls, mj_model: "mujoco.MjModel", robot: RobotModel, *, allow_extra: bool = False) -> "MujocoJoints":
+    def for_robot(cls, mj_model: mujoco.MjModel, robot: RobotModel, *,
+                  allow_extra: bool = False) -> MujocoJoints:
         return cls(mj_model, robot.joint_names, allow_extra=allow_extra)
 
-    def read(self, data: "mujoco.MjData") -> tuple[np.ndarray, np.ndarray]:
+    def read(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
         """(q [rad], v [rad/s]) in the model's joint order."""
         return data.qpos[self.qpos_adr].copy(), data.qvel[self.dof_adr].copy()
 
-    def write_state(self, data: "mujoco.MjData", q: np.ndarray, v: np.ndarray) -> None:
+    def write_state(self, data: mujoco.MjData, q: np.ndarray, v: np.ndarray) -> None:
         data.qpos[self.qpos_adr] = q
         data.qvel[self.dof_adr] = v
 
-    def apply(self, data: "mujoco.MjData", tau: np.ndarray) -> None:
+    def apply(self, data: mujoco.MjData, tau: np.ndarray) -> None:
         """Set the generalised force ``qfrc_applied`` [N·m] of the model's joints (held until changed)."""
         data.qfrc_applied[self.dof_adr] = tau
 
@@ -268,9 +273,9 @@ class MujocoSimulator:
         allow_extra_joints: with ``model``, leave joints the robot does not have undriven.
     """
 
-    def __init__(self, controller: Controller, *, dt: float = 1e-3, duration: float = 5.0, integrator: str = "rk4",
-                 progress: bool = False, joint_limits: bool = False, model: "mujoco.MjModel | None" = None,
-                 allow_extra_joints: bool = False) -> None:
+    def __init__(self, controller: Controller, *, dt: float = 1e-3, duration: float = 5.0,
+                 integrator: str = "rk4", progress: bool = False, joint_limits: bool = False,
+                 model: mujoco.MjModel | None = None, allow_extra_joints: bool = False) -> None:
         if not (np.isfinite(duration) and duration > 0):
             raise ConfigError(f"must be a positive number of seconds, got {duration}", key="sim.duration")
         self.controller = controller
@@ -283,8 +288,8 @@ class MujocoSimulator:
                                 joint_limits=joint_limits)
         else:
             if integrator not in INTEGRATORS:
-                raise ConfigError(f"unknown MuJoCo integrator {integrator!r}; one of {', '.join(INTEGRATORS)}",
-                                  key="sim.integrator")
+                raise ConfigError(f"unknown MuJoCo integrator {integrator!r}; one of "
+                                  f"{', '.join(INTEGRATORS)}", key="sim.integrator")
             if not (np.isfinite(dt) and dt > 0):
                 raise ConfigError(f"must be a positive number of seconds, got {dt}", key="sim.dt")
             model.opt.timestep = self.dt
@@ -318,7 +323,8 @@ class MujocoSimulator:
 
     def _diverged(self) -> bool:
         # MuJoCo resets a diverged state silently (with a warning count) instead of returning NaN.
-        bad = (mujoco.mjtWarning.mjWARN_BADQACC, mujoco.mjtWarning.mjWARN_BADQPOS, mujoco.mjtWarning.mjWARN_BADQVEL)
+        w = mujoco.mjtWarning
+        bad = (w.mjWARN_BADQACC, w.mjWARN_BADQPOS, w.mjWARN_BADQVEL)
         return any(self.data.warning[w].number > 0 for w in bad) or not (
             np.all(np.isfinite(self.data.qpos)) and np.all(np.isfinite(self.data.qvel)))
 
@@ -337,7 +343,7 @@ class MujocoSimulator:
         """Simulate from (q0 [rad], v0 [rad/s]) at t = 0 for ``duration``; one controller tick per step."""
         self.reset(q0, v0)
         n, m = self.robot.nv, self.robot.m
-        steps = int(round(self.duration / self.dt)) + 1
+        steps = round(self.duration / self.dt) + 1
         rec = {k: np.zeros((steps, n)) for k in ("q", "v", "tau", "e_null")}
         rec.update({k: np.zeros((steps, m)) for k in ("x", "x_ref", "xd_ref", "xdd_ref")})
         t_arr, clear, tick_us = np.zeros(steps), np.zeros(steps), np.zeros(steps)

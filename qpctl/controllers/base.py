@@ -8,6 +8,12 @@
 * ``t`` time [s] on the reference path's clock;
 * returns joint torques [N·m], shape (n,), same order; hold them constant over the control period.
 
+Call it once per control period, in time order, with the measured state (no look-ahead, no
+integrator stages); call :meth:`Controller.reset` before starting a new run (the QP keeps warm
+starts). The law uses its own model (``controller.robot``: inertias, gravity) for M and N, so the
+simulated robot must be that robot. A simulator with another joint order or extra joints maps
+by name: :class:`qpctl.adapters.JointMap` (a mismatch is a ConfigError listing both sets).
+
 :meth:`Controller.step` returns a :class:`ControlOutput` with the torque and the per-tick
 diagnostics (tracking error, null-space error, singularity flag, solver statistics).
 """
