@@ -10,14 +10,16 @@ Equations implemented (paper numbering; the OCR's ``J^1`` is read as J⁺):
 
 The sign of the M⁻¹N term is the one that lowers torque: with q̈₀ = −M⁻¹N the null-space part of
 τ − N cancels the null-space part of the bias, so τ = M q̈ + N is the least-‖τ‖ choice in W's metric
-for the given task acceleration. The bracketed J̇ e_N term is ``LawGains.jdot_en``.
+for the given task acceleration. The bracketed J̇ e_N term is ``LawGains.jdot_en``, off by default:
+it feeds e_N into the task and breaks eq. (11) without helping e_N decay (the argument and the
+measurement are in :mod:`qpctl.law` and the README's "Paper reproduction").
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from qpctl.controllers.base import ControlOutput, Controller
+from qpctl.controllers.base import Controller, ControlOutput
 from qpctl.law import closed_form_acceleration, law_terms
 from qpctl.state import TickState
 

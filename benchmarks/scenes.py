@@ -16,6 +16,7 @@ controller's doing, not the scene's.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 from typing import Any, Sequence
 
 import numpy as np
@@ -157,6 +158,12 @@ def canopy_obstacles(rng: np.random.Generator, count: int, lo: np.ndarray, hi: n
     return out
 
 
+@lru_cache(maxsize=1)
+def _panda() -> RobotModel:
+    """The Panda, loaded once (every canopy scene shares it; each controller has its own data)."""
+    return panda()
+
+
 def _canopy_config() -> dict[str, Any]:
     return {"solver": "proxqp", "torque_limits": True, "joint_limits": True}
 
@@ -168,7 +175,7 @@ def canopy_scene(seed: int, *, obstacles: int = 10, duration: float = 2.5) -> Be
     capsule radius + 0.06 m) and the starting arm (+ 0.05 m) are kept clear of obstacles.
     """
     rng = np.random.default_rng(seed)
-    robot = panda()
+    robot = _panda()
     q0 = robot.q_home.copy()
     start = _ee_position(robot, q0)
     fruit = rng.uniform(FRUIT_LO, FRUIT_HI)

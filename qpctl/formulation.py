@@ -2,11 +2,13 @@
 
 The layout (variables, rows) is fixed on the first build and kept while the set of tasks and
 constraints is unchanged, so the QP has the same shape on every tick and solvers can warm-start.
+What does not change from tick to tick (the slack variables' columns, costs and bounds, the
+placeholder rows) is kept in a template that each build copies and fills.
 """
 
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -26,34 +28,43 @@ class Formulation:
         self.constraints = list(constraints)
         self.n_in = sum(c.rows for c in self.constraints)
         self.row_names = [c.name for c in self.constraints for _ in range(c.rows)]
+        self._templates: dict[tuple[Any, ...], tuple[np.ndarray, ...]] = {}
+        self._evaluated: tuple[TickState, LawTerms, Any] | None = None
 
-    def build(self, state: TickState, terms: LawTerms, *, relax: bool = True) -> Problem:
-        """The tick's QP; with ``relax=False`` soft equalities are kept hard (no slack variables)."""
-        n = self.n
-        H = np.zeros((n, n))
-        c = np.zeros(n)
+    def _evaluate(self, state: TickState, terms: LawTerms) -> tuple[list[Objective], list[Equality], list[Any]]:
+        """Every task's and constraint's output at this tick (computed once per tick, even if the
+        problem is built twice, hard then relaxed)."""
+        if self._evaluated is not None and self._evaluated[0] is state and self._evaluated[1] is terms:
+            return self._evaluated[2]
+        objectives: list[Objective] = []
         eqs: list[Equality] = []
         for task in self.tasks:
             out = task.compute(state, terms)
-            if isinstance(out, Objective):
-                H += out.H
-                c += out.c
-            else:
-                eqs.append(out)
+            (objectives if isinstance(out, Objective) else eqs).append(out)
+        rows = [con.compute(state, terms) for con in self.constraints]
+        result = (objectives, eqs, rows)
+        self._evaluated = (state, terms, result)
+        return result
+
+    def _template(self, eqs: list[Equality], relax: bool) -> tuple[np.ndarray, ...]:
+        """(P, q, A, b, C, l, u, lb, ub) with every tick-independent entry set: the slack columns of A
+        (±I), their costs (ℓ₁ in q, ℓ₂ on P's diagonal, at least 1e-9 so that P is positive definite
+        on the slack block even when slack_l2 = 0 — some solvers need it), s± ≥ 0, and the
+        placeholder bounds (±inf)."""
+        key = (relax, tuple((e.A.shape[0], e.soft, e.slack_l1, e.slack_l2) for e in eqs))
+        cached = self._templates.get(key)
+        if cached is not None:
+            return cached
+        n = self.n
         n_soft = sum(e.A.shape[0] for e in eqs if e.soft) if relax else 0
         n_eq = sum(e.A.shape[0] for e in eqs)
         nv = n + 2 * n_soft
         P = np.zeros((nv, nv))
-        P[:n, :n] = H
         q = np.zeros(nv)
-        q[:n] = c
         A = np.zeros((n_eq, nv))
-        b = np.zeros(n_eq)
         r, s = 0, n
         for e in eqs:
             k = e.A.shape[0]
-            A[r : r + k, :n] = e.A
-            b[r : r + k] = e.b
             if e.soft and relax:
                 idx_p = np.arange(s, s + k)
                 idx_m = np.arange(s + n_soft, s + n_soft + k)
@@ -63,15 +74,31 @@ class Formulation:
                 P[idx_p, idx_p] = P[idx_m, idx_m] = e.slack_l2
                 s += k
             r += k
-        C = np.zeros((self.n_in, nv))
-        lo = np.full(self.n_in, -np.inf)
-        hi = np.full(self.n_in, np.inf)
+        for i in range(n, nv):
+            P[i, i] = max(P[i, i], 1e-9)
         lb = np.full(nv, -np.inf)
-        ub = np.full(nv, np.inf)
         lb[n:] = 0.0  # s⁺, s⁻ ≥ 0
+        template = (P, q, A, np.zeros(n_eq), np.zeros((self.n_in, nv)), np.full(self.n_in, -np.inf),
+                    np.full(self.n_in, np.inf), lb, np.full(nv, np.inf))
+        self._templates[key] = template
+        return template
+
+    def build(self, state: TickState, terms: LawTerms, *, relax: bool = True) -> Problem:
+        """The tick's QP; with ``relax=False`` soft equalities are kept hard (no slack variables)."""
+        n = self.n
+        objectives, eqs, rows = self._evaluate(state, terms)
+        P, q, A, b, C, lo, hi, lb, ub = (a.copy() for a in self._template(eqs, relax))
+        for obj in objectives:
+            P[:n, :n] += obj.H
+            q[:n] += obj.c
         r = 0
-        for con in self.constraints:
-            out = con.compute(state, terms)
+        for e in eqs:
+            k = e.A.shape[0]
+            A[r : r + k, :n] = e.A
+            b[r : r + k] = e.b
+            r += k
+        r = 0
+        for out in rows:
             if isinstance(out, Inequality):
                 k = out.C.shape[0]
                 C[r : r + k, :n] = out.C
@@ -79,9 +106,6 @@ class Formulation:
                 hi[r : r + k] = out.upper
                 r += k
             elif isinstance(out, Bounds):
-                lb[:n] = np.maximum(lb[:n], out.lower)
-                ub[:n] = np.minimum(ub[:n], out.upper)
-        # Make P positive definite on the slack block even when slack_l2 = 0 (some solvers need it).
-        for i in range(n, nv):
-            P[i, i] = max(P[i, i], 1e-9)
+                np.maximum(lb[:n], out.lower, out=lb[:n])
+                np.minimum(ub[:n], out.upper, out=ub[:n])
         return Problem(P, q, A, b, C, lo, hi, lb, ub, n, self.row_names)

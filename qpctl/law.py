@@ -1,21 +1,44 @@
-"""The terms shared by the paper's law, Hsu's law and the QP (paper eq. 7, 12, 18, 19).
+"""The terms shared by the paper's law, Hsu's law and the QP (paper eq. 6, 7, 12, 18, 19).
 
-Notation (DESIGN.md §2): e = x_d − x, ė = ẋ_d − ẋ, and the desired task acceleration less drift
+The reading adopted (DESIGN.md §2; the OCR's ``J^1`` is J⁺). n joints, m task coordinates;
+e = x_d − x, ė = ẋ_d − ẋ.
 
-    a = ẍ_d + K_v ė + K_p e − J̇ q̇                                         (eq. 7)
+    a    = ẍ_d + K_v ė + K_p e − J̇ q̇                                          (7), (9)
+    J_W⁺ = W⁻¹Jᵀ(J W⁻¹ Jᵀ)⁻¹, damped by SVD near a singularity                   (5), (6)
+    u_k  = v_ref α(d_k) n_k,  α = clip((d_i − d_k)/(d_i − d_s), 0, 1)          reference velocity of
+                                                                               link point k ("sensor")
+    g    = argmin Σ_k α_k ‖J_k q̇ − u_k‖² + λ²‖q̇‖²  = (AᵀA + λ²I)⁻¹Aᵀb          A, b: rows √α_k J_k, √α_k u_k
+    e_N  = (I − J_b⁺ J)(g − q̇),  J_b⁺ weighted by W_b = Σ_i J_iᵀ J_i            (12), (19); Ryu
+    q̈₀   = −M⁻¹N + K_N e_N  (paper, W = MᵀM)     q̈₀ = K_N e_N  (Hsu, W = W_b = I)     (18), (19)
+    q̈    = J_W⁺ a + (I − J_W⁺ J) q̈₀,   τ = M q̈ + N                             (7), (19)
 
-The obstacle "sensor" gives each link point within the influence distance d_i a desired velocity
-u = v_ref α(d) n, α ramping from 0 at d_i to 1 at the safety distance d_s; the joint velocity that
-realises them in the least-squares sense is g = (AᵀA + λ²I)⁻¹Aᵀu, A the stacked point Jacobians.
+Why these choices (measured by ``python -m qpctl.reproduce``; README "Paper reproduction"):
 
-    e_N = (I − J_b⁺ J)(g − q̇),   J_b⁺ weighted by W_b = Σ_i J_iᵀ J_i        (eq. 12, 19; Ryu)
-
-and the null-space acceleration
-
-    q̈₀ = −M⁻¹N + K_N e_N   (paper, weighted)       q̈₀ = K_N e_N   (Hsu, unweighted)
-
-The law is q̈ = J_W⁺(a + J̇ e_N) + (I − J_W⁺J) q̈₀, τ = M q̈ + N (eq. 18–19), with the J̇ e_N term a
-switch (``jdot_en``, off by default: see the README for the measurement that chose it).
+* **Eq. (11) holds exactly.** J J_W⁺ = I and J(I − J_W⁺J) = 0, so J q̈ = a and, with ẍ = J q̈ + J̇ q̇,
+  ë + K_v ė + K_p e = 0 whatever q̈₀ is: e → 0 exponentially for any Hurwitz s² + k_v s + k_p.
+* **The J⁺J̇e_N term of eq. (18) is off by default** (``LawGains.jdot_en``). Since J e_N ≡ 0,
+  J ė_N = −J̇ e_N: eq. (17) gets the term by differentiating that identity. Added to the command it
+  puts J̇ e_N into the task, ë + K_v ė + K_p e = −J̇ e_N, which breaks eq. (11) while e_N ≠ 0; and it
+  cannot speed up e_N's decay, because the null-space projector annihilates it ((I − J⁺J)J⁺ = 0 in
+  Hsu's law; in the paper's it only moves the range part of ė_N from J_b⁺ to J_W⁺). Measured on the
+  paper scenario: the peak tracking error grows about a hundredfold, the final ‖e_N‖ and the start
+  torque are unchanged.
+* **The sign of −M⁻¹N** is the one that lowers torque: with W = MᵀM, τ = M q̈ + N is then the
+  least-‖τ‖ torque that realises J q̈ = a (Kazerounian–Nedungadi). The price, which no sign or
+  weighting can avoid with one degree of redundancy: the torque term and K_N e_N act on the same
+  null space, so the paper law's e_N does not vanish under gravity (eq. 19's "e_N → 0" holds for
+  Hsu's law, not for this one) and its torque moves fast in the first ~0.3 s while K_N reins in the
+  self-motion the torque term starts.
+* **Ryu's weighting is what makes g work.** P_b = I − J_b⁺J is the W_b-orthogonal projector onto the
+  null space; were W_b the same matrix as g's normal equations, P_b g would be exactly the
+  null-space velocity that best realises the links' reference velocities. The unweighted projection
+  of the same g (Hsu) is not: it can point a link *into* the obstacle that g pushes it away from.
+  W_b over the links' mid-points (the paper's Σ_{i=1}^n, fixed) approximates that; using the sensor's
+  own points instead measured worse, so the mid-points stay.
+* **Each pair's least-squares rows weigh α** (rows and target scaled by √α), so a pair entering the
+  influence distance changes g continuously; with equal weights a pair at α = 0 added a "hold
+  still" row at full weight and g jumped. The onset is continuous but stiff (dg/dα ∝ 1/λ²), which
+  still shows as single-tick torque-rate spikes when a pair enters the sensor's reach.
 """
 
 from __future__ import annotations

@@ -112,8 +112,21 @@ def write_figures(out: Path, traj: Trajectory, segments: np.ndarray, obstacles: 
     return files
 
 
+def save_compact(fig: plt.Figure, path: Path, dpi: int) -> Path:
+    """Save ``fig`` as a palette PNG (256 colours): a third of the size of matplotlib's RGBA file for
+    line plots, so that the figures stay small enough to keep in the repository."""
+    from PIL import Image
+
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    with Image.open(path) as img:
+        small = img.convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+    small.save(path, optimize=True)
+    return Path(path)
+
+
 def torque_comparison(runs: Sequence[tuple[str, Trajectory]], path: Path, *, zoom: float = 1.0,
-                      dpi: int = 80) -> Path:
+                      dpi: int = 100) -> Path:
     """Joint torques of several runs side by side (the paper's Figs. 1–2): the whole run on top, the
     first ``zoom`` seconds below, each row on a shared torque axis so the columns compare directly."""
     fig, axes = plt.subplots(2, len(runs), figsize=(4.6 * len(runs), 6.2), sharey="row", squeeze=False)
@@ -132,25 +145,31 @@ def torque_comparison(runs: Sequence[tuple[str, Trajectory]], path: Path, *, zoo
         pad = 0.05 * max(hi - lo, 1.0)
         axes[1, 0].set_ylim(lo - pad, hi + pad)
     fig.tight_layout()
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
-    return Path(path)
+    return save_compact(fig, path, dpi)
 
 
 def configuration_panels(panels: Sequence[tuple[str, Trajectory, np.ndarray]], obstacles: Sequence[Obstacle],
-                         path: Path, *, snapshots: int = 24, dpi: int = 80) -> Path:
+                         path: Path, *, snapshots: int = 24, ncols: int | None = None, dpi: int = 100) -> Path:
     """The arm's configurations over the obstacles for several runs side by side (Figs. 3–4 style);
-    ``panels`` holds (title, trajectory, (T, L, 2, 3) link axes). Colliding configurations are red."""
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.3 * len(panels), 4.8), sharex=True, sharey=True,
+    ``panels`` holds (title, trajectory, (T, L, 2, 3) link axes), laid out ``ncols`` to a row (all in
+    one row by default). Colliding configurations are red."""
+    ncols = ncols or len(panels)
+    nrows = -(-len(panels) // ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(4.3 * ncols, 4.6 * nrows), sharex=True, sharey=True,
                              squeeze=False)
-    for ax, (title, traj, segments) in zip(axes[0], panels):
+    flat = list(axes.flat)
+    for ax, (title, traj, segments) in zip(flat, panels):
         every = max(len(traj.t) // snapshots, 1)
         plot_configurations(ax, traj, segments, obstacles, every=every, title=title, mark_collisions=True)
-    for ax in axes[0, 1:]:
-        ax.set_ylabel("")
-        if ax.get_legend() is not None:
+    for i, ax in enumerate(flat):
+        if i >= len(panels):
+            ax.set_visible(False)
+            continue
+        if i % ncols:
+            ax.set_ylabel("")
+        if i < len(panels) - ncols:
+            ax.set_xlabel("")
+        if i and ax.get_legend() is not None:
             ax.get_legend().remove()
     fig.tight_layout()
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
-    return Path(path)
+    return save_compact(fig, path, dpi)

@@ -73,6 +73,7 @@ class RunSummary:
     obstacle_clearance: dict[str, float] = field(default_factory=dict)  # least distance to each obstacle [m]
     area_clearance: dict[str, float] = field(default_factory=dict)  # least distance to each area [m]
     events: list[dict[str, Any]] = field(default_factory=list)  # the largest torque-rate events
+    sensor: dict[str, float] = field(default_factory=dict)  # how g reaches the null space (claim 2)
     wall_s: float = 0.0
 
 
@@ -175,6 +176,34 @@ def _rate_events(result: Any, count: int = 3) -> list[dict[str, Any]]:
     return events
 
 
+def _sensor_projection(result: Any, every: int = 5) -> dict[str, float]:
+    """Claim 2's mechanism: at every ``every``-th tick with the sensor on, does the null-space part of
+    g that the law tracks, P_b g, move the nearest link point away from its obstacle as g itself does?
+
+    Returns the number of such ticks and the share where P_b g moves it *toward* the obstacle
+    (nᵀ J_p P_b g < 0 although nᵀ J_p g > 0).
+    """
+    from qpctl.law import law_terms, ryu_weight
+    from qpctl.linalg import weighted_pinv
+
+    ctrl, traj = result.controller, result.trajectory
+    weighted = ctrl.kind == "paper"
+    active = reversed_ = 0
+    for k in range(0, traj.t.size, every):
+        state = ctrl.dynamics.compute(traj.q[k], traj.v[k], float(traj.t[k]))
+        pairs = state.pairs
+        if not len(pairs) or pairs.distance.min() >= ctrl.gains.d_influence:
+            continue
+        terms = law_terms(state, ctrl.path(state.t), ctrl.gains, weighted=weighted)
+        factor = np.linalg.cholesky(ryu_weight(state)) if weighted else None
+        Jb = weighted_pinv(state.J, factor, eps=ctrl.gains.pinv_eps).matrix
+        r = int(np.argmin(pairs.distance))
+        row = pairs.normal[r] @ state.pair_jac[r]
+        active += 1
+        reversed_ += int(row @ terms.g > 0 and row @ (terms.g - Jb @ (state.J @ terms.g)) < 0)
+    return {"active_ticks": float(active), "reversed_share": reversed_ / active if active else 0.0}
+
+
 def run_one(scenario: str | Path, overrides: Sequence[str], spec: RunSpec, out: Path,
             figures: bool = True) -> RunSummary:
     """Simulate one run, write its standard outputs into ``out/spec.name``, summarise it."""
@@ -194,9 +223,11 @@ def run_one(scenario: str | Path, overrides: Sequence[str], spec: RunSpec, out: 
     robot = result.controller.robot
     gravity = pin.computeGeneralizedGravity(robot.model, robot.model.createData(), result.trajectory.q[0])
     obstacle_clearance, area_clearance = _clearances(result, scen)
-    events = _rate_events(result) if spec.group == "main" and spec.kind != "qp" else []
+    closed_form_main = spec.group == "main" and spec.kind in ("paper", "hsu")
+    events = _rate_events(result) if closed_form_main else []
+    sensor = _sensor_projection(result) if closed_form_main else {}
     return RunSummary(spec, result.metrics, "", _start_numbers(result.trajectory, np.asarray(gravity)),
-                      obstacle_clearance, area_clearance, events, time.perf_counter() - t0)
+                      obstacle_clearance, area_clearance, events, sensor, time.perf_counter() - t0)
 
 
 # -- the plan -------------------------------------------------------------------------------------
@@ -473,6 +504,17 @@ def report_markdown(t: Tables, base: Scenario, *, notes: Sequence[str], figures:
                          f"{_f(m['final_null_space_error'])} | {_f(s.start['peak_torque'])} | "
                          f"{_f(s.start['peak_torque_rate'])} | {_f(m['collided'])} |")
     lines.append("")
+    # The sensor through each law's projector.
+    rows = [(law, t.get(law)) for law in ("paper", "hsu")]
+    if all(s is not None and s.sensor for _, s in rows):
+        lines += [f"{h2} How the sensor's g reaches the null space (claim 2's mechanism)", "",
+                  ("| law | projector of e_N | sensor-active ticks (every 5th) | share where the projected g moves the "
+                  "nearest link point toward its obstacle, though g moves it away |"), "|---|---|---|---|"]
+        for law, s in rows:
+            proj = "Ryu, W_b = Σ J_iᵀJ_i" if law == "paper" else "unweighted, I − J⁺J"
+            lines.append(f"| {law} | {proj} | {s.sensor['active_ticks']:.0f} | "  # type: ignore[union-attr]
+                         f"{100 * s.sensor['reversed_share']:.0f} % |")  # type: ignore[union-attr]
+        lines.append("")
     # Torque-rate events.
     lines += [f"{h2} Largest torque-rate events", "", "| law | t [s] | abs Δτ/dt [N·m/s] | clearance [m] | cause |",
               "|---|---|---|---|---|"]
@@ -533,7 +575,7 @@ def make_figures(t: Tables, scenario: str | Path, overrides: Sequence[str], out:
             tr = load(s)  # type: ignore[arg-type]
             state = "collided" if s.metrics["collided"] else "no collision"  # type: ignore[union-attr]
             panels.append((f"({VREF_LETTERS[i]}) v_ref = {v:g} m/s: {state}", tr, link_segments(ctrl, tr.q)))
-        configuration_panels(panels, obstacles, out / "fig_vref.png", snapshots=16)
+        configuration_panels(panels, obstacles, out / "fig_vref.png", snapshots=16, ncols=2)
         figs["fig_vref.png"] = "Weighted law at four reference velocities a < b < c < d (paper Fig. 4)"
     return figs
 
@@ -583,7 +625,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         (out / "summary.json").write_text(json.dumps(
             [{"run": r.spec.name, "law": r.spec.kind, "group": r.spec.group, "v_ref": r.spec.v_ref,
               "skipped": r.skipped, "start": r.start, "obstacle_clearance": r.obstacle_clearance,
-              "area_clearance": r.area_clearance, "events": r.events, "metrics": r.metrics} for r in runs],
+              "area_clearance": r.area_clearance, "events": r.events, "sensor": r.sensor,
+              "metrics": r.metrics} for r in runs],
             indent=2) + "\n")
     except QpctlError as exc:
         print(f"qpctl.reproduce: error: {exc}", file=sys.stderr)

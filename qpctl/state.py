@@ -25,13 +25,23 @@ def skew(p: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])
 
 
+# Levi-Civita symbol as a (3, 9) matrix: row j holds ε_ijk over (i, k), so (p @ _LEVI_CIVITA) holds
+# Σ_j ε_ijk p_j = skew(p)_ik.
+_LEVI_CIVITA = np.zeros((3, 3, 3))
+_LEVI_CIVITA[0, 1, 2] = _LEVI_CIVITA[1, 2, 0] = _LEVI_CIVITA[2, 0, 1] = 1.0
+_LEVI_CIVITA[0, 2, 1] = _LEVI_CIVITA[2, 1, 0] = _LEVI_CIVITA[1, 0, 2] = -1.0
+_LEVI_CIVITA = _LEVI_CIVITA.transpose(1, 0, 2).reshape(3, 9)
+
+
+def skews(p: np.ndarray) -> np.ndarray:
+    """(k, 3, 3) cross-product matrices of k vectors (k, 3): ``skews(p) @ b`` is p × b, batched (one
+    product; ``np.cross`` costs ~30 µs a call on arrays this small)."""
+    return (p @ _LEVI_CIVITA).reshape(-1, 3, 3)
+
+
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a × b over axis 1 of (k, 3, ...) arrays (broadcast): k cross products, or k × (3 × n) for a
-    point (k, 3, 1) against Jacobian blocks (k, 3, n) — skew(a) @ b, batched. Written out because
-    ``np.cross`` costs ~30 µs a call on arrays this small."""
-    a0, a1, a2 = a[:, 0], a[:, 1], a[:, 2]
-    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
-    return np.stack((a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0), axis=1)
+    """Row-wise a × b of (k, 3) arrays."""
+    return np.matmul(skews(a), b[:, :, None])[:, :, 0]
 
 
 @dataclass
@@ -161,15 +171,27 @@ class Dynamics:
     def _motions_to_world(H: np.ndarray, local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Body-frame spatial motions (L, 6) = (linear, angular) to the world frame at its origin
         (what ``oMi.act`` does): (L, 3) linear and (L, 3) angular parts."""
-        R, p = H[:, :3, :3], H[:, :3, 3]
+        R = H[:, :3, :3]
         angular = np.matmul(R, local[:, 3:, None])[..., 0]
-        return np.matmul(R, local[:, :3, None])[..., 0] + cross(p, angular), angular
+        return np.matmul(R, local[:, :3, None])[..., 0] + cross(H[:, :3, 3], angular), angular
+
+    def _point_drifts(self, data: pin.Data, H: np.ndarray, velocity: np.ndarray, links: np.ndarray,
+                      points: np.ndarray) -> np.ndarray:
+        """(k, 3) J̇_p q̇ of world points (k, 3) [m] on the bodies of capsules ``links`` (k,): the classical
+        acceleration at q̈ = 0, a + α × p + ω × (v + ω × p) = (a + ω × v) + (α× + ω×ω×) p, with the
+        bodies' world spatial velocities ``velocity`` (L, 6) = (v, ω) and accelerations (a, α) at the
+        world origin."""
+        a, alpha = self._motions_to_world(H, np.array([data.a[j].vector for j in self._cap_joints]))
+        W = skews(velocity[:, 3:])
+        offset = a + np.matmul(W, velocity[:, :3, None])[:, :, 0]  # (L, 3)
+        K = skews(alpha) + W @ W  # (L, 3, 3)
+        return offset[links] + np.matmul(K[links], points[:, :, None])[:, :, 0]
 
     @staticmethod
     def _point_jacobians(body_jac: np.ndarray, points: np.ndarray) -> np.ndarray:
         """(k, 3, n) Jacobians of world points (k, 3) [m] fixed to bodies whose world Jacobians are
         (k, 6, n): J_v − p × J_ω, column by column."""
-        return body_jac[:, :3] - cross(points[:, :, None], body_jac[:, 3:])
+        return body_jac[:, :3] - skews(points) @ body_jac[:, 3:]
 
     def _kinematics(self, q: np.ndarray, v: np.ndarray) -> None:
         pin.computeAllTerms(self.model, self.data, q, v)  # M, nle, Jacobians; data.a at q̈ = 0
@@ -218,12 +240,7 @@ class Dynamics:
         if k:
             P = pairs.p_link
             pair_jac = self._point_jacobians(body_jac[pairs.link], P)
-            # classical acceleration of each witness point at q̈ = 0: a + α × p + ω × (v + ω × p)
-            v_lin, omega = np.split(body_jac @ v, 2, axis=1)
-            a_lin, alpha = self._motions_to_world(H, np.array([data.a[j].vector for j in self._cap_joints]))
-            w = omega[pairs.link]
-            pair_drift = (a_lin[pairs.link] + cross(alpha[pairs.link], P)
-                          + cross(w, v_lin[pairs.link] + cross(w, P)))
+            pair_drift = self._point_drifts(data, H, body_jac @ v, pairs.link, P)
         else:
             pair_jac = np.empty((0, 3, model.nv))
             pair_drift = np.empty((0, 3))
@@ -249,13 +266,13 @@ class Dynamics:
         model, data = self.model, self._probe_data
         pin.forwardKinematics(model, data, q1, state.v)
         H, segments = self._capsule_placements(data)
-        self._probe.update(segments, t1)
-        hdot0 = np.einsum("ri,rin,n->r", pairs.normal, state.pair_jac, state.v) - np.einsum(
-            "ri,ri->r", pairs.normal, pairs.v_obstacle)
-        normal, p_link, v_obs = np.empty((k, 3)), np.empty((k, 3)), np.empty((k, 3))
-        for r, (i, j) in enumerate(zip(pairs.link.tolist(), pairs.obstacle.tolist())):
+        links = pairs.link.tolist()
+        self._probe.update(segments, t1, links=sorted(set(links)))
+        hdot0 = np.einsum("ri,ri->r", pairs.normal, state.pair_jac @ state.v - pairs.v_obstacle)
+        normal, p_link = np.empty((k, 3)), np.empty((k, 3))
+        for r, (i, j) in enumerate(zip(links, pairs.obstacle.tolist())):
             _, normal[r], p_link[r], _ = self._probe.pair(i, j)
-            v_obs[r] = self.obstacles[j].velocity_at(t1)
+        v_obs = self._probe.obstacle_velocities(pairs.obstacle)
         v_lin, omega = self._motions_to_world(H, np.array([data.v[j].vector for j in self._cap_joints]))
         v_point = v_lin[pairs.link] + cross(omega[pairs.link], p_link)
         hdot1 = np.einsum("ri,ri->r", normal, v_point - v_obs)

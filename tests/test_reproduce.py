@@ -15,7 +15,7 @@ import re
 import pytest
 
 from qpctl import reproduce
-from qpctl.reproduce import LAWS, VREF_SWEEP, VREF_LETTERS, RunSpec, build_scenario, plan
+from qpctl.reproduce import LAWS, VREF_LETTERS, VREF_SWEEP, RunSpec, build_scenario, plan
 from qpctl.scenario import Scenario
 
 SHORT = ["sim.duration=0.3"]
@@ -39,7 +39,7 @@ def laws_run() -> list[str]:
 def table(text: str, heading: str) -> list[str]:
     """The rows of the Markdown table under the heading that starts with ``heading``."""
     section = text.split(heading, 1)[1]
-    rows = re.findall(r"^\|.*\|$", section.split("\n## ", 1)[0], flags=re.M)
+    rows = re.findall(r"^\|.*\|$", section.split("\n## ", 1)[0], flags=re.MULTILINE)
     return rows[2:]  # header and separator dropped
 
 

@@ -93,7 +93,9 @@ class Controller(ABC):
         out = self.control(state)
         end = time.perf_counter()
         out.compute_us = (end - start) * 1e6
-        out.info.setdefault("state_us", (t_state - start) * 1e6)
+        out.info.setdefault("state_us", (t_state - start) * 1e6)  # = rigid_us + distance_us + bookkeeping
+        out.info.update(state.timing)  # rigid_us (Pinocchio, Jacobians), distance_us (python-fcl)
+        out.info["pairs"] = len(state.pairs)
         self.last = out
         return out
 

@@ -111,11 +111,16 @@ class DistanceEngine:
             self._manager.setup()
 
     # -- pose updates -------------------------------------------------------------------------
-    def update(self, segments: np.ndarray, t: float) -> None:
-        """Set the link segments ((L, 2, 3) world endpoints [m]) and the obstacles' poses at time t [s]."""
+    def update(self, segments: np.ndarray, t: float, links: Sequence[int] | None = None) -> None:
+        """Set the link segments ((L, 2, 3) world endpoints [m]) and the obstacles' poses at time t [s].
+
+        ``links``: move only these links' python-fcl capsules (then query only pairs of these links).
+        """
         self._segments = segments
         self._mids = 0.5 * (segments[:, 0] + segments[:, 1])
-        for i, ((ax, ay, az), (bx, by, bz)) in enumerate(segments.tolist()):
+        ends = segments.tolist()
+        for i in range(len(ends)) if links is None else links:
+            (ax, ay, az), (bx, by, bz) = ends[i]
             dx, dy, dz = bx - ax, by - ay, bz - az
             length = math.sqrt(dx * dx + dy * dy + dz * dz)
             if not abs(length - self._link_len[i]) <= 1e-12:  # first call (NaN) or a new length: rebuild
@@ -137,6 +142,10 @@ class DistanceEngine:
         self._t = t
 
     # -- queries ------------------------------------------------------------------------------
+    def obstacle_velocities(self, obstacles: np.ndarray) -> np.ndarray:
+        """(k, 3) velocities [m/s] of the given obstacles (indices) at the time of the last update."""
+        return self._vel[obstacles]
+
     def _candidates(self, cutoff: float) -> tuple[np.ndarray, np.ndarray]:
         """(link, obstacle) index arrays of the pairs that may lie within ``cutoff`` [m], link-major."""
         if not np.isfinite(cutoff):

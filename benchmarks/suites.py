@@ -1,0 +1,119 @@
+"""The benchmark suites: closed-loop quality, same-tick timing, and scaling with the scene.
+
+* :func:`closed_loop` — one controller on one scene in the built-in simulator (RK4, the scene's dt):
+  success (reached the target, no collision), tracking error, peak torque and torque rate, least
+  clearance, compute time per tick by stage.
+* :func:`same_ticks` — every controller timed on the states of one closed-loop run
+  (:mod:`benchmarks.timing`).
+* :func:`scaling` — the canopy scene tiled to more obstacles (broad phase on), timed on the same states.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+
+from benchmarks.scenes import BenchScene, orchard_scene
+from benchmarks.timing import StateSequence, TickTimes, time_on_states
+from qpctl.errors import QpctlError
+from qpctl.simulation.metrics import compute_metrics
+from qpctl.simulation.simulator import Simulator
+
+#: Reached: the task point ends within this distance of the path's last point [m].
+REACH_TOLERANCE = 0.01
+
+
+@dataclass(frozen=True)
+class ControllerSpec:
+    """A controller to benchmark: ``kind`` (paper, hsu, qp) and, for the QP, its solver."""
+
+    kind: str
+    solver: str | None = None
+
+    @property
+    def label(self) -> str:
+        return self.kind if self.solver is None else f"{self.kind}-{self.solver}"
+
+
+def controller_specs(solvers: Sequence[str]) -> list[ControllerSpec]:
+    """The two closed forms, then the QP with each solver."""
+    return [ControllerSpec("paper"), ControllerSpec("hsu")] + [ControllerSpec("qp", s) for s in solvers]
+
+
+@dataclass
+class ClosedLoop:
+    """One closed-loop run: its metrics, and its states for the same-tick suites (None if it failed)."""
+
+    scene: str
+    controller: str
+    metrics: dict[str, Any]
+    states: StateSequence | None
+
+
+def _stage_medians(infos: list[dict[str, Any]]) -> dict[str, float]:
+    out = {}
+    for stage in ("rigid_us", "distance_us", "state_us", "build_us", "solve_us"):
+        vals = [float(i[stage]) for i in infos if stage in i]
+        if vals:
+            out[f"{stage[:-3]}_us_median"] = float(np.median(vals))
+    return out
+
+
+def closed_loop(scene: BenchScene, spec: ControllerSpec, *, max_ticks: int | None = None) -> ClosedLoop:
+    """Run ``spec`` on ``scene`` (at most ``max_ticks`` ticks) and measure it."""
+    duration = scene.duration if max_ticks is None else min(scene.duration, (max_ticks - 1) * scene.dt)
+    controller = scene.controller(spec.kind, spec.solver)
+    try:
+        traj = Simulator(controller, dt=scene.dt, duration=duration).run(scene.q0)
+    except QpctlError as exc:  # diverged, or a controller error: a failed run, reported as such
+        return ClosedLoop(scene.name, spec.label, {"success": False, "reached": False, "collided": None,
+                                                   "error": f"{type(exc).__name__}: {exc}"}, None)
+    m = compute_metrics(traj, d_safe=scene.gains.d_safe)
+    final_to_target = float(np.linalg.norm(traj.x[-1] - scene.target))
+    reached = final_to_target <= REACH_TOLERANCE
+    metrics: dict[str, Any] = {
+        "success": bool(reached and not m["collided"]),
+        "reached": bool(reached),
+        "collided": m["collided"],
+        "final_distance_to_target": final_to_target,
+        "rms_tracking_error": m["rms_tracking_error"],
+        "max_tracking_error": m["max_tracking_error"],
+        "max_abs_torque": m["max_abs_torque"],
+        "max_abs_torque_rate": m["max_abs_torque_rate"],
+        "min_clearance": m["min_clearance"],
+        "tick_us_median": m["tick_us_median"],
+        "tick_us_p99": m["tick_us_p99"],
+        "tick_us_max": m["tick_us_max"],
+        "ticks": m["ticks"],
+    }
+    metrics.update(_stage_medians(traj.infos))
+    for key in ("qp_status_counts", "qp_iterations_max", "qp_fallbacks"):
+        if key in m:
+            metrics[key] = m[key]
+    return ClosedLoop(scene.name, spec.label, metrics, StateSequence(traj.t, traj.q, traj.v))
+
+
+def same_ticks(scene: BenchScene, specs: Sequence[ControllerSpec], states: StateSequence, *,
+               progress: bool = False) -> dict[str, TickTimes]:
+    """Every controller of ``specs`` timed on ``states`` of ``scene`` (interleaved)."""
+    controllers = {s.label: scene.controller(s.kind, s.solver) for s in specs}
+    return time_on_states(controllers, states, progress=progress, desc=f"same ticks {scene.name}")
+
+
+def scaling(scene: BenchScene, counts: Sequence[int], specs: Sequence[ControllerSpec], states: StateSequence, *,
+            progress: bool = False) -> dict[int, dict[str, TickTimes]]:
+    """Tick times against the number of obstacles: ``scene`` tiled to each count (broad phase on), every
+    (count, controller) timed on the same ``states``, all interleaved."""
+    controllers = {}
+    for count in counts:
+        tiled = orchard_scene(scene, count)
+        for s in specs:
+            controllers[(count, s.label)] = tiled.controller(s.kind, s.solver, broadphase=True)
+    flat = time_on_states({f"{c}|{lb}": ctrl for (c, lb), ctrl in controllers.items()}, states,
+                          progress=progress, desc=f"scaling {scene.name}")
+    out: dict[int, dict[str, TickTimes]] = {c: {} for c in counts}
+    for (count, label) in controllers:
+        out[count][label] = flat[f"{count}|{label}"]
+    return out

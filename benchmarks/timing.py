@@ -1,0 +1,106 @@
+"""Same ticks, side by side: time every controller's tick on one recorded sequence of states.
+
+A closed-loop run gives the states (t, q, v); each controller then steps through exactly those
+states, all controllers interleaved tick by tick (the order rotating from tick to tick so that none
+always runs first, on a cold cache, or last), so that they are compared on identical inputs under the
+same machine conditions. Each controller keeps its own warm start along the sequence, as in a run.
+
+Two clocks per tick: the wall time of ``step()`` (``ControlOutput.compute_us``, what a control loop
+waits for) and the thread's CPU time around it (what the code costs, without the time slices other
+processes take — on a loaded machine the wall time's tail is mostly those). The garbage collector is
+paused while timing (as ``timeit`` does); it is collected between sequences.
+"""
+
+from __future__ import annotations
+
+import gc
+import time
+from dataclasses import dataclass, field
+from typing import Iterable, Mapping
+
+import numpy as np
+
+from qpctl.controllers.base import Controller
+
+#: The per-tick stages a controller reports in ``ControlOutput.info`` [µs].
+STAGES = ("rigid_us", "distance_us", "state_us", "build_us", "solve_us")
+
+
+@dataclass(frozen=True)
+class StateSequence:
+    """States of a closed-loop run: t (T,) [s], q and v (T, n) [rad], [rad/s]."""
+
+    t: np.ndarray
+    q: np.ndarray
+    v: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.t.shape[0])
+
+    def every(self, stride: int) -> "StateSequence":
+        """Every ``stride``-th state (a shorter benchmark; the warm start then spans ``stride`` ticks)."""
+        return StateSequence(self.t[::stride], self.q[::stride], self.v[::stride])
+
+
+@dataclass
+class TickTimes:
+    """One controller's timings over a :class:`StateSequence` (T ticks, all [µs])."""
+
+    wall: np.ndarray  # (T,) wall time of step()
+    cpu: np.ndarray  # (T,) thread CPU time of step()
+    stages: dict[str, np.ndarray] = field(default_factory=dict)  # stage -> (T,), NaN where not reported
+    pairs: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T,) link–obstacle pairs within the cutoff
+
+    @staticmethod
+    def concatenate(parts: Iterable["TickTimes"]) -> "TickTimes":
+        parts = list(parts)
+        stages = {s: np.concatenate([p.stages[s] for p in parts]) for s in STAGES}
+        return TickTimes(np.concatenate([p.wall for p in parts]), np.concatenate([p.cpu for p in parts]), stages,
+                         np.concatenate([p.pairs for p in parts]))
+
+
+def summary(values: np.ndarray) -> dict[str, float]:
+    """Median, 99th percentile and maximum (NaNs ignored; all NaN gives NaNs)."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return {"median": float("nan"), "p99": float("nan"), "max": float("nan")}
+    return {"median": float(np.median(v)), "p99": float(np.percentile(v, 99)), "max": float(np.max(v))}
+
+
+def time_on_states(controllers: Mapping[str, Controller], states: StateSequence, *,
+                   progress: bool = False, desc: str = "same ticks") -> dict[str, TickTimes]:
+    """Step every controller through ``states``, interleaved tick by tick; their timings by label."""
+    labels = list(controllers)
+    T = len(states)
+    out = {lb: TickTimes(np.empty(T), np.empty(T), {s: np.full(T, np.nan) for s in STAGES}, np.zeros(T))
+           for lb in labels}
+    for c in controllers.values():
+        c.reset()
+    ticks: Iterable[int] = range(T)
+    if progress:
+        from tqdm import tqdm
+
+        ticks = tqdm(ticks, desc=desc, unit="tick", leave=False)
+    gc.collect()
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        for k in ticks:
+            q, v, t = states.q[k], states.v[k], float(states.t[k])
+            shift = k % len(labels)
+            for lb in labels[shift:] + labels[:shift]:
+                c0 = time.thread_time()
+                res = controllers[lb].step(q, v, t)
+                c1 = time.thread_time()
+                rec = out[lb]
+                rec.wall[k] = res.compute_us
+                rec.cpu[k] = (c1 - c0) * 1e6
+                for s in STAGES:
+                    if s in res.info:
+                        rec.stages[s][k] = res.info[s]
+                rec.pairs[k] = res.info.get("pairs", np.nan)
+    finally:
+        if was_enabled:
+            gc.enable()
+    return out
