@@ -60,6 +60,8 @@ class LawGains:
     kp [1/s²], kv [1/s]: task PD gains (s² + kv s + kp Hurwitz: both > 0).
     kn [1/s]: null-space velocity gain.
     v_ref [m/s]: magnitude of the links' obstacle-avoiding reference velocity.
+    obstacle_v_ref [m/s]: per-obstacle override of v_ref (by obstacle index; NaN keeps v_ref);
+    filled by the controller from :attr:`Obstacle.v_ref`.
     d_influence [m], d_safe [m]: the sensor's reach and the safety distance (0 ≤ d_safe < d_influence).
     g_damping [m]: damping of the least squares that turns link velocities into g.
     pinv_eps: σ_min/σ_max below which a pseudo-inverse is damped and the tick reported singular.
@@ -75,6 +77,7 @@ class LawGains:
     g_damping: float = 0.05
     pinv_eps: float = 1e-3
     jdot_en: bool = False
+    obstacle_v_ref: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         for name in ("kp", "kv"):
@@ -111,11 +114,17 @@ def reference_velocity(state: TickState, gains: LawGains) -> np.ndarray:
     """g [rad/s]: the joint velocity that best realises u = v_ref α(d) n at every link point within d_i."""
     pairs = state.pairs
     active = pairs.distance < gains.d_influence if len(pairs) else np.zeros(0, bool)
-    if not np.any(active) or gains.v_ref == 0:
+    if not np.any(active):
+        return np.zeros(state.n)
+    v_ref = np.full(int(np.count_nonzero(active)), gains.v_ref)
+    if gains.obstacle_v_ref:
+        own = np.asarray(gains.obstacle_v_ref)[pairs.obstacle[active]]
+        v_ref = np.where(np.isnan(own), v_ref, own)
+    if not np.any(v_ref):
         return np.zeros(state.n)
     d = pairs.distance[active]
     alpha = np.clip((gains.d_influence - d) / (gains.d_influence - gains.d_safe), 0.0, 1.0)
-    u = (gains.v_ref * alpha)[:, None] * pairs.normal[active]  # (k, 3)
+    u = (v_ref * alpha)[:, None] * pairs.normal[active]  # (k, 3)
     # Each pair's rows weigh α (rows and targets scaled by √α): a pair entering the influence
     # distance (α = 0) then changes g continuously instead of adding a full-weight "stay still" row.
     w = np.sqrt(alpha)[:, None, None]

@@ -6,7 +6,8 @@ Runs, each into its own sub-folder of ``--out`` with the standard outputs of ``q
 (``trajectory.npz``, ``metrics.json``, figures):
 
 * ``paper``, ``hsu`` (and ``qp`` when :mod:`qpctl.controllers.qp` imports) on the scenario as it is;
-* ``vref-<v>-<law>``: the four reference velocities a < b < c < d of the paper's Fig. 4
+* ``vref-<v>-<law>``: the four reference velocities a < b < c < d of the paper's Fig. 4, given to
+  area B's obstacles (``obstacles[].v_ref``) while area A keeps the controller's, as in the paper
   (:data:`VREF_SWEEP`; the scenario's own v_ref reuses the first group's runs);
 * ``jdot-<law>``: the paper and Hsu laws with the paper's J⁺J̇e_N term (eq. 18) switched on, the
   measurement behind ``LawGains.jdot_en``'s default;
@@ -60,6 +61,7 @@ class RunSpec:
     overrides: tuple[str, ...] = ()
     positions: tuple[tuple[float, ...], ...] | None = None  # obstacle centres replacing the scenario's
     v_ref: float | None = None
+    area_b_v_ref: float | None = None  # v_ref of area B's obstacles (the sweep; area A keeps the controller's)
 
 
 @dataclass
@@ -90,12 +92,18 @@ def _strip_none(node: Any) -> Any:
 def build_scenario(scenario: str | Path, overrides: Sequence[str], spec: RunSpec) -> Scenario:
     """The scenario of one run: the base file, the user's ``--set`` overrides, the run's own."""
     scen = Scenario.load(scenario, [*overrides, *spec.overrides])
-    if spec.positions is None:
+    if spec.positions is None and spec.area_b_v_ref is None:
         return scen
     data = _strip_none(copy.deepcopy(scen.data))
-    for obstacle, position in zip(data["obstacles"], spec.positions):
-        obstacle["position"] = [float(x) for x in position]
-    return Scenario.from_dict(data, source=f"{scen.source}, obstacles moved")
+    if spec.positions is not None:
+        for obstacle, position in zip(data["obstacles"], spec.positions):
+            obstacle["position"] = [float(x) for x in position]
+    if spec.area_b_v_ref is not None:
+        for obstacle in data["obstacles"]:
+            if obstacle.get("area") == "B":
+                obstacle["v_ref"] = float(spec.area_b_v_ref)
+    what = "obstacles moved" if spec.positions is not None else f"area B v_ref = {spec.area_b_v_ref:g} m/s"
+    return Scenario.from_dict(data, source=f"{scen.source}, {what}")
 
 
 def _start_numbers(traj: Trajectory, gravity_torque: np.ndarray) -> dict[str, float]:
@@ -251,7 +259,7 @@ def plan(base: Scenario, *, laws: Sequence[str], jitter: int, seed: int) -> list
     for v in VREF_SWEEP:
         if math.isclose(v, nominal):
             continue
-        specs += [RunSpec(f"vref-{_vtag(v)}-{law}", law, "sweep", (f"controller.v_ref={v!r}",), v_ref=v)
+        specs += [RunSpec(f"vref-{_vtag(v)}-{law}", law, "sweep", (), v_ref=v, area_b_v_ref=v)
                   for law in laws]
     specs += [RunSpec(f"jdot-{law}", law, "jdot", ("controller.jdot_en=true",), v_ref=nominal)
               for law in ("paper", "hsu")]
@@ -476,8 +484,8 @@ def report_markdown(t: Tables, base: Scenario, *, notes: Sequence[str], figures:
             cells.append("– | –" if s is None else
                          f"{_clear(s.metrics['min_clearance'])} ({_closest(s)}) | {_f(s.metrics['collided'])}")
         lines.append(f"| {VREF_LETTERS[i]} = {v:g} | " + " | ".join(cells) + " |")
-    lines += ["", ("In brackets: the obstacle that came closest. The sweep changes v_ref for every obstacle; the "
-              "paper kept area A's fixed, which the scenario format cannot express (one v_ref per controller)."), ""]
+    lines += ["", ("In brackets: the obstacle that came closest. The sweep changes the reference velocity of area B's "
+              "obstacles only (`obstacles[].v_ref`); area A keeps the controller's, as in the paper's Fig. 4."), ""]
     # (c)
     lines += [f"{h2} (c) The paper's claims", "", "| claim | measured | verdict |", "|---|---|---|"]
     for v in verdicts(t):

@@ -108,6 +108,7 @@ OBSTACLE_SCHEMA: dict[str, tuple[Checker, Any]] = {
     "frequency": (_num, 0.0),
     "name": (_str, ""),
     "area": (_str, ""),
+    "v_ref": (_num, None),
 }
 
 SCHEMA: dict[str, Any] = {
@@ -227,6 +228,9 @@ def _validate_table(raw: Any, schema: dict[str, Any], source: str, prefix: str) 
                 if default is REQUIRED:
                     raise ConfigError("missing value", source=source, key=where)
                 out[key] = copy.deepcopy(default)
+                continue
+            if raw[key] is None and default is None:  # an unset optional key (a validated dict re-read)
+                out[key] = None
                 continue
             try:
                 out[key] = checker(raw[key])

@@ -224,3 +224,25 @@ def test_paper_null_space_error_is_held_up_by_gravity():
     traj0, _, _ = _regulate(PaperController, 100.0, 20.0, gravity=0.0)
     en0 = np.linalg.norm(traj0.e_null, axis=1)
     assert en0[-1] < 0.25 * en0[0]
+
+
+def test_obstacle_v_ref_overrides_the_controller_v_ref():
+    """An obstacle's own v_ref (the paper's area B sweep) scales only its pairs' part of g."""
+    from qpctl.scenario import Scenario
+
+    def g_for(obstacle_v_ref, controller_v_ref):
+        obstacles = [{"shape": "sphere", "position": [-1.25, -1.0], "radius": 0.1, "name": "B"}]
+        if obstacle_v_ref is not None:
+            obstacles[0]["v_ref"] = obstacle_v_ref
+        scen = Scenario.from_dict({"path": {"waypoints": [[1.0, -1.5]], "duration": 2.0}, "obstacles": obstacles,
+                                   "controller": {"v_ref": controller_v_ref, "d_influence": 0.3}})
+        ctrl = scen.build_controller("paper")
+        q = scen.q0(ctrl.robot)
+        state = ctrl.dynamics.compute(q, np.zeros(3), 0.0)
+        assert len(state.pairs) and state.pairs.distance.min() < 0.3
+        return law_terms(state, ctrl.path(0.0), ctrl.gains, weighted=True).g
+
+    g_ctrl = g_for(None, 1.5)
+    assert np.linalg.norm(g_ctrl) > 0
+    np.testing.assert_allclose(g_for(1.5, 0.2), g_ctrl, rtol=1e-12)
+    np.testing.assert_allclose(g_for(0.0, 1.5), 0.0, atol=0)

@@ -20,6 +20,7 @@ diagnostics (tracking error, null-space error, singularity flag, solver statisti
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
@@ -66,6 +67,9 @@ class Controller(ABC):
         self.path = path
         self.obstacles = list(obstacles)
         self.gains = gains or LawGains()
+        if any(o.v_ref is not None for o in self.obstacles):
+            own = tuple(float("nan") if o.v_ref is None else float(o.v_ref) for o in self.obstacles)
+            self.gains = dataclasses.replace(self.gains, obstacle_v_ref=own)
         if path.dim != robot.m:
             raise ConfigError(f"path points have {path.dim} coordinates but the robot's task has {robot.m}",
                               key="path.waypoints")

@@ -7,6 +7,9 @@ Shapes and sizes (all in metres):
 * ``capsule`` / ``cylinder``: ``radius`` and ``length`` (of the axis), axis along ``axis``
   (a unit vector, default z — in the planar scenarios a z-axis cylinder is a disc in the plane).
 
+``v_ref`` [m/s] optionally overrides the controller's obstacle reference velocity for this obstacle
+(the paper's Fig. 4 sweeps area B's while area A's stays fixed).
+
 Motion: constant ``velocity`` [m/s] and/or a sinusoidal sway ``amplitude`` [m] at
 ``frequency`` [Hz]: p(t) = p₀ + v t + A sin(2π f t).
 """
@@ -73,6 +76,7 @@ class Obstacle:
     amplitude: np.ndarray = field(default_factory=lambda: np.zeros(3))
     frequency: float = 0.0
     name: str = ""
+    v_ref: float | None = None  # [m/s] this obstacle's reference velocity (None: the controller's)
 
     def __post_init__(self) -> None:
         key = f"obstacles.{self.name}" if self.name else "obstacles"
@@ -84,6 +88,8 @@ class Obstacle:
         self.axis = _vec3(self.axis, f"{key}.axis")
         if np.linalg.norm(self.axis) == 0:
             raise ConfigError("axis must be non-zero", key=f"{key}.axis")
+        if self.v_ref is not None and not (np.isfinite(self.v_ref) and self.v_ref >= 0):
+            raise ConfigError(f"must be a number >= 0, got {self.v_ref}", key=f"{key}.v_ref")
         if not (np.isfinite(self.frequency) and self.frequency >= 0):
             raise ConfigError(f"must be >= 0, got {self.frequency}", key=f"{key}.frequency")
         if self.shape in ("sphere", "capsule", "cylinder"):
