@@ -42,6 +42,9 @@ def budget(examples: int) -> settings:
     return settings(PROFILE, max_examples=examples * SCALE)
 
 
+# Random states often make the QP infeasible (a link racing toward an obstacle under torque limits);
+# proxsuite then stalls for seconds unless the tick has a budget — which a real-time user sets.
+TICK_BUDGET_US = 20_000.0
 PLANAR_TAU = 1000.0  # [N·m]: the arm's gravity torque peaks at 3 · 10 kg · 9.81 m/s² · 1.5 m ≈ 440 N·m
 SOLVERS = [s for s in ("proxqp", "osqp", "daqp") if s in available_solvers()]
 # Solvers' tolerance on a row, relative to the row's largest term (osqp is a first-order method).
@@ -97,7 +100,7 @@ def planar_case(draw: st.DrawFn) -> dict:
     path = WaypointPath([point_in_reach(draw, np.zeros(3), 3.0, 2) for _ in range(2)],
                         duration=draw(st.floats(0.5, 3.0)))
     config = QPConfig(solver=draw(st.sampled_from(SOLVERS)), barrier_k0=draw(st.floats(10.0, 1000.0)),
-                      barrier_k1=draw(st.floats(2.0, 100.0)))
+                      barrier_k1=draw(st.floats(2.0, 100.0)), tick_budget_us=TICK_BUDGET_US)
     tau_max = draw(st.sampled_from([np.inf, PLANAR_TAU, 600.0]))
     return dict(robot=planar_arm(tau_max=tau_max), path=path, obstacles=obstacles, gains=g, config=config,
                 q=draw(planar_q), v=draw(planar_v), t=draw(st.floats(0.0, 3.5)))
@@ -115,7 +118,7 @@ def panda_case(draw: st.DrawFn) -> dict:
     shoulder = np.array([0.0, 0.0, 0.333])
     obstacles = [draw(obstacle(shoulder + [0.3, 0.0, 0.2], 0.6, planar=False)) for _ in range(draw(st.integers(0, 3)))]
     path = WaypointPath([point_in_reach(draw, shoulder, 0.8, 3) for _ in range(2)], duration=draw(st.floats(0.5, 3.0)))
-    config = QPConfig(solver=draw(st.sampled_from(SOLVERS)))
+    config = QPConfig(solver=draw(st.sampled_from(SOLVERS)), tick_budget_us=TICK_BUDGET_US)
     return dict(robot=PANDA, path=path, obstacles=obstacles, gains=draw(gains()), config=config, q=q, v=v,
                 t=draw(st.floats(0.0, 3.5)))
 

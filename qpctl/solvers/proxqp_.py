@@ -31,36 +31,16 @@ _STATUS = {
 class ProxQPSolver(QPSolver):
     name = "proxqp"
     fast_path = True
-    INNER_PER_OUTER = 20  # inner iterations per outer one under a time limit (see _iteration_caps)
+    CHUNK_OUTER = 10  # outer iterations per proxsuite call under a time limit (see _solve_within)
 
     def __init__(self, settings: dict[str, Any] | None = None) -> None:
         super().__init__(settings)
         self._qp: Any = None
         self._shape: tuple[int, int, int] | None = None
         self._warm: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
-        # Running estimate of one inner iteration's wall time [µs], the solve call's overhead
-        # included (so on the safe side); see _iteration_caps.
+        # Running estimate of one inner iteration's wall time [µs], a call's overhead included.
         self.us_per_iter = 10.0
         self._max_iter, self._max_iter_in = 10000, 1500  # the configured caps (set with the settings)
-
-    def _iteration_caps(self, elapsed_us: float) -> tuple[int, int, bool]:
-        """(max_iter, max_iter_in, whether the time limit lowered them) for this solve.
-
-        proxsuite has no time limit, and its iteration caps are nested: ``max_iter`` outer iterations
-        of at most ``max_iter_in`` inner ones each. A well-posed tick needs about 3 inner iterations
-        per outer one; an infeasible one can take the full 1500 per outer iteration (seconds). So the
-        time left buys K = (time left) / us_per_iter inner iterations, spent as at most
-        INNER_PER_OUTER inner iterations per outer one and K / INNER_PER_OUTER outer ones: the
-        product, the worst case, stays within the limit.
-        """
-        if self.time_limit_us is None:
-            return self._max_iter, self._max_iter_in, False
-        total = int((self.time_limit_us - elapsed_us) / self.us_per_iter)
-        inner = min(self._max_iter_in, self.INNER_PER_OUTER)
-        outer = total // inner
-        if outer >= self._max_iter and inner == self._max_iter_in:
-            return self._max_iter, self._max_iter_in, False
-        return min(outer, self._max_iter), inner, True
 
     def reset(self) -> None:
         self._qp, self._shape, self._warm = None, None, None
@@ -87,24 +67,64 @@ class ProxQPSolver(QPSolver):
             self._shape, self._warm = shape, None
         else:
             self._qp.update(problem.P, problem.c, problem.A, problem.b, C, lo, hi)
-        t_solve = time.perf_counter()
-        max_iter, max_iter_in, capped = self._iteration_caps((t_solve - start) * 1e6)
-        if max_iter < 1:  # the time limit is spent before the first iteration
-            return Solution(False, np.zeros(nv), "time_limit", 0, (t_solve - start) * 1e6, self.name)
-        self._qp.settings.max_iter, self._qp.settings.max_iter_in = max_iter, max_iter_in
+        if self.time_limit_us is None:
+            self._qp.settings.max_iter, self._qp.settings.max_iter_in = self._max_iter, self._max_iter_in
+            self._first_call(nv, shape)
+            res = self._qp.results
+            status, iters = _STATUS.get(res.info.status.name, res.info.status.name), int(res.info.iter)
+        else:
+            status, iters = self._solve_within(nv, shape, start + self.time_limit_us * 1e-6)
+            res = self._qp.results
+        x = np.array(res.x)
+        found = status == "solved" and bool(np.all(np.isfinite(x)))
+        self._warm = (x, np.array(res.y), np.array(res.z)) if found else None
+        return Solution(found, x if found else np.zeros(nv), status, iters,
+                        (time.perf_counter() - start) * 1e6, self.name)
+
+    def _first_call(self, nv: int, shape: tuple[int, int, int]) -> None:
+        self._qp.settings.initial_guess = proxsuite.proxqp.InitialGuess.WARM_START
         if self._warm is None:
             self._qp.solve(np.zeros(nv), np.zeros(shape[1]), np.zeros(shape[2]))
         else:
             self._qp.solve(*self._warm)
-        res = self._qp.results
-        if res.info.iter >= 5:
-            per = (time.perf_counter() - t_solve) * 1e6 / int(res.info.iter)
-            self.us_per_iter = float(np.clip(0.7 * self.us_per_iter + 0.3 * per, 0.5, 1e4))
-        status = _STATUS.get(res.info.status.name, res.info.status.name)
-        if capped and status == "max_iter":
-            status = "time_limit"
-        x = np.array(res.x)
-        found = status == "solved" and bool(np.all(np.isfinite(x)))
-        self._warm = (x, np.array(res.y), np.array(res.z)) if found else None
-        return Solution(found, x if found else np.zeros(nv), status, int(res.info.iter),
-                        (time.perf_counter() - start) * 1e6, self.name)
+
+    def _solve_within(self, nv: int, shape: tuple[int, int, int], deadline: float) -> tuple[str, int]:
+        """Solve by chunks of CHUNK_OUTER outer iterations, each continuing the last, until solved,
+        the configured max_iter, or the deadline [perf_counter s]; returns (status, inner iterations).
+
+        proxsuite has no time limit and nests its caps (``max_iter`` outer iterations of up to
+        ``max_iter_in`` inner ones): a well-posed tick needs about 3 inner iterations per outer one,
+        an infeasible one stalls at the full 1500 per outer one (seconds per tick). Each chunk gets at
+        most K = (time left) / us_per_iter inner iterations in all (K / CHUNK_OUTER per outer one),
+        so even a stalled chunk ends near the deadline, and the clock is read between chunks.
+        A continued chunk (``WARM_START_WITH_PREVIOUS_RESULT``, no update in between) reaches the
+        same solution as one call (checked to 1e-10 on this package's QPs).
+        """
+        outer_done = inner_done = 0
+        status = "time_limit"
+        qp = self._qp
+        while True:
+            now = time.perf_counter()
+            budget = int((deadline - now) * 1e6 / self.us_per_iter)  # inner iterations that still fit
+            chunk = min(self.CHUNK_OUTER, self._max_iter - outer_done)
+            if chunk < 1:
+                return "max_iter", inner_done
+            if budget < chunk:
+                return "time_limit", inner_done
+            qp.settings.max_iter = chunk
+            qp.settings.max_iter_in = min(self._max_iter_in, budget // chunk)
+            if outer_done == 0:
+                self._first_call(nv, shape)
+            else:
+                qp.settings.initial_guess = proxsuite.proxqp.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT
+                qp.solve()
+            info = qp.results.info
+            inner, outer = int(info.iter), max(int(info.iter_ext), 1)
+            if inner >= 5:
+                per = (time.perf_counter() - now) * 1e6 / inner
+                self.us_per_iter = float(np.clip(0.7 * self.us_per_iter + 0.3 * per, 0.5, 1e4))
+            inner_done += inner
+            outer_done += outer
+            status = _STATUS.get(info.status.name, info.status.name)
+            if status != "max_iter":
+                return status, inner_done
