@@ -114,12 +114,12 @@ def reference_velocity(state: TickState, gains: LawGains) -> np.ndarray:
     """g [rad/s]: the joint velocity that best realises u = v_ref α(d) n at every link point within d_i."""
     pairs = state.pairs
     active = pairs.distance < gains.d_influence if len(pairs) else np.zeros(0, bool)
-    if not np.any(active):
+    if not active.any():
         return np.zeros(state.n)
-    v_ref = np.full(int(np.count_nonzero(active)), gains.v_ref)
+    v_ref: float | np.ndarray = gains.v_ref  # per active pair when obstacles have their own
     if gains.obstacle_v_ref:
         own = np.asarray(gains.obstacle_v_ref)[pairs.obstacle[active]]
-        v_ref = np.where(np.isnan(own), v_ref, own)
+        v_ref = np.where(np.isnan(own), gains.v_ref, own)
     if not np.any(v_ref):
         return np.zeros(state.n)
     d = pairs.distance[active]
@@ -130,7 +130,8 @@ def reference_velocity(state: TickState, gains: LawGains) -> np.ndarray:
     w = np.sqrt(alpha)[:, None, None]
     A = (w * state.pair_jac[active]).reshape(-1, state.n)
     b = (w[:, :, 0] * u).reshape(-1)
-    H = A.T @ A + gains.g_damping**2 * np.eye(state.n)
+    H = A.T @ A
+    H.flat[:: state.n + 1] += gains.g_damping**2  # + λ² I
     return np.linalg.solve(H, A.T @ b)
 
 

@@ -8,6 +8,7 @@ closed-form laws only read.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Sequence
@@ -113,7 +114,7 @@ def validate_state(q: np.ndarray, v: np.ndarray, t: float, n: int) -> tuple[np.n
         raise InvalidStateError(f"q, v must be arrays of numbers and t a number: {exc}") from exc
     if q.shape != (n,) or v.shape != (n,):
         raise InvalidStateError(f"q and v must have shape ({n},), got {q.shape} and {v.shape}")
-    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v)) and np.isfinite(t)):
+    if not (np.isfinite(q).all() and np.isfinite(v).all() and math.isfinite(t)):
         raise InvalidStateError(f"non-finite state: q={q.tolist()}, v={v.tolist()}, t={t}")
     return q, v, t
 
@@ -160,31 +161,21 @@ class Dynamics:
                     mask[i, joint.idx_v : joint.idx_v + joint.nv] = 1.0
         return mask
 
-    def _capsule_placements(self, data: pin.Data) -> tuple[np.ndarray, np.ndarray]:
-        """(L, 4, 4) world placements of the capsules' bodies and (L, 2, 3) the capsule axes [m] (after
-        a kinematics pass on ``data``)."""
+    def _capsule_segments(self, data: pin.Data) -> np.ndarray:
+        """(L, 2, 3) the capsule axes in the world frame [m] (after a kinematics pass on ``data``)."""
         H = np.array([data.oMi[j].homogeneous for j in self._cap_joints]).reshape(-1, 4, 4)
-        segments = np.matmul(self._cap_local, H[:, :3, :3].transpose(0, 2, 1)) + H[:, None, :3, 3]
-        return H, segments
+        return np.matmul(self._cap_local, H[:, :3, :3].transpose(0, 2, 1)) + H[:, None, :3, 3]
 
-    @staticmethod
-    def _motions_to_world(H: np.ndarray, local: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Body-frame spatial motions (L, 6) = (linear, angular) to the world frame at its origin
-        (what ``oMi.act`` does): (L, 3) linear and (L, 3) angular parts."""
-        R = H[:, :3, :3]
-        angular = np.matmul(R, local[:, 3:, None])[..., 0]
-        return np.matmul(R, local[:, :3, None])[..., 0] + cross(H[:, :3, 3], angular), angular
-
-    def _point_drifts(self, data: pin.Data, H: np.ndarray, velocity: np.ndarray, links: np.ndarray,
+    def _point_drifts(self, data: pin.Data, velocity: np.ndarray, links: np.ndarray,
                       points: np.ndarray) -> np.ndarray:
         """(k, 3) J̇_p q̇ of world points (k, 3) [m] on the bodies of capsules ``links`` (k,): the classical
         acceleration at q̈ = 0, a + α × p + ω × (v + ω × p) = (a + ω × v) + (α× + ω×ω×) p, with the
         bodies' world spatial velocities ``velocity`` (L, 6) = (v, ω) and accelerations (a, α) at the
         world origin."""
-        a, alpha = self._motions_to_world(H, np.array([data.a[j].vector for j in self._cap_joints]))
+        acc = np.array([pin.getAcceleration(self.model, data, j, pin.WORLD).vector for j in self._cap_joints])
         W = skews(velocity[:, 3:])
-        offset = a + np.matmul(W, velocity[:, :3, None])[:, :, 0]  # (L, 3)
-        K = skews(alpha) + W @ W  # (L, 3, 3)
+        offset = acc[:, :3] + np.matmul(W, velocity[:, :3, None])[:, :, 0]  # (L, 3)
+        K = skews(acc[:, 3:]) + W @ W  # (L, 3, 3)
         return offset[links] + np.matmul(K[links], points[:, :, None])[:, :, 0]
 
     @staticmethod
@@ -219,14 +210,14 @@ class Dynamics:
         M = data.M.copy()  # Pinocchio fills the upper triangle
         M[self._tril] = M.T[self._tril]
         N = data.nle.copy()
-        if not np.all(np.isfinite(N)):  # e.g. speeds so large that C(q, q̇)q̇ overflows
+        if not np.isfinite(N).all():  # e.g. speeds so large that C(q, q̇)q̇ overflows
             raise InvalidStateError(f"the dynamics overflow at this state: q={q.tolist()}, v={v.tolist()}")
         fid = self.robot.ee_frame_id
         x = data.oMf[fid].translation[self._axes].copy()
         Jf = pin.getFrameJacobian(model, data, fid, pin.LOCAL_WORLD_ALIGNED)[:3]
         J = Jf[self._axes].copy()
         drift = pin.getFrameClassicalAcceleration(model, data, fid, pin.LOCAL_WORLD_ALIGNED).linear[self._axes].copy()
-        H, segments = self._capsule_placements(data)
+        segments = self._capsule_segments(data)
         body_jac = data.J[None] * self._support[:, None, :]  # (L, 6, n)
         link_jac = self._point_jacobians(body_jac, 0.5 * (segments[:, 0] + segments[:, 1]))
         rigid = time.perf_counter()
@@ -240,7 +231,7 @@ class Dynamics:
         if k:
             P = pairs.p_link
             pair_jac = self._point_jacobians(body_jac[pairs.link], P)
-            pair_drift = self._point_drifts(data, H, body_jac @ v, pairs.link, P)
+            pair_drift = self._point_drifts(data, body_jac @ v, pairs.link, P)
         else:
             pair_jac = np.empty((0, 3, model.nv))
             pair_drift = np.empty((0, 3))
@@ -265,7 +256,7 @@ class Dynamics:
         q1, t1 = state.q + delta * state.v, state.t + delta
         model, data = self.model, self._probe_data
         pin.forwardKinematics(model, data, q1, state.v)
-        H, segments = self._capsule_placements(data)
+        segments = self._capsule_segments(data)
         links = pairs.link.tolist()
         self._probe.update(segments, t1, links=sorted(set(links)))
         hdot0 = np.einsum("ri,ri->r", pairs.normal, state.pair_jac @ state.v - pairs.v_obstacle)
@@ -273,8 +264,8 @@ class Dynamics:
         for r, (i, j) in enumerate(zip(links, pairs.obstacle.tolist())):
             _, normal[r], p_link[r], _ = self._probe.pair(i, j)
         v_obs = self._probe.obstacle_velocities(pairs.obstacle)
-        v_lin, omega = self._motions_to_world(H, np.array([data.v[j].vector for j in self._cap_joints]))
-        v_point = v_lin[pairs.link] + cross(omega[pairs.link], p_link)
+        body = np.array([pin.getVelocity(model, data, self._cap_joints[i], pin.WORLD).vector for i in links])
+        v_point = body[:, :3] + cross(body[:, 3:], p_link)  # velocity of the look-ahead witness points
         hdot1 = np.einsum("ri,ri->r", normal, v_point - v_obs)
         return (hdot1 - hdot0) / delta
 

@@ -14,6 +14,7 @@
 
 from __future__ import annotations
 
+import contextlib
 from abc import ABC, abstractmethod
 
 import numpy as np
@@ -72,16 +73,19 @@ class JointLimit(Constraint):
         self.k0 = _positive("controller.joint_k0", k0)
         self.k1 = _positive("controller.joint_k1", k1)
         self.kv = _positive("controller.velocity_gain", kv)
+        # with every limit finite no ∞ − ∞ (NaN) can arise: skip the guard (it costs more than the rows)
+        self._finite = bool(np.isfinite(np.concatenate([self.q_min, self.q_max, self.v_max])).all())
 
     def compute(self, state: TickState, terms: LawTerms) -> Bounds:
         q, v = state.q, state.v
-        with np.errstate(invalid="ignore"):
+        with contextlib.nullcontext() if self._finite else np.errstate(invalid="ignore"):
             lo = np.maximum(-self.k1 * v - self.k0 * (q - self.q_min), -self.kv * (self.v_max + v))
             hi = np.minimum(-self.k1 * v + self.k0 * (self.q_max - q), self.kv * (self.v_max - v))
-        lo = np.where(np.isnan(lo), -np.inf, lo)
-        hi = np.where(np.isnan(hi), np.inf, hi)
+        if not self._finite:
+            lo = np.where(np.isnan(lo), -np.inf, lo)
+            hi = np.where(np.isnan(hi), np.inf, hi)
         cross = lo > hi
-        if np.any(cross):
+        if cross.any():
             mid = 0.5 * (lo + hi)
             lo, hi = np.where(cross, mid, lo), np.where(cross, mid, hi)
         return Bounds(lo, hi)

@@ -44,7 +44,7 @@ def _finite_problem(problem: Problem) -> bool:
     """No NaN anywhere and no infinity outside the bounds (where ±inf means "no bound")."""
     data = (problem.P, problem.c, problem.A, problem.b, problem.C)
     bounds = (problem.l, problem.u, problem.lb, problem.ub)
-    return all(np.all(np.isfinite(a)) for a in data) and not any(np.any(np.isnan(a)) for a in bounds)
+    return all(np.isfinite(a).all() for a in data) and not any(np.isnan(a).any() for a in bounds)
 
 
 @dataclass
@@ -249,7 +249,7 @@ class QPController(Controller):
         except Exception as exc:  # noqa: BLE001 — a backend's own error must not end the run
             solver.reset()
             return Solution(False, np.zeros(problem.n_var), f"error: {type(exc).__name__}", solver=solver.name)
-        if sol.found and not np.all(np.isfinite(sol.x)):
+        if sol.found and not np.isfinite(sol.x).all():
             return Solution(False, np.zeros(problem.n_var), "nonfinite_solution", sol.iterations, sol.solve_us,
                             solver.name)
         return sol
@@ -266,7 +266,7 @@ class QPController(Controller):
         """s·q̈ with the largest s ∈ [0, 1] that keeps M s q̈ + N within ±τ_max (direction kept, unlike a
         per-joint clip; s = 0, gravity compensation alone, when N itself is beyond a limit)."""
         limit = self._torque_limit()
-        if limit is None or not np.all(np.isfinite(qdd)):
+        if limit is None or not np.isfinite(qdd).all():
             return qdd
         d = state.M @ qdd
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -277,7 +277,7 @@ class QPController(Controller):
 
     def _closed_form_is_safe(self, state: TickState, qdd: np.ndarray, problem: Problem) -> str:
         """"" when the paper law's q̈ may be used, else why not (the brake is used instead)."""
-        if not np.all(np.isfinite(qdd)):
+        if not np.isfinite(qdd).all():
             return "nonfinite"
         if state.clearance < self.gains.d_safe:
             return "within_d_safe"
@@ -392,20 +392,20 @@ class QPController(Controller):
                 qdd = self._scale_to_torque_limits(state, qdd)
         info["build_us"], info["solve_us"] = build_us, solve_us
         tau = state.M @ qdd + state.N
-        if not np.all(np.isfinite(tau)):  # last line of defence: never command a non-finite torque
+        if not np.isfinite(tau).all():  # last line of defence: never command a non-finite torque
             info["nonfinite_replaced"] = True
             info["fallback"] = FALLBACK_BRAKE
             x = None
             qdd = self._brake(state, terms)
             tau = state.M @ qdd + state.N
-            if not np.all(np.isfinite(tau)):
+            if not np.isfinite(tau).all():
                 tau = np.where(np.isfinite(tau), tau, 0.0)
                 qdd = np.linalg.solve(state.M, tau - state.N)
         # The solver meets the torque rows to its tolerance; clip that residue (and any fallback's
         # excess) so the commanded torque never exceeds a limit the controller was asked to hold.
         limit = self._torque_limit()
         clipped = tau if limit is None else np.clip(tau, -limit, limit)
-        if np.any(clipped != tau):
+        if (clipped != tau).any():
             info["clipped"] = float(np.max(np.abs(clipped - tau)))
             tau = clipped
             qdd = np.linalg.solve(state.M, tau - state.N)

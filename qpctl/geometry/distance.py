@@ -65,13 +65,17 @@ class PairSet:
         return PairSet(np.zeros(0, int), np.zeros(0, int), np.zeros(0), z, z, z, z, z)
 
 
-def closest_point_on_segment(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """The point of segment [a, b] closest to p (3-vectors [m]; plain floats inside, it runs per pair)."""
-    (ax, ay, az), (bx, by, bz), (px, py, pz) = a.tolist(), b.tolist(), p.tolist()
+def _closest_on_segment(a: Sequence[float], b: Sequence[float], p: Sequence[float]) -> tuple[float, float, float]:
+    (ax, ay, az), (bx, by, bz), (px, py, pz) = a, b, p
     dx, dy, dz = bx - ax, by - ay, bz - az
     denom = dx * dx + dy * dy + dz * dz
     s = 0.0 if denom == 0 else min(max(((px - ax) * dx + (py - ay) * dy + (pz - az) * dz) / denom, 0.0), 1.0)
-    return np.array([ax + s * dx, ay + s * dy, az + s * dz])
+    return (ax + s * dx, ay + s * dy, az + s * dz)
+
+
+def closest_point_on_segment(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """The point of segment [a, b] closest to p (3-vectors [m]; plain floats inside, it runs per pair)."""
+    return np.array(_closest_on_segment(a.tolist(), b.tolist(), p.tolist()))
 
 
 class DistanceEngine:
@@ -205,18 +209,26 @@ class DistanceEngine:
 
     def _witness(self, i: int, j: int, d: float, res: fcl.DistanceResult
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        p_link, p_obs = np.asarray(res.nearest_points[0]), np.asarray(res.nearest_points[1])
-        diff = p_link - p_obs
-        nd = math.hypot(*diff.tolist())
+        p_obs = np.asarray(res.nearest_points[1])
         if d > 1e-6:
             # GJK's witness point on a capsule can be off by ~1e-4 m along the axis (the flat
             # direction); the exact one is the axis point closest to the obstacle's witness,
             # pushed out by the radius. It matters for the barrier's drift (ḣ to ~1e-6 m/s).
-            a, b = self._segments[i]
-            w = closest_point_on_segment(a, b, p_obs) - p_obs
-            wn = math.hypot(*w.tolist())
-            n = w / wn if wn > 1e-9 else diff / max(nd, 1e-12)
-            p_link = p_obs + n * (wn - self.radii[i]) if wn > 1e-9 else p_link
+            # (In plain floats: the common case, every pair at every tick.)
+            ox, oy, oz = po = p_obs.tolist()
+            a, b = self._segments[i].tolist()
+            cx, cy, cz = _closest_on_segment(a, b, po)
+            wx, wy, wz = cx - ox, cy - oy, cz - oz
+            wn = math.hypot(wx, wy, wz)
+            if wn > 1e-9:
+                nx, ny, nz = wx / wn, wy / wn, wz / wn
+                out = wn - float(self.radii[i])
+                return np.array((nx, ny, nz)), np.array((ox + nx * out, oy + ny * out, oz + nz * out)), p_obs
+        p_link = np.asarray(res.nearest_points[0])
+        diff = p_link - p_obs
+        nd = math.hypot(*diff.tolist())
+        if d > 1e-6:  # the obstacle's witness lies on the link's axis: keep GJK's direction
+            n = diff / max(nd, 1e-12)
         elif nd > 1e-6 and abs(d) > 1e-9:
             n = np.sign(d) * diff / nd
         else:  # touching (witness points < 1 µm apart, their direction is rounding noise):

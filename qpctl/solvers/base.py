@@ -113,7 +113,7 @@ class GenericSolver(QPSolver):
             return Solution(False, np.zeros(problem.n_var), f"error: {type(exc).__name__}: {exc}",
                             solve_us=(time.perf_counter() - start) * 1e6, solver=self.name)
         us = (time.perf_counter() - start) * 1e6
-        found = bool(sol.found) and sol.x is not None and bool(np.all(np.isfinite(sol.x)))
+        found = bool(sol.found) and sol.x is not None and bool(np.isfinite(sol.x).all())
         iters = 0
         extras = getattr(sol, "extras", {}) or {}
         for key in ("iter", "iterations", "n_iter"):

@@ -93,6 +93,6 @@ class OSQPSolver(QPSolver):
         if status == "run time limit reached":
             status = "time_limit"
         x = np.asarray(res.x, float) if res.x is not None else np.full(nv, np.nan)
-        ok = status in ("solved", "solved inaccurate") and bool(np.all(np.isfinite(x)))
+        ok = status in ("solved", "solved inaccurate") and bool(np.isfinite(x).all())
         return Solution(ok, x if ok else np.zeros(nv), status.replace(" ", "_"), int(res.info.iter),
                         (time.perf_counter() - start) * 1e6, self.name)
