@@ -1,0 +1,52 @@
+"""Smoke test of the benchmark harness (``qpctl bench``) on a tiny configuration.
+
+One Panda canopy scene, 50 ticks, every installed solver, a two-point scaling curve: the harness
+must write ``results.json`` (with the machine block and the seeds), ``results.md`` (the tables) and
+the plots. Timings are measurements, never asserted.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.harness import BenchConfig, run
+from benchmarks.scenes import canopy_scene, orchard_scene
+from qpctl.solvers import available_solvers
+
+TINY = BenchConfig(quick=True, paper=False, planar_scenes=0, canopy_scenes=1, max_ticks=50,
+                   scaling_counts=(10, 20), progress=False)
+
+
+def test_quick_harness_writes_results_and_tables(tmp_path: Path) -> None:
+    res = run(TINY, tmp_path, command="pytest smoke")
+    data = json.loads((tmp_path / "results.json").read_text())
+    m = data["machine"]
+    assert m["cpu"] and m["cores"] >= 1 and m["python"]
+    for pkg in ("numpy", "pin", "python-fcl", "qpsolvers", "proxsuite", "osqp", "daqp", "quadprog"):
+        assert pkg in m["packages"]
+    assert data["config"]["canopy_seeds"] == TINY.canopy_seeds
+    labels = ["paper", "hsu"] + [f"qp-{s}" for s in available_solvers()]
+    panda = data["same_ticks"]["panda"]
+    assert list(panda["controllers"]) == labels
+    for label in labels:
+        block = panda["controllers"][label]
+        assert np.isfinite(block["wall"]["median"]) and np.isfinite(block["cpu"]["p99"])
+    assert panda["ticks"] == 50
+    assert [r["controller"] for r in data["quality"]["runs"]] == labels
+    assert set(data["scaling"]["counts"]) == {"10", "20"}
+    assert res["targets"]  # evaluated, met or not
+    md = (tmp_path / "results.md").read_text()
+    assert "## Same ticks" in md and "| panda | qp-proxqp |" in md and "## Scaling" in md
+    for png in ("tick_times.png", "stages.png", "scaling.png"):
+        assert (tmp_path / png).stat().st_size > 0
+
+
+def test_scenes_are_seeded_and_orchard_keeps_the_canopy() -> None:
+    a, b = canopy_scene(3), canopy_scene(3)
+    assert np.array_equal(a.target, b.target)
+    assert [o.position.tolist() for o in a.obstacles] == [o.position.tolist() for o in b.obstacles]
+    big = orchard_scene(a, 40)
+    assert len(big.obstacles) == 40 and all(x is y for x, y in zip(big.obstacles, a.obstacles))
