@@ -35,7 +35,7 @@ _STATUS = {
 class ProxQPSolver(QPSolver):
     name = "proxqp"
     fast_path = True
-    CHUNK_OUTER = 10  # outer iterations per proxsuite call under a time limit (see _solve_within)
+    INNER_PER_OUTER = 10  # inner iterations per outer one under a time limit (see _solve_within)
 
     def __init__(self, settings: dict[str, Any] | None = None) -> None:
         super().__init__(settings)
@@ -99,42 +99,41 @@ class ProxQPSolver(QPSolver):
             self._qp.solve(*self._warm)
 
     def _solve_within(self, nv: int, shape: tuple[int, int, int], deadline: float) -> tuple[str, int]:
-        """Solve by chunks of CHUNK_OUTER outer iterations, each continuing the last, until solved,
-        the configured max_iter, or the deadline [perf_counter s]; returns (status, inner iterations).
+        """Solve in calls whose worst case fits the time left to ``deadline`` [perf_counter s];
+        returns (status, inner iterations).
 
         proxsuite has no time limit and nests its caps (``max_iter`` outer iterations of up to
-        ``max_iter_in`` inner ones): a well-posed tick needs about 3 inner iterations per outer one,
-        an infeasible one stalls at the full 1500 per outer one (seconds per tick). Each chunk gets at
-        most K = (time left) / us_per_iter inner iterations in all (K / CHUNK_OUTER per outer one),
-        so even a stalled chunk ends near the deadline, and the clock is read between chunks.
-        A continued chunk (``WARM_START_WITH_PREVIOUS_RESULT``, no update in between) reaches the
-        same solution as one call (checked to 1e-10 on this package's QPs).
+        ``max_iter_in`` inner ones): a well-posed tick needs 1 to 3 inner iterations per outer one,
+        an infeasible one stalls at the full 1500 per outer one (seconds per tick). The time left buys
+        K = (time left) / us_per_iter inner iterations; a call spends them as at most INNER_PER_OUTER
+        inner iterations per outer one and K / INNER_PER_OUTER outer ones, so its worst case is K.
+        A call stopped by that outer cap while converging (few inner iterations per outer one) is
+        resumed from its (x, y, z) with what time is left; one whose inner loops ran to their cap
+        is not (status "stalled": an infeasible tick, reported early).
         """
-        outer_done = inner_done = 0
-        status = "time_limit"
-        qp = self._qp
+        inner_cap = min(self._max_iter_in, self.INNER_PER_OUTER)
+        outer_done = iters = 0
         while True:
-            now = time.perf_counter()
-            budget = int((deadline - now) * 1e6 / self.us_per_iter)  # inner iterations that still fit
-            chunk = min(self.CHUNK_OUTER, self._max_iter - outer_done)
-            if chunk < 1:
-                return "max_iter", inner_done
-            if budget < chunk:
-                return "time_limit", inner_done
-            qp.settings.max_iter = chunk
-            qp.settings.max_iter_in = min(self._max_iter_in, budget // chunk)
+            budget = int((deadline - time.perf_counter()) * 1e6 / self.us_per_iter)
+            outer = min(self._max_iter - outer_done, budget // inner_cap)
+            if outer < 1:
+                return ("time_limit" if outer_done < self._max_iter else "max_iter"), iters
+            self._qp.settings.max_iter, self._qp.settings.max_iter_in = outer, inner_cap
+            t0 = time.perf_counter()
             if outer_done == 0:
                 self._first_call(nv, shape)
             else:
-                qp.settings.initial_guess = proxsuite.proxqp.InitialGuess.WARM_START_WITH_PREVIOUS_RESULT
-                qp.solve()
-            info = qp.results.info
-            inner, outer = int(info.iter), max(int(info.iter_ext), 1)
-            if inner >= 5:
-                per = (time.perf_counter() - now) * 1e6 / inner
+                res = self._qp.results
+                self._qp.solve(np.array(res.x), np.array(res.y), np.array(res.z))
+            info = self._qp.results.info
+            n_in, n_out = int(info.iter), max(int(info.iter_ext), 1)
+            if n_in >= 5:
+                per = (time.perf_counter() - t0) * 1e6 / n_in
                 self.us_per_iter = float(np.clip(0.7 * self.us_per_iter + 0.3 * per, 0.5, 1e4))
-            inner_done += inner
-            outer_done += outer
+            iters += n_in
+            outer_done += n_out
             status = _STATUS.get(info.status.name, info.status.name)
-            if status != "max_iter":
-                return status, inner_done
+            if status != "max_iter" or outer_done >= self._max_iter:
+                return status, iters
+            if 2 * n_in > inner_cap * n_out:  # the inner loops run to their cap: stalled, not converging
+                return "stalled", iters
