@@ -132,29 +132,33 @@ def targets_table(res: dict[str, Any]) -> str:
     return _table(["target (Panda canopy, proxqp fast path)", "measured", ""], rows)
 
 
+STAGE_LEGEND = ("Wall time of `step()` (median / p99 / max) and the thread's CPU time (the same without the "
+                "time slices other processes took); stages are medians: rigid = Pinocchio terms and "
+                "Jacobians, distance = python-fcl (bound, broad phase, exact queries), QP build = the law's "
+                "terms (a, g, e_N, q̈₀) + tasks + constraints (barrier drift included) + stacking, QP solve = "
+                "the solver call. \"÷ paper\" = median tick ÷ the paper law's median tick on the same states.")
+
+
 def markdown(res: dict[str, Any]) -> str:
     """The whole report (what ``results.md`` holds)."""
     cfg = res["config"]
     parts = [
         f"# qpctl benchmark ({'quick' if cfg['quick'] else 'full'} run)",
         f"Command: `{res['command']}`; {res['duration_s']:.0f} s. Machine: {machine_line(res)}.",
-        f"Seeds: planar scenes {cfg['planar_seeds']}, canopy scenes {cfg['canopy_seeds']}; "
-        f"same-tick states from each scene's `{cfg['states_from']}` closed-loop run"
-        + (f", every {cfg['timing_stride']}th tick" if cfg["timing_stride"] > 1 else "") + ".",
+        (f"Seeds: planar scenes {cfg['planar_seeds']}, canopy scenes {cfg['canopy_seeds']}; "
+         f"same-tick states from each scene's `{cfg['states_from']}` closed-loop run"
+         + (f", one state in {cfg['timing_stride']}" if cfg["timing_stride"] > 1 else "") + "."),
         "## Same ticks: compute time per tick [µs], all controllers on identical states",
-        "Wall time of `step()` (median / p99 / max) and the thread's CPU time; stages are medians: "
-        "rigid = Pinocchio terms + Jacobians, distance = python-fcl, QP build = tasks + constraints + "
-        "stacking, QP solve = the solver call. \"÷ paper\" is the median tick over the paper law's median "
-        "tick on the same states.",
+        STAGE_LEGEND,
         same_ticks_table(res),
         "## Targets",
         targets_table(res),
-        f"## Scaling with the scene: Panda canopy tiled to more obstacles, broad phase on "
-        f"({res['scaling']['scene']}, same states)",
+        (f"## Scaling with the scene: Panda canopy tiled to more obstacles, broad phase on "
+         f"({res['scaling']['scene']}, same states)"),
         scaling_table(res),
         "## Closed loop: quality per controller (built-in RK4 simulator)",
-        f"Success = the task point ends within {res['quality']['reach_tolerance']} m of the target and no "
-        "link ever touches an obstacle (least exact distance ≥ 0).",
+        (f"Success = the task point ends within {res['quality']['reach_tolerance']} m of the target and no "
+         "link ever touches an obstacle (least exact distance ≥ 0)."),
         quality_table(res),
     ]
     return "\n\n".join(parts) + "\n"

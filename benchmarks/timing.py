@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import gc
 import time
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Iterable, Mapping
 
 import numpy as np
 
@@ -37,7 +37,7 @@ class StateSequence:
     def __len__(self) -> int:
         return int(self.t.shape[0])
 
-    def every(self, stride: int) -> "StateSequence":
+    def every(self, stride: int) -> StateSequence:
         """Every ``stride``-th state (a shorter benchmark; the warm start then spans ``stride`` ticks)."""
         return StateSequence(self.t[::stride], self.q[::stride], self.v[::stride])
 
@@ -52,7 +52,7 @@ class TickTimes:
     pairs: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T,) link–obstacle pairs within the cutoff
 
     @staticmethod
-    def concatenate(parts: Iterable["TickTimes"]) -> "TickTimes":
+    def concatenate(parts: Iterable[TickTimes]) -> TickTimes:
         parts = list(parts)
         stages = {s: np.concatenate([p.stages[s] for p in parts]) for s in STAGES}
         return TickTimes(np.concatenate([p.wall for p in parts]), np.concatenate([p.cpu for p in parts]), stages,

@@ -177,8 +177,9 @@ class DistanceEngine:
                               for r, L in zip(self.radii, self._link_len)]
             self._inflate = cutoff
         # python-fcl hands the callback new wrappers of the registered objects (their ids differ),
-        # so obstacles are recognised by their exact current translation; a shared translation
-        # only adds candidates, which the bound and the exact distance query then filter.
+        # so obstacles are recognised by their exact current translation (the callback's first
+        # object is the tree's); a shared translation only adds candidates, which the bound and the
+        # exact distance query then filter.
         if self._by_position is None:
             self._by_position = {}
             for j, o in enumerate(self._obs_objs):
@@ -191,10 +192,9 @@ class DistanceEngine:
             infl.setTranslation(self._mids[i])
             hits: set[int] = set()
 
-            def callback(o1: fcl.CollisionObject, o2: fcl.CollisionObject, _data: object,
+            def callback(o1: fcl.CollisionObject, _o2: fcl.CollisionObject, _data: object,
                          hits: set[int] = hits) -> bool:
                 hits.update(lookup.get(tuple(o1.getTranslation()), ()))
-                hits.update(lookup.get(tuple(o2.getTranslation()), ()))
                 return False
 
             self._manager.collide(infl, None, callback)
