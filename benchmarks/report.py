@@ -233,3 +233,40 @@ def write_plots(res: dict[str, Any], times: dict[str, Any], out: Path) -> list[P
     plt.close(fig)
     written.append(path)
     return written
+
+
+def headline_table(res: dict[str, Any]) -> str:
+    """Per robot: each controller's median / p99 wall tick and CPU median on the same ticks, and ÷ paper."""
+    rows = []
+    for robot, block in res["same_ticks"].items():
+        for label, r in block["controllers"].items():
+            rows.append([robot, label, _f(r["wall"]["median"], 0), _f(r["wall"]["p99"], 0), _f(r["cpu"]["median"], 0),
+                         _f(r["cpu"]["p99"], 0), f"{r['ratio_to_paper']:.2f}×"])
+    return _table(["robot", "controller", "median µs", "p99 µs", "CPU median µs", "CPU p99 µs", "÷ paper law"], rows)
+
+
+def compact_scaling_table(res: dict[str, Any]) -> str:
+    sc = res["scaling"]
+    rows = []
+    for count, block in sc["counts"].items():
+        row = [count, _f(block["pairs_median"], 0)]
+        for label in sc["controllers"]:
+            r = block["controllers"][label]
+            row += [_f(r["wall"]["median"], 0), f"{r['relative_to_first']:.2f}×"]
+        rows.append(row)
+    header = ["obstacles", "pairs within cutoff"]
+    for label in sc["controllers"]:
+        header += [f"{label} median µs", f"{label} ÷ {sc['counts_list'][0]} obstacles"]
+    return _table(header, rows)
+
+
+def performance_section(res: dict[str, Any]) -> str:
+    """The tables of the README's "## Performance" section (the prose around them is written by hand)."""
+    return "\n\n".join([f"Machine: {machine_line(res)}.", headline_table(res), targets_table(res),
+                        compact_scaling_table(res), quality_table(res)]) + "\n"
+
+
+if __name__ == "__main__":  # python -m benchmarks.report results/bench/results.json
+    import json
+
+    print(performance_section(json.loads(Path(sys.argv[1]).read_text())))

@@ -104,12 +104,12 @@ def same_ticks(scene: BenchScene, specs: Sequence[ControllerSpec], states: State
 
 
 def scaling(scene: BenchScene, counts: Sequence[int], specs: Sequence[ControllerSpec], states: StateSequence, *,
-            progress: bool = False) -> dict[int, dict[str, TickTimes]]:
+            seed: int = 0, progress: bool = False) -> dict[int, dict[str, TickTimes]]:
     """Tick times against the number of obstacles: ``scene`` tiled to each count (broad phase on), every
     (count, controller) timed on the same ``states``, all interleaved."""
     controllers = {}
     for count in counts:
-        tiled = orchard_scene(scene, count)
+        tiled = orchard_scene(scene, count, seed=seed)
         for s in specs:
             controllers[(count, s.label)] = tiled.controller(s.kind, s.solver, broadphase=True)
     flat = time_on_states({f"{c}|{lb}": ctrl for (c, lb), ctrl in controllers.items()}, states,

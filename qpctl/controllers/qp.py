@@ -17,6 +17,7 @@ add or remove them with :meth:`add_task`, :meth:`remove_task`, :meth:`add_constr
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Sequence
@@ -241,7 +242,7 @@ class QPController(Controller):
         left_us = (deadline - time.perf_counter()) * 1e6
         if left_us <= 0:
             return Solution(False, np.zeros(problem.n_var), "time_limit", solver=solver.name)
-        solver.set_time_limit(left_us if np.isfinite(left_us) else None)
+        solver.set_time_limit(left_us if math.isfinite(left_us) else None)
         try:
             sol = solver.solve(problem)
         except ConfigError:  # bad solver settings: a configuration error, not a failed tick
@@ -412,7 +413,8 @@ class QPController(Controller):
         if x is not None:
             s = x[n:]
             half = s.size // 2
-            info["slack_norm"] = float(np.linalg.norm(s[:half] - s[half:]))
+            slack = s[:half] - s[half:]
+            info["slack_norm"] = math.sqrt(float(slack @ slack))
             Cx = problem.C @ x
             tol = 1e-6 * (1.0 + np.abs(Cx))
             act = (np.abs(Cx - problem.l) <= tol) | (np.abs(Cx - problem.u) <= tol)
