@@ -31,6 +31,10 @@ from qpctl.constraints import JointLimit, ObstacleBarrier
 from qpctl.controllers.qp import FALLBACK_BRAKE, FALLBACK_CLOSED_FORM, QPConfig, QPController
 from qpctl.solvers import available_solvers
 
+# Run by `make soak`, not `make test`: on some random scenes python-fcl's distance query was seen to
+# hang (a degenerate capsule–box configuration under investigation), which stalls the fast suite.
+pytestmark = pytest.mark.slow
+
 _COMMON = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 settings.register_profile("ci", derandomize=True, database=None, print_blob=True, **_COMMON)
 settings.register_profile("dev", **_COMMON)
