@@ -2,14 +2,19 @@
 
 A capsule (segment a–b swept by r) and a sphere (centre c, radius ρ) are apart by
 d = |c − p*| − r − ρ with p* the closest point of the segment to c, and the unit normal from the
-obstacle to the link is (p* − c)/|p* − c|. Separated pairs use fcl's closed-form routine, so the
-tolerance is 1e-9 [m]. Penetration depths come from fcl's EPA, which is approximate (~1e-4 m,
-measured); there we check the sign, the normal's direction and the depth to 2e-3 m. Capsule–box
-distances come from fcl's GJK (libccd): ~6e-5 m off when the link is parallel to a face.
+obstacle to the link is (p* − c)/|p* − c|. The engine computes sphere pairs in closed form (python-fcl's
+signed query can hang on them), so they are also checked against python-fcl's own queries: its
+closed-form separated distance to 1e-9 m and its EPA penetration depth (~1e-4 m off, measured) to
+2e-3 m. Capsule–box distances come from fcl's GJK (libccd): ~6e-5 m off when the link is parallel to
+a face.
 """
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
+import fcl
 import numpy as np
 import pytest
 
@@ -53,6 +58,64 @@ def test_capsule_sphere_distance_normal_and_witness_points(rng):
         np.testing.assert_allclose(pairs.p_obstacle[0], p_obs, atol=1e-9)
         checked += 1
     assert checked >= 20
+
+
+def _fcl_capsule(a: np.ndarray, b: np.ndarray, r: float) -> fcl.CollisionObject:
+    """The segment a–b swept by r as a python-fcl capsule (its axis is the local z)."""
+    axis = b - a
+    z = axis / np.linalg.norm(axis)
+    x = np.cross(z, [1.0, 0.0, 0.0] if abs(z[0]) < 0.9 else [0.0, 1.0, 0.0])
+    x /= np.linalg.norm(x)
+    R = np.column_stack([x, np.cross(z, x), z])
+    return fcl.CollisionObject(fcl.Capsule(r, float(np.linalg.norm(axis))), fcl.Transform(R, (a + b) / 2))
+
+
+def test_sphere_pairs_agree_with_python_fcl(rng):
+    """The engine's closed-form sphere pairs against python-fcl itself: its closed-form distance when
+    apart, its EPA depth and normal when penetrating (centres kept off the capsule's axis ends)."""
+    apart = deep = 0
+    for _ in range(60):
+        a = rng.normal(size=3)
+        b = a + rng.normal(size=3)
+        r, rho = 0.05, rng.uniform(0.05, 0.3)
+        c = closest_on_segment(a, b, a + rng.uniform(0.1, 0.9) * (b - a)) + rng.normal(size=3) * 0.3
+        if min(np.linalg.norm(c - a), np.linalg.norm(c - b)) < 0.05:
+            continue
+        pairs = _one_pair(a, b, r, Obstacle("sphere", c, radius=rho))
+        link, sphere = _fcl_capsule(a, b, r), fcl.CollisionObject(fcl.Sphere(rho), fcl.Transform(c))
+        plain = fcl.distance(link, sphere, fcl.DistanceRequest(), fcl.DistanceResult())  # -1 when they overlap
+        signed = fcl.distance(link, sphere, fcl.DistanceRequest(enable_signed_distance=True), fcl.DistanceResult())
+        if plain > 1e-3:
+            assert pairs.distance[0] == pytest.approx(plain, abs=1e-9)
+            apart += 1
+        elif signed < -1e-3:
+            assert pairs.distance[0] == pytest.approx(signed, abs=2e-3)
+            deep += 1
+    assert apart >= 10 and deep >= 10, (apart, deep)
+
+
+DEGENERATE = """
+import numpy as np
+from qpctl import DistanceEngine, Obstacle
+engine = DistanceEngine([0.05], [Obstacle("sphere", [{x}, 0.0, 0.0], radius=0.03)])
+engine.update(np.array([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]]), 0.0)
+d, n, p_link, p_obs = engine.pair(0, 0)
+print(d, *n, engine.min_distance(), len(engine.pairs(0.1)))
+"""
+
+
+@pytest.mark.parametrize("x", [0.0, 1e-5, 0.5, 1.0])
+def test_sphere_centred_on_the_link_axis_returns(x):
+    """python-fcl 0.7's signed query never returns for a sphere centred on (within ~0.1 mm of) a
+    capsule's axis end (found by the property tests); the engine's closed form must. Run in a child
+    process with a timeout, so that a regression fails rather than hangs the suite."""
+    proc = subprocess.run([sys.executable, "-c", DEGENERATE.format(x=x)], capture_output=True, text=True,
+                          timeout=60, check=False)
+    assert proc.returncode == 0, proc.stderr
+    d, nx, ny, nz, dmin, k = map(float, proc.stdout.split())
+    assert d == pytest.approx(-0.08, abs=1e-12) and dmin == pytest.approx(-0.08, abs=1e-12) and k == 1
+    # the centre lies on the axis: any unit normal perpendicular to the axis is a valid direction
+    assert np.hypot(ny, nz) == pytest.approx(1.0, abs=1e-12) and nx == 0.0
 
 
 @pytest.mark.parametrize("depth", [0.02, 0.08])

@@ -8,6 +8,11 @@ increases d (∂d/∂p_link = nᵀ).
 With many obstacles a broad phase prunes the far pairs first: the link capsules, inflated by the
 cutoff, are collided against python-fcl's dynamic AABB tree of obstacles, and only the pairs that
 touch get an exact distance query — so obstacles farther than the cutoff cost (almost) nothing.
+
+Sphere obstacles never reach python-fcl's distance query: a capsule–sphere distance is closed-form
+(the sphere's centre to the link's axis segment, less both radii), and python-fcl 0.7's signed query
+(libccd GJK/EPA) never returns when a sphere's centre lies on (within ~0.1 mm of) the end of a
+penetrating capsule's axis — a stalled control loop. Boxes, capsules and cylinders go to python-fcl.
 Before any exact query, a vectorised bound drops the pairs whose bounding spheres are farther apart
 than the cutoff (segment-to-centre distance less the capsule and bounding radii): a lower bound on
 the distance, so the pairs it drops are exactly those the exact query would have dropped.
@@ -73,6 +78,16 @@ def _closest_on_segment(a: Sequence[float], b: Sequence[float], p: Sequence[floa
     return (ax + s * dx, ay + s * dy, az + s * dz)
 
 
+def _perpendicular(x: float, y: float, z: float) -> tuple[float, float, float]:
+    """A unit vector perpendicular to (x, y, z) and to the world axis least aligned with it (e_x for a
+    zero vector)."""
+    ax, ay, az = abs(x), abs(y), abs(z)
+    e = (0.0, 0.0, 1.0) if az <= ax and az <= ay else ((0.0, 1.0, 0.0) if ay <= ax else (1.0, 0.0, 0.0))
+    px, py, pz = y * e[2] - z * e[1], z * e[0] - x * e[2], x * e[1] - y * e[0]
+    pn = math.hypot(px, py, pz)
+    return (px / pn, py / pn, pz / pn) if pn > 0.0 else (1.0, 0.0, 0.0)
+
+
 def closest_point_on_segment(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> np.ndarray:
     """The point of segment [a, b] closest to p (3-vectors [m]; plain floats inside, it runs per pair)."""
     return np.array(_closest_on_segment(a.tolist(), b.tolist(), p.tolist()))
@@ -95,6 +110,8 @@ class DistanceEngine:
         self._obs_objs = [fcl.CollisionObject(o.geometry(), o.transform(0.0)) for o in self.obstacles]
         self._moving = [i for i, o in enumerate(self.obstacles) if o.moving]
         self._link_objs = [fcl.CollisionObject(fcl.Capsule(r, 1e-9)) for r in self.radii]
+        # sphere obstacles' radii (NaN for other shapes): their distances are closed-form (module docstring)
+        self._sphere_r = [o.radius if o.shape == "sphere" else math.nan for o in self.obstacles]
         self._link_len = np.full(len(self.radii), np.nan)
         self._inflated: list[fcl.CollisionObject] = []
         self._inflate = np.nan
@@ -204,8 +221,35 @@ class DistanceEngine:
 
     def pair(self, i: int, j: int) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
         """Signed distance d [m], unit normal n (obstacle → link), witness points on link and obstacle."""
+        if self._sphere_r[j] == self._sphere_r[j]:  # a sphere (not NaN)
+            return self._sphere_pair(i, j)
         d, res = signed_distance(self._link_objs[i], self._obs_objs[j])
         return (d, *self._witness(i, j, d, res))
+
+    def _distance(self, i: int, j: int) -> float:
+        """Signed distance [m] of one pair, without witness points."""
+        if self._sphere_r[j] == self._sphere_r[j]:
+            return self._sphere_pair(i, j)[0]
+        return signed_distance(self._link_objs[i], self._obs_objs[j])[0]
+
+    def _sphere_pair(self, i: int, j: int) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        """Closed-form capsule–sphere pair: d = |axis point − centre| − r_link − r_sphere, n along it.
+
+        A centre on the link's axis leaves n free: it is taken perpendicular to the axis and to the
+        world axis least aligned with it (in the plane of a planar arm, the in-plane normal)."""
+        a, b = self._segments[i].tolist()
+        c = self._centres[j].tolist()
+        sx, sy, sz = _closest_on_segment(a, b, c)
+        wx, wy, wz = sx - c[0], sy - c[1], sz - c[2]
+        wn = math.hypot(wx, wy, wz)
+        if wn > 1e-12:
+            n = (wx / wn, wy / wn, wz / wn)
+        else:
+            n = _perpendicular(b[0] - a[0], b[1] - a[1], b[2] - a[2])
+        rl, rs = float(self.radii[i]), self._sphere_r[j]
+        p_link = np.array((sx - rl * n[0], sy - rl * n[1], sz - rl * n[2]))
+        p_obs = np.array((c[0] + rs * n[0], c[1] + rs * n[1], c[2] + rs * n[2]))
+        return wn - rl - rs, np.array(n), p_link, p_obs
 
     def _witness(self, i: int, j: int, d: float, res: fcl.DistanceResult
                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -244,10 +288,15 @@ class DistanceEngine:
         rows = []
         links, obstacles = self._candidates(cutoff)
         for i, j in zip(links.tolist(), obstacles.tolist()):
-            d, res = signed_distance(self._link_objs[i], self._obs_objs[j])
-            if d >= cutoff:
-                continue
-            n, p_link, p_obs = self._witness(i, j, d, res)
+            if self._sphere_r[j] == self._sphere_r[j]:  # a sphere (not NaN): closed form
+                d, n, p_link, p_obs = self._sphere_pair(i, j)
+                if d >= cutoff:
+                    continue
+            else:
+                d, res = signed_distance(self._link_objs[i], self._obs_objs[j])
+                if d >= cutoff:
+                    continue
+                n, p_link, p_obs = self._witness(i, j, d, res)
             rows.append((i, j, d, n, p_link, p_obs))
         if not rows:
             return PairSet.empty()
@@ -271,5 +320,5 @@ class DistanceEngine:
         for k in np.argsort(bound, kind="stable").tolist():  # nearest bounds first; stop once none can win
             if bound[k] >= best:
                 break
-            best = min(best, signed_distance(self._link_objs[links[k]], self._obs_objs[obstacles[k]])[0])
+            best = min(best, self._distance(int(links[k]), int(obstacles[k])))
         return best
