@@ -139,7 +139,8 @@ def ryu_weight(state: TickState) -> np.ndarray:
     """W_b = Σ_i J_iᵀ J_i over the links' mid-point Jacobians, plus 1e-9·tr I to keep it invertible."""
     Jl = state.link_jac.reshape(-1, state.n)
     W = Jl.T @ Jl
-    return W + 1e-9 * max(float(np.trace(W)), 1.0) * np.eye(state.n)
+    W.flat[:: state.n + 1] += 1e-9 * max(float(np.trace(W)), 1.0)  # + 1e-9·tr(W)·I
+    return W
 
 
 def law_terms(state: TickState, ref: Reference, gains: LawGains, *, weighted: bool) -> LawTerms:

@@ -41,6 +41,23 @@ FALLBACK_CLOSED_FORM = "closed-form"
 FALLBACK_BRAKE = "brake"
 
 
+SOLUTION_RTOL = 1e-4  # a solution is accepted when every hard row holds to this, relative to 1 + |its bound|
+
+
+def _violation(problem: Problem, x: np.ndarray) -> float:
+    """Largest violation at x of the hard rows on q̈ (l ≤ C x ≤ u and the bounds on q̈), each relative to
+    1 + |its bound|. The task's equality and its slack variables' sign are left to the solver: they
+    shape the tracking, not what the constraints protect."""
+    n = problem.n
+    Cx = problem.C @ x
+    # every family at once (one pass of numpy calls, not one per family: this runs every tick)
+    excess = np.concatenate((problem.l - Cx, Cx - problem.u, problem.lb[:n] - x[:n], x[:n] - problem.ub[:n]))
+    bound = np.concatenate((problem.l, problem.u, problem.lb[:n], problem.ub[:n]))
+    with np.errstate(invalid="ignore"):
+        r = excess / (1.0 + np.abs(bound))
+    return float(np.max(np.where(np.isfinite(bound), r, 0.0), initial=0.0))
+
+
 def _finite_problem(problem: Problem) -> bool:
     """No NaN anywhere and no infinity outside the bounds (where ±inf means "no bound")."""
     data = (problem.P, problem.c, problem.A, problem.b, problem.C)
@@ -253,6 +270,10 @@ class QPController(Controller):
         if sol.found and not np.isfinite(sol.x).all():
             return Solution(False, np.zeros(problem.n_var), "nonfinite_solution", sol.iterations, sol.solve_us,
                             solver.name)
+        if sol.found and _violation(problem, sol.x) > SOLUTION_RTOL:
+            # The solver's own test runs on its scaled problem: a row it scaled up (say nᵀJ_p ≈ 1e-5
+            # at a link's fixed base) can be violated by m/s² in our units while it reports "solved".
+            return Solution(False, np.zeros(problem.n_var), "inaccurate", sol.iterations, sol.solve_us, solver.name)
         return sol
 
     def _brake(self, state: TickState, terms: LawTerms) -> np.ndarray:
@@ -405,7 +426,7 @@ class QPController(Controller):
         # The solver meets the torque rows to its tolerance; clip that residue (and any fallback's
         # excess) so the commanded torque never exceeds a limit the controller was asked to hold.
         limit = self._torque_limit()
-        clipped = tau if limit is None else np.clip(tau, -limit, limit)
+        clipped = tau if limit is None else np.minimum(np.maximum(tau, -limit), limit)  # np.clip, cheaper
         if (clipped != tau).any():
             info["clipped"] = float(np.max(np.abs(clipped - tau)))
             tau = clipped
