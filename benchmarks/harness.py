@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import sys
 import time
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -88,8 +89,15 @@ def _progress(items: list[Any], desc: str, on: bool) -> Any:
 
 
 def _timing_block(t: TickTimes) -> dict[str, Any]:
+    slowest = np.argsort(t.cpu)[-5:][::-1]
     return {"wall": summary(t.wall), "cpu": summary(t.cpu),
-            "stages_median": {s: summary(t.stages[s])["median"] for s in STAGES}}
+            "stages_median": {s: summary(t.stages[s])["median"] for s in STAGES},
+            "iterations": summary(t.iterations), "ticks_with_page_faults": int(np.count_nonzero(t.faults)),
+            # the five slowest ticks (CPU time): a solver stalling shows in its iterations, a machine
+            # stalling in page faults or in wall time far above CPU time
+            "slowest": [{"tick": int(k), "cpu_us": float(t.cpu[k]), "wall_us": float(t.wall[k]),
+                         "solve_us": float(t.stages["solve_us"][k]), "iterations": float(t.iterations[k]),
+                         "page_faults": int(t.faults[k])} for k in slowest]}
 
 
 def _quality_summary(runs: list[ClosedLoop], families: dict[str, str]) -> dict[str, dict[str, Any]]:
@@ -117,6 +125,16 @@ def _quality_summary(runs: list[ClosedLoop], families: dict[str, str]) -> dict[s
                 "tick_us_p99": agg("tick_us_p99", np.median),
             }
     return out
+
+
+def _states_source(runs: list[ClosedLoop], scene: str, preferred: str) -> ClosedLoop | None:
+    """The closed-loop run whose states the same-tick suites replay: ``preferred``'s, else (if it
+    failed) the paper law's, else None."""
+    for label in (preferred, "paper"):
+        run = next((r for r in runs if r.scene == scene and r.controller == label), None)
+        if run is not None and run.states is not None:
+            return run
+    return None
 
 
 def _targets(res: dict[str, Any]) -> list[dict[str, Any]]:
@@ -165,10 +183,8 @@ def run(cfg: BenchConfig, out: Path, *, command: str = "qpctl bench") -> dict[st
     # 2. same ticks, per scene, aggregated per robot
     per_robot: dict[str, dict[str, list[TickTimes]]] = {}
     for scene in _progress(all_scenes, "same ticks", cfg.progress):
-        source = next((r for r in runs if r.scene == scene.name and r.controller == cfg.states_from), None)
-        if source is None or source.states is None:  # that run failed: fall back on the paper law's
-            source = next(r for r in runs if r.scene == scene.name and r.controller == "paper")
-        if source.states is None:
+        source = _states_source(runs, scene.name, cfg.states_from)
+        if source is None:
             continue
         times = same_ticks(scene, specs, source.states.every(cfg.timing_stride), progress=cfg.progress)
         robot = ROBOT_OF_FAMILY[scene.family]
@@ -193,10 +209,9 @@ def run(cfg: BenchConfig, out: Path, *, command: str = "qpctl bench") -> dict[st
     # 3. scaling
     canopies = [s for s in all_scenes if s.family == "canopy"]
     scaling_res: dict[str, Any] = {}
-    if canopies and cfg.scaling_counts:
-        scene = canopies[0]
-        source = next(r for r in runs if r.scene == scene.name and r.controller in (cfg.states_from, "paper")
-                      and r.states is not None)
+    scene = canopies[0] if canopies and cfg.scaling_counts else None
+    source = _states_source(runs, scene.name, cfg.states_from) if scene is not None else None
+    if scene is not None and source is not None:
         sspecs = [ControllerSpec("paper")] + ([ControllerSpec("qp", "proxqp")] if "proxqp" in solvers else [])
         counts = sorted(set(cfg.scaling_counts) | {len(scene.obstacles)})
         counts = [c for c in counts if c >= len(scene.obstacles)]
@@ -251,7 +266,10 @@ def main(quick: bool = False, out: Path | str = Path("results/bench")) -> int:
     """What ``qpctl bench`` runs: the full benchmark (or the quick one) into ``out``."""
     cfg = QUICK if quick else FULL
     command = "qpctl bench" + (" --quick" if quick else "") + f" --out {out}"
-    res = run(cfg, Path(out), command=command)
+    with warnings.catch_warnings():  # qpsolvers' per-call notes (dense → sparse, osqp's raise_error)
+        warnings.filterwarnings("ignore", message="Converted matrix")
+        warnings.filterwarnings("ignore", category=PendingDeprecationWarning, module="osqp")
+        res = run(cfg, Path(out), command=command)
     print(report.markdown(res))
     print(f"written: {Path(out) / 'results.json'}, {Path(out) / 'results.md'}, plots", file=sys.stderr)
     return 0

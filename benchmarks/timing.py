@@ -7,13 +7,16 @@ same machine conditions. Each controller keeps its own warm start along the sequ
 
 Two clocks per tick: the wall time of ``step()`` (``ControlOutput.compute_us``, what a control loop
 waits for) and the thread's CPU time around it (what the code costs, without the time slices other
-processes take — on a loaded machine the wall time's tail is mostly those). The garbage collector is
-paused while timing (as ``timeit`` does); it is collected between sequences.
+processes take — on a loaded machine the wall time's tail is mostly those). To tell a slow solve
+from a slow machine, each tick also records the solver's iterations and the page faults the thread
+took. The garbage collector is paused while timing (as ``timeit`` does); it is collected between
+sequences.
 """
 
 from __future__ import annotations
 
 import gc
+import resource
 import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -50,13 +53,21 @@ class TickTimes:
     cpu: np.ndarray  # (T,) thread CPU time of step()
     stages: dict[str, np.ndarray] = field(default_factory=dict)  # stage -> (T,), NaN where not reported
     pairs: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T,) link–obstacle pairs within the cutoff
+    iterations: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T,) solver iterations (NaN: none)
+    faults: np.ndarray = field(default_factory=lambda: np.zeros(0))  # (T,) page faults taken during step()
 
     @staticmethod
     def concatenate(parts: Iterable[TickTimes]) -> TickTimes:
         parts = list(parts)
         stages = {s: np.concatenate([p.stages[s] for p in parts]) for s in STAGES}
-        return TickTimes(np.concatenate([p.wall for p in parts]), np.concatenate([p.cpu for p in parts]), stages,
-                         np.concatenate([p.pairs for p in parts]))
+        return TickTimes(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("wall", "cpu")), stages,
+                         *(np.concatenate([getattr(p, f) for p in parts]) for f in ("pairs", "iterations", "faults")))
+
+
+def _faults() -> int:
+    """Page faults (major + minor) this thread has taken so far."""
+    use = resource.getrusage(resource.RUSAGE_THREAD)
+    return use.ru_majflt + use.ru_minflt
 
 
 def summary(values: np.ndarray) -> dict[str, float]:
@@ -73,8 +84,8 @@ def time_on_states(controllers: Mapping[str, Controller], states: StateSequence,
     """Step every controller through ``states``, interleaved tick by tick; their timings by label."""
     labels = list(controllers)
     T = len(states)
-    out = {lb: TickTimes(np.empty(T), np.empty(T), {s: np.full(T, np.nan) for s in STAGES}, np.zeros(T))
-           for lb in labels}
+    out = {lb: TickTimes(np.empty(T), np.empty(T), {s: np.full(T, np.nan) for s in STAGES}, np.zeros(T),
+                         np.full(T, np.nan), np.zeros(T)) for lb in labels}
     for c in controllers.values():
         c.reset()
     ticks: Iterable[int] = range(T)
@@ -90,16 +101,19 @@ def time_on_states(controllers: Mapping[str, Controller], states: StateSequence,
             q, v, t = states.q[k], states.v[k], float(states.t[k])
             shift = k % len(labels)
             for lb in labels[shift:] + labels[:shift]:
+                f0 = _faults()
                 c0 = time.thread_time()
                 res = controllers[lb].step(q, v, t)
                 c1 = time.thread_time()
                 rec = out[lb]
+                rec.faults[k] = _faults() - f0
                 rec.wall[k] = res.compute_us
                 rec.cpu[k] = (c1 - c0) * 1e6
                 for s in STAGES:
                     if s in res.info:
                         rec.stages[s][k] = res.info[s]
                 rec.pairs[k] = res.info.get("pairs", np.nan)
+                rec.iterations[k] = res.info.get("iterations", np.nan)
     finally:
         if was_enabled:
             gc.enable()
