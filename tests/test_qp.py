@@ -19,7 +19,7 @@ from qpctl.tasks import PostureTask
 
 SOLVERS = available_solvers()
 # Every installed solver through its default path, plus the fast-path solvers forced through qpsolvers.
-SOLVER_PATHS = SOLVERS + [f"qpsolvers:{s}" for s in ("proxqp", "osqp") if s in SOLVERS]
+SOLVER_PATHS = SOLVERS + [f"qpsolvers:{s}" for s in ("proxqp", "osqp", "daqp") if s in SOLVERS]
 
 
 def scenario(obstacles: list[dict], **overrides: object) -> Scenario:
@@ -270,6 +270,33 @@ def test_solver_settings_from_configuration():
     ctrl.set_solver("proxqp", {"no_such_setting": 1})
     with pytest.raises(ConfigError, match="no_such_setting"):
         ctrl.step(scen_q0, np.zeros(3), 0.0)
+
+
+@pytest.mark.skipif("daqp" not in SOLVERS, reason="daqp not installed")
+def test_daqp_fast_path_warm_start_time_limit_and_settings(near):
+    """DAQP called directly: the same torques as through qpsolvers (cold, every tick), fewer
+    iterations when warm-started from the previous tick's multipliers, a spent time limit reported
+    as "time_limit", and an unknown setting a ConfigError naming it."""
+    scen, traj = near
+    fast, generic = scen.build_controller("qp", solver="daqp"), scen.build_controller("qp", solver="qpsolvers:daqp")
+    warm_iters, cold_iters = [], []
+    for k in range(0, len(traj.t), 2):
+        q, v, t = traj.q[k], traj.v[k], traj.t[k]
+        a, b = fast.step(q, v, t), generic.step(q, v, t)
+        assert a.info["solver"] == "daqp" and "fallback" not in a.info
+        np.testing.assert_allclose(a.tau, b.tau, rtol=1e-7, atol=1e-7)
+        warm_iters.append(a.info["iterations"])
+        cold = make_solver("daqp")
+        cold_iters.append(cold.solve(fast.last_problem).iterations)
+    assert sum(warm_iters) < sum(cold_iters), (sum(warm_iters), sum(cold_iters))
+    solver = make_solver("daqp")
+    solver.set_time_limit(0.0)
+    assert solver.solve(fast.last_problem).status == "time_limit"
+    with pytest.raises(ConfigError, match="no_such_setting"):
+        make_solver("daqp", {"no_such_setting": 1})
+    capped = make_solver("daqp", {"iter_limit": 1})
+    sol = capped.solve(fast.last_problem)
+    assert sol.found or sol.status == "max_iter"
 
 
 def test_qp_config_defaults_match_scenario_schema():

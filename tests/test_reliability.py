@@ -34,7 +34,7 @@ from qpctl.robot.model import example_robot_data_path
 from qpctl.run import simulate
 from qpctl.simulation import Simulator
 from qpctl.solvers import available_solvers
-from qpctl.solvers.base import GenericSolver
+from qpctl.solvers.daqp_ import DAQPSolver
 from qpctl.solvers.proxqp_ import ProxQPSolver
 
 nan, inf = float("nan"), float("inf")
@@ -308,7 +308,7 @@ def test_fallback_chain_is_tried_in_order(monkeypatch):
     direct = make_qp(obstacles, solver="daqp").step(Q0, v, 0.1)
     np.testing.assert_allclose(out.tau, direct.tau, rtol=1e-9, atol=1e-9)  # the same QP, solved by daqp
     # daqp failing too: on to the closed form
-    monkeypatch.setattr(GenericSolver, "solve", failing("failed"))
+    monkeypatch.setattr(DAQPSolver, "solve", failing("failed"))
     out = ctrl.step(Q0, v, 0.1)
     assert out.info["fallback_tried"][0] == "daqp:failed"
     assert out.info["fallback"] in (FALLBACK_CLOSED_FORM, FALLBACK_BRAKE)

@@ -51,8 +51,12 @@ def _violation(problem: Problem, x: np.ndarray) -> float:
     n = problem.n
     Cx = problem.C @ x
     # every family at once (one pass of numpy calls, not one per family: this runs every tick)
-    excess = np.concatenate((problem.l - Cx, Cx - problem.u, problem.lb[:n] - x[:n], x[:n] - problem.ub[:n]))
-    bound = np.concatenate((problem.l, problem.u, problem.lb[:n], problem.ub[:n]))
+    lower, upper = np.concatenate((problem.l, problem.lb[:n])), np.concatenate((problem.u, problem.ub[:n]))
+    value = np.concatenate((Cx, x[:n]))
+    if np.max(np.maximum(lower - value, value - upper), initial=-np.inf) <= 0.0:
+        return 0.0  # every row holds (the common case; an infinite bound is never violated)
+    excess = np.concatenate((lower - value, value - upper))
+    bound = np.concatenate((lower, upper))
     with np.errstate(invalid="ignore"):
         r = excess / (1.0 + np.abs(bound))
     return float(np.max(np.where(np.isfinite(bound), r, 0.0), initial=0.0))
@@ -62,6 +66,12 @@ def _finite_problem(problem: Problem) -> bool:
     """No NaN anywhere and no infinity outside the bounds (where ±inf means "no bound")."""
     data = (problem.P, problem.c, problem.A, problem.b, problem.C)
     bounds = (problem.l, problem.u, problem.lb, problem.ub)
+    # Sums first (one reduction per array, this runs every tick): a NaN or infinity makes a sum
+    # non-finite; a non-finite sum without one (overflow, +inf and −inf bounds) gets the exact test.
+    P, c, A, b, C = data
+    if (math.isfinite(float(P.sum()) + float(c.sum()) + float(A.sum()) + float(b.sum()) + float(C.sum()))
+            and not any(math.isnan(float(a.sum())) for a in bounds)):
+        return True
     return all(np.isfinite(a).all() for a in data) and not any(np.isnan(a).any() for a in bounds)
 
 

@@ -19,7 +19,7 @@ DEFAULT_SETTINGS: dict[str, dict[str, Any]] = {
     "clarabel": {"tol_gap_abs": 1e-9, "tol_gap_rel": 1e-9, "tol_feas": 1e-9},
 }
 
-FAST_PATHS = ("proxqp", "osqp")
+FAST_PATHS = ("proxqp", "osqp", "daqp")
 
 # The generic path's backends that take a wall-time limit [s], and the name of that setting.
 TIME_LIMIT_SETTING = {"clarabel": "time_limit", "osqp": "time_limit", "highs": "time_limit",
@@ -142,6 +142,10 @@ def make_solver(name: str, settings: dict[str, Any] | None = None) -> QPSolver:
         from qpctl.solvers.proxqp_ import ProxQPSolver
 
         return ProxQPSolver(settings)
+    if not force_generic and base == "daqp":
+        from qpctl.solvers.daqp_ import DAQPSolver
+
+        return DAQPSolver(settings)
     if not force_generic and base == "osqp":
         from qpctl.solvers.osqp_ import OSQPSolver
 
