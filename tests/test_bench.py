@@ -50,3 +50,32 @@ def test_scenes_are_seeded_and_orchard_keeps_the_canopy() -> None:
     assert [o.position.tolist() for o in a.obstacles] == [o.position.tolist() for o in b.obstacles]
     big = orchard_scene(a, 40)
     assert len(big.obstacles) == 40 and all(x is y for x, y in zip(big.obstacles, a.obstacles))
+
+
+def test_same_ticks_run_in_rotating_blocks_in_order() -> None:
+    """Every controller steps through every state once, in order, in blocks of consecutive ticks; the
+    controller that opens a block rotates from block to block."""
+    from benchmarks.timing import StateSequence, time_on_states
+
+    scene = canopy_scene(100)
+    calls: list[tuple[str, float]] = []
+    ctrls = {}
+    for label in ("paper", "hsu", "qp"):
+        ctrl = scene.controller(label, "daqp" if label == "qp" else None)
+        inner = ctrl.step
+
+        def step(q, v, t, inner=inner, label=label):
+            calls.append((label, t))
+            return inner(q, v, t)
+
+        ctrl.step = step  # type: ignore[method-assign]
+        ctrls[label] = ctrl
+    T = 23
+    ts = np.arange(T) * scene.dt
+    states = StateSequence(ts, np.tile(scene.q0, (T, 1)), np.zeros((T, scene.robot.nv)))
+    res = time_on_states(ctrls, states, block=5)
+    for label in ctrls:
+        assert [t for lb, t in calls if lb == label] == ts.tolist()
+        assert np.all(res[label].wall > 0)
+    openers = [calls[i][0] for i in range(len(calls)) if i == 0 or calls[i][0] != calls[i - 1][0]]
+    assert openers[:6] == ["paper", "hsu", "qp", "hsu", "qp", "paper"]
