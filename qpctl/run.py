@@ -54,7 +54,7 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
         from qpctl.adapters.mujoco import MujocoSimulator
 
         traj = MujocoSimulator(controller, dt=sim_cfg["dt"], duration=sim_cfg["duration"],
-                               progress=progress).run(q0)
+                               integrator=sim_cfg["integrator"], progress=progress).run(q0)
     elif which == "builtin":
         traj = Simulator(controller, dt=sim_cfg["dt"], duration=sim_cfg["duration"],
                          integrator=sim_cfg["integrator"], progress=progress).run(q0)

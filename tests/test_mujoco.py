@@ -239,3 +239,15 @@ def test_bad_arguments_raise_config_errors(planar):
         MujocoSimulator(PaperController(planar, path), dt=0.0)
     with pytest.raises(ConfigError, match="q0"):
         MujocoSimulator(PaperController(planar, path), duration=0.01).run(np.zeros(2))
+
+
+def test_scenario_integrator_reaches_mujoco():
+    """``sim.integrator = "euler"`` runs MuJoCo's Euler under ``--sim mujoco`` (it used to run RK4
+    whatever the scenario said): its trajectory differs from the RK4 one by far more than RK4's
+    round-off between the two simulators."""
+    from qpctl.run import simulate
+
+    rk4 = simulate(Scenario.load("paper", ["sim.duration=0.3"]), simulator="mujoco").trajectory
+    euler = simulate(Scenario.load("paper", ["sim.duration=0.3", "sim.integrator=euler"]),
+                     simulator="mujoco").trajectory
+    assert np.max(np.abs(euler.q - rk4.q)) > 1e-6

@@ -7,7 +7,8 @@ import importlib
 import numpy as np
 import pytest
 
-PACKAGES = ["qpctl", "baselines", "qpctl.robot", "qpctl.geometry", "qpctl.simulation", "qpctl.controllers"]
+PACKAGES = ["qpctl", "baselines", "qpctl.robot", "qpctl.geometry", "qpctl.simulation", "qpctl.controllers",
+            "qpctl.adapters", "qpctl.solvers", "qpctl.tasks", "qpctl.constraints"]
 
 
 @pytest.mark.parametrize("package", PACKAGES)

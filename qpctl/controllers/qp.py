@@ -108,8 +108,8 @@ class QPConfig:
     that failed); the run's metrics count ``qp_fallbacks`` by name.
     tick_budget_us: wall-time budget of a tick [µs] (0: none), from the start of
     :meth:`QPController.step` (state, QP build and every solver attempt). Each solver attempt gets
-    what is left as its time limit (osqp, clarabel: their own; proxqp: an iteration cap from its
-    measured cost per iteration; daqp, quadprog: cannot be stopped, the clock is checked after);
+    what is left as its time limit (osqp, clarabel, daqp: their own; proxqp: an iteration cap from its
+    measured cost per iteration; quadprog: cannot be stopped, the clock is checked after);
     once it is spent no further solver is tried and the chain goes on with its first
     ``"closed-form"``/``"brake"`` entry (tens of µs). ``info["budget_exhausted"]`` marks such ticks.
     posture / posture_weight: an optional PostureTask.

@@ -48,8 +48,8 @@ class QPSolver(ABC):
     def set_time_limit(self, us: float | None) -> None:
         """Limit the next solves to ``us`` microseconds of wall time (None or inf: no limit).
 
-        Backends with a time limit get it as their setting (osqp, clarabel, highs, scs); proxqp turns it
-        into an iteration cap from its measured cost per iteration; the others (daqp, quadprog, ...)
+        Backends with a time limit get it as their setting (osqp, daqp, clarabel, highs, scs); proxqp
+        turns it into an iteration cap from its measured cost per iteration; the others (quadprog, ...)
         cannot be stopped, and the controller checks the clock before it tries anything else.
         A solve stopped by the limit reports ``found = False`` and status ``"time_limit"``.
         """
