@@ -33,10 +33,16 @@ def _median_us(fn: Callable[[int], object], ticks: range) -> float:
     return float(np.median(out) * 1e6)
 
 
-def parts(solver: str = "daqp", seed: int = 100) -> dict[str, float]:
-    """Median wall time [µs] of each part of a tick on the canopy scene's states."""
+def _states(solver: str, seed: int, duration: float | None):
     scene = canopy_scene(seed)
-    traj = Simulator(scene.controller("qp", solver), dt=scene.dt, duration=scene.duration).run(scene.q0)
+    run_for = scene.duration if duration is None else duration
+    return scene, Simulator(scene.controller("qp", solver), dt=scene.dt, duration=run_for).run(scene.q0)
+
+
+def parts(solver: str = "daqp", seed: int = 100, duration: float | None = None) -> dict[str, float]:
+    """Median wall time [µs] of each part of a tick on the canopy scene's states (the first
+    ``duration`` seconds; None: all)."""
+    scene, traj = _states(solver, seed, duration)
     Q, V, T = traj.q, traj.v, traj.t
     ticks = range(len(T))
     paper, qp = scene.controller("paper"), scene.controller("qp", solver)
@@ -67,10 +73,9 @@ def parts(solver: str = "daqp", seed: int = 100) -> dict[str, float]:
     return out
 
 
-def profile(solver: str = "daqp", seed: int = 100, top: int = 25) -> str:
+def profile(solver: str = "daqp", seed: int = 100, top: int = 25, duration: float | None = None) -> str:
     """cProfile's report (cumulative time) of the QP controller over the canopy scene's states."""
-    scene = canopy_scene(seed)
-    traj = Simulator(scene.controller("qp", solver), dt=scene.dt, duration=scene.duration).run(scene.q0)
+    scene, traj = _states(solver, seed, duration)
     qp = scene.controller("qp", solver)
     prof = cProfile.Profile()
     prof.enable()

@@ -79,3 +79,15 @@ def test_same_ticks_run_in_rotating_blocks_in_order() -> None:
         assert np.all(res[label].wall > 0)
     openers = [calls[i][0] for i in range(len(calls)) if i == 0 or calls[i][0] != calls[i - 1][0]]
     assert openers[:6] == ["paper", "hsu", "qp", "hsu", "qp", "paper"]
+
+
+def test_profile_reports_every_part_of_a_tick() -> None:
+    """``python -m benchmarks.profile``: every part timed, a whole QP tick costing more than its state
+    stage alone, and cProfile's report naming the controller's step."""
+    from benchmarks.profile import parts, profile
+
+    solver = "daqp" if "daqp" in available_solvers() else "proxqp"
+    res = parts(solver, 100, duration=0.05)
+    assert len(res) == 8 and all(np.isfinite(v) and v > 0 for v in res.values())
+    assert res["QP: whole tick"] > res["state: Pinocchio terms + distances (both)"]
+    assert "qpctl/controllers/qp.py" in profile(solver, 100, top=10, duration=0.05)
