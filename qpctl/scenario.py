@@ -138,7 +138,7 @@ SCHEMA: dict[str, Any] = {
     "obstacles": OBSTACLE_SCHEMA,  # array of tables
     "controller": {
         "kind": (_str, "paper"),
-        "solver": (_str, "proxqp"),
+        "solver": (_str, "daqp"),
         "kp": (_num, 100.0),
         "kv": (_num, 20.0),
         "kn": (_num, 10.0),

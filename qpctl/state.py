@@ -22,6 +22,9 @@ from qpctl.geometry.obstacles import Obstacle
 from qpctl.robot.model import RobotModel
 
 
+_SPHERE, _CAPSULE, _OTHER = 0, 1, 2  # obstacle kinds for the barrier drift
+
+
 def skew(p: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])
 
@@ -71,6 +74,11 @@ class TickState:
     _dynamics: "Dynamics | None" = field(default=None, repr=False)
     _jdot: np.ndarray | None = field(default=None, repr=False)
     _barrier_drift: np.ndarray | None = field(default=None, repr=False)
+    # per capsule body (L rows): world spatial velocity (v at the origin, ω) and the q̈ = 0
+    # acceleration field a(p) = offset + K p of its points; set when pairs exist (barrier drift)
+    _body_vel: np.ndarray | None = field(default=None, repr=False)
+    _acc_offset: np.ndarray | None = field(default=None, repr=False)
+    _acc_K: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def n(self) -> int:
@@ -88,7 +96,7 @@ class TickState:
 
         With ḣ(q, q̇, t) = nᵀ(J_p q̇ − v_obs), ḧ = nᵀJ_p q̈ + ∂ḣ/∂q q̇ + ∂ḣ/∂t; this returns the last two
         terms, which include what the rigid-point drift nᵀ(J̇_p q̇ − a_obs) leaves out: the normal's
-        rotation and the witness points sliding over the surfaces.
+        rotation and the witness points sliding over the surfaces (:meth:`Dynamics.barrier_drift`).
         """
         if self._barrier_drift is None:
             assert self._dynamics is not None
@@ -146,6 +154,14 @@ class Dynamics:
         self._cap_joints = [c.joint_id for c in robot.capsules]
         self._cap_local = np.array([[c.p0, c.p1] for c in robot.capsules], float).reshape(-1, 2, 3)
         self._support = self._support_masks()
+        # per obstacle, for the closed-form barrier drift: kind, radius, axis vector s (capsule: the
+        # segment from c₀ = centre − s/2 to c₀ + s; zero for a sphere)
+        self._radii = np.array([c.radius for c in robot.capsules], float)
+        self._obstacle_kind = np.array([{"sphere": _SPHERE, "capsule": _CAPSULE}.get(o.shape, _OTHER)
+                                        for o in self.obstacles], int)
+        self._obstacle_radius = np.array([o.radius for o in self.obstacles], float)
+        self._obstacle_axis = np.array([o.length * o.axis / np.linalg.norm(o.axis) if o.shape == "capsule"
+                                        else np.zeros(3) for o in self.obstacles], float).reshape(-1, 3)
         self._tril = np.tril_indices(self.model.nv, -1)
 
     def _support_masks(self) -> np.ndarray:
@@ -166,17 +182,16 @@ class Dynamics:
         H = np.array([data.oMi[j].homogeneous for j in self._cap_joints]).reshape(-1, 4, 4)
         return np.matmul(self._cap_local, H[:, :3, :3].transpose(0, 2, 1)) + H[:, None, :3, 3]
 
-    def _point_drifts(self, data: pin.Data, velocity: np.ndarray, links: np.ndarray,
-                      points: np.ndarray) -> np.ndarray:
-        """(k, 3) J̇_p q̇ of world points (k, 3) [m] on the bodies of capsules ``links`` (k,): the classical
-        acceleration at q̈ = 0, a + α × p + ω × (v + ω × p) = (a + ω × v) + (α× + ω×ω×) p, with the
-        bodies' world spatial velocities ``velocity`` (L, 6) = (v, ω) and accelerations (a, α) at the
-        world origin."""
+    def _acceleration_field(self, data: pin.Data, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per capsule body, the classical acceleration at q̈ = 0 of its point p [m] (world frame) is
+        a + α × p + ω × (v + ω × p) = offset + K p, with offset = a + ω × v (L, 3) and K = α× + ω×ω×
+        (L, 3, 3); ``velocity`` (L, 6) = (v, ω) are the bodies' world spatial velocities and (a, α)
+        their accelerations at the world origin. J̇_p q̇ of a point is its acceleration at q̈ = 0."""
         acc = np.array([pin.getAcceleration(self.model, data, j, pin.WORLD).vector for j in self._cap_joints])
         W = skews(velocity[:, 3:])
         offset = acc[:, :3] + np.matmul(W, velocity[:, :3, None])[:, :, 0]  # (L, 3)
         K = skews(acc[:, 3:]) + W @ W  # (L, 3, 3)
-        return offset[links] + np.matmul(K[links], points[:, :, None])[:, :, 0]
+        return offset, K
 
     @staticmethod
     def _point_jacobians(body_jac: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -228,10 +243,13 @@ class Dynamics:
             pairs = PairSet.empty()
         distance = time.perf_counter()
         k = len(pairs)
+        body_vel = offset = K = None
         if k:
             P = pairs.p_link
             pair_jac = self._point_jacobians(body_jac[pairs.link], P)
-            pair_drift = self._point_drifts(data, body_jac @ v, pairs.link, P)
+            body_vel = body_jac @ v
+            offset, K = self._acceleration_field(data, body_vel)
+            pair_drift = offset[pairs.link] + np.matmul(K[pairs.link], P[:, :, None])[:, :, 0]
         else:
             pair_jac = np.empty((0, 3, model.nv))
             pair_drift = np.empty((0, 3))
@@ -239,31 +257,106 @@ class Dynamics:
         end = time.perf_counter()
         timing = {"rigid_us": ((rigid - start) + (end - distance)) * 1e6, "distance_us": (distance - rigid) * 1e6}
         return TickState(t, q, v, M, N, x, J @ v, J, drift, link_jac, segments, pairs, pair_jac, pair_drift,
-                         clearance, timing, _dynamics=self)
+                         clearance, timing, _dynamics=self, _body_vel=body_vel, _acc_offset=offset, _acc_K=K)
 
     def barrier_drift(self, state: TickState) -> np.ndarray:
-        """∂ḣ/∂q q̇ + ∂ḣ/∂t per pair by a forward difference along the motion (q + δq̇, t + δ).
+        """∂ḣ/∂q q̇ + ∂ḣ/∂t per pair [m/s²]: ḧ at q̈ = 0, exact.
+
+        Sphere and capsule obstacles (separated, or a sphere penetrating) in closed form
+        (:meth:`_closed_form_drift`); boxes, cylinders, penetrating capsules and parallel axes by a
+        look-ahead finite difference of ḣ (:meth:`_look_ahead_drift`).
+        """
+        pairs = state.pairs
+        k = len(pairs)
+        if k == 0:
+            return np.zeros(0)
+        kind = self._obstacle_kind[pairs.obstacle]
+        closed = (kind == _SPHERE) | ((kind == _CAPSULE) & (pairs.distance > 1e-6))
+        out = np.empty(k)
+        rest = np.flatnonzero(~closed)
+        if closed.any():
+            idx = np.flatnonzero(closed)
+            drift, ok = self._closed_form_drift(state, idx)
+            out[idx] = drift
+            rest = np.sort(np.concatenate([rest, idx[~ok]]))
+        if rest.size:
+            out[rest] = self._look_ahead_drift(state, rest)
+        return out
+
+    def _closed_form_drift(self, state: TickState, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """ḧ at q̈ = 0 of the pairs ``idx`` whose obstacle is a sphere or a capsule (axis c₀ + σ s);
+        also whether each was computable (False: near-parallel axes, both closest points free).
+
+        The axis points p = a + τu on the link and q = c₀ + σs on the obstacle are closest, so with
+        w = p − q, ρ = |w|, n = w/ρ and h = ρ − radii − d_s: ḣ = nᵀẇ and ḧ = nᵀẅ + (|ẇ|² − (nᵀẇ)²)/ρ.
+        ẇ = v_p − v_q + τ̇u − σ̇s and nᵀẅ = nᵀ(a_p − a_q) + 2τ̇ nᵀu̇ (v_p, a_p: the body point's
+        velocity and q̈ = 0 acceleration; u̇ = ω × u; obstacles translate, ṡ = 0; n ⊥ u where τ is
+        interior and τ̈ = 0 where it is clamped, likewise for σ). τ̇, σ̇ keep the closest-point
+        conditions wᵀu = 0, wᵀs = 0 for the free parameters (0 for a clamped one).
+        """
+        pairs = state.pairs
+        links, obs = pairs.link[idx], pairs.obstacle[idx]
+        n = pairs.normal[idx]
+        p = pairs.p_link[idx] + self._radii[links][:, None] * n
+        qo = pairs.p_obstacle[idx] - self._obstacle_radius[obs][:, None] * n
+        w = p - qo
+        rho = np.sqrt((w * w).sum(axis=1))
+        seg = state.segments[links]
+        a, u = seg[:, 0], seg[:, 1] - seg[:, 0]
+        L2 = (u * u).sum(axis=1)
+        tau = ((p - a) * u).sum(axis=1) / np.maximum(L2, 1e-300)
+        t_free = (tau > 1e-9) & (tau < 1.0 - 1e-9) & (L2 > 1e-18)
+        s = self._obstacle_axis[obs]
+        S2 = (s * s).sum(axis=1)
+        c0 = self.engine._centres[obs] - 0.5 * s
+        sigma = ((qo - c0) * s).sum(axis=1) / np.maximum(S2, 1e-300)
+        s_free = (sigma > 1e-9) & (sigma < 1.0 - 1e-9) & (S2 > 1e-18)
+        assert state._body_vel is not None and state._acc_offset is not None and state._acc_K is not None
+        vel = state._body_vel[links]
+        omega = vel[:, 3:]
+        v_p = vel[:, :3] + cross(omega, p)
+        a_p = state._acc_offset[links] + np.matmul(state._acc_K[links], p[:, :, None])[:, :, 0]
+        u_dot = cross(omega, u)
+        dv = v_p - pairs.v_obstacle[idx]
+        e1 = -((dv * u).sum(axis=1) + (w * u_dot).sum(axis=1))  # L²τ̇ − (u·s)σ̇ = e1
+        e2 = -(dv * s).sum(axis=1)  # (u·s)τ̇ − |s|²σ̇ = e2
+        us = (u * s).sum(axis=1)
+        det = us * us - L2 * S2
+        both = t_free & s_free
+        ok = ~both | (np.abs(det) > 1e-9 * L2 * S2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            tau_dot = np.where(both, (us * e2 - S2 * e1) / det, np.where(t_free, e1 / L2, 0.0))
+            sigma_dot = np.where(both, (L2 * e2 - us * e1) / det, np.where(s_free, -e2 / S2, 0.0))
+        tau_dot = np.where(ok, tau_dot, 0.0)
+        sigma_dot = np.where(ok, sigma_dot, 0.0)
+        w_dot = dv + tau_dot[:, None] * u - sigma_dot[:, None] * s
+        nw = (n * w_dot).sum(axis=1)
+        drift = ((n * (a_p - pairs.a_obstacle[idx])).sum(axis=1) + 2.0 * tau_dot * (n * u_dot).sum(axis=1)
+                 + ((w_dot * w_dot).sum(axis=1) - nw * nw) / np.maximum(rho, 1e-12))
+        return drift, ok & (rho > 1e-9)
+
+    def _look_ahead_drift(self, state: TickState, idx: np.ndarray) -> np.ndarray:
+        """∂ḣ/∂q q̇ + ∂ḣ/∂t of the pairs ``idx`` by a forward difference along the motion (q + δq̇, t + δ).
 
         ḣ is re-evaluated with the witness points and normal recomputed by python-fcl at the
         look-ahead state and the same q̇; δ = ``drift_step`` balances truncation (O(δ)) and the
         distance query's noise (O(1e-8/δ)).
         """
         pairs = state.pairs
-        k = len(pairs)
-        if k == 0:
-            return np.zeros(0)
+        k = idx.size
         delta = self.drift_step
         q1, t1 = state.q + delta * state.v, state.t + delta
         model, data = self.model, self._probe_data
         pin.forwardKinematics(model, data, q1, state.v)
         segments = self._capsule_segments(data)
-        links = pairs.link.tolist()
+        links = pairs.link[idx].tolist()
+        obstacles = pairs.obstacle[idx]
         self._probe.update(segments, t1, links=sorted(set(links)))
-        hdot0 = np.einsum("ri,ri->r", pairs.normal, state.pair_jac @ state.v - pairs.v_obstacle)
+        hdot0 = np.einsum("ri,ri->r", pairs.normal[idx], state.pair_jac[idx] @ state.v - pairs.v_obstacle[idx])
         normal, p_link = np.empty((k, 3)), np.empty((k, 3))
-        for r, (i, j) in enumerate(zip(links, pairs.obstacle.tolist())):
+        for r, (i, j) in enumerate(zip(links, obstacles.tolist())):
             _, normal[r], p_link[r], _ = self._probe.pair(i, j)
-        v_obs = self._probe.obstacle_velocities(pairs.obstacle)
+        v_obs = self._probe.obstacle_velocities(obstacles)
         body = np.array([pin.getVelocity(model, data, self._cap_joints[i], pin.WORLD).vector for i in links])
         v_point = body[:, :3] + cross(body[:, 3:], p_link)  # velocity of the look-ahead witness points
         hdot1 = np.einsum("ri,ri->r", normal, v_point - v_obs)

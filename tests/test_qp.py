@@ -179,19 +179,30 @@ def test_barrier_rows_match_finite_differences(near):
 
 
 def test_solvers_agree_on_active_ticks(near):
-    """Different solvers give the same torque on the same tick, including ticks with active rows."""
+    """Different solvers give the same torque on the same tick, including ticks with active rows.
+
+    A solver may fail a tick (OSQP's ADMM, on the relaxed problem with its 1e6 ℓ₁ weight, can run
+    out of iterations where the task conflicts with the barrier): the tick must then say so and
+    fall back, it is left out of the comparison, and it must stay rare."""
     scen, traj = near
     ctrls = {s: scen.build_controller("qp", solver=s) for s in SOLVERS}
-    compared = 0
+    compared, failed = 0, {s: 0 for s in SOLVERS}
     for k in range(0, len(traj.t), 10):
         q, v, t = traj.q[k], traj.v[k], traj.t[k]
-        taus = {s: c.step(q, v, t).tau for s, c in ctrls.items()}
-        ref = taus["quadprog"] if "quadprog" in taus else next(iter(taus.values()))
-        for s, tau in taus.items():
+        outs = {s: c.step(q, v, t) for s, c in ctrls.items()}
+        ref_name = "quadprog" if "quadprog" in outs else SOLVERS[0]
+        assert "fallback" not in outs[ref_name].info, (t, outs[ref_name].info)
+        ref = outs[ref_name].tau
+        for s, out in outs.items():
+            if "fallback" in out.info:
+                assert out.info["fallback_reason"] != "solved"
+                failed[s] += 1
+                continue
             tol = 1e-3 if s in ("osqp",) else 1e-5
-            assert np.linalg.norm(tau - ref) <= tol * max(np.linalg.norm(ref), 1.0), (s, t, tau, ref)
+            assert np.linalg.norm(out.tau - ref) <= tol * max(np.linalg.norm(ref), 1.0), (s, t, out.tau, ref)
         compared += 1
     assert compared > 10
+    assert all(n <= 0.05 * compared for n in failed.values()), failed
 
 
 @pytest.mark.parametrize("v_ref", [0.2, 0.5, 1.0, 2.0])

@@ -256,6 +256,9 @@ PATH = WaypointPath([[-1.0, -2.0], [1.0, -1.5]], duration=1.0)
 
 
 def make_qp(obstacles=(), tau_max=400.0, gains=None, **cfg) -> QPController:
+    """A planar-arm QP controller; the primary solver is proxqp unless ``solver`` says otherwise (the
+    tests below make it fail by patching ProxQPSolver.solve)."""
+    cfg.setdefault("solver", "proxqp")
     return QPController(planar_arm(tau_max=tau_max), PATH, list(obstacles), gains or LawGains(), QPConfig(**cfg))
 
 

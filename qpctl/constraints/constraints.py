@@ -5,7 +5,8 @@
   (position) and first-order (speed) barriers expressed as bounds on q̈.
 * :class:`ObstacleBarrier` — for each (link, obstacle) pair within the influence distance,
   ḧ + k₁ḣ + k₀h ≥ 0 with h = d − d_s, ḣ = nᵀ(J_p q̇ − v_obs), ḧ = nᵀJ_p q̈ + (∂ḣ/∂q q̇ + ∂ḣ/∂t).
-  The drift in brackets is :meth:`TickState.barrier_drift` (``drift="exact"``, the default), which
+  The drift in brackets is :meth:`TickState.barrier_drift` (``drift="exact"``, the default: closed
+  form for spheres and capsules, a look-ahead finite difference for boxes and cylinders), which
   includes the normal's rotation and the witness points sliding over the surfaces, or the rigid-point
   approximation nᵀ(J̇_p q̇ − a_obs) of DESIGN.md §2 (``drift="rigid"``), which leaves out a term of
   order ρω² (ρ the distance from the link's joint, ω its angular rate) and so lets a fast-turning

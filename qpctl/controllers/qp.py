@@ -81,8 +81,9 @@ class QPConfig:
 
     solver: a name from ``qpctl solvers``; solver_settings: passed to it (tolerances, max_iter...).
     torque_limits / joint_limits: include those constraints when the robot has finite limits.
-    barrier_k0 [1/s²], barrier_k1 [1/s]: obstacle barrier gains; barrier_drift: "exact" (look-ahead
-    finite difference of ḣ, default) or "rigid" (nᵀJ̇_p q̇ only, DESIGN.md §2's approximation); joint_k0, joint_k1: joint-position
+    barrier_k0 [1/s²], barrier_k1 [1/s]: obstacle barrier gains; barrier_drift: "exact" (default:
+    closed form for sphere and capsule obstacles, a look-ahead finite difference of ḣ for the others)
+    or "rigid" (nᵀJ̇_p q̇ only, DESIGN.md §2's approximation); joint_k0, joint_k1: joint-position
     barrier gains; velocity_gain [1/s]: joint-speed barrier gain.
     slack_l1, slack_l2: task slack weights (ℓ₁ exact penalty, ℓ₂ regulariser).
     task_relaxation: "always" — solve with the task slack every tick; "on_failure" — solve with the
@@ -115,7 +116,7 @@ class QPConfig:
     posture / posture_weight: an optional PostureTask.
     """
 
-    solver: str = "proxqp"
+    solver: str = "daqp"
     solver_settings: dict[str, Any] = field(default_factory=dict)
     torque_limits: bool = True
     joint_limits: bool = True

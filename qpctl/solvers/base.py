@@ -19,7 +19,7 @@ DEFAULT_SETTINGS: dict[str, dict[str, Any]] = {
     "clarabel": {"tol_gap_abs": 1e-9, "tol_gap_rel": 1e-9, "tol_feas": 1e-9},
 }
 
-FAST_PATHS = ("proxqp", "osqp", "daqp")
+FAST_PATHS = ("daqp", "proxqp", "osqp")
 
 # The generic path's backends that take a wall-time limit [s], and the name of that setting.
 TIME_LIMIT_SETTING = {"clarabel": "time_limit", "osqp": "time_limit", "highs": "time_limit",
