@@ -8,7 +8,8 @@ placeholder rows) is kept in a template that each build copies and fills.
 
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 

@@ -70,7 +70,7 @@ class Problem:
     A: np.ndarray
     b: np.ndarray
     C: np.ndarray
-    l: np.ndarray  # noqa: E741
+    l: np.ndarray
     u: np.ndarray
     lb: np.ndarray
     ub: np.ndarray

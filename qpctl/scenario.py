@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import copy
 import sys
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -299,7 +300,7 @@ class Scenario:
     source: str
 
     @classmethod
-    def load(cls, spec: str | Path, overrides: Sequence[str] = ()) -> "Scenario":
+    def load(cls, spec: str | Path, overrides: Sequence[str] = ()) -> Scenario:
         """Load a TOML file, or a packaged scenario by name, and apply ``--set`` overrides."""
         path = Path(spec)
         if path.suffix == ".toml" or path.exists():
@@ -319,7 +320,7 @@ class Scenario:
         return cls.from_dict(raw, source=source, overrides=overrides)
 
     @classmethod
-    def from_dict(cls, raw: dict[str, Any], *, source: str = "<dict>", overrides: Sequence[str] = ()) -> "Scenario":
+    def from_dict(cls, raw: dict[str, Any], *, source: str = "<dict>", overrides: Sequence[str] = ()) -> Scenario:
         raw = apply_overrides(raw, overrides) if overrides else raw
         data = _validate_table(raw, SCHEMA, source, "")
         kind = data["controller"]["kind"]

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 import pinocchio as pin
@@ -20,7 +20,6 @@ from qpctl.errors import InvalidStateError
 from qpctl.geometry.distance import DistanceEngine, PairSet
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.robot.model import RobotModel
-
 
 _SPHERE, _CAPSULE, _OTHER = 0, 1, 2  # obstacle kinds for the barrier drift
 
@@ -71,7 +70,7 @@ class TickState:
     pair_drift: np.ndarray  # (k, 3) J̇_p q̇ of the link witness points
     clearance: float  # least signed distance over the pairs (inf when none within the cutoff)
     timing: dict[str, float] = field(default_factory=dict)  # stage wall times [µs]: "rigid_us", "distance_us"
-    _dynamics: "Dynamics | None" = field(default=None, repr=False)
+    _dynamics: Dynamics | None = field(default=None, repr=False)
     _jdot: np.ndarray | None = field(default=None, repr=False)
     _barrier_drift: np.ndarray | None = field(default=None, repr=False)
     # per capsule body (L rows): world spatial velocity (v at the origin, ω) and the q̈ = 0

@@ -19,7 +19,7 @@ README = (Path(__file__).resolve().parents[1] / "README.md").read_text()
 
 
 def toml_blocks() -> list[str]:
-    return re.findall(r"```toml\n(.*?)```", README, flags=re.S)
+    return re.findall(r"```toml\n(.*?)```", README, flags=re.DOTALL)
 
 
 def test_complete_qp_example_scenario_builds_and_steps():

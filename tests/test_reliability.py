@@ -7,7 +7,6 @@ reported. (Random states, scenes and gains: test_properties.py; the long run: te
 from __future__ import annotations
 
 import copy
-import sys
 
 import numpy as np
 import pytest

@@ -226,7 +226,8 @@ def test_barrier_drift_equals_second_difference_of_distance(robot, shape, rng, r
                 continue
             sel = (s.pairs.link[r], s.pairs.obstacle[r])
 
-            def d_at(step: float, sel: tuple = sel, dyn: Dynamics = dyn) -> float:
+            def d_at(step: float, sel: tuple = sel, dyn: Dynamics = dyn, q: np.ndarray = q, v: np.ndarray = v,
+                     t0: float = t0) -> float:
                 p = dyn.compute(q + step * v, v, t0 + step).pairs
                 return float(p.distance[(p.link == sel[0]) & (p.obstacle == sel[1])][0])
 

@@ -19,13 +19,14 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
 from qpctl.constraints.constraints import Constraint, JointLimit, ObstacleBarrier, TorqueLimit
-from qpctl.controllers.base import ControlOutput, Controller
+from qpctl.controllers.base import Controller, ControlOutput
 from qpctl.errors import ConfigError
 from qpctl.formulation import Formulation
 from qpctl.geometry.obstacles import Obstacle
@@ -147,7 +148,7 @@ class QPConfig:
             raise ConfigError(f"must be an integer >= 0, got {self.max_pairs!r}", key="controller.max_pairs")
 
     @classmethod
-    def from_dict(cls, cfg: dict[str, Any]) -> "QPConfig":
+    def from_dict(cls, cfg: dict[str, Any]) -> QPConfig:
         keys = cls.__dataclass_fields__.keys()
         return cls(**{k: v for k, v in cfg.items() if k in keys})
 
@@ -199,7 +200,7 @@ class QPController(Controller):
     @classmethod
     def from_config(cls, cfg: dict[str, Any], robot: RobotModel, path: WaypointPath,
                     obstacles: Sequence[Obstacle], gains: LawGains, *, broadphase: bool | None = None
-                    ) -> "QPController":
+                    ) -> QPController:
         return cls(robot, path, obstacles, gains, QPConfig.from_dict(cfg), broadphase=broadphase)
 
     @property

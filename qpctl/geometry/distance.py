@@ -21,8 +21,8 @@ the distance, so the pairs it drops are exactly those the exact query would have
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import fcl
 import numpy as np
@@ -65,7 +65,7 @@ class PairSet:
         return int(self.link.shape[0])
 
     @staticmethod
-    def empty() -> "PairSet":
+    def empty() -> PairSet:
         z = np.zeros((0, 3))
         return PairSet(np.zeros(0, int), np.zeros(0, int), np.zeros(0), z, z, z, z, z)
 

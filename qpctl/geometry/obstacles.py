@@ -17,8 +17,8 @@ Motion: constant ``velocity`` [m/s] and/or a sinusoidal sway ``amplitude`` [m] a
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import fcl
 import numpy as np
@@ -92,12 +92,10 @@ class Obstacle:
             raise ConfigError(f"must be a number >= 0, got {self.v_ref}", key=f"{key}.v_ref")
         if not (np.isfinite(self.frequency) and self.frequency >= 0):
             raise ConfigError(f"must be >= 0, got {self.frequency}", key=f"{key}.frequency")
-        if self.shape in ("sphere", "capsule", "cylinder"):
-            if not (np.isfinite(self.radius) and self.radius > 0):
-                raise ConfigError(f"radius must be positive, got {self.radius}", key=f"{key}.radius")
-        if self.shape in ("capsule", "cylinder"):
-            if not (np.isfinite(self.length) and self.length > 0):
-                raise ConfigError(f"length must be positive, got {self.length}", key=f"{key}.length")
+        if self.shape in ("sphere", "capsule", "cylinder") and not (np.isfinite(self.radius) and self.radius > 0):
+            raise ConfigError(f"radius must be positive, got {self.radius}", key=f"{key}.radius")
+        if self.shape in ("capsule", "cylinder") and not (np.isfinite(self.length) and self.length > 0):
+            raise ConfigError(f"length must be positive, got {self.length}", key=f"{key}.length")
         if self.shape == "box":
             if self.size is None:
                 raise ConfigError("a box needs size = [x, y, z]", key=f"{key}.size")

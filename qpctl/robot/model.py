@@ -15,9 +15,9 @@ Every rigid-body quantity in qpctl comes from Pinocchio; this module only builds
 from __future__ import annotations
 
 import importlib.metadata
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 import pinocchio as pin
@@ -98,7 +98,7 @@ class RobotModel:
         return int(self.model.getFrameId(name))
 
     def with_limits(self, *, tau_max: Sequence[float] | float | None = None,
-                    v_max: Sequence[float] | float | None = None) -> "RobotModel":
+                    v_max: Sequence[float] | float | None = None) -> RobotModel:
         """Return a copy with torque and/or speed limits replaced (a scalar applies to every joint)."""
         out = RobotModel(self.name, self.model, self.ee_frame, self.task_axes, list(self.capsules),
                          self.q_min.copy(), self.q_max.copy(), self.v_max.copy(), self.tau_max.copy(),
@@ -113,7 +113,7 @@ class RobotModel:
     def from_urdf(cls, path: str | Path, ee_frame: str, *, capsules: list[LinkCapsule] | None = None,
                   locked_joints: Sequence[str] = (), capsule_radius: float = 0.05,
                   gravity: Sequence[float] = (0.0, 0.0, -9.81), q_home: Sequence[float] | None = None,
-                  ee_offset: Sequence[float] | None = None, name: str | None = None) -> "RobotModel":
+                  ee_offset: Sequence[float] | None = None, name: str | None = None) -> RobotModel:
         """Load a URDF. Without ``capsules``, each link gets a capsule from its joint to the next joint.
 
         ``ee_offset`` [m] adds a frame ``<ee_frame>_tcp`` at that offset in ``ee_frame`` and uses it.

@@ -7,9 +7,10 @@ pair (exact, not limited to the controller's influence distance), outside the co
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -63,7 +64,7 @@ class Trajectory:
         np.savez_compressed(path, **{k: getattr(self, k) for k in self.ARRAYS})
 
     @classmethod
-    def load(cls, path: str | Path) -> "Trajectory":
+    def load(cls, path: str | Path) -> Trajectory:
         with np.load(path) as data:
             return cls(**{k: data[k] for k in cls.ARRAYS if k in data.files})
 
@@ -118,7 +119,7 @@ class Simulator:
         n = self.robot.nv
         q = np.asarray(q0, float).copy()
         v = np.zeros(n) if v0 is None else np.asarray(v0, float).copy()
-        steps = int(round(self.duration / self.dt)) + 1
+        steps = round(self.duration / self.dt) + 1
         m = self.robot.m
         rec = {k: np.zeros((steps, n)) for k in ("q", "v", "tau", "e_null")}
         rec.update({k: np.zeros((steps, m)) for k in ("x", "x_ref", "xd_ref", "xdd_ref")})

@@ -109,7 +109,7 @@ class GenericSolver(QPSolver):
             settings[key] = left_s
         try:
             sol = qpsolvers.solve_problem(qp, solver=self.backend, **settings)
-        except Exception as exc:  # a backend's own error: report it as a failed solve
+        except Exception as exc:  # noqa: BLE001 — a backend's own error: reported as a failed solve
             return Solution(False, np.zeros(problem.n_var), f"error: {type(exc).__name__}: {exc}",
                             solve_us=(time.perf_counter() - start) * 1e6, solver=self.name)
         us = (time.perf_counter() - start) * 1e6

@@ -76,7 +76,7 @@ class DAQPSolver(QPSolver):
         try:
             x, _fval, flag, info = daqp.solve(problem.P, problem.c, rows, up, lo, self._sense.copy(),
                                               dual_start=self._lam, **settings)
-        except Exception as exc:  # DAQP's own error (a bad setting value, say): a failed solve
+        except Exception as exc:  # noqa: BLE001 — DAQP's own error (a bad setting value, say): a failed solve
             self._lam = None
             return Solution(False, np.zeros(nv), f"error: {type(exc).__name__}: {exc}",
                             solve_us=(time.perf_counter() - start) * 1e6, solver=self.name)
