@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from qpctl.constraints.constraints import Constraint
+from qpctl.constraints.constraints import Constraint, ObstacleBarrier, TorqueLimit
 from qpctl.law import LawTerms
 from qpctl.qp import Bounds, Equality, Inequality, Objective, Problem
 from qpctl.state import TickState
@@ -29,6 +29,11 @@ class Formulation:
         self.constraints = list(constraints)
         self.n_in = sum(c.rows for c in self.constraints)
         self.row_names = [c.name for c in self.constraints for _ in range(c.rows)]
+        # (name, first row, end row) of each constraint with rows, for per-tick diagnostics
+        ends = np.cumsum([c.rows for c in self.constraints]).tolist()
+        self.row_ranges = [(c.name, e - c.rows, e) for c, e in zip(self.constraints, ends) if c.rows]
+        self.torque_limit = next((c.tau_max for c in self.constraints if isinstance(c, TorqueLimit)), None)
+        self.barriers = [c for c in self.constraints if isinstance(c, ObstacleBarrier)]
         self._templates: dict[tuple[Any, ...], tuple[np.ndarray, ...]] = {}
         self._evaluated: tuple[TickState, LawTerms, Any] | None = None
 

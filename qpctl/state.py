@@ -161,6 +161,9 @@ class Dynamics:
         self._obstacle_radius = np.array([o.radius for o in self.obstacles], float)
         self._obstacle_axis = np.array([o.length * o.axis / np.linalg.norm(o.axis) if o.shape == "capsule"
                                         else np.zeros(3) for o in self.obstacles], float).reshape(-1, 3)
+        self._radii_list = self._radii.tolist()
+        self._obstacle_radius_list = self._obstacle_radius.tolist()
+        self._obstacle_axis_list = self._obstacle_axis.tolist()
         self._tril = np.tril_indices(self.model.nv, -1)
 
     def _support_masks(self) -> np.ndarray:
@@ -293,46 +296,72 @@ class Dynamics:
         interior and τ̈ = 0 where it is clamped, likewise for σ). τ̇, σ̇ keep the closest-point
         conditions wᵀu = 0, wᵀs = 0 for the free parameters (0 for a clamped one).
         """
-        pairs = state.pairs
-        links, obs = pairs.link[idx], pairs.obstacle[idx]
-        n = pairs.normal[idx]
-        p = pairs.p_link[idx] + self._radii[links][:, None] * n
-        qo = pairs.p_obstacle[idx] - self._obstacle_radius[obs][:, None] * n
-        w = p - qo
-        rho = np.sqrt((w * w).sum(axis=1))
-        seg = state.segments[links]
-        a, u = seg[:, 0], seg[:, 1] - seg[:, 0]
-        L2 = (u * u).sum(axis=1)
-        tau = ((p - a) * u).sum(axis=1) / np.maximum(L2, 1e-300)
-        t_free = (tau > 1e-9) & (tau < 1.0 - 1e-9) & (L2 > 1e-18)
-        s = self._obstacle_axis[obs]
-        S2 = (s * s).sum(axis=1)
-        c0 = self.engine._centres[obs] - 0.5 * s
-        sigma = ((qo - c0) * s).sum(axis=1) / np.maximum(S2, 1e-300)
-        s_free = (sigma > 1e-9) & (sigma < 1.0 - 1e-9) & (S2 > 1e-18)
+        # Plain floats, pair by pair: with a handful of pairs per tick, ~4 µs a pair against ~100 µs
+        # of numpy calls on (k, 3) arrays for ten pairs (measured on the Panda canopy).
         assert state._body_vel is not None and state._acc_offset is not None and state._acc_K is not None
-        vel = state._body_vel[links]
-        omega = vel[:, 3:]
-        v_p = vel[:, :3] + cross(omega, p)
-        a_p = state._acc_offset[links] + np.matmul(state._acc_K[links], p[:, :, None])[:, :, 0]
-        u_dot = cross(omega, u)
-        dv = v_p - pairs.v_obstacle[idx]
-        e1 = -((dv * u).sum(axis=1) + (w * u_dot).sum(axis=1))  # L²τ̇ − (u·s)σ̇ = e1
-        e2 = -(dv * s).sum(axis=1)  # (u·s)τ̇ − |s|²σ̇ = e2
-        us = (u * s).sum(axis=1)
-        det = us * us - L2 * S2
-        both = t_free & s_free
-        ok = ~both | (np.abs(det) > 1e-9 * L2 * S2)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            tau_dot = np.where(both, (us * e2 - S2 * e1) / det, np.where(t_free, e1 / L2, 0.0))
-            sigma_dot = np.where(both, (L2 * e2 - us * e1) / det, np.where(s_free, -e2 / S2, 0.0))
-        tau_dot = np.where(ok, tau_dot, 0.0)
-        sigma_dot = np.where(ok, sigma_dot, 0.0)
-        w_dot = dv + tau_dot[:, None] * u - sigma_dot[:, None] * s
-        nw = (n * w_dot).sum(axis=1)
-        drift = ((n * (a_p - pairs.a_obstacle[idx])).sum(axis=1) + 2.0 * tau_dot * (n * u_dot).sum(axis=1)
-                 + ((w_dot * w_dot).sum(axis=1) - nw * nw) / np.maximum(rho, 1e-12))
-        return drift, ok & (rho > 1e-9)
+        pairs = state.pairs
+        normal, p_link, p_obs = pairs.normal.tolist(), pairs.p_link.tolist(), pairs.p_obstacle.tolist()
+        v_obs, a_obs = pairs.v_obstacle.tolist(), pairs.a_obstacle.tolist()
+        link, obstacle = pairs.link.tolist(), pairs.obstacle.tolist()
+        segments, vel = state.segments.tolist(), state._body_vel.tolist()
+        offset, K = state._acc_offset.tolist(), state._acc_K.tolist()
+        radii, o_radius, o_axis = self._radii_list, self._obstacle_radius_list, self._obstacle_axis_list
+        centres = self.engine._centres.tolist()
+        drifts, oks = [], []
+        for r in idx.tolist():
+            i, j = link[r], obstacle[r]
+            nx, ny, nz = normal[r]
+            rl, ro = radii[i], o_radius[j]
+            px, py, pz = p_link[r][0] + rl * nx, p_link[r][1] + rl * ny, p_link[r][2] + rl * nz  # on the link's axis
+            qx, qy, qz = p_obs[r][0] - ro * nx, p_obs[r][1] - ro * ny, p_obs[r][2] - ro * nz  # on the obstacle's
+            wx, wy, wz = px - qx, py - qy, pz - qz
+            (ax, ay, az), (bx, by, bz) = segments[i]
+            ux, uy, uz = bx - ax, by - ay, bz - az
+            sx, sy, sz = o_axis[j]
+            cx, cy, cz = centres[j]
+            vx, vy, vz, ox, oy, oz = vel[i]
+            vpx, vpy, vpz = vx + oy * pz - oz * py, vy + oz * px - ox * pz, vz + ox * py - oy * px  # v + ω × p
+            udx, udy, udz = oy * uz - oz * uy, oz * ux - ox * uz, ox * uy - oy * ux  # u̇ = ω × u
+            (k00, k01, k02), (k10, k11, k12), (k20, k21, k22) = K[i]
+            o0, o1, o2 = offset[i]
+            apx = o0 + k00 * px + k01 * py + k02 * pz  # a_p = offset + K p
+            apy = o1 + k10 * px + k11 * py + k12 * pz
+            apz = o2 + k20 * px + k21 * py + k22 * pz
+            (vox, voy, voz), (aox, aoy, aoz) = v_obs[r], a_obs[r]
+            dvx, dvy, dvz = vpx - vox, vpy - voy, vpz - voz
+            L2 = ux * ux + uy * uy + uz * uz
+            tau_l2 = (px - ax) * ux + (py - ay) * uy + (pz - az) * uz  # τ L²
+            S2 = sx * sx + sy * sy + sz * sz
+            sigma_s2 = (qx - cx + 0.5 * sx) * sx + (qy - cy + 0.5 * sy) * sy + (qz - cz + 0.5 * sz) * sz  # σ |s|²
+            t_free = L2 > 1e-18 and 1e-9 * L2 < tau_l2 < (1.0 - 1e-9) * L2
+            s_free = S2 > 1e-18 and 1e-9 * S2 < sigma_s2 < (1.0 - 1e-9) * S2
+            e1 = -(dvx * ux + dvy * uy + dvz * uz + wx * udx + wy * udy + wz * udz)  # L²τ̇ − (u·s)σ̇ = e1
+            e2 = -(dvx * sx + dvy * sy + dvz * sz)  # (u·s)τ̇ − |s|²σ̇ = e2
+            us = ux * sx + uy * sy + uz * sz
+            tau_dot = sigma_dot = 0.0
+            ok = True
+            if t_free and s_free:
+                det = us * us - L2 * S2
+                if abs(det) > 1e-9 * L2 * S2:
+                    tau_dot, sigma_dot = (us * e2 - S2 * e1) / det, (L2 * e2 - us * e1) / det
+                else:  # parallel axes: the closest points are not unique
+                    ok = False
+            elif t_free:
+                tau_dot = e1 / L2
+            elif s_free:
+                sigma_dot = -e2 / S2
+            rho2 = wx * wx + wy * wy + wz * wz
+            ok = ok and rho2 > 1e-18
+            wdx = dvx + tau_dot * ux - sigma_dot * sx
+            wdy = dvy + tau_dot * uy - sigma_dot * sy
+            wdz = dvz + tau_dot * uz - sigma_dot * sz
+            nw = nx * wdx + ny * wdy + nz * wdz
+            drift = (nx * (apx - aox) + ny * (apy - aoy) + nz * (apz - aoz)
+                     + 2.0 * tau_dot * (nx * udx + ny * udy + nz * udz)
+                     + (wdx * wdx + wdy * wdy + wdz * wdz - nw * nw) / math.sqrt(max(rho2, 1e-24)))
+            drifts.append(drift if ok else 0.0)
+            oks.append(ok)
+        return np.array(drifts), np.array(oks, dtype=bool)
 
     def _look_ahead_drift(self, state: TickState, idx: np.ndarray) -> np.ndarray:
         """∂ḣ/∂q q̇ + ∂ḣ/∂t of the pairs ``idx`` by a forward difference along the motion (q + δq̇, t + δ).

@@ -7,7 +7,7 @@ interior augmented-Lagrangian iterations; the solutions agree with quadprog's to
 
 Layout (DAQP's convention): the first ``n_var`` entries of the bounds are simple bounds on x; then
 the inequality rows l ≤ C x ≤ u; then the equality rows A x = b (sense 5). Infinite bounds are
-passed as ±1e30 (DAQP's infinity). Warm start: the previous tick's multipliers (``dual_start``) give
+passed as they are (DAQP treats any bound beyond ±1e30 as absent). Warm start: the previous tick's multipliers (``dual_start``) give
 DAQP its initial working set, so a tick whose active set did not change takes one or two iterations.
 A time limit is passed as DAQP's own ``time_limit`` [s].
 """
@@ -23,7 +23,6 @@ from qpctl.errors import ConfigError
 from qpctl.qp import Problem, Solution
 from qpctl.solvers.base import QPSolver
 
-_INF = 1e30
 _SENSE_EQ = 5
 _STATUS = {1: "solved", 2: "solved", -1: "primal_infeasible", -2: "cycling", -3: "unbounded", -4: "max_iter",
            -5: "nonconvex", -6: "overdetermined_initial", -7: "time_limit", -8: "unsupported"}
@@ -62,10 +61,8 @@ class DAQPSolver(QPSolver):
             self._shape, self._lam = shape, None
         rows, up, lo = self._rows, self._upper, self._lower
         rows[:n_in], rows[n_in:] = problem.C, problem.A
-        np.clip(problem.ub, -_INF, _INF, out=up[:nv])
-        np.clip(problem.lb, -_INF, _INF, out=lo[:nv])
-        np.clip(problem.u, -_INF, _INF, out=up[nv:nv + n_in])
-        np.clip(problem.l, -_INF, _INF, out=lo[nv:nv + n_in])
+        up[:nv], lo[:nv] = problem.ub, problem.lb
+        up[nv:nv + n_in], lo[nv:nv + n_in] = problem.u, problem.l
         up[nv + n_in:] = lo[nv + n_in:] = problem.b
         settings = self.settings
         if self.time_limit_us is not None:
