@@ -162,6 +162,7 @@ class Dynamics:
         self._obstacle_axis = np.array([o.length * o.axis / np.linalg.norm(o.axis) if o.shape == "capsule"
                                         else np.zeros(3) for o in self.obstacles], float).reshape(-1, 3)
         self._radii_list = self._radii.tolist()
+        self._obstacle_kind_list = self._obstacle_kind.tolist()
         self._obstacle_radius_list = self._obstacle_radius.tolist()
         self._obstacle_axis_list = self._obstacle_axis.tolist()
         self._tril = np.tril_indices(self.model.nv, -1)
@@ -268,26 +269,18 @@ class Dynamics:
         (:meth:`_closed_form_drift`); boxes, cylinders, penetrating capsules and parallel axes by a
         look-ahead finite difference of ḣ (:meth:`_look_ahead_drift`).
         """
-        pairs = state.pairs
-        k = len(pairs)
-        if k == 0:
+        if len(state.pairs) == 0:
             return np.zeros(0)
-        kind = self._obstacle_kind[pairs.obstacle]
-        closed = (kind == _SPHERE) | ((kind == _CAPSULE) & (pairs.distance > 1e-6))
-        out = np.empty(k)
-        rest = np.flatnonzero(~closed)
-        if closed.any():
-            idx = np.flatnonzero(closed)
-            drift, ok = self._closed_form_drift(state, idx)
-            out[idx] = drift
-            rest = np.sort(np.concatenate([rest, idx[~ok]]))
-        if rest.size:
-            out[rest] = self._look_ahead_drift(state, rest)
-        return out
+        drift, ok = self._closed_form_drift(state)
+        if not ok.all():
+            rest = np.flatnonzero(~ok)
+            drift[rest] = self._look_ahead_drift(state, rest)
+        return drift
 
-    def _closed_form_drift(self, state: TickState, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """ḧ at q̈ = 0 of the pairs ``idx`` whose obstacle is a sphere or a capsule (axis c₀ + σ s);
-        also whether each was computable (False: near-parallel axes, both closest points free).
+    def _closed_form_drift(self, state: TickState) -> tuple[np.ndarray, np.ndarray]:
+        """ḧ at q̈ = 0 of every pair whose obstacle is a sphere, or a capsule (axis c₀ + σ s) apart from
+        the link; and which pairs it computed (False: another shape, a penetrating capsule, or
+        near-parallel axes with both closest points free — left to the look-ahead difference).
 
         The axis points p = a + τu on the link and q = c₀ + σs on the obstacle are closest, so with
         w = p − q, ρ = |w|, n = w/ρ and h = ρ − radii − d_s: ḣ = nᵀẇ and ḧ = nᵀẅ + (|ẇ|² − (nᵀẇ)²)/ρ.
@@ -307,9 +300,14 @@ class Dynamics:
         offset, K = state._acc_offset.tolist(), state._acc_K.tolist()
         radii, o_radius, o_axis = self._radii_list, self._obstacle_radius_list, self._obstacle_axis_list
         centres = self.engine._centres.tolist()
+        kinds, distance = self._obstacle_kind_list, pairs.distance.tolist()
         drifts, oks = [], []
-        for r in idx.tolist():
+        for r in range(len(link)):
             i, j = link[r], obstacle[r]
+            if not (kinds[j] == _SPHERE or (kinds[j] == _CAPSULE and distance[r] > 1e-6)):
+                drifts.append(0.0)
+                oks.append(False)
+                continue
             nx, ny, nz = normal[r]
             rl, ro = radii[i], o_radius[j]
             px, py, pz = p_link[r][0] + rl * nx, p_link[r][1] + rl * ny, p_link[r][2] + rl * nz  # on the link's axis
