@@ -113,12 +113,13 @@ class ObstacleBarrier(Constraint):
         self.k0 = _positive("controller.barrier_k0", k0)
         self.k1 = _positive("controller.barrier_k1", k1)
         self.dropped = 0
+        self._empty: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (C, lower, upper) of no pair
 
     def compute(self, state: TickState, terms: LawTerms) -> Inequality:
         n = state.n
-        C = np.zeros((self.rows, n))
-        lower = np.full(self.rows, -np.inf)
-        upper = np.full(self.rows, np.inf)
+        if self._empty is None or self._empty[0].shape[1] != n:
+            self._empty = (np.zeros((self.rows, n)), np.full(self.rows, -np.inf), np.full(self.rows, np.inf))
+        C, lower, upper = (a.copy() for a in self._empty)
         pairs = state.pairs
         k = len(pairs)
         if k == 0:

@@ -444,10 +444,10 @@ class QPController(Controller):
             slack = s[:half] - s[half:]
             info["slack_norm"] = math.sqrt(float(slack @ slack))
             Cx = problem.C @ x
-            tol = 1e-6 * (1.0 + np.abs(Cx))
-            act = (np.abs(Cx - problem.l) <= tol) | (np.abs(Cx - problem.u) <= tol)
-            bnd = (np.abs(x[:n] - problem.lb[:n]) <= 1e-6) | (np.abs(x[:n] - problem.ub[:n]) <= 1e-6)
-            info["active"] = int(np.count_nonzero(act) + np.count_nonzero(bnd))
+            act = np.minimum(np.abs(Cx - problem.l), np.abs(Cx - problem.u)) <= 1e-6 * (1.0 + np.abs(Cx))
+            xq = x[:n]
+            bnd = np.minimum(np.abs(xq - problem.lb[:n]), np.abs(xq - problem.ub[:n])) <= 1e-6
+            info["active"] = int(np.count_nonzero(act)) + int(np.count_nonzero(bnd))
             info["active_rows"] = sorted({name for name, lo, hi in form.row_ranges if act[lo:hi].any()})
         for con in form.barriers:
             if con.dropped:
