@@ -65,7 +65,7 @@ def parts(solver: str = "daqp", seed: int = 100, duration: float | None = None) 
                                                                         weighted=True), ticks),
         "paper law: its closed form (eq. 19)": _median_us(
             lambda k: closed_form_acceleration(states[k], terms[k], qp.gains, weighted=True), ticks),
-        "QP: barrier drift (look-ahead)": _median_us(lambda k: dyn.barrier_drift(states[k]), ticks),
+        "QP: barrier drift": _median_us(lambda k: dyn.barrier_drift(states[k]), ticks),
         "QP: tasks + constraints + stacking (drift cached)": _median_us(
             lambda k: form.build(states[k], terms[k], relax=True), ticks),
         f"QP: {solver} solve": _median_us(lambda k: solver_obj.solve(problems[k]), ticks),

@@ -1,15 +1,15 @@
 """DAQP fast path: DAQP's own ``solve`` called directly, its arrays kept from tick to tick.
 
 DAQP (a dual active-set solver) suits this package's QPs: a dozen variables, a few dozen rows, most
-of them inactive. Called directly it takes ~30 µs a tick on the Panda canopy against ~200 µs through
-qpsolvers (which rebuilds and checks every array on every call) and ~100–200 µs for proxsuite's
-interior augmented-Lagrangian iterations; the solutions agree with quadprog's to 3e-7.
+of them inactive. Called directly it took 25–45 µs a tick on the Panda canopy, against ~130 µs
+through qpsolvers (which rebuilds and checks every array on every call) and ~100–200 µs for
+proxsuite's augmented-Lagrangian iterations; the solutions agree with quadprog's to 3e-7.
 
 Layout (DAQP's convention): the first ``n_var`` entries of the bounds are simple bounds on x; then
 the inequality rows l ≤ C x ≤ u; then the equality rows A x = b (sense 5). Infinite bounds are
-passed as they are (DAQP treats any bound beyond ±1e30 as absent). Warm start: the previous tick's multipliers (``dual_start``) give
-DAQP its initial working set, so a tick whose active set did not change takes one or two iterations.
-A time limit is passed as DAQP's own ``time_limit`` [s].
+passed as they are (DAQP treats any bound beyond ±1e30 as absent). Warm start: the previous tick's
+multipliers (``dual_start``) give DAQP its initial working set, so a tick whose active set did not
+change takes one or two iterations. A time limit is passed as DAQP's own ``time_limit`` [s].
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
+import daqp
 import numpy as np
 
 from qpctl.errors import ConfigError
@@ -48,8 +49,6 @@ class DAQPSolver(QPSolver):
         self._shape, self._lam = None, None
 
     def solve(self, problem: Problem) -> Solution:
-        import daqp
-
         start = time.perf_counter()
         nv, n_in, n_eq = problem.n_var, problem.C.shape[0], problem.A.shape[0]
         shape = (nv, n_in, n_eq)
