@@ -299,7 +299,7 @@ class Dynamics:
         segments, vel = state.segments.tolist(), state._body_vel.tolist()
         offset, K = state._acc_offset.tolist(), state._acc_K.tolist()
         radii, o_radius, o_axis = self._radii_list, self._obstacle_radius_list, self._obstacle_axis_list
-        centres = self.engine._centres.tolist()
+        centres = self.engine.obstacle_positions().tolist()
         kinds, distance = self._obstacle_kind_list, pairs.distance.tolist()
         drifts, oks = [], []
         for r in range(len(link)):

@@ -163,6 +163,10 @@ class DistanceEngine:
         self._t = t
 
     # -- queries ------------------------------------------------------------------------------
+    def obstacle_positions(self) -> np.ndarray:
+        """(O, 3) obstacle centres [m] at the time of the last update (a view: do not modify)."""
+        return self._centres
+
     def obstacle_velocities(self, obstacles: np.ndarray) -> np.ndarray:
         """(k, 3) velocities [m/s] of the given obstacles (indices) at the time of the last update."""
         return self._vel[obstacles]
