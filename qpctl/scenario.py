@@ -163,7 +163,7 @@ SCHEMA: dict[str, Any] = {
         "max_pairs": (_int, 0),
         "posture_weight": (_num, 0.0),
         "posture": (_vec, None),
-        "fallback": (_str_list, ["closed-form"]),
+        "fallback": (_str_list, ["closed-form", "safe-stop"]),
         "tick_budget_us": (_num, 0.0),
         "broadphase": (_str, "auto"),
         "solver_settings": (_table, {}),
@@ -362,7 +362,7 @@ class Scenario:
 
     def _check_controller(self) -> None:
         """The QP's keys, whichever controller the file names (``--controller qp`` may pick it later)."""
-        from qpctl.controllers.qp import FALLBACK_BRAKE, FALLBACK_CLOSED_FORM, QPConfig
+        from qpctl.controllers.qp import BUILT_IN_FALLBACKS, QPConfig
         from qpctl.errors import UnknownSolverError
         from qpctl.solvers import make_solver
 
@@ -375,11 +375,11 @@ class Scenario:
         except ConfigError as exc:
             raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key) from None
         for name in c["fallback"]:
-            if name not in (FALLBACK_CLOSED_FORM, FALLBACK_BRAKE):
+            if name not in BUILT_IN_FALLBACKS:
                 try:
                     make_solver(name)
                 except UnknownSolverError as exc:
-                    raise self._err("controller.fallback", f"{exc} (or closed-form, brake)") from None
+                    raise self._err("controller.fallback", f"{exc} (or {', '.join(BUILT_IN_FALLBACKS)})") from None
         r = self.data["robot"]
         for key in ("tau_max", "v_max"):
             if r[key] is not None and not np.all(np.asarray(r[key], float) > 0):  # inf allowed, NaN not

@@ -28,7 +28,15 @@ from hypothesis.extra.numpy import arrays
 from baselines import HsuController, PaperController
 from qpctl import Dynamics, LawGains, Obstacle, WaypointPath, panda, planar_arm
 from qpctl.constraints import JointLimit, ObstacleBarrier
-from qpctl.controllers.qp import FALLBACK_BRAKE, FALLBACK_CLOSED_FORM, SOLUTION_RTOL, QPConfig, QPController
+from qpctl.controllers.qp import (
+    BUILT_IN_FALLBACKS,
+    FALLBACK_BRAKE,
+    FALLBACK_CLOSED_FORM,
+    FALLBACK_SAFE_STOP,
+    SOLUTION_RTOL,
+    QPConfig,
+    QPController,
+)
 from qpctl.solvers import available_solvers
 
 _COMMON = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
@@ -137,7 +145,7 @@ def check_qp_tick(case: dict) -> None:
     rnea = pin.rnea(robot.model, robot.model.createData(), q, v, qdd)
     np.testing.assert_allclose(tau, rnea, rtol=1e-7, atol=1e-6 * (1 + np.max(np.abs(tau))))
     if "fallback" in info:
-        assert info["fallback"] in (FALLBACK_CLOSED_FORM, FALLBACK_BRAKE, *SOLVERS), info
+        assert info["fallback"] in (*BUILT_IN_FALLBACKS, *SOLVERS), info
         assert info["fallback_reason"] != "solved"
         if info["fallback"] not in SOLVERS:
             return
@@ -182,11 +190,13 @@ def test_qp_tick_on_random_panda_scenes(case):
 
 
 @budget(40)
-@given(planar_case(), st.sampled_from([[FALLBACK_CLOSED_FORM], [FALLBACK_BRAKE], ["daqp", FALLBACK_CLOSED_FORM], []]))
+@given(planar_case(), st.sampled_from([[FALLBACK_CLOSED_FORM], [FALLBACK_BRAKE], ["daqp", FALLBACK_CLOSED_FORM], [],
+                                       [FALLBACK_CLOSED_FORM, FALLBACK_SAFE_STOP], [FALLBACK_SAFE_STOP]]))
 def test_fallback_chain_on_random_states(case, chain):
     """A tick budget already spent when the QP would start: every solver is skipped, the chain's
-    closed form or brake (or the implicit final brake) gives a finite torque within the limits."""
-    chain = [c for c in chain if c in (FALLBACK_CLOSED_FORM, FALLBACK_BRAKE) or c in available_solvers()]
+    closed form, safe stop or brake (or the implicit final brake) gives a finite torque within the
+    limits."""
+    chain = [c for c in chain if c in BUILT_IN_FALLBACKS or c in available_solvers()]
     cfg = case["config"]
     cfg.fallback, cfg.tick_budget_us = chain, 1e-3
     robot = case["robot"]
@@ -195,7 +205,7 @@ def test_fallback_chain_on_random_states(case, chain):
     info = out.info
     event(info["fallback"])
     assert info["status"] == "time_limit" and info["budget_exhausted"]
-    assert info["fallback"] in (FALLBACK_CLOSED_FORM, FALLBACK_BRAKE)
+    assert info["fallback"] in BUILT_IN_FALLBACKS
     assert np.all(np.isfinite(out.tau)) and np.all(np.abs(out.tau) <= robot.tau_max)
     np.testing.assert_allclose(out.tau, pin.rnea(robot.model, robot.model.createData(), case["q"], case["v"],
                                                  out.qdd), rtol=1e-7, atol=1e-6 * (1 + np.max(np.abs(out.tau))))

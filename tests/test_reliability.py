@@ -25,7 +25,14 @@ from qpctl import (
     planar_arm,
 )
 from qpctl.cli import main
-from qpctl.controllers.qp import FALLBACK_BRAKE, FALLBACK_CLOSED_FORM, QPConfig, QPController
+from qpctl.controllers.qp import (
+    BUILT_IN_FALLBACKS,
+    FALLBACK_BRAKE,
+    FALLBACK_CLOSED_FORM,
+    FALLBACK_SAFE_STOP,
+    QPConfig,
+    QPController,
+)
 from qpctl.formulation import Formulation
 from qpctl.law import law_terms
 from qpctl.qp import Solution
@@ -333,7 +340,7 @@ def test_closed_form_brakes_when_a_link_is_within_d_safe(monkeypatch):
     brake backs the link away along the obstacle sensor's g."""
     monkeypatch.setattr(ProxQPSolver, "solve", failing("max_iter"))
     sphere = Obstacle("sphere", [-0.88, -1.5, 0.0], radius=0.05)  # 0.12 − 0.05 − 0.05 = 0.02 m < d_safe
-    ctrl = make_qp([sphere], tau_max=inf)
+    ctrl = make_qp([sphere], tau_max=inf, fallback=[FALLBACK_CLOSED_FORM])
     out = ctrl.step(Q0, np.zeros(3), 0.1)
     assert out.clearance < ctrl.gains.d_safe
     assert out.info["fallback"] == FALLBACK_BRAKE
@@ -349,7 +356,7 @@ def test_closed_form_brakes_when_it_would_break_a_barrier(monkeypatch):
     the brake is used; it decelerates the approach more than the paper law would."""
     monkeypatch.setattr(ProxQPSolver, "solve", failing("max_iter"))
     sphere = Obstacle("sphere", [-0.75, -1.5, 0.0], radius=0.1)  # 0.25 − 0.1 − 0.05 = 0.10 m > d_safe
-    ctrl = make_qp([sphere], tau_max=inf)
+    ctrl = make_qp([sphere], tau_max=inf, fallback=[FALLBACK_CLOSED_FORM])
     v = np.array([0.0, 0.0, 5.0])
     out = ctrl.step(Q0, v, 0.1)
     assert out.clearance > ctrl.gains.d_safe
@@ -376,6 +383,77 @@ def test_fallback_torque_keeps_its_direction_within_the_limits(monkeypatch):
     scale = (got @ want) / (want @ want)
     assert 0 < scale < 1
     np.testing.assert_allclose(got, scale * want, rtol=1e-9, atol=1e-9)
+
+
+def barrier_rows(ctrl: QPController, q, v, t, qdd) -> np.ndarray:
+    """ḧ + k₁ḣ + k₀h of every pair within d_influence at q̈, from a fresh state (its own Pinocchio data
+    and distance queries): ≥ 0 where the barrier holds."""
+    from qpctl import Dynamics
+
+    state = Dynamics(ctrl.robot, ctrl.obstacles, cutoff=ctrl.gains.d_influence).compute(q, v, t)
+    pairs, drift = state.pairs, state.barrier_drift()
+    barrier = next(c for c in ctrl.constraints if c.name == "obstacles")
+    out = []
+    for r in range(len(pairs)):
+        n, Jp = pairs.normal[r], state.pair_jac[r]
+        hdot = n @ (Jp @ v) - n @ pairs.v_obstacle[r]
+        out.append(n @ (Jp @ qdd) + drift[r] + barrier.k1 * hdot + barrier.k0 * (pairs.distance[r] - ctrl.gains.d_safe))
+    return np.array(out)
+
+
+def test_safe_stop_decelerates_the_approach_harder_than_the_brake(monkeypatch):
+    """Link 3 swings at 5 rad/s into a sphere with 400 N·m available: no q̈ keeps the barrier (the QP
+    is infeasible). The safe stop stays within the torque limits and violates the barrier row less
+    than the brake scaled into the same limits; where the barrier can hold, it holds it."""
+    monkeypatch.setattr(ProxQPSolver, "solve", failing("primal_infeasible"))
+    v = V_RUSH
+    outs = {name: make_qp(RUSHING, fallback=[name]).step(Q0, v, 0.1) for name in (FALLBACK_SAFE_STOP, FALLBACK_BRAKE)}
+    safe, brake = outs[FALLBACK_SAFE_STOP], outs[FALLBACK_BRAKE]
+    assert safe.info["fallback"] == FALLBACK_SAFE_STOP and brake.info["fallback"] == FALLBACK_BRAKE
+    assert np.all(np.abs(safe.tau) <= 400.0 + 1e-6) and np.all(np.isfinite(safe.tau))
+    ctrl = make_qp(RUSHING)
+    rows_safe, rows_brake = barrier_rows(ctrl, Q0, v, 0.1, safe.qdd), barrier_rows(ctrl, Q0, v, 0.1, brake.qdd)
+    assert rows_safe.min() < 0  # infeasible indeed
+    assert rows_safe.min() > rows_brake.min() + 1.0, (rows_safe, rows_brake)  # [m/s²]
+    # a slower approach, which the limits can stop: the safe stop keeps every barrier row
+    slow = np.array([0.0, 0.0, 0.5])
+    out = make_qp(RUSHING, fallback=[FALLBACK_SAFE_STOP]).step(Q0, slow, 0.1)
+    assert out.info["fallback"] == FALLBACK_SAFE_STOP
+    assert barrier_rows(ctrl, Q0, slow, 0.1, out.qdd).min() >= -1e-6
+
+
+# A soak scene (seed 20240611, scene 19) in which an obstacle drifting into the arm made the QP
+# infeasible and the brake let a link through the sphere (−0.164 m).
+DRIFTING_INTO_THE_ARM = {
+    "name": "soak-planar-19",
+    "robot": {"kind": "planar3", "q0": [2.5019764496454595, -1.5150506253479943, -1.8180443488793683],
+              "tau_max": 791.4939068182964},
+    "path": {"waypoints": [[0.43147917578681527, -0.326776354989431], [-1.771750372608427, -0.5553890297043779],
+                           [-1.1985889318640504, -1.2269898509944486]], "duration": 2.744890155922677},
+    "obstacles": [{"shape": "sphere", "position": [-1.0197062132309942, -0.4771797095878284, 0.0],
+                   "radius": 0.1141377817851334, "velocity": [0.29506753811185, 0.037349027167102644, 0.0]}],
+    "controller": {"kind": "qp", "solver": "quadprog", "kp": 202.44698389719898, "kv": 33.63035195596057,
+                   "kn": 1.5424848428808846, "v_ref": 0.5087639820325691, "d_safe": 0.05402102257055946,
+                   "d_influence": 0.44134817960398104, "barrier_k1": 20.0, "barrier_k0": 84.45230828951159,
+                   "tick_budget_us": 5000.0},
+    "sim": {"dt": 0.002, "duration": 3.244890155922677},
+}
+
+
+def test_safe_stop_avoids_a_collision_the_brake_lets_through():
+    clearance = {}
+    for chain in (["daqp", FALLBACK_CLOSED_FORM], ["daqp", FALLBACK_CLOSED_FORM, FALLBACK_SAFE_STOP]):
+        raw = copy.deepcopy(DRIFTING_INTO_THE_ARM)
+        raw["controller"]["fallback"] = chain
+        result = simulate(Scenario.from_dict(raw))
+        assert np.all(np.abs(result.trajectory.tau) <= raw["robot"]["tau_max"] + 1e-6)
+        clearance[chain[-1]] = result.metrics["min_clearance"]
+        used = result.metrics.get("qp_fallbacks", {})
+        assert set(used) <= {"daqp", FALLBACK_CLOSED_FORM, FALLBACK_SAFE_STOP, FALLBACK_BRAKE}
+        if chain[-1] == FALLBACK_SAFE_STOP:
+            assert used.get(FALLBACK_SAFE_STOP, 0) > 0, used
+    assert clearance[FALLBACK_CLOSED_FORM] < -0.1  # the brake: a link through the sphere
+    assert clearance[FALLBACK_SAFE_STOP] > 0.0, clearance  # measured: +0.056 m (d_safe 0.054 m)
 
 
 def test_infeasible_ticks_fall_back_and_are_counted_in_the_metrics():
@@ -415,7 +493,7 @@ def test_tick_budget_bounds_a_pathological_tick(solver):
     for _ in range(3):
         out = ctrl.step(Q0, V_RUSH, 0.1)
         assert out.info["status"] in ("time_limit", "stalled", "primal_infeasible"), out.info
-        assert out.info["fallback"] in (FALLBACK_CLOSED_FORM, FALLBACK_BRAKE)
+        assert out.info["fallback"] in BUILT_IN_FALLBACKS
         assert out.compute_us < 50_000, out.compute_us
         assert np.all(np.abs(out.tau) <= 400.0)
 

@@ -27,7 +27,13 @@ import pytest
 
 from qpctl import ConfigError, Dynamics, InvalidStateError, Scenario, SimulationError, panda, planar_arm
 from qpctl.constraints import ObstacleBarrier
-from qpctl.controllers.qp import FALLBACK_BRAKE, FALLBACK_CLOSED_FORM, SOLUTION_RTOL
+from qpctl.controllers.qp import (
+    BUILT_IN_FALLBACKS,
+    FALLBACK_BRAKE,
+    FALLBACK_CLOSED_FORM,
+    FALLBACK_SAFE_STOP,
+    SOLUTION_RTOL,
+)
 from qpctl.scenario import arm_reach
 from qpctl.simulation import Simulator
 from qpctl.solvers import available_solvers
@@ -39,7 +45,8 @@ OUT = Path(__file__).resolve().parents[1] / "results" / "soak"
 SCENE_WATCHDOG_S = 600  # a scene that runs longer than this dumps every thread's stack and ends the run
 
 SOLVER_WEIGHTS = {"proxqp": 0.45, "osqp": 0.25, "daqp": 0.2, "quadprog": 0.1}
-CHAINS = [[FALLBACK_CLOSED_FORM], ["daqp", FALLBACK_CLOSED_FORM], [FALLBACK_BRAKE], ["osqp", FALLBACK_CLOSED_FORM]]
+CHAINS = [[FALLBACK_CLOSED_FORM], ["daqp", FALLBACK_CLOSED_FORM], [FALLBACK_BRAKE], ["osqp", FALLBACK_CLOSED_FORM],
+          [FALLBACK_CLOSED_FORM, FALLBACK_SAFE_STOP], ["daqp", FALLBACK_CLOSED_FORM, FALLBACK_SAFE_STOP]]
 
 
 def _obstacle(rng: np.random.Generator, centre: np.ndarray, spread: float, planar: bool) -> dict[str, Any]:
@@ -80,8 +87,7 @@ def _controller(rng: np.random.Generator) -> dict[str, Any]:
     # proxsuite can spend seconds on an infeasible tick, so its scenes always have a budget;
     # the other solvers detect infeasibility themselves and sometimes run without one.
     budgets = [5000.0, 10000.0, 20000.0] + ([0.0] if solver != "proxqp" else [])
-    chain = [c for c in CHAINS[int(rng.integers(len(CHAINS)))] if c in (FALLBACK_CLOSED_FORM, FALLBACK_BRAKE)
-             or c in available_solvers()]
+    chain = [c for c in CHAINS[int(rng.integers(len(CHAINS)))] if c in BUILT_IN_FALLBACKS or c in available_solvers()]
     return {"kind": "qp", "solver": solver, "kp": kp, "kv": float(2 * np.sqrt(kp) * rng.uniform(0.8, 1.5)),
             "kn": float(rng.uniform(0.0, 20.0)), "v_ref": float(rng.uniform(0.0, 2.0)), "d_safe": d_safe,
             "d_influence": d_safe + float(rng.uniform(0.1, 0.4)),
@@ -270,7 +276,8 @@ def run_scene(raw: dict[str, Any], kind: str, stats: dict[str, Any], exceptions:
         return None
     d_safe = ctrl.gains.d_safe
     fallback_ticks = sum("fallback" in i for i in traj.infos)
-    return {"name": raw["name"], "solver": ctrl.solver, "min_clearance": float(np.min(traj.clearance)),
+    return {"name": raw["name"], "solver": ctrl.solver, "chain": list(getattr(ctrl.config, "fallback", [])),
+            "min_clearance": float(np.min(traj.clearance)),
             "min_clearance_minus_d_safe": float(np.min(traj.clearance) - d_safe), "fallback_ticks": fallback_ticks,
             "pairs_dropped_ticks": sum("pairs_dropped" in i for i in traj.infos),
             "shapes": sorted({o.shape for o in ctrl.obstacles}),
@@ -338,7 +345,13 @@ def test_soak():
                       "below_d_safe_static_scenes": sum(c["min_clearance_minus_d_safe"] < -1e-3 for c in static),
                       "static_scenes": len(static),
                       "worst_min_clearance_minus_d_safe": min(c["min_clearance_minus_d_safe"] for c in clearance),
-                      "collisions": [c for c in clearance if c["collided"]]},
+                      "collisions": [c for c in clearance if c["collided"]],
+                      # the fallback chains with and without the safe stop, compared
+                      "scenes_with_safe_stop": sum(FALLBACK_SAFE_STOP in c["chain"] for c in clearance),
+                      "collided_with_safe_stop": sum(c["collided"] and FALLBACK_SAFE_STOP in c["chain"]
+                                                     for c in clearance),
+                      "collided_without_safe_stop": sum(c["collided"] and FALLBACK_SAFE_STOP not in c["chain"]
+                                                        for c in clearance)},
     }
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "summary.json").write_text(json.dumps(summary, indent=2, default=float) + "\n")

@@ -23,6 +23,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import daqp
 import numpy as np
 
 from qpctl.constraints.constraints import Constraint, JointLimit, ObstacleBarrier, TorqueLimit
@@ -40,6 +41,8 @@ from qpctl.tasks.tasks import AccelerationTask, EndEffectorTask, PostureTask, Ta
 
 FALLBACK_CLOSED_FORM = "closed-form"
 FALLBACK_BRAKE = "brake"
+FALLBACK_SAFE_STOP = "safe-stop"
+BUILT_IN_FALLBACKS = (FALLBACK_CLOSED_FORM, FALLBACK_SAFE_STOP, FALLBACK_BRAKE)
 
 
 SOLUTION_RTOL = 1e-4  # a solution is accepted when every hard row holds to this, relative to 1 + |its bound|
@@ -91,24 +94,27 @@ class QPConfig:
 
     * a solver name (``qpctl solvers``), e.g. ``"daqp"``: that solver on the same tick's QP (with the
       task slack), skipped once the tick budget is spent;
-    * ``"closed-form"`` — the closed form with brake: the paper law (eq. 19) when it is safe, i.e. no
-      link is within d_safe of an obstacle and its q̈ meets every obstacle-barrier row of the tick's
-      QP; otherwise the brake below;
+    * ``"closed-form"`` — the paper law (eq. 19) when it is safe, i.e. no link is within d_safe of an
+      obstacle and its q̈ meets every obstacle-barrier row of the tick's QP; otherwise on down the
+      chain (status ``within_d_safe`` or ``barrier_violated``);
+    * ``"safe-stop"`` — the brake below corrected by a small QP (DAQP, tens of µs) that keeps the
+      barrier rows as well as the torque limits allow: where they cannot all hold it decelerates the
+      approach as hard as the limits allow (``QPController._safe_stop``);
     * ``"brake"`` — q̈ = k_v (g − q̇): come to rest, except that links within d_influence back away
       along the obstacle sensor's reference velocity g (g = 0 when no obstacle is near), k_v the
       task's velocity gain [1/s].
 
-    ``"closed-form"`` and ``"brake"`` always produce a torque, so entries after them are never used;
-    when every entry fails, the brake is used. Any fallback's q̈ is clipped to the joint-limit bounds
-    and its torque to ±τ_max. The tick's ``info`` records ``fallback`` (what produced the torque),
+    ``"brake"`` always produces a torque, so entries after it are never used; when every entry fails,
+    the brake is used. Any fallback's q̈ is clipped to the joint-limit bounds and its torque to ±τ_max
+    (the brake and the closed form scaled toward gravity compensation, direction kept). The tick's ``info`` records ``fallback`` (what produced the torque),
     ``fallback_reason`` (the QP's status) and ``fallback_tried`` ("name:status" of the entries
     that failed); the run's metrics count ``qp_fallbacks`` by name.
     tick_budget_us: wall-time budget of a tick [µs] (0: none), from the start of
     :meth:`QPController.step` (state, QP build and every solver attempt). Each solver attempt gets
     what is left as its time limit (osqp, clarabel, daqp: their own; proxqp: an iteration cap from its
     measured cost per iteration; quadprog: cannot be stopped, the clock is checked after);
-    once it is spent no further solver is tried and the chain goes on with its first
-    ``"closed-form"``/``"brake"`` entry (tens of µs). ``info["budget_exhausted"]`` marks such ticks.
+    once it is spent no further solver is tried and the chain goes on with its built-in entries
+    (``"closed-form"``, ``"safe-stop"``, ``"brake"``: tens of µs each). ``info["budget_exhausted"]`` marks such ticks.
     posture / posture_weight: an optional PostureTask.
     """
 
@@ -126,7 +132,7 @@ class QPConfig:
     slack_l2: float = 1e2
     max_pairs: int = 0
     task_relaxation: str = "auto"
-    fallback: list[str] = field(default_factory=lambda: [FALLBACK_CLOSED_FORM])
+    fallback: list[str] = field(default_factory=lambda: [FALLBACK_CLOSED_FORM, FALLBACK_SAFE_STOP])
     tick_budget_us: float = 0.0
     posture: list[float] | None = None
     posture_weight: float = 0.0
@@ -167,7 +173,7 @@ class QPController(Controller):
                               key="controller.task_relaxation")
         # Fallback solvers are built now: an unknown name fails here, not in the middle of a run.
         self._fallback_solvers: dict[str, QPSolver] = {
-            name: make_solver(name) for name in cfg.fallback if name not in (FALLBACK_CLOSED_FORM, FALLBACK_BRAKE)}
+            name: make_solver(name) for name in cfg.fallback if name not in BUILT_IN_FALLBACKS}
         self._tick_start: float | None = None
         if tasks is None:
             tasks = [AccelerationTask(), EndEffectorTask(cfg.slack_l1, cfg.slack_l2)]
@@ -288,6 +294,53 @@ class QPController(Controller):
         g = terms.g if np.all(np.isfinite(terms.g)) else np.zeros(self.n)
         return self.gains.kv * (g - state.v)
 
+    SAFE_STOP_WEIGHT = 1e6  # barrier slack weight of the safe stop, relative to the mean diagonal of MᵀM
+
+    def _safe_stop(self, state: TickState, terms: LawTerms, problem: Problem) -> np.ndarray | None:
+        """The brake's q̈ corrected by a small QP that keeps the obstacle barriers as well as the torque
+        limits allow (None if even that fails):
+
+            min ½‖M(q̈ − q̈_brake)‖² + ½ρ‖t‖²  s.t.  C_obs q̈ + t ≥ l_obs, t ≥ 0,
+                                                 −τ_max ≤ M q̈ + N ≤ τ_max, joint-limit bounds on q̈,
+
+        with ρ = SAFE_STOP_WEIGHT · tr(MᵀM)/n: where the barriers cannot all hold (the tick's QP was
+        infeasible) it decelerates the approach as hard as the torque limits allow, which the brake's
+        fixed direction, scaled into the limits, does not."""
+        n = self.n
+        form = self.formulation()
+        qb = self._brake(state, terms)
+        H = state.M.T @ state.M
+        obs = next(((lo, hi) for name, lo, hi in form.row_ranges if name == ObstacleBarrier.name), (0, 0))
+        l_obs = problem.l[obs[0]:obs[1]]
+        live = np.flatnonzero(np.isfinite(l_obs))
+        k = live.size
+        C_obs = problem.C[obs[0]:obs[1], :n][live]
+        rho = self.SAFE_STOP_WEIGHT * max(float(np.trace(H)) / n, 1e-12)
+        P = np.zeros((n + k, n + k))
+        P[:n, :n] = H
+        P[n:, n:] = rho * np.eye(k)
+        c = np.concatenate([-H @ qb, np.zeros(k)])
+        rows = [np.hstack([C_obs, np.eye(k)])]
+        lower, upper = [l_obs[live]], [np.full(k, np.inf)]
+        limit = form.torque_limit
+        if limit is not None:
+            rows.append(np.hstack([state.M, np.zeros((n, k))]))
+            lower.append(-limit - state.N)
+            upper.append(limit - state.N)
+        lb = np.concatenate([problem.lb[:n], np.zeros(k)])
+        ub = np.concatenate([problem.ub[:n], np.full(k, np.inf)])
+        A = np.vstack(rows)
+        bu, bl = np.concatenate([ub, *upper]), np.concatenate([lb, *lower])
+        if not (np.isfinite(A).all() and np.isfinite(P).all() and np.isfinite(c).all()
+                and not np.isnan(bu).any() and not np.isnan(bl).any()):
+            return None
+        try:
+            x, _, flag, _ = daqp.solve(P, c, A, bu, bl, np.zeros(bu.size, dtype=np.int32))
+        except Exception:  # noqa: BLE001 — a failed safe stop falls through to the brake
+            return None
+        x = np.asarray(x, float)
+        return x[:n] if flag in (1, 2) and np.isfinite(x).all() else None
+
     def _torque_limit(self) -> np.ndarray | None:
         return self.formulation().torque_limit
 
@@ -325,14 +378,17 @@ class QPController(Controller):
         used or why it failed). ``problem`` is the tick's QP with the task slack."""
         if name == FALLBACK_BRAKE:
             return self._brake(state, terms), None, FALLBACK_BRAKE
+        if name == FALLBACK_SAFE_STOP:
+            qdd = self._safe_stop(state, terms, problem)
+            return (qdd, None, FALLBACK_SAFE_STOP) if qdd is not None else (None, None, "infeasible")
         if name == FALLBACK_CLOSED_FORM:
             try:
                 qdd, _ = closed_form_acceleration(state, terms, self.gains, weighted=True)
             except (np.linalg.LinAlgError, ValueError, FloatingPointError):
                 qdd = np.full(self.n, np.nan)
             why = self._closed_form_is_safe(state, qdd, problem)
-            if why:
-                return self._brake(state, terms), None, f"{FALLBACK_BRAKE} ({why})"
+            if why:  # on down the chain (the brake when it ends)
+                return None, None, why
             return qdd, None, FALLBACK_CLOSED_FORM
         if not _finite_problem(problem):
             return None, None, "nonfinite_problem"
@@ -346,7 +402,7 @@ class QPController(Controller):
         tried: list[str] = []
         relaxed: Problem | None = problem if is_relaxed else None
         for name in self.config.fallback:
-            if name in (FALLBACK_BRAKE, FALLBACK_CLOSED_FORM):
+            if name in BUILT_IN_FALLBACKS:
                 qdd, fsol, used = self._fallback(name, state, terms, problem, deadline=deadline)
             else:
                 if relaxed is None:  # fallback solvers get the task slack, so only hard rows can conflict
@@ -357,9 +413,6 @@ class QPController(Controller):
                 if used == "time_limit":
                     info["budget_exhausted"] = True
                 continue
-            if used != name:  # "closed-form" chose to brake
-                tried.append(f"{name}:{used.split('(')[-1].rstrip(')')}")
-                used = FALLBACK_BRAKE
             info["fallback"] = used
             if tried:
                 info["fallback_tried"] = tried
