@@ -276,7 +276,8 @@ def run_scene(raw: dict[str, Any], kind: str, stats: dict[str, Any], exceptions:
         return None
     d_safe = ctrl.gains.d_safe
     fallback_ticks = sum("fallback" in i for i in traj.infos)
-    return {"name": raw["name"], "solver": ctrl.solver, "chain": list(getattr(ctrl.config, "fallback", [])),
+    config = getattr(ctrl, "config", None)  # the QP's (the closed forms have none)
+    return {"name": raw["name"], "solver": ctrl.solver, "chain": list(getattr(config, "fallback", [])),
             "min_clearance": float(np.min(traj.clearance)),
             "min_clearance_minus_d_safe": float(np.min(traj.clearance) - d_safe), "fallback_ticks": fallback_ticks,
             "pairs_dropped_ticks": sum("pairs_dropped" in i for i in traj.infos),
