@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+import warnings
 from abc import ABC, abstractmethod
 from typing import Any
 
@@ -97,9 +98,15 @@ class GenericSolver(QPSolver):
         h = np.concatenate([hi[up], -lo[dn]])
         lb = np.where(np.isfinite(problem.lb), problem.lb, -1e20 if self.backend == "quadprog" else -np.inf)
         ub = np.where(np.isfinite(problem.ub), problem.ub, 1e20 if self.backend == "quadprog" else np.inf)
-        qp = qpsolvers.Problem(problem.P, problem.c, G if G.size else None, h if h.size else None,
-                               problem.A if problem.A.size else None, problem.b if problem.b.size else None,
-                               lb, ub)
+        P, A = problem.P, problem.A
+        if self.backend in qpsolvers.sparse_solvers and self.backend not in qpsolvers.dense_solvers:
+            # sparse-only backends (clarabel, osqp, ...) get CSC matrices, as qpsolvers would convert them
+            # itself, with a warning on every call
+            from scipy import sparse
+
+            P, A, G = sparse.csc_matrix(P), sparse.csc_matrix(A), sparse.csc_matrix(G)
+        qp = qpsolvers.Problem(P, problem.c, G if G.shape[0] else None, h if h.size else None,
+                               A if A.shape[0] else None, problem.b if problem.b.size else None, lb, ub)
         settings = dict(self.settings)
         key = TIME_LIMIT_SETTING.get(self.backend)
         if key and self.time_limit_us is not None:
@@ -108,7 +115,9 @@ class GenericSolver(QPSolver):
                 return Solution(False, np.zeros(problem.n_var), "time_limit", solver=self.name)
             settings[key] = left_s
         try:
-            sol = qpsolvers.solve_problem(qp, solver=self.backend, **settings)
+            with warnings.catch_warnings():  # osqp's note that raise_error's default will change
+                warnings.simplefilter("ignore", PendingDeprecationWarning)
+                sol = qpsolvers.solve_problem(qp, solver=self.backend, **settings)
         except Exception as exc:  # noqa: BLE001 — a backend's own error: reported as a failed solve
             return Solution(False, np.zeros(problem.n_var), f"error: {type(exc).__name__}: {exc}",
                             solve_us=(time.perf_counter() - start) * 1e6, solver=self.name)
