@@ -114,12 +114,15 @@ class ProxQPSolver(QPSolver):
         The first call stops after FIRST_CALL_OUTER outer iterations (enough for 99 % of ticks): if
         its inner loops ran to their cap, the tick is stalled (infeasible) and reported at once as
         "stalled" — an inner iteration then costs 2–4× a normal one, so waiting for the budget to run
-        out would overrun it; otherwise the solve resumes from its (x, y, z) with what time is left.
+        out would overrun it; otherwise the solve resumes from its (x, y, z) with what time is left,
+        sized by the larger of the running estimate and what this tick's calls cost per iteration
+        (a slow tick does not get a second oversized call).
         """
         inner_cap = min(self._max_iter_in, self.INNER_PER_OUTER)
         outer_done = iters = 0
+        per_iter = self.us_per_iter  # within this tick: never below what its own calls cost
         while True:
-            budget = int((deadline - time.perf_counter()) * 1e6 / self.us_per_iter)
+            budget = int((deadline - time.perf_counter()) * 1e6 / per_iter)
             outer = min(self._max_iter - outer_done, budget // inner_cap)
             if outer_done == 0:
                 outer = min(outer, self.FIRST_CALL_OUTER)
@@ -134,10 +137,12 @@ class ProxQPSolver(QPSolver):
                 self._qp.solve(np.array(res.x), np.array(res.y), np.array(res.z))
             info = self._qp.results.info
             n_in, n_out = int(info.iter), max(int(info.iter_ext), 1)
-            if n_in >= 5:
+            if n_in >= 1:
                 per = (time.perf_counter() - t0) * 1e6 / n_in
-                self._recent.append(per)
-                self.us_per_iter = float(np.clip(1.5 * np.median(self._recent), 0.5, 1e4))
+                per_iter = max(per_iter, per)
+                if n_in >= 5:
+                    self._recent.append(per)
+                    self.us_per_iter = float(np.clip(1.5 * np.median(self._recent), 0.5, 1e4))
             iters += n_in
             outer_done += n_out
             status = _STATUS.get(info.status.name, info.status.name)
