@@ -22,6 +22,7 @@ from qpctl.geometry.obstacles import Obstacle
 from qpctl.law import LawGains
 from qpctl.paths import WaypointPath
 from qpctl.robot.model import RobotModel, load_robot
+from qpctl.solvers.base import DEFAULT_SOLVER
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -139,7 +140,7 @@ SCHEMA: dict[str, Any] = {
     "obstacles": OBSTACLE_SCHEMA,  # array of tables
     "controller": {
         "kind": (_str, "paper"),
-        "solver": (_str, "daqp"),
+        "solver": (_str, DEFAULT_SOLVER),
         "kp": (_num, 100.0),
         "kv": (_num, 20.0),
         "kn": (_num, 10.0),

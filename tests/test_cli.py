@@ -149,9 +149,16 @@ def test_failure_while_writing_leaves_no_half_written_folder(tmp_path, monkeypat
     assert list(tmp_path.iterdir()) == []
 
 
-def test_solvers_lists_something(capsys):
+def test_solvers_lists_every_installed_solver_and_marks_the_default(capsys):
+    from qpctl.controllers.qp import QPConfig
+    from qpctl.scenario import SCHEMA
+    from qpctl.solvers import available_solvers
+
     assert main(["solvers"]) == 0
-    assert capsys.readouterr().out.strip()
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert [line.split()[0] for line in lines] == available_solvers()
+    default = [line.split()[0] for line in lines if line.endswith("(default)")]
+    assert default == [QPConfig().solver] == [SCHEMA["controller"]["solver"][1]]
 
 
 def test_unwritable_output_is_a_one_line_error(tmp_path, capsys):

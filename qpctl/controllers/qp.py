@@ -35,7 +35,7 @@ from qpctl.law import LawGains, LawTerms, closed_form_acceleration, law_terms
 from qpctl.paths import WaypointPath
 from qpctl.qp import Problem, Solution
 from qpctl.robot.model import RobotModel
-from qpctl.solvers.base import QPSolver, make_solver
+from qpctl.solvers.base import DEFAULT_SOLVER, QPSolver, make_solver
 from qpctl.state import TickState
 from qpctl.tasks.tasks import AccelerationTask, EndEffectorTask, PostureTask, Task
 
@@ -118,7 +118,7 @@ class QPConfig:
     posture / posture_weight: an optional PostureTask.
     """
 
-    solver: str = "daqp"
+    solver: str = DEFAULT_SOLVER
     solver_settings: dict[str, Any] = field(default_factory=dict)
     torque_limits: bool = True
     joint_limits: bool = True

@@ -21,6 +21,7 @@ DEFAULT_SETTINGS: dict[str, dict[str, Any]] = {
 }
 
 FAST_PATHS = ("daqp", "proxqp", "osqp")
+DEFAULT_SOLVER = "daqp"  # the fastest on this package's QPs (README, "Performance"), with its own time limit
 
 # The generic path's backends that take a wall-time limit [s], and the name of that setting.
 TIME_LIMIT_SETTING = {"clarabel": "time_limit", "osqp": "time_limit", "highs": "time_limit",
@@ -75,9 +76,17 @@ def describe_solvers() -> list[str]:
     """One line per installed solver: name and path (what ``qpctl solvers`` prints)."""
     lines = []
     for name in available_solvers():
-        path = "fast path (problem reused, warm-started)" if name in FAST_PATHS else "generic qpsolvers path"
-        lines.append(f"{name:<12} {path}")
+        path = FAST_PATH_NOTES.get(name, "generic qpsolvers path")
+        default = "  (default)" if name == DEFAULT_SOLVER else ""
+        lines.append(f"{name:<12} {path}{default}")
     return lines
+
+
+FAST_PATH_NOTES = {
+    "daqp": "fast path (called directly, warm-started working set, own time limit)",
+    "proxqp": "fast path (problem reused, warm-started primal-dual)",
+    "osqp": "fast path (fixed sparsity, updated, warm-started, polished)",
+}
 
 
 class GenericSolver(QPSolver):
