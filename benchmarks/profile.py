@@ -22,6 +22,7 @@ import numpy as np
 from benchmarks.scenes import canopy_scene
 from qpctl.law import closed_form_acceleration, law_terms
 from qpctl.simulation import Simulator
+from qpctl.solvers import make_solver
 
 
 def _median_us(fn: Callable[[int], object], ticks: range) -> float:
@@ -54,8 +55,7 @@ def parts(solver: str = "daqp", seed: int = 100, duration: float | None = None) 
         s.barrier_drift()
     form = qp.formulation()
     problems = [form.build(states[k], terms[k], relax=True) for k in ticks]
-    solver_obj = qp._solver_soft
-    solver_obj.reset()
+    solver_obj = make_solver(solver)  # a solver of its own, warm-started along the sequence as in a run
     out = {
         "paper law: whole tick": _median_us(lambda k: paper.step(Q[k], V[k], float(T[k])), ticks),
         "QP: whole tick": _median_us(lambda k: qp.step(Q[k], V[k], float(T[k])), ticks),

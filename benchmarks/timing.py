@@ -89,8 +89,9 @@ def time_on_states(controllers: Mapping[str, Controller], states: StateSequence,
 
     Blocks, not single ticks: a control loop runs one controller tick after tick, its Pinocchio data
     and solver workspace warm in the cache. Interleaving seven controllers tick by tick evicts them
-    between ticks and measured the paper law 1.7× and the daqp QP 1.6× slower than in blocks (Panda canopy, this
-    machine); blocks of 25 ticks keep each warm while machine drift still falls on all alike."""
+    between ticks and measured the paper law 1.7× and the daqp QP 1.6× slower than in blocks (Panda
+    canopy, this machine); blocks of 25 ticks keep each warm while machine drift still falls on all
+    alike."""
     labels = list(controllers)
     T = len(states)
     out = {lb: TickTimes(np.empty(T), np.empty(T), {s: np.full(T, np.nan) for s in STAGES}, np.zeros(T),

@@ -32,6 +32,9 @@ class Formulation:
         # (name, first row, end row) of each constraint with rows, for per-tick diagnostics
         ends = np.cumsum([c.rows for c in self.constraints]).tolist()
         self.row_ranges = [(c.name, e - c.rows, e) for c, e in zip(self.constraints, ends) if c.rows]
+        # the rows of C that are obstacle barriers
+        self.barrier_rows = next((slice(lo, hi) for name, lo, hi in self.row_ranges
+                                  if name == ObstacleBarrier.name), slice(0, 0))
         self.torque_limit = next((c.tau_max for c in self.constraints if isinstance(c, TorqueLimit)), None)
         self.barriers = [c for c in self.constraints if isinstance(c, ObstacleBarrier)]
         self._templates: dict[tuple[Any, ...], tuple[np.ndarray, ...]] = {}

@@ -78,6 +78,8 @@ class TickState:
     _body_vel: np.ndarray | None = field(default=None, repr=False)
     _acc_offset: np.ndarray | None = field(default=None, repr=False)
     _acc_K: np.ndarray | None = field(default=None, repr=False)
+    # (k, 3) each pair's obstacle centre at t (the engine's own array moves on with the next state)
+    _pair_centres: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def n(self) -> int:
@@ -153,18 +155,14 @@ class Dynamics:
         self._cap_joints = [c.joint_id for c in robot.capsules]
         self._cap_local = np.array([[c.p0, c.p1] for c in robot.capsules], float).reshape(-1, 2, 3)
         self._support = self._support_masks()
-        # per obstacle, for the closed-form barrier drift: kind, radius, axis vector s (capsule: the
-        # segment from c₀ = centre − s/2 to c₀ + s; zero for a sphere)
-        self._radii = np.array([c.radius for c in robot.capsules], float)
-        self._obstacle_kind = np.array([{"sphere": _SPHERE, "capsule": _CAPSULE}.get(o.shape, _OTHER)
-                                        for o in self.obstacles], int)
-        self._obstacle_radius = np.array([o.radius for o in self.obstacles], float)
-        self._obstacle_axis = np.array([o.length * o.axis / np.linalg.norm(o.axis) if o.shape == "capsule"
-                                        else np.zeros(3) for o in self.obstacles], float).reshape(-1, 3)
-        self._radii_list = self._radii.tolist()
-        self._obstacle_kind_list = self._obstacle_kind.tolist()
-        self._obstacle_radius_list = self._obstacle_radius.tolist()
-        self._obstacle_axis_list = self._obstacle_axis.tolist()
+        # for the closed-form barrier drift (plain floats): link radii; per obstacle its kind, radius and
+        # axis vector s (a capsule's segment runs from c₀ = centre − s/2 to c₀ + s; zero for a sphere)
+        self._radii = [c.radius for c in robot.capsules]
+        kinds = {"sphere": _SPHERE, "capsule": _CAPSULE}
+        self._obstacle_kind = [kinds.get(o.shape, _OTHER) for o in self.obstacles]
+        self._obstacle_radius = [o.radius for o in self.obstacles]
+        self._obstacle_axis = [(o.length * o.axis / np.linalg.norm(o.axis)).tolist() if o.shape == "capsule"
+                               else [0.0, 0.0, 0.0] for o in self.obstacles]
         self._tril = np.tril_indices(self.model.nv, -1)
 
     def _support_masks(self) -> np.ndarray:
@@ -246,8 +244,9 @@ class Dynamics:
             pairs = PairSet.empty()
         distance = time.perf_counter()
         k = len(pairs)
-        body_vel = offset = K = None
+        body_vel = offset = K = centres = None
         if k:
+            centres = self.engine.obstacle_positions()[pairs.obstacle]
             P = pairs.p_link
             pair_jac = self._point_jacobians(body_jac[pairs.link], P)
             body_vel = body_jac @ v
@@ -260,7 +259,8 @@ class Dynamics:
         end = time.perf_counter()
         timing = {"rigid_us": ((rigid - start) + (end - distance)) * 1e6, "distance_us": (distance - rigid) * 1e6}
         return TickState(t, q, v, M, N, x, J @ v, J, drift, link_jac, segments, pairs, pair_jac, pair_drift,
-                         clearance, timing, _dynamics=self, _body_vel=body_vel, _acc_offset=offset, _acc_K=K)
+                         clearance, timing, _dynamics=self, _body_vel=body_vel, _acc_offset=offset, _acc_K=K,
+                         _pair_centres=centres)
 
     def barrier_drift(self, state: TickState) -> np.ndarray:
         """∂ḣ/∂q q̇ + ∂ḣ/∂t per pair [m/s²]: ḧ at q̈ = 0, exact.
@@ -292,15 +292,16 @@ class Dynamics:
         # Plain floats, pair by pair: with a handful of pairs per tick, ~4 µs a pair against ~100 µs
         # of numpy calls on (k, 3) arrays for ten pairs (measured on the Panda canopy).
         assert state._body_vel is not None and state._acc_offset is not None and state._acc_K is not None
+        assert state._pair_centres is not None
         pairs = state.pairs
         normal, p_link, p_obs = pairs.normal.tolist(), pairs.p_link.tolist(), pairs.p_obstacle.tolist()
         v_obs, a_obs = pairs.v_obstacle.tolist(), pairs.a_obstacle.tolist()
         link, obstacle = pairs.link.tolist(), pairs.obstacle.tolist()
         segments, vel = state.segments.tolist(), state._body_vel.tolist()
         offset, K = state._acc_offset.tolist(), state._acc_K.tolist()
-        radii, o_radius, o_axis = self._radii_list, self._obstacle_radius_list, self._obstacle_axis_list
-        centres = self.engine.obstacle_positions().tolist()
-        kinds, distance = self._obstacle_kind_list, pairs.distance.tolist()
+        radii, o_radius, o_axis = self._radii, self._obstacle_radius, self._obstacle_axis
+        kinds = self._obstacle_kind
+        centres, distance = state._pair_centres.tolist(), pairs.distance.tolist()
         drifts, oks = [], []
         for r in range(len(link)):
             i, j = link[r], obstacle[r]
@@ -316,7 +317,7 @@ class Dynamics:
             (ax, ay, az), (bx, by, bz) = segments[i]
             ux, uy, uz = bx - ax, by - ay, bz - az
             sx, sy, sz = o_axis[j]
-            cx, cy, cz = centres[j]
+            cx, cy, cz = centres[r]
             vx, vy, vz, ox, oy, oz = vel[i]
             vpx, vpy, vpz = vx + oy * pz - oz * py, vy + oz * px - ox * pz, vz + ox * py - oy * px  # v + ω × p
             udx, udy, udz = oy * uz - oz * uy, oz * ux - ox * uz, ox * uy - oy * ux  # u̇ = ω × u

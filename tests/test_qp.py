@@ -283,7 +283,6 @@ def test_solver_settings_from_configuration():
         ctrl.step(scen_q0, np.zeros(3), 0.0)
 
 
-@pytest.mark.skipif("daqp" not in SOLVERS, reason="daqp not installed")
 def test_daqp_fast_path_warm_start_time_limit_and_settings(near):
     """DAQP called directly: the same torques as through qpsolvers (cold, every tick), fewer
     iterations when warm-started from the previous tick's multipliers, a spent time limit reported

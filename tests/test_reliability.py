@@ -305,7 +305,6 @@ def test_non_finite_problem_never_reaches_a_solver(monkeypatch):
     assert out.info["fallback"] == FALLBACK_CLOSED_FORM and np.all(np.isfinite(out.tau))
 
 
-@pytest.mark.skipif("daqp" not in available_solvers(), reason="daqp not installed")
 def test_fallback_chain_is_tried_in_order(monkeypatch):
     monkeypatch.setattr(ProxQPSolver, "solve", failing("max_iter"))
     obstacles = [Obstacle("sphere", [-0.75, -1.5, 0.0], radius=0.1)]

@@ -238,6 +238,18 @@ def test_barrier_drift_equals_second_difference_of_distance(robot, shape, rng, r
     assert checked >= 3
 
 
+def test_barrier_drift_of_an_earlier_state_is_unchanged_by_later_ones(panda_robot, rng, random_states):
+    """barrier_drift() is lazy: evaluated after the engine has moved on to another state (a moving
+    capsule elsewhere), it still describes its own tick."""
+    q, v = random_states(panda_robot, 1)[0]
+    obstacle = _obstacle_near("capsule", panda_robot, q, rng, velocity=np.array([0.3, -0.2, 0.1]))
+    dyn = Dynamics(panda_robot, [obstacle])
+    now = dyn.compute(q, v, 0.2).barrier_drift()
+    s = dyn.compute(q, v, 0.2)
+    dyn.compute(q + 0.1, v, 1.7)  # the engine's obstacle has moved 0.45 m since
+    np.testing.assert_array_equal(s.barrier_drift(), now)
+
+
 def test_cutoff_limits_pairs_and_clearance(planar):
     q = planar.q_home
     far = Obstacle("sphere", np.array([5.0, 5.0, 0.0]), radius=0.1)

@@ -23,7 +23,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import daqp
 import numpy as np
 
 from qpctl.constraints.constraints import Constraint, JointLimit, ObstacleBarrier, TorqueLimit
@@ -36,6 +35,7 @@ from qpctl.paths import WaypointPath
 from qpctl.qp import Problem, Solution
 from qpctl.robot.model import RobotModel
 from qpctl.solvers.base import DEFAULT_SOLVER, QPSolver, make_solver
+from qpctl.solvers.daqp_ import DAQPSolver
 from qpctl.state import TickState
 from qpctl.tasks.tasks import AccelerationTask, EndEffectorTask, PostureTask, Task
 
@@ -106,15 +106,17 @@ class QPConfig:
 
     ``"brake"`` always produces a torque, so entries after it are never used; when every entry fails,
     the brake is used. Any fallback's q̈ is clipped to the joint-limit bounds and its torque to ±τ_max
-    (the brake and the closed form scaled toward gravity compensation, direction kept). The tick's ``info`` records ``fallback`` (what produced the torque),
-    ``fallback_reason`` (the QP's status) and ``fallback_tried`` ("name:status" of the entries
-    that failed); the run's metrics count ``qp_fallbacks`` by name.
+    (the brake and the closed form scaled toward gravity compensation, direction kept). The tick's
+    ``info`` records ``fallback`` (what produced the torque), ``fallback_reason`` (the QP's status)
+    and ``fallback_tried`` ("name:status" of the entries that failed); the run's metrics count
+    ``qp_fallbacks`` by name.
     tick_budget_us: wall-time budget of a tick [µs] (0: none), from the start of
     :meth:`QPController.step` (state, QP build and every solver attempt). Each solver attempt gets
     what is left as its time limit (osqp, clarabel, daqp: their own; proxqp: an iteration cap from its
     measured cost per iteration; quadprog: cannot be stopped, the clock is checked after);
     once it is spent no further solver is tried and the chain goes on with its built-in entries
-    (``"closed-form"``, ``"safe-stop"``, ``"brake"``: tens of µs each). ``info["budget_exhausted"]`` marks such ticks.
+    (``"closed-form"``, ``"safe-stop"``, ``"brake"``: tens of µs each). ``info["budget_exhausted"]``
+    marks such ticks.
     posture / posture_weight: an optional PostureTask.
     """
 
@@ -174,6 +176,7 @@ class QPController(Controller):
         # Fallback solvers are built now: an unknown name fails here, not in the middle of a run.
         self._fallback_solvers: dict[str, QPSolver] = {
             name: make_solver(name) for name in cfg.fallback if name not in BUILT_IN_FALLBACKS}
+        self._safe_stop_solver = DAQPSolver()  # the "safe-stop" fallback's small QP
         self._tick_start: float | None = None
         if tasks is None:
             tasks = [AccelerationTask(), EndEffectorTask(cfg.slack_l1, cfg.slack_l2)]
@@ -240,6 +243,7 @@ class QPController(Controller):
         super().reset()
         self._solver.reset()
         self._solver_soft.reset()
+        self._safe_stop_solver.reset()
         for s in self._fallback_solvers.values():
             s.reset()
 
@@ -310,36 +314,30 @@ class QPController(Controller):
         form = self.formulation()
         qb = self._brake(state, terms)
         H = state.M.T @ state.M
-        obs = next(((lo, hi) for name, lo, hi in form.row_ranges if name == ObstacleBarrier.name), (0, 0))
-        l_obs = problem.l[obs[0]:obs[1]]
-        live = np.flatnonzero(np.isfinite(l_obs))
-        k = live.size
-        C_obs = problem.C[obs[0]:obs[1], :n][live]
-        rho = self.SAFE_STOP_WEIGHT * max(float(np.trace(H)) / n, 1e-12)
-        P = np.zeros((n + k, n + k))
+        rows = form.barrier_rows
+        C_obs, l_obs = problem.C[rows, :n], problem.l[rows]
+        k = l_obs.size  # every barrier row, the inactive ones (l = −inf) too: a fixed shape, warm-started
+        nv = n + k
+        P = np.zeros((nv, nv))
         P[:n, :n] = H
-        P[n:, n:] = rho * np.eye(k)
-        c = np.concatenate([-H @ qb, np.zeros(k)])
-        rows = [np.hstack([C_obs, np.eye(k)])]
-        lower, upper = [l_obs[live]], [np.full(k, np.inf)]
+        P[n:, n:] = self.SAFE_STOP_WEIGHT * max(float(np.trace(H)) / n, 1e-12) * np.eye(k)
         limit = form.torque_limit
-        if limit is not None:
-            rows.append(np.hstack([state.M, np.zeros((n, k))]))
+        torque = limit is not None
+        C = np.zeros((k + (n if torque else 0), nv))
+        C[:k, :n], C[:k, n:] = C_obs, np.eye(k)
+        lower, upper = [l_obs], [np.full(k, np.inf)]
+        if torque:
+            C[k:, :n] = state.M
             lower.append(-limit - state.N)
             upper.append(limit - state.N)
-        lb = np.concatenate([problem.lb[:n], np.zeros(k)])
+        lb = np.concatenate([problem.lb[:n], np.zeros(k)])  # the joint-limit bounds; t ≥ 0
         ub = np.concatenate([problem.ub[:n], np.full(k, np.inf)])
-        A = np.vstack(rows)
-        bu, bl = np.concatenate([ub, *upper]), np.concatenate([lb, *lower])
-        if not (np.isfinite(A).all() and np.isfinite(P).all() and np.isfinite(c).all()
-                and not np.isnan(bu).any() and not np.isnan(bl).any()):
+        safe = Problem(P, np.concatenate([-H @ qb, np.zeros(k)]), np.zeros((0, nv)), np.zeros(0), C,
+                       np.concatenate(lower), np.concatenate(upper), lb, ub, n)
+        if not _finite_problem(safe):
             return None
-        try:
-            x, _, flag, _ = daqp.solve(P, c, A, bu, bl, np.zeros(bu.size, dtype=np.int32))
-        except Exception:  # noqa: BLE001 — a failed safe stop falls through to the brake
-            return None
-        x = np.asarray(x, float)
-        return x[:n] if flag in (1, 2) and np.isfinite(x).all() else None
+        sol = self._safe_stop_solver.solve(safe)
+        return sol.x[:n] if sol.found else None
 
     def _torque_limit(self) -> np.ndarray | None:
         return self.formulation().torque_limit
@@ -358,18 +356,17 @@ class QPController(Controller):
         return qdd * scale
 
     def _closed_form_is_safe(self, state: TickState, qdd: np.ndarray, problem: Problem) -> str:
-        """"" when the paper law's q̈ may be used, else why not (the brake is used instead)."""
+        """"" when the paper law's q̈ may be used, else why not (the chain then goes on)."""
         if not np.isfinite(qdd).all():
             return "nonfinite"
         if state.clearance < self.gains.d_safe:
             return "within_d_safe"
-        rows = [i for i, name in enumerate(problem.row_names) if name == ObstacleBarrier.name]
-        if rows:
-            lo = problem.l[rows]
-            lhs = problem.C[rows, : self.n] @ qdd
-            with np.errstate(invalid="ignore"):
-                if np.any(lhs < lo - 1e-6 * (1.0 + np.abs(lo))):
-                    return "barrier_violated"
+        rows = self.formulation().barrier_rows
+        lo = problem.l[rows]
+        lhs = problem.C[rows, : self.n] @ qdd
+        with np.errstate(invalid="ignore"):
+            if np.any(lhs < lo - 1e-6 * (1.0 + np.abs(lo))):
+                return "barrier_violated"
         return ""
 
     def _fallback(self, name: str, state: TickState, terms: LawTerms, problem: Problem, *,

@@ -110,8 +110,8 @@ class DistanceEngine:
         self._obs_objs = [fcl.CollisionObject(o.geometry(), o.transform(0.0)) for o in self.obstacles]
         self._moving = [i for i, o in enumerate(self.obstacles) if o.moving]
         self._link_objs = [fcl.CollisionObject(fcl.Capsule(r, 1e-9)) for r in self.radii]
-        # sphere obstacles' radii (NaN for other shapes): their distances are closed-form (module docstring)
-        self._sphere_r = [o.radius if o.shape == "sphere" else math.nan for o in self.obstacles]
+        # sphere obstacles' distances are closed-form (module docstring)
+        self._is_sphere = [o.shape == "sphere" for o in self.obstacles]
         self._link_len = np.full(len(self.radii), np.nan)
         self._inflated: list[fcl.CollisionObject] = []
         self._inflate = np.nan
@@ -225,14 +225,23 @@ class DistanceEngine:
 
     def pair(self, i: int, j: int) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
         """Signed distance d [m], unit normal n (obstacle → link), witness points on link and obstacle."""
-        if self._sphere_r[j] == self._sphere_r[j]:  # a sphere (not NaN)
-            return self._sphere_pair(i, j)
+        out = self._query(i, j)
+        assert out is not None
+        return out
+
+    def _query(self, i: int, j: int, cutoff: float = np.inf
+               ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray] | None:
+        """(d, n, p_link, p_obs) of one pair, or None when d ≥ ``cutoff`` (then no witness points are
+        computed): spheres in closed form, every other shape by python-fcl."""
+        if self._is_sphere[j]:
+            out = self._sphere_pair(i, j)
+            return out if out[0] < cutoff else None
         d, res = signed_distance(self._link_objs[i], self._obs_objs[j])
-        return (d, *self._witness(i, j, d, res))
+        return (d, *self._witness(i, j, d, res)) if d < cutoff else None
 
     def _distance(self, i: int, j: int) -> float:
         """Signed distance [m] of one pair, without witness points."""
-        if self._sphere_r[j] == self._sphere_r[j]:
+        if self._is_sphere[j]:
             return self._sphere_pair(i, j)[0]
         return signed_distance(self._link_objs[i], self._obs_objs[j])[0]
 
@@ -250,7 +259,7 @@ class DistanceEngine:
             n = (wx / wn, wy / wn, wz / wn)
         else:
             n = _perpendicular(b[0] - a[0], b[1] - a[1], b[2] - a[2])
-        rl, rs = float(self.radii[i]), self._sphere_r[j]
+        rl, rs = float(self.radii[i]), self.obstacles[j].radius
         p_link = np.array((sx - rl * n[0], sy - rl * n[1], sz - rl * n[2]))
         p_obs = np.array((c[0] + rs * n[0], c[1] + rs * n[1], c[2] + rs * n[2]))
         return wn - rl - rs, np.array(n), p_link, p_obs
@@ -292,16 +301,9 @@ class DistanceEngine:
         rows = []
         links, obstacles = self._candidates(cutoff)
         for i, j in zip(links.tolist(), obstacles.tolist()):
-            if self._sphere_r[j] == self._sphere_r[j]:  # a sphere (not NaN): closed form
-                d, n, p_link, p_obs = self._sphere_pair(i, j)
-                if d >= cutoff:
-                    continue
-            else:
-                d, res = signed_distance(self._link_objs[i], self._obs_objs[j])
-                if d >= cutoff:
-                    continue
-                n, p_link, p_obs = self._witness(i, j, d, res)
-            rows.append((i, j, d, n, p_link, p_obs))
+            out = self._query(i, j, cutoff)
+            if out is not None:
+                rows.append((i, j, *out))
         if not rows:
             return PairSet.empty()
         link = np.array([r[0] for r in rows], int)

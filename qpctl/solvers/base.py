@@ -20,7 +20,13 @@ DEFAULT_SETTINGS: dict[str, dict[str, Any]] = {
     "clarabel": {"tol_gap_abs": 1e-9, "tol_gap_rel": 1e-9, "tol_feas": 1e-9},
 }
 
-FAST_PATHS = ("daqp", "proxqp", "osqp")
+# The solvers with a fast path of their own (qpctl/solvers/<name>_.py), first in listings; what it does.
+FAST_PATH_NOTES = {
+    "daqp": "fast path (called directly, warm-started working set, own time limit)",
+    "proxqp": "fast path (problem reused, warm-started primal-dual)",
+    "osqp": "fast path (fixed sparsity, updated, warm-started, polished)",
+}
+FAST_PATHS = tuple(FAST_PATH_NOTES)
 DEFAULT_SOLVER = "daqp"  # the fastest on this package's QPs (README, "Performance"), with its own time limit
 
 # The generic path's backends that take a wall-time limit [s], and the name of that setting.
@@ -81,12 +87,6 @@ def describe_solvers() -> list[str]:
         lines.append(f"{name:<12} {path}{default}")
     return lines
 
-
-FAST_PATH_NOTES = {
-    "daqp": "fast path (called directly, warm-started working set, own time limit)",
-    "proxqp": "fast path (problem reused, warm-started primal-dual)",
-    "osqp": "fast path (fixed sparsity, updated, warm-started, polished)",
-}
 
 
 class GenericSolver(QPSolver):
