@@ -227,9 +227,54 @@ def test_closed_forms_never_return_nan(law, case):
         assert out.singular
 
 
+def panda_task_terms(robot, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(x, J, J̇q̇, J̇) of the Panda's task point from Pinocchio's own per-frame functions (not the
+    library's tick state): position [m], world-aligned linear Jacobian, drift = classical acceleration
+    at q̈ = 0 [m/s²], and J̇ for the paper's optional J̇e_N term."""
+    model, data, fid = robot.model, robot.model.createData(), robot.ee_frame_id
+    pin.forwardKinematics(model, data, q, v, np.zeros(robot.nv))
+    pin.updateFramePlacements(model, data)
+    x = data.oMf[fid].translation.copy()
+    drift = pin.getFrameClassicalAcceleration(model, data, fid, pin.LOCAL_WORLD_ALIGNED).linear.copy()
+    pin.computeJointJacobians(model, data, q)
+    J = pin.getFrameJacobian(model, data, fid, pin.LOCAL_WORLD_ALIGNED)[:3].copy()
+    pin.computeJointJacobiansTimeVariation(model, data, q, v)
+    Jdot = pin.getFrameJacobianTimeVariation(model, data, fid, pin.LOCAL_WORLD_ALIGNED)[:3].copy()
+    return x, J, drift, Jdot
+
+
 @budget(25)
 @given(case=panda_case())
 def test_closed_forms_never_return_nan_on_panda(case):
+    """Both closed forms on the Panda (m = 3 < n = 7): finite, τ = M q̈ + N (Pinocchio's RNEA), and away
+    from singularities the task is met exactly, J q̈ = a with a = ẍ_d + K_v ė + K_p e − J̇q̇ (+ J̇e_N when
+    ``jdot_en``) from Pinocchio and the path here; and q̈ − q̈₀ is W-orthogonal to J's null space (the
+    weighted least-change solution: W = MᵀM, q̈₀ = −M⁻¹N + K_N e_N for the paper law; W = I,
+    q̈₀ = K_N e_N for Hsu's)."""
+    robot, q, v, t, gains = case["robot"], case["q"], case["v"], case["t"], case["gains"]
+    model, data = robot.model, robot.model.createData()
+    x, J, drift, Jdot = panda_task_terms(robot, q, v)
+    ref = case["path"](t)
+    M = pin.crba(model, data, q)
+    M = np.triu(M) + np.triu(M, 1).T
+    N = pin.nonLinearEffects(model, data, q, v)
+    null = np.linalg.svd(J)[2][3:].T  # (7, 4) basis of J's null space
     for law in (PaperController, HsuController):
-        out = law(case["robot"], case["path"], case["obstacles"], case["gains"]).step(case["q"], case["v"], case["t"])
-        assert np.all(np.isfinite(out.tau)) and np.all(np.isfinite(out.qdd))
+        out = law(robot, case["path"], case["obstacles"], gains).step(q, v, t)
+        event(f"{law.kind}: singular={out.singular}")
+        assert np.all(np.isfinite(out.tau)) and np.all(np.isfinite(out.qdd)) and np.all(np.isfinite(out.e_null))
+        tau_scale = 1.0 + np.max(np.abs(out.tau))
+        np.testing.assert_allclose(out.tau, pin.rnea(model, data, q, v, out.qdd), rtol=0, atol=1e-9 * tau_scale)
+        np.testing.assert_allclose(out.x, x, rtol=0, atol=1e-12)
+        if out.singular:
+            continue
+        a = ref.xdd + gains.kv * (ref.xd - J @ v) + gains.kp * (ref.x - x) - drift
+        if gains.jdot_en:
+            a = a + Jdot @ out.e_null
+        np.testing.assert_allclose(J @ out.qdd, a, rtol=0, atol=1e-7 * (1.0 + np.max(np.abs(a))))
+        if law is PaperController:
+            W, qdd0 = M.T @ M, -np.linalg.solve(M, N) + gains.kn * out.e_null
+        else:
+            W, qdd0 = np.eye(robot.nv), gains.kn * out.e_null
+        residual = null.T @ W @ (out.qdd - qdd0)
+        assert np.max(np.abs(residual)) <= 1e-7 * (1.0 + np.max(np.abs(W @ (out.qdd - qdd0)))), (law.kind, residual)

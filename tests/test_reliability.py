@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 
 import numpy as np
+import pinocchio as pin
 import pytest
 
 from baselines import PaperController
@@ -124,8 +125,42 @@ def test_bad_scenario_is_a_named_error_naming_the_key(case):
     assert "\n" not in str(exc.value)
 
 
+def _leaves(node: object, prefix: str = "") -> dict[str, object]:
+    """Dotted key → value of every leaf of a nested dict/list (lists of tables indexed as ``obstacles.0``)."""
+    if isinstance(node, dict):
+        out: dict[str, object] = {}
+        for key, value in node.items():
+            out.update(_leaves(value, f"{prefix}.{key}" if prefix else key))
+        return out
+    if isinstance(node, list) and node and isinstance(node[0], dict):
+        out = {}
+        for i, value in enumerate(node):
+            out.update(_leaves(value, f"{prefix}.{i}"))
+        return out
+    return {prefix: node}
+
+
 def test_base_scenario_is_valid():
-    Scenario.from_dict(edited())
+    """BASE — what every bad case above edits — loads as written (every key it gives kept, nothing
+    dropped), builds the QP controller it names over its one obstacle, starts clear of that obstacle,
+    and its first tick is solved with a finite torque: so each bad case fails because of its edit."""
+    scenario = Scenario.from_dict(edited(), source="base.toml")
+    data = _leaves(scenario.data)
+    for key, value in _leaves(BASE).items():
+        assert data[key] == value, (key, data.get(key), value)
+    ctrl = scenario.build_controller()
+    assert isinstance(ctrl, QPController) and ctrl.robot.nv == 3
+    assert len(ctrl.obstacles) == 1 and ctrl.obstacles[0].shape == "sphere"
+    np.testing.assert_array_equal(ctrl.obstacles[0].position, [0.6, -0.6, 0.0])
+    assert ctrl.obstacles[0].radius == 0.15
+    q0 = scenario.q0(ctrl.robot)
+    np.testing.assert_allclose(q0, Q0)
+    # the start pose's links: (0, 0)→(−1, 0)→(−1, −1)→(−1, −2); the sphere's centre is 0.6√2 m from the
+    # first link's end at the base, so 0.6√2 − 0.15 − 0.05 ≈ 0.65 m clear — beyond d_influence (0.3 m)
+    out = ctrl.step(q0, np.zeros(3), 0.0)
+    assert out.clearance > ctrl.gains.d_influence
+    assert out.info["status"] == "solved" and "fallback" not in out.info
+    assert np.all(np.isfinite(out.tau)) and np.all(np.abs(out.tau) < 1e3)
 
 
 def test_q0_outside_the_joint_limits_names_the_joint():
@@ -322,10 +357,37 @@ def test_fallback_chain_is_tried_in_order(monkeypatch):
     assert out.info["fallback"] in (FALLBACK_CLOSED_FORM, FALLBACK_BRAKE)
 
 
-def test_chain_without_a_terminal_entry_ends_with_the_brake(monkeypatch):
+@pytest.mark.parametrize("tau_max", [400.0, inf])
+def test_chain_without_a_terminal_entry_ends_with_the_brake(monkeypatch, tau_max):
+    """The QP fails and the chain is empty: the brake gives the torque (QPConfig's docstring):
+    q̈ = k_v (g − q̇), g = 0 with no obstacle, scaled by the largest s ∈ [0, 1] that keeps M s q̈ + N
+    within ±τ_max (direction kept), τ = M q̈ + N — checked against Pinocchio's M and N. At this state
+    M q̈_brake + N = (−645, −162, −65) N·m: the 400 N·m limits scale it to s ≈ 0.39 (joint 1 at −400)."""
     monkeypatch.setattr(ProxQPSolver, "solve", failing("max_iter"))
-    out = make_qp(fallback=[]).step(Q0, np.array([0.5, -0.5, 1.0]), 0.1)
-    assert out.info["fallback"] == FALLBACK_BRAKE and np.all(np.isfinite(out.tau))
+    v = np.array([0.5, -0.5, 1.0])
+    ctrl = make_qp(tau_max=tau_max, fallback=[])
+    out = ctrl.step(Q0, v, 0.1)
+    assert out.info["fallback"] == FALLBACK_BRAKE and out.info["fallback_reason"] == "max_iter"
+    assert np.all(np.isfinite(out.tau))
+    model = ctrl.robot.model
+    data = model.createData()
+    M = pin.crba(model, data, Q0)
+    M = np.triu(M) + np.triu(M, 1).T
+    N = pin.nonLinearEffects(model, data, Q0, v)
+    brake = ctrl.gains.kv * (np.zeros(3) - v)
+    s = float(out.qdd @ brake / (brake @ brake))
+    np.testing.assert_allclose(out.qdd, s * brake, rtol=0, atol=1e-9 * np.abs(brake).max())  # the brake's direction
+    np.testing.assert_allclose(out.tau, M @ out.qdd + N, rtol=1e-12, atol=1e-9)
+    if np.isinf(tau_max):
+        assert s == pytest.approx(1.0, rel=1e-12)  # nothing to scale
+    else:
+        # the largest scale within the limits: one joint exactly at its limit, none beyond
+        assert 0.0 < s < 1.0
+        assert np.all(np.abs(out.tau) <= tau_max * (1 + 1e-12))
+        assert np.max(np.abs(out.tau)) == pytest.approx(tau_max, rel=1e-9)
+        d, n0 = M @ brake, N
+        s_max = min(((tau_max if di > 0 else -tau_max) - ni) / di for di, ni in zip(d, n0) if di != 0)
+        assert s == pytest.approx(s_max, rel=1e-9)
 
 
 def brake_acceleration(ctrl: QPController, q, v, t) -> np.ndarray:
