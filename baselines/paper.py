@@ -13,15 +13,24 @@ The sign of the M⁻¹N term is the one that lowers torque: with q̈₀ = −M�
 for the given task acceleration. The bracketed J̇ e_N term is ``LawGains.jdot_en``, off by default:
 it feeds e_N into the task and breaks eq. (11) without helping e_N decay (the argument and the
 measurement are in :mod:`qpctl.law` and the README's "Paper reproduction").
+
+:meth:`PaperController.step` runs the compiled tick (:func:`qpctl.kernels.tick.closed_form_tick`);
+:meth:`PaperController.control` is the same law written with numpy on a :class:`TickState`
+(:mod:`qpctl.law`), the reference the tests hold the compiled one against.
 """
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 
-from qpctl.controllers.base import Controller, ControlOutput
+from qpctl.controllers.base import Controller, ControlOutput, RecordOutput, fast_state
+from qpctl.errors import InvalidStateError
+from qpctl.kernels import tick as K
 from qpctl.law import closed_form_acceleration, law_terms
 from qpctl.state import TickState
+from qpctl.tick import Workspace
 
 
 class PaperController(Controller):
@@ -29,6 +38,25 @@ class PaperController(Controller):
 
     kind = "paper"
     weighted = True
+
+    def _make_workspace(self) -> Workspace:
+        return Workspace(self.robot, self.obstacles, self.path, self.gains, self.cutoff, broadphase=self.broadphase)
+
+    def step(self, q: np.ndarray, v: np.ndarray, t: float) -> ControlOutput:
+        """One compiled tick: state, law terms and the closed form; ``compute_us`` its wall time."""
+        start = time.perf_counter()
+        q, v, t = fast_state(q, v, t, self.n)
+        ws = self._state(q, v, t)
+        mid = time.perf_counter()
+        if K.closed_form_tick(ws.work, self.weighted):
+            raise InvalidStateError(f"the inertia matrix is not positive definite at q={q.tolist()}")
+        end = time.perf_counter()
+        rec, s = ws.rec, ws.layout.scalars
+        rec[s + K.R_PIN_US], rec[s + K.R_STATE_US] = ws.pin_s * 1e6, ws.state_s * 1e6
+        rec[s + K.R_BUILD_US] = (end - mid) * 1e6
+        out = RecordOutput(rec.copy(), ws.layout, None, (end - start) * 1e6)
+        self.last = out
+        return out
 
     def control(self, state: TickState) -> ControlOutput:
         ref = self.path(state.t)

@@ -3,9 +3,10 @@
     python -m benchmarks.profile [--solver daqp] [--seed 100] [--top 25]
 
 Replays the states of a closed-loop run of the canopy scene (``benchmarks.scenes.canopy_scene``) and
-prints (1) the median wall time of each part of a tick, measured by timing the same calls the
-controller makes, one part at a time, on every state; (2) cProfile's functions with the most
-cumulative time (cProfile's own overhead inflates those, by about 1.3× here: compare shares).
+prints (1) the median wall time of each part of a tick, measured by making the calls the compiled
+tick makes (``computeAllTerms``, then each kernel of ``qpctl.kernels.tick`` and the solve), one at a
+time and in tick order, on every state; (2) cProfile's functions with the most cumulative time
+(cProfile's own overhead inflates those: compare shares).
 """
 
 from __future__ import annotations
@@ -19,10 +20,13 @@ from collections.abc import Callable
 
 import numpy as np
 
+import pinocchio as pin
+
 from benchmarks.scenes import canopy_scene
-from qpctl.law import closed_form_acceleration, law_terms
+from qpctl.kernels import tick as K
 from qpctl.simulation import Simulator
 from qpctl.solvers import make_solver
+from qpctl.solvers.daqp_ import DAQPSolver
 
 
 def _median_us(fn: Callable[[int], object], ticks: range) -> float:
@@ -42,34 +46,48 @@ def _states(solver: str, seed: int, duration: float | None):
 
 def parts(solver: str = "daqp", seed: int = 100, duration: float | None = None) -> dict[str, float]:
     """Median wall time [µs] of each part of a tick on the canopy scene's states (the first
-    ``duration`` seconds; None: all)."""
+    ``duration`` seconds; None: all): the whole ticks, then the calls of one QP tick timed one by
+    one, in tick order, on the controller's own workspace."""
     scene, traj = _states(solver, seed, duration)
-    Q, V, T = traj.q, traj.v, traj.t
+    Q, V, T = traj.q, np.ascontiguousarray(traj.v), traj.t
     ticks = range(len(T))
     paper, qp = scene.controller("paper"), scene.controller("qp", solver)
-    dyn = qp.dynamics
-    states = [dyn.compute(Q[k], V[k], float(T[k])) for k in ticks]
-    refs = [qp.path(float(T[k])) for k in ticks]
-    terms = [law_terms(states[k], refs[k], qp.gains, weighted=True) for k in ticks]
-    for s in states:
-        s.barrier_drift()
-    form = qp.formulation()
-    problems = [form.build(states[k], terms[k], relax=True) for k in ticks]
-    solver_obj = make_solver(solver)  # a solver of its own, warm-started along the sequence as in a run
+    paper.warmup()
+    qp.warmup()
     out = {
         "paper law: whole tick": _median_us(lambda k: paper.step(Q[k], V[k], float(T[k])), ticks),
         "QP: whole tick": _median_us(lambda k: qp.step(Q[k], V[k], float(T[k])), ticks),
-        "state: Pinocchio terms + distances (both)": _median_us(lambda k: dyn.compute(Q[k], V[k], float(T[k])),
-                                                               ticks),
-        "law terms a, g, e_N, q̈₀ (both)": _median_us(lambda k: law_terms(states[k], refs[k], qp.gains,
-                                                                        weighted=True), ticks),
-        "paper law: its closed form (eq. 19)": _median_us(
-            lambda k: closed_form_acceleration(states[k], terms[k], qp.gains, weighted=True), ticks),
-        "QP: barrier drift": _median_us(lambda k: dyn.barrier_drift(states[k]), ticks),
-        "QP: tasks + constraints + stacking (drift cached)": _median_us(
-            lambda k: form.build(states[k], terms[k], relax=True), ticks),
-        f"QP: {solver} solve": _median_us(lambda k: solver_obj.solve(problems[k]), ticks),
     }
+    ws = qp.workspace()
+    buf = ws.relaxed
+    assert buf is not None
+    solver_obj = make_solver(solver)  # a solver of its own, warm-started along the sequence as in a run
+    names = ["Pinocchio computeAllTerms (both)", "state kernel: rigid terms, pairs, distances, barrier drift (both)",
+             "law terms a, g, e_N, q̈₀ (both)", "paper law: its closed form (eq. 19)", "QP: cost and rows, in place",
+             f"QP: {solver} solve", "QP: check, torque, record"]
+    times = np.empty((len(ticks), len(names)))
+    for i, k in enumerate(ticks):
+        q, v, t = Q[k], V[k], float(T[k])
+        c = [time.perf_counter()]
+        pin.computeAllTerms(ws.model, ws.data, q, v)
+        c.append(time.perf_counter())
+        K.state(ws.work, q, v, t)
+        c.append(time.perf_counter())
+        K.law_terms(ws.work, True)
+        c.append(time.perf_counter())
+        K.closed_form(ws.work, True)
+        c.append(time.perf_counter())
+        K.qp_build(ws.work, buf.H, buf.f, buf.rows, buf.bu, buf.bl)
+        c.append(time.perf_counter())
+        if isinstance(solver_obj, DAQPSolver):
+            x = solver_obj.solve_buffers(buf.H, buf.f, buf.rows, buf.bu, buf.bl, buf.sense)[0]
+        else:
+            x = solver_obj.solve(buf.problem).x
+        c.append(time.perf_counter())
+        K.qp_finish(ws.work, x, buf.rows, buf.bu, buf.bl, 1e-4)
+        c.append(time.perf_counter())
+        times[i] = np.diff(c)
+    out.update({name: float(np.median(times[:, j]) * 1e6) for j, name in enumerate(names)})
     return out
 
 

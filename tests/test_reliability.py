@@ -43,6 +43,7 @@ from qpctl.simulation import Simulator
 from qpctl.solvers import available_solvers
 from qpctl.solvers.daqp_ import DAQPSolver
 from qpctl.solvers.proxqp_ import ProxQPSolver
+from qpctl.tasks.tasks import PostureTask
 
 nan, inf = float("nan"), float("inf")
 
@@ -323,18 +324,30 @@ def test_solver_exception_is_a_failed_tick_not_a_crash(monkeypatch):
     np.testing.assert_allclose(out.tau, paper, rtol=1e-12)  # within the limits: the paper law itself
 
 
-def test_non_finite_problem_never_reaches_a_solver(monkeypatch):
-    build = Formulation.build
+class _Posture(PostureTask):
+    """A task the compiled assembly does not know (any subclass): the tick takes the Python formulation."""
 
-    def poisoned(self, state, terms, *, relax=True):
-        problem = build(self, state, terms, relax=relax)
-        problem.c[0] = nan
-        return problem
 
-    monkeypatch.setattr(Formulation, "build", poisoned)
+@pytest.mark.parametrize("path", ["compiled", "formulation"])
+def test_non_finite_problem_never_reaches_a_solver(monkeypatch, path):
+    """A NaN in the problem's data (poisoned here: a torque limit on the compiled path, the cost after
+    Formulation.build on the Python path) is caught before any solver sees it; the chain takes over."""
     monkeypatch.setattr(ProxQPSolver, "solve", lambda self, problem: pytest.fail("solver called"))
     ctrl = make_qp(fallback=["daqp", FALLBACK_CLOSED_FORM])
+    if path == "compiled":
+        ctrl.workspace().tau_max[0] = nan
+    else:
+        build = Formulation.build
+
+        def poisoned(self, state, terms, *, relax=True):
+            problem = build(self, state, terms, relax=relax)
+            problem.c[0] = nan
+            return problem
+
+        monkeypatch.setattr(Formulation, "build", poisoned)
+        ctrl.add_task(_Posture(Q0, weight=1e-9))
     out = ctrl.step(Q0, np.zeros(3), 0.1)
+    assert (ctrl.workspace().spec is None) == (path == "formulation")
     assert out.info["status"] == "nonfinite_problem"
     assert out.info["fallback_tried"] == ["daqp:nonfinite_problem"]
     assert out.info["fallback"] == FALLBACK_CLOSED_FORM and np.all(np.isfinite(out.tau))

@@ -21,6 +21,7 @@ diagnostics (tracking error, null-space error, singularity flag, solver statisti
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
@@ -29,12 +30,14 @@ from typing import Any
 
 import numpy as np
 
-from qpctl.errors import ConfigError
+from qpctl.errors import ConfigError, InvalidStateError
 from qpctl.geometry.obstacles import Obstacle
+from qpctl.kernels import tick as K
 from qpctl.law import LawGains
 from qpctl.paths import Reference, WaypointPath
 from qpctl.robot.model import RobotModel
-from qpctl.state import Dynamics, TickState
+from qpctl.state import Dynamics, TickState, validate_state
+from qpctl.tick import RecordLayout, Workspace
 
 
 @dataclass
@@ -50,6 +53,67 @@ class ControlOutput:
     singular: bool  # a pseudo-inverse was damped at this tick
     compute_us: float = 0.0  # wall time of the whole tick [µs]
     info: dict[str, Any] = field(default_factory=dict)  # law-specific: QP status, iterations, timings
+
+
+class RecordOutput(ControlOutput):
+    """A tick's output read from its record: one float64 array (:class:`~qpctl.tick.RecordLayout`),
+    copied once per tick; the arrays are views into it and ``info`` is built on first access."""
+
+    def __init__(self, rec: np.ndarray, layout: RecordLayout, info: dict[str, Any] | None = None,
+                 compute_us: float = 0.0) -> None:
+        self._rec, self._layout, self._extra, self._info = rec, layout, info, None
+        self.compute_us = compute_us
+
+    tau = property(lambda self: self._rec[self._layout.tau])  # type: ignore[assignment]
+    qdd = property(lambda self: self._rec[self._layout.qdd])  # type: ignore[assignment]
+    x = property(lambda self: self._rec[self._layout.x])  # type: ignore[assignment]
+    e_null = property(lambda self: self._rec[self._layout.e_null])  # type: ignore[assignment]
+
+    @property  # type: ignore[override]
+    def ref(self) -> Reference:
+        lay = self._layout
+        return Reference(self._rec[lay.x_ref], self._rec[lay.xd_ref], self._rec[lay.xdd_ref])
+
+    @property  # type: ignore[override]
+    def clearance(self) -> float:
+        return float(self._rec[self._layout.scalars + K.R_CLEARANCE])
+
+    @property  # type: ignore[override]
+    def singular(self) -> bool:
+        return bool(self._rec[self._layout.scalars + K.R_SINGULAR])
+
+    def scalar(self, index: int) -> float:
+        """The record's scalar ``index`` (one of :mod:`qpctl.kernels.tick`'s R_* constants)."""
+        return float(self._rec[self._layout.scalars + index])
+
+    @property  # type: ignore[override]
+    def info(self) -> dict[str, Any]:
+        """Per-tick diagnostics (stage timings [µs], pairs, and the law's own), built on first access."""
+        if self._info is None:
+            r, s = self._rec, self._layout.scalars
+            info: dict[str, Any] = {"rigid_us": float(r[s + K.R_PIN_US]), "state_us": float(r[s + K.R_STATE_US]),
+                                    "build_us": float(r[s + K.R_BUILD_US]), "pairs": int(r[s + K.R_PAIRS])}
+            if self._extra:
+                info.update(self._extra)
+            self._info = info
+        return self._info
+
+    @info.setter
+    def info(self, value: dict[str, Any]) -> None:
+        self._info = value
+
+
+def fast_state(q: Any, v: Any, t: Any, n: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """(q, v, t) as the kernels take them: contiguous float64 arrays of n and a float. The common case
+    (already so) costs a few attribute checks; anything else goes through :func:`validate_state`,
+    which raises :class:`InvalidStateError` for what it cannot accept. Finiteness of q and v is
+    checked by the kernels (:meth:`Controller._state`)."""
+    if (type(q) is np.ndarray and type(v) is np.ndarray and q.dtype == np.float64 and v.dtype == np.float64
+            and q.shape == (n,) and v.shape == (n,) and q.flags.c_contiguous and v.flags.c_contiguous
+            and isinstance(t, float) and math.isfinite(t)):
+        return q, v, t
+    q, v, t = validate_state(q, v, t, n)
+    return np.ascontiguousarray(q), np.ascontiguousarray(v), t
 
 
 class Controller(ABC):
@@ -74,8 +138,10 @@ class Controller(ABC):
         if path.dim != robot.m:
             raise ConfigError(f"path points have {path.dim} coordinates but the robot's task has {robot.m}",
                               key="path.waypoints")
+        self.broadphase = broadphase
         self.dynamics = Dynamics(robot, self.obstacles, cutoff=self.cutoff, broadphase=broadphase)
         self.last: ControlOutput | None = None
+        self._ws: Workspace | None = None
 
     @property
     def cutoff(self) -> float:
@@ -86,20 +152,57 @@ class Controller(ABC):
     def n(self) -> int:
         return self.robot.nv
 
+    # -- the compiled tick ------------------------------------------------------------------------
+    def workspace(self) -> Workspace:
+        """The arrays this controller's compiled tick runs on (built on first use)."""
+        if self._ws is None:
+            self._ws = self._make_workspace()
+        return self._ws
+
+    def _make_workspace(self) -> Workspace:
+        """A law written in Python (:meth:`control`) may read any of the state, the barrier drift too."""
+        return Workspace(self.robot, self.obstacles, self.path, self.gains, self.cutoff, broadphase=self.broadphase,
+                         barrier_drift=True)
+
+    def warmup(self) -> float:
+        """Compile (or load from the on-disk cache) the tick's kernels and build the workspace, so the
+        first tick of a loop runs at speed; returns the seconds it took. Run it before a real-time
+        loop starts (``qpctl warmup`` fills the cache for every controller)."""
+        start = time.perf_counter()
+        self.step(self.robot.q_home.astype(float), np.zeros(self.n), 0.0)
+        self.reset()
+        return time.perf_counter() - start
+
+    def _state(self, q: np.ndarray, v: np.ndarray, t: float) -> Workspace:
+        """Run the tick's state on the workspace (after :func:`fast_state`); InvalidStateError if q or v
+        is not finite or the dynamics overflow."""
+        ws = self._ws if self._ws is not None else self.workspace()
+        if ws.state(q, v, t) < 0:
+            if not (np.isfinite(q).all() and np.isfinite(v).all()):
+                raise InvalidStateError(f"non-finite state: q={q.tolist()}, v={v.tolist()}, t={t}")
+            raise InvalidStateError(f"the dynamics overflow at this state: q={q.tolist()}, v={v.tolist()}")
+        if self.gains.jdot_en:
+            ws.Jdot[:] = self.dynamics.task_jacobian_derivative(q, v)
+        return ws
+
     def torque(self, q: np.ndarray, v: np.ndarray, t: float) -> np.ndarray:
         """Joint torques [N·m] for state (q, v) at time t [s] (see module docstring)."""
         return self.step(q, v, t).tau
 
     def step(self, q: np.ndarray, v: np.ndarray, t: float) -> ControlOutput:
-        """One control tick: compute the state once, then the law; records wall time in ``compute_us``."""
+        """One control tick: the state once (compiled), then the law :meth:`control` on a snapshot of it;
+        records wall time in ``compute_us``. The built-in laws override this with compiled ticks."""
         start = time.perf_counter()
-        state = self.dynamics.compute(q, v, t)
+        q, v, t = fast_state(q, v, t, self.n)
+        ws = self._state(q, v, t)
+        state = ws.snapshot()
+        state._dynamics = self.dynamics
         t_state = time.perf_counter()
         out = self.control(state)
         end = time.perf_counter()
         out.compute_us = (end - start) * 1e6
-        out.info.setdefault("state_us", (t_state - start) * 1e6)  # = rigid_us + distance_us + bookkeeping
-        out.info.update(state.timing)  # rigid_us (Pinocchio, Jacobians), distance_us (python-fcl)
+        out.info.setdefault("state_us", (t_state - start) * 1e6)  # Pinocchio, the state kernel, the snapshot
+        out.info.setdefault("rigid_us", ws.pin_s * 1e6)
         out.info["pairs"] = len(state.pairs)
         self.last = out
         return out

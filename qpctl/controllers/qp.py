@@ -13,23 +13,34 @@ The ℓ₁ slack is an exact penalty: it stays exactly zero while the task is fe
 Tasks and constraints are objects in :attr:`QPController.tasks` and :attr:`QPController.constraints`;
 add or remove them with :meth:`add_task`, :meth:`remove_task`, :meth:`add_constraint`,
 :meth:`remove_constraint`.
+
+Two paths run the same law. With the standard tasks and constraints above (what every scenario
+builds), :meth:`QPController.step` is the compiled tick: the kernels of :mod:`qpctl.kernels.tick`
+write the cost and rows in place into DAQP's layout (:class:`qpctl.tick.QPBuffers`), the solver
+reads them (DAQP on a persistent model; the others through a :class:`~qpctl.qp.Problem` of views
+onto the same arrays) and a kernel checks the answer. With any other task or constraint, the state
+is computed by the same kernels and the problem is stacked in Python by
+:class:`~qpctl.formulation.Formulation` (:meth:`QPController.control`), which is also the reference
+the tests hold the compiled assembly against. A failed solve takes the fallback chain in Python on
+either path.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from qpctl.constraints.constraints import Constraint, JointLimit, ObstacleBarrier, TorqueLimit
-from qpctl.controllers.base import Controller, ControlOutput
-from qpctl.errors import ConfigError
+from qpctl.controllers.base import Controller, ControlOutput, RecordOutput, fast_state
+from qpctl.errors import ConfigError, InvalidStateError
 from qpctl.formulation import Formulation
 from qpctl.geometry.obstacles import Obstacle
+from qpctl.kernels import tick as K
 from qpctl.law import LawGains, LawTerms, closed_form_acceleration, law_terms
 from qpctl.paths import WaypointPath
 from qpctl.qp import Problem, Solution
@@ -38,6 +49,7 @@ from qpctl.solvers.base import DEFAULT_SOLVER, QPSolver, make_solver
 from qpctl.solvers.daqp_ import DAQPSolver
 from qpctl.state import TickState
 from qpctl.tasks.tasks import AccelerationTask, EndEffectorTask, PostureTask, Task
+from qpctl.tick import QPBuffers, QPSpec, Workspace
 
 FALLBACK_CLOSED_FORM = "closed-form"
 FALLBACK_BRAKE = "brake"
@@ -156,6 +168,38 @@ class QPConfig:
         return cls(**{k: v for k, v in cfg.items() if k in keys})
 
 
+def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: int) -> QPSpec | None:
+    """The compiled assembly's description of these tasks and constraints, or None when they are not
+    exactly the standard ones (an AccelerationTask, an EndEffectorTask, at most one PostureTask; at
+    most one TorqueLimit, JointLimit and ObstacleBarrier): those go through the Python formulation."""
+    kinds = [type(t) for t in tasks]
+    if kinds.count(AccelerationTask) != 1 or kinds.count(EndEffectorTask) != 1 or kinds.count(PostureTask) > 1:
+        return None
+    if len(kinds) != 2 + kinds.count(PostureTask):
+        return None
+    ckinds = [type(c) for c in constraints]
+    if any(ckinds.count(k) > 1 for k in ckinds) or not all(k in (TorqueLimit, JointLimit, ObstacleBarrier)
+                                                           for k in ckinds):
+        return None
+    acc = next(t for t in tasks if isinstance(t, AccelerationTask))
+    ee = next(t for t in tasks if isinstance(t, EndEffectorTask))
+    post = next((t for t in tasks if isinstance(t, PostureTask)), None)
+    if post is not None and post.q_ref.shape != (n,):
+        raise ConfigError(f"q_ref has {post.q_ref.size} entries, the robot {n}", key="PostureTask.q_ref")
+    torque = next((c for c in constraints if isinstance(c, TorqueLimit)), None)
+    joint = next((c for c in constraints if isinstance(c, JointLimit)), None)
+    barrier = next((c for c in constraints if isinstance(c, ObstacleBarrier)), None)
+    return QPSpec(
+        acc_weight=acc.weight, slack_l1=ee.slack_l1, slack_l2=ee.slack_l2,
+        posture=None if post is None else (post.q_ref, post.weight, post.kp, post.kd),
+        rows=[(c.name, c.rows) for c in constraints if c.rows],
+        tau_max=None if torque is None else torque.tau_max,
+        joint_limits=None if joint is None else (joint.q_min, joint.q_max, joint.v_max, joint.k0, joint.k1, joint.kv),
+        barrier=None if barrier is None else (barrier.rows, barrier.k0, barrier.k1, barrier.drift == "rigid"),
+        row_names=[c.name for c in constraints for _ in range(c.rows)],
+    )
+
+
 class QPController(Controller):
     """Per-tick QP controller (see module docstring)."""
 
@@ -198,8 +242,8 @@ class QPController(Controller):
         self.tasks: list[Task] = list(tasks)
         self.constraints: list[Constraint] = list(constraints)
         self._formulation: Formulation | None = None
-        self.last_problem: Problem | None = None
-        self.last_solution: Solution | None = None
+        self._last_problem: Problem | None = None
+        self._last: tuple[np.ndarray | None, str, int, str] | Solution | None = None
 
     @classmethod
     def from_config(cls, cfg: dict[str, Any], robot: RobotModel, path: WaypointPath,
@@ -214,14 +258,14 @@ class QPController(Controller):
     # -- composition ----------------------------------------------------------------------------
     def add_task(self, task: Task) -> None:
         self.tasks.append(task)
-        self._formulation = None
+        self._formulation = self._ws = None
 
     def remove_task(self, name: str) -> Task:
         return self._remove(self.tasks, name)  # type: ignore[return-value]
 
     def add_constraint(self, constraint: Constraint) -> None:
         self.constraints.append(constraint)
-        self._formulation = None
+        self._formulation = self._ws = None
 
     def remove_constraint(self, name: str) -> Constraint:
         return self._remove(self.constraints, name)  # type: ignore[return-value]
@@ -229,7 +273,7 @@ class QPController(Controller):
     def _remove(self, items: list[Any], name: str) -> Any:
         for i, item in enumerate(items):
             if item.name == name:
-                self._formulation = None
+                self._formulation = self._ws = None
                 return items.pop(i)
         raise ConfigError(f"no {name!r}; present: {', '.join(x.name for x in items)}", key=name)
 
@@ -263,16 +307,145 @@ class QPController(Controller):
             return "on_failure" if self._solver.name == "osqp" else "always"
         return mode
 
-    # -- failure policy (QPConfig.fallback, QPConfig.tick_budget_us) -----------------------------
-    def step(self, q: np.ndarray, v: np.ndarray, t: float) -> ControlOutput:
-        self._tick_start = time.perf_counter()  # the tick budget counts from here
-        try:
-            return super().step(q, v, t)
-        finally:
-            self._tick_start = None
+    def _make_workspace(self) -> Workspace:
+        spec = compiled_spec(self.tasks, self.constraints, self.n)
+        return Workspace(self.robot, self.obstacles, self.path, self.gains, self.cutoff, spec=spec,
+                         broadphase=self.broadphase, barrier_drift=spec is None)
 
-    def _attempt(self, solver: QPSolver, problem: Problem, deadline: float) -> Solution:
-        """One solve within what is left of the tick budget; a backend's exception is a failed solve."""
+    @property
+    def last_problem(self) -> Problem | None:
+        """The QP of the last tick (on the compiled path: views onto the workspace's arrays)."""
+        return self._last_problem
+
+    @property
+    def last_solution(self) -> Solution | None:
+        """The solver's answer at the last tick (None before the first)."""
+        last = self._last
+        if isinstance(last, tuple):
+            x, status, iters, name = last
+            nv = self._last_problem.n_var if self._last_problem is not None else self.n
+            last = Solution(x is not None, x if x is not None else np.zeros(nv), status, iters, 0.0, name)
+            self._last = last
+        return last
+
+    # -- the compiled tick -------------------------------------------------------------------------
+    def step(self, q: np.ndarray, v: np.ndarray, t: float) -> ControlOutput:
+        """One tick; ``compute_us`` is its wall time, from which the tick budget counts."""
+        start = time.perf_counter()
+        ws = self._ws if self._ws is not None else self.workspace()
+        if ws.spec is None:  # custom tasks or constraints: the Python formulation
+            self._tick_start = start
+            try:
+                return super().step(q, v, t)
+            finally:
+                self._tick_start = None
+        q, v, t = fast_state(q, v, t, self.n)
+        self._state(q, v, t)
+        t_state = time.perf_counter()
+        budget = self.config.tick_budget_us
+        deadline = start + budget * 1e-6 if budget > 0 else math.inf
+        hard_first = self.relaxation == "on_failure"
+        buf = ws.hard if hard_first else ws.relaxed
+        assert buf is not None
+        code = K.qp_terms_and_build(ws.work, buf.H, buf.f, buf.rows, buf.bu, buf.bl)
+        if code == 1:
+            raise InvalidStateError(f"the inertia matrix is not positive definite at q={q.tolist()}")
+        t_build = time.perf_counter()
+        solver = self._solver if hard_first else self._solver_soft
+        ok, status, iters = (self._solve_buffers(solver, buf, deadline) if code == 0
+                             else (False, "nonfinite_problem", 0))
+        t_solve = time.perf_counter()
+        extra: dict[str, Any] = {"status": status, "iterations": iters, "solver": solver.name}
+        if hard_first and not ok and code == 0:  # the task conflicts with the hard rows: let it give way
+            buf = ws.relaxed
+            assert buf is not None
+            K.qp_build(ws.work, buf.H, buf.f, buf.rows, buf.bu, buf.bl)
+            t3 = time.perf_counter()
+            ok, status2, iters2 = self._solve_buffers(self._solver_soft, buf, deadline)
+            t4 = time.perf_counter()
+            t_build += t3 - t_solve
+            t_solve = t4
+            extra.update(relaxed=True, hard_status=status, status=status2, iterations=iters + iters2)
+            status = status2
+        self._last_problem = buf.problem
+        rec, s = ws.rec, ws.layout.scalars
+        if status == "time_limit":
+            extra["budget_exhausted"] = True
+        if not ok:
+            self._compiled_fallback(ws, buf, status, extra, deadline, hard_first)
+        else:
+            if rec[s + K.R_DROPPED]:
+                extra["pairs_dropped"] = int(rec[s + K.R_DROPPED])
+            if rec[s + K.R_CLIPPED]:
+                extra["clipped"] = float(rec[s + K.R_CLIPPED])
+            extra["slack_norm"] = float(rec[s + K.R_SLACK])
+            extra["active"] = int(rec[s + K.R_ACTIVE])
+            mask = int(rec[s + K.R_ACTIVE_MASK])
+            extra["active_rows"] = [name for bit, name in ((1, "obstacles"), (0, "torque_limits")) if mask >> bit & 1]
+        end = time.perf_counter()
+        rec[s + K.R_PIN_US], rec[s + K.R_STATE_US] = ws.pin_s * 1e6, ws.state_s * 1e6
+        rec[s + K.R_BUILD_US], rec[s + K.R_SOLVE_US] = (t_build - t_state) * 1e6, (t_solve - t_build) * 1e6
+        rec[s + K.R_ITERATIONS] = extra["iterations"]
+        extra["build_us"], extra["solve_us"] = rec[s + K.R_BUILD_US], rec[s + K.R_SOLVE_US]
+        out = RecordOutput(rec.copy(), ws.layout, extra, (end - start) * 1e6)
+        self.last = out
+        return out
+
+    def _solve_buffers(self, solver: QPSolver, buf: QPBuffers, deadline: float) -> tuple[bool, str, int]:
+        """Solve the tick's QP held in ``buf`` within what is left of the budget, and check the answer
+        (:func:`qpctl.kernels.tick.qp_finish` writes τ, q̈ and the record when it holds)."""
+        ws = self._ws
+        assert ws is not None
+        if deadline != math.inf:
+            left_us = (deadline - time.perf_counter()) * 1e6
+            if left_us <= 0:
+                self._last = (None, "time_limit", 0, solver.name)
+                return False, "time_limit", 0
+            solver.set_time_limit(left_us)
+        if type(solver) is DAQPSolver:
+            x, status, iters = solver.solve_buffers(buf.H, buf.f, buf.rows, buf.bu, buf.bl, buf.sense)
+        else:
+            sol = self._attempt(solver, buf.problem, deadline, check=False)
+            x, status, iters = (sol.x if sol.found else None), sol.status, sol.iterations
+        if x is not None and not K.qp_finish(ws.work, x, buf.rows, buf.bu, buf.bl, SOLUTION_RTOL):
+            # The solver's own test runs on its scaled problem: a row it scaled up (say nᵀJ_p ≈ 1e-5
+            # at a link's fixed base) can be violated by m/s² in our units while it reports "solved".
+            status = "inaccurate" if np.isfinite(x).all() else "nonfinite_solution"
+            x = None
+        self._last = (x, status, iters, solver.name)
+        return x is not None, status, iters
+
+    def _compiled_fallback(self, ws: Workspace, buf: QPBuffers, status: str, info: dict[str, Any],
+                           deadline: float, hard_first: bool) -> None:
+        """The solve failed: the fallback chain on snapshots of the tick (the rare path, in Python);
+        the torque it settles on goes into the workspace's record."""
+        t5 = time.perf_counter()
+        state = ws.snapshot()
+        state._dynamics = self.dynamics
+        terms = ws.terms()
+        info["fallback_reason"] = status
+
+        def relaxed() -> Problem:
+            if not buf.relaxed:
+                rb = ws.relaxed
+                assert rb is not None
+                K.qp_build(ws.work, rb.H, rb.f, rb.rows, rb.bu, rb.bl)
+                return rb.problem
+            return buf.problem
+
+        qdd, fsol, problem = self._run_fallbacks(state, terms, buf.problem, relaxed, deadline, info)
+        tau, qdd = self._finish_fallback(state, terms, qdd, fsol, problem, info)
+        self._last_problem = problem
+        if fsol is not None:
+            self._last = fsol
+        ws.qdd[:], ws.tau[:] = qdd, tau
+        K.write_record(ws.work, terms.singular)
+        info["fallback_us"] = (time.perf_counter() - t5) * 1e6
+
+    def _attempt(self, solver: QPSolver, problem: Problem, deadline: float, *, check: bool = True) -> Solution:
+        """One solve within what is left of the tick budget; a backend's exception is a failed solve.
+        ``check``: refuse a non-finite x or one that violates a hard row (the compiled tick checks
+        the answer itself, in a kernel)."""
         left_us = (deadline - time.perf_counter()) * 1e6
         if left_us <= 0:
             return Solution(False, np.zeros(problem.n_var), "time_limit", solver=solver.name)
@@ -284,6 +457,8 @@ class QPController(Controller):
         except Exception as exc:  # noqa: BLE001 — a backend's own error must not end the run
             solver.reset()
             return Solution(False, np.zeros(problem.n_var), f"error: {type(exc).__name__}", solver=solver.name)
+        if not check:
+            return sol
         if sol.found and not np.isfinite(sol.x).all():
             return Solution(False, np.zeros(problem.n_var), "nonfinite_solution", sol.iterations, sol.solve_us,
                             solver.name)
@@ -392,19 +567,19 @@ class QPController(Controller):
         sol = self._attempt(self._fallback_solvers[name], problem, deadline)
         return (sol.x[: self.n], sol, name) if sol.found else (None, sol, sol.status)
 
-    def _run_fallbacks(self, state: TickState, terms: LawTerms, problem: Problem, is_relaxed: bool,
+    def _run_fallbacks(self, state: TickState, terms: LawTerms, problem: Problem, relaxed: Callable[[], Problem],
                        deadline: float, info: dict[str, Any]) -> tuple[np.ndarray, Solution | None, Problem]:
         """Walk the fallback chain (the QP has failed); returns q̈, the solution used (if a solver's) and
-        the problem it solved."""
+        the problem it solved. ``relaxed()`` gives the tick's QP with the task slack (built on demand)."""
         tried: list[str] = []
-        relaxed: Problem | None = problem if is_relaxed else None
+        relaxed_problem: Problem | None = None
         for name in self.config.fallback:
             if name in BUILT_IN_FALLBACKS:
                 qdd, fsol, used = self._fallback(name, state, terms, problem, deadline=deadline)
             else:
-                if relaxed is None:  # fallback solvers get the task slack, so only hard rows can conflict
-                    relaxed = self.formulation().build(state, terms, relax=True)
-                qdd, fsol, used = self._fallback(name, state, terms, relaxed, deadline=deadline)
+                if relaxed_problem is None:  # fallback solvers get the task slack, so only hard rows can conflict
+                    relaxed_problem = relaxed()
+                qdd, fsol, used = self._fallback(name, state, terms, relaxed_problem, deadline=deadline)
             if qdd is None:
                 tried.append(f"{name}:{used}")
                 if used == "time_limit":
@@ -413,13 +588,66 @@ class QPController(Controller):
             info["fallback"] = used
             if tried:
                 info["fallback_tried"] = tried
-            return qdd, fsol, (relaxed if fsol is not None and relaxed is not None else problem)
+            return qdd, fsol, (relaxed_problem if fsol is not None and relaxed_problem is not None else problem)
         info["fallback"] = FALLBACK_BRAKE
         if tried:
             info["fallback_tried"] = tried
         return self._brake(state, terms), None, problem
 
+    def _finish_fallback(self, state: TickState, terms: LawTerms, qdd: np.ndarray, fsol: Solution | None,
+                         problem: Problem, info: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+        """A fallback's q̈ within the joint-limit bounds (the QP's bounds on q̈, where finite) and, unless a
+        solver produced it, scaled into the torque limits; τ = M q̈ + N, never non-finite, clipped to
+        ±τ_max. Returns (τ, q̈)."""
+        n = self.n
+        lb, ub = problem.lb[:n], problem.ub[:n]
+        qdd = np.minimum(np.maximum(qdd, np.where(np.isfinite(lb), lb, qdd)), np.where(np.isfinite(ub), ub, qdd))
+        if fsol is None:
+            qdd = self._scale_to_torque_limits(state, qdd)
+        tau = state.M @ qdd + state.N
+        if not np.isfinite(tau).all():  # last line of defence: never command a non-finite torque
+            info["nonfinite_replaced"] = True
+            info["fallback"] = FALLBACK_BRAKE
+            fsol = None
+            qdd = self._brake(state, terms)
+            tau = state.M @ qdd + state.N
+            if not np.isfinite(tau).all():
+                tau = np.where(np.isfinite(tau), tau, 0.0)
+                qdd = np.linalg.solve(state.M, tau - state.N)
+        tau, qdd = self._clip_torque(state, tau, qdd, info)
+        if fsol is not None:
+            self._solution_info(problem, fsol.x, info)
+        return tau, qdd
+
+    def _clip_torque(self, state: TickState, tau: np.ndarray, qdd: np.ndarray,
+                     info: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+        """The solver meets the torque rows to its tolerance; clip that residue (and any fallback's
+        excess) so the commanded torque never exceeds a limit the controller was asked to hold."""
+        limit = self._torque_limit()
+        clipped = tau if limit is None else np.minimum(np.maximum(tau, -limit), limit)  # np.clip, cheaper
+        if (clipped != tau).any():
+            info["clipped"] = float(np.max(np.abs(clipped - tau)))
+            tau = clipped
+            qdd = np.linalg.solve(state.M, tau - state.N)
+        return tau, qdd
+
+    def _solution_info(self, problem: Problem, x: np.ndarray, info: dict[str, Any]) -> None:
+        """Slack norm, active-row count and the families with an active row, at the solver's x."""
+        n = self.n
+        s = x[n:]
+        half = s.size // 2
+        slack = s[:half] - s[half:]
+        info["slack_norm"] = math.sqrt(float(slack @ slack))
+        Cx = problem.C @ x
+        act = np.minimum(np.abs(Cx - problem.l), np.abs(Cx - problem.u)) <= 1e-6 * (1.0 + np.abs(Cx))
+        xq = x[:n]
+        bnd = np.minimum(np.abs(xq - problem.lb[:n]), np.abs(xq - problem.ub[:n])) <= 1e-6
+        info["active"] = int(np.count_nonzero(act)) + int(np.count_nonzero(bnd))
+        info["active_rows"] = sorted({name for name, lo, hi in self.formulation().row_ranges if act[lo:hi].any()})
+
     def control(self, state: TickState) -> ControlOutput:
+        """The tick on the Python path: the problem stacked by :class:`Formulation` from the tasks and
+        constraints (any, custom ones included), solved, checked, the fallback chain if it fails."""
         n = self.n
         t0 = time.perf_counter()
         budget = self.config.tick_budget_us
@@ -451,57 +679,28 @@ class QPController(Controller):
                         iterations=info["iterations"] + sol.iterations)
         if sol.status == "time_limit":
             info["budget_exhausted"] = True
-        x: np.ndarray | None
         if sol.found:
             qdd = sol.x[:n]
-            x = sol.x
+            tau, qdd = self._clip_torque(state, state.M @ qdd + state.N, qdd, info)
+            self._solution_info(problem, sol.x, info)
         else:
             info["fallback_reason"] = sol.status
             t5 = time.perf_counter()
             is_relaxed = not hard_first or bool(info.get("relaxed"))
-            qdd, fsol, problem = self._run_fallbacks(state, terms, problem, is_relaxed, deadline, info)
-            info["fallback_us"] = (time.perf_counter() - t5) * 1e6
-            x = fsol.x if fsol is not None else None
+            relaxed_now = problem
+
+            def relaxed() -> Problem:
+                return relaxed_now if is_relaxed else form.build(state, terms, relax=True)
+
+            qdd, fsol, problem = self._run_fallbacks(state, terms, problem, relaxed, deadline, info)
             if fsol is not None:
                 sol = fsol
-            # the joint-limit bounds (the QP's bounds on q̈) hold a fallback too, where they are finite
-            lb, ub = problem.lb[:n], problem.ub[:n]
-            qdd = np.minimum(np.maximum(qdd, np.where(np.isfinite(lb), lb, qdd)), np.where(np.isfinite(ub), ub, qdd))
-            if fsol is None:
-                qdd = self._scale_to_torque_limits(state, qdd)
+            tau, qdd = self._finish_fallback(state, terms, qdd, fsol, problem, info)
+            info["fallback_us"] = (time.perf_counter() - t5) * 1e6
         info["build_us"], info["solve_us"] = build_us, solve_us
-        tau = state.M @ qdd + state.N
-        if not np.isfinite(tau).all():  # last line of defence: never command a non-finite torque
-            info["nonfinite_replaced"] = True
-            info["fallback"] = FALLBACK_BRAKE
-            x = None
-            qdd = self._brake(state, terms)
-            tau = state.M @ qdd + state.N
-            if not np.isfinite(tau).all():
-                tau = np.where(np.isfinite(tau), tau, 0.0)
-                qdd = np.linalg.solve(state.M, tau - state.N)
-        # The solver meets the torque rows to its tolerance; clip that residue (and any fallback's
-        # excess) so the commanded torque never exceeds a limit the controller was asked to hold.
-        limit = self._torque_limit()
-        clipped = tau if limit is None else np.minimum(np.maximum(tau, -limit), limit)  # np.clip, cheaper
-        if (clipped != tau).any():
-            info["clipped"] = float(np.max(np.abs(clipped - tau)))
-            tau = clipped
-            qdd = np.linalg.solve(state.M, tau - state.N)
-        if x is not None:
-            s = x[n:]
-            half = s.size // 2
-            slack = s[:half] - s[half:]
-            info["slack_norm"] = math.sqrt(float(slack @ slack))
-            Cx = problem.C @ x
-            act = np.minimum(np.abs(Cx - problem.l), np.abs(Cx - problem.u)) <= 1e-6 * (1.0 + np.abs(Cx))
-            xq = x[:n]
-            bnd = np.minimum(np.abs(xq - problem.lb[:n]), np.abs(xq - problem.ub[:n])) <= 1e-6
-            info["active"] = int(np.count_nonzero(act)) + int(np.count_nonzero(bnd))
-            info["active_rows"] = sorted({name for name, lo, hi in form.row_ranges if act[lo:hi].any()})
         for con in form.barriers:
             if con.dropped:
                 info["pairs_dropped"] = con.dropped
-        self.last_problem, self.last_solution = problem, sol
+        self._last_problem, self._last = problem, sol
         return ControlOutput(tau=tau, qdd=qdd, ref=ref, x=state.x, e_null=terms.e_null,
                              clearance=state.clearance, singular=terms.singular, info=info)

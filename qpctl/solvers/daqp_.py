@@ -10,6 +10,10 @@ the inequality rows l ≤ C x ≤ u; then the equality rows A x = b (sense 5). I
 passed as they are (DAQP treats any bound beyond ±1e30 as absent). Warm start: the previous tick's
 multipliers (``dual_start``) give DAQP its initial working set, so a tick whose active set did not
 change takes one or two iterations. A time limit is passed as DAQP's own ``time_limit`` [s].
+
+The compiled tick (:mod:`qpctl.tick`) writes its QP straight into arrays in this layout and calls
+:meth:`DAQPSolver.solve_buffers`, which keeps one ``daqp.Model`` (DAQP's workspace, allocated once)
+and ``update``s it every tick: the working set of the previous solve is the warm start.
 """
 
 from __future__ import annotations
@@ -44,9 +48,44 @@ class DAQPSolver(QPSolver):
                                   key=f"controller.solver_settings.{key}")
         self._shape: tuple[int, int, int] | None = None
         self._lam: np.ndarray | None = None
+        self.reset()
 
     def reset(self) -> None:
         self._shape, self._lam = None, None
+        self._model: Any = None
+        self._model_key: tuple[int, ...] | None = None
+        self._model_limit = 0.0
+
+    def solve_buffers(self, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarray,
+                      sense: np.ndarray) -> tuple[np.ndarray | None, str, int]:
+        """Solve the QP held in DAQP's layout by these arrays (x, bounds, rows — see the module
+        docstring) on a persistent ``daqp.Model``: (x or None, status, iterations)."""
+        key = (H.shape[0], rows.shape[0], id(H))
+        limit = 0.0 if self.time_limit_us is None else max(self.time_limit_us * 1e-6, 1e-9)
+        model = self._model
+        try:
+            if model is None or self._model_key != key:
+                model = daqp.Model()
+                flag, _ = model.setup(H, f, rows, bu, bl, sense)
+                if flag < 0:
+                    self._model = None
+                    return None, _STATUS.get(int(flag), f"exitflag {int(flag)}"), 0
+                model.settings = {**self.settings, "time_limit": limit}
+                self._model, self._model_key, self._model_limit = model, key, limit
+            else:
+                model.update(H=H, f=f, A=rows, bupper=bu, blower=bl)
+                if limit != self._model_limit:
+                    model.settings = {"time_limit": limit}
+                    self._model_limit = limit
+            x, _fval, flag, info = model.solve()
+        except Exception as exc:  # noqa: BLE001 — DAQP's own error: a failed solve
+            self._model = None
+            return None, f"error: {type(exc).__name__}: {exc}", 0
+        status = _STATUS.get(int(flag), f"exitflag {int(flag)}")
+        if status != "solved":
+            self._model = None  # the next tick starts from a fresh workspace, not a failed working set
+            return None, status, int(info.get("iterations", 0))
+        return x, status, int(info["iterations"])
 
     def solve(self, problem: Problem) -> Solution:
         start = time.perf_counter()

@@ -1,0 +1,128 @@
+"""Closed-form distances between link capsules and sphere or capsule obstacles, compiled.
+
+A capsule is a segment swept by a radius, so every pair here reduces to the closest points of two
+segments (a sphere's segment has zero length): with P on the link's axis and Q on the obstacle's,
+w = P − Q, the signed distance is d = |w| − r_link − r_obstacle, exact whether the shapes are apart
+or penetrating (python-fcl's signed query runs GJK/EPA instead, off by up to ~1e-4 m when
+penetrating, and stalls for a sphere centred on a capsule's axis end), the normal is n = w/|w|
+(obstacle → link) and the witness points are P − r_link n and Q + r_obstacle n. When the axes meet
+(w = 0) n is taken perpendicular to both (to the link's axis and the world axis least aligned with
+it for a sphere), a choice, since every direction is then a closest one.
+
+References (``tests/test_kernels.py``): python-fcl's distance and nearest points on the same shapes,
+and :mod:`qpctl.geometry.distance` (the previous, per-pair implementation).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+PARALLEL_EPS = 1e-12  # segments with |d1|²|d2|² − (d1·d2)² ≤ eps·|d1|²|d2|² are treated as parallel
+
+
+@njit(cache=True)
+def clamp01(x: float) -> float:
+    return 0.0 if x < 0.0 else (min(x, 1.0))
+
+
+@njit(cache=True)
+def closest_on_segment(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> float:
+    """Parameter s ∈ [0, 1] of the point a + s(b − a) closest to p."""
+    dx, dy, dz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+    denom = dx * dx + dy * dy + dz * dz
+    if denom == 0.0:
+        return 0.0
+    return clamp01(((p[0] - a[0]) * dx + (p[1] - a[1]) * dy + (p[2] - a[2]) * dz) / denom)
+
+
+@njit(cache=True)
+def perpendicular(x: float, y: float, z: float, out: np.ndarray) -> None:
+    """A unit vector ⊥ (x, y, z) and ⊥ the world axis least aligned with it (e_x for a zero vector)."""
+    ax, ay, az = abs(x), abs(y), abs(z)
+    if az <= ax and az <= ay:
+        ex, ey, ez = 0.0, 0.0, 1.0
+    elif ay <= ax:
+        ex, ey, ez = 0.0, 1.0, 0.0
+    else:
+        ex, ey, ez = 1.0, 0.0, 0.0
+    px, py, pz = y * ez - z * ey, z * ex - x * ez, x * ey - y * ex
+    pn = math.sqrt(px * px + py * py + pz * pz)
+    if pn > 0.0:
+        out[0], out[1], out[2] = px / pn, py / pn, pz / pn
+    else:
+        out[0], out[1], out[2] = 1.0, 0.0, 0.0
+
+
+@njit(cache=True)
+def segment_segment(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> tuple[float, float]:
+    """Parameters (s, t) of the closest points p1 + s(q1 − p1) and p2 + t(q2 − p2) of two segments.
+
+    Ericson, *Real-Time Collision Detection* (2005), §5.1.9; for parallel segments the point of the
+    first segment is its clamped start (one of the closest pairs).
+    """
+    d1x, d1y, d1z = q1[0] - p1[0], q1[1] - p1[1], q1[2] - p1[2]
+    d2x, d2y, d2z = q2[0] - p2[0], q2[1] - p2[1], q2[2] - p2[2]
+    rx, ry, rz = p1[0] - p2[0], p1[1] - p2[1], p1[2] - p2[2]
+    a = d1x * d1x + d1y * d1y + d1z * d1z
+    e = d2x * d2x + d2y * d2y + d2z * d2z
+    f = d2x * rx + d2y * ry + d2z * rz
+    if a <= 1e-300 and e <= 1e-300:
+        return 0.0, 0.0
+    if a <= 1e-300:
+        return 0.0, clamp01(f / e)
+    c = d1x * rx + d1y * ry + d1z * rz
+    if e <= 1e-300:
+        return clamp01(-c / a), 0.0
+    b = d1x * d2x + d1y * d2y + d1z * d2z
+    denom = a * e - b * b
+    s = clamp01((b * f - c * e) / denom) if denom > PARALLEL_EPS * a * e else 0.0
+    t = (b * s + f) / e
+    if t < 0.0:
+        return clamp01(-c / a), 0.0
+    if t > 1.0:
+        return clamp01((b - c) / a), 1.0
+    return s, t
+
+
+@njit(cache=True)
+def capsule_pair(a: np.ndarray, b: np.ndarray, r_link: float, c0: np.ndarray, c1: np.ndarray, r_obs: float,
+                 normal: np.ndarray, p_link: np.ndarray, p_obs: np.ndarray) -> float:
+    """Signed distance [m] between the link capsule (axis a–b, radius r_link) and an obstacle capsule
+    (axis c0–c1, radius r_obs; c0 = c1 for a sphere); writes the unit normal (obstacle → link) and
+    the witness points on each surface."""
+    if c0[0] == c1[0] and c0[1] == c1[1] and c0[2] == c1[2]:
+        s, t = closest_on_segment(a, b, c0), 0.0
+    else:
+        s, t = segment_segment(a, b, c0, c1)
+    px, py, pz = a[0] + s * (b[0] - a[0]), a[1] + s * (b[1] - a[1]), a[2] + s * (b[2] - a[2])
+    qx, qy, qz = c0[0] + t * (c1[0] - c0[0]), c0[1] + t * (c1[1] - c0[1]), c0[2] + t * (c1[2] - c0[2])
+    wx, wy, wz = px - qx, py - qy, pz - qz
+    wn = math.sqrt(wx * wx + wy * wy + wz * wz)
+    if wn > 1e-12:
+        normal[0], normal[1], normal[2] = wx / wn, wy / wn, wz / wn
+    else:
+        ux, uy, uz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+        vx, vy, vz = c1[0] - c0[0], c1[1] - c0[1], c1[2] - c0[2]
+        cx, cy, cz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+        cn = math.sqrt(cx * cx + cy * cy + cz * cz)
+        if cn > 1e-12 * math.sqrt((ux * ux + uy * uy + uz * uz) * (vx * vx + vy * vy + vz * vz)) and cn > 0.0:
+            normal[0], normal[1], normal[2] = cx / cn, cy / cn, cz / cn
+        else:
+            perpendicular(ux, uy, uz, normal)
+    p_link[0], p_link[1], p_link[2] = px - r_link * normal[0], py - r_link * normal[1], pz - r_link * normal[2]
+    p_obs[0], p_obs[1], p_obs[2] = qx + r_obs * normal[0], qy + r_obs * normal[1], qz + r_obs * normal[2]
+    return wn - r_link - r_obs
+
+
+@njit(cache=True)
+def sphere_bound(a: np.ndarray, b: np.ndarray, r_link: float, centre: np.ndarray, r_bound: float) -> float:
+    """A lower bound [m] on the distance between the link capsule and a shape inside the sphere of
+    radius r_bound about centre: the axis-to-centre distance less both radii (less 1e-9 for rounding)."""
+    s = closest_on_segment(a, b, centre)
+    wx = a[0] + s * (b[0] - a[0]) - centre[0]
+    wy = a[1] + s * (b[1] - a[1]) - centre[1]
+    wz = a[2] + s * (b[2] - a[2]) - centre[2]
+    return math.sqrt(wx * wx + wy * wy + wz * wz) - r_link - r_bound - 1e-9

@@ -1,0 +1,160 @@
+"""Small dense linear algebra for the tick's compiled kernels (matrices of a dozen rows or fewer).
+
+numba's ``np.linalg`` allocates, copies to Fortran order and calls LAPACK on every call: 2–3 µs each
+at 7×7, more than the arithmetic. These loops write into caller-owned arrays and allocate nothing.
+Their references are numpy's own routines and :func:`qpctl.linalg.weighted_pinv` (numpy's SVD);
+``tests/test_kernels.py`` holds each one against its reference.
+
+* :func:`cholesky`, :func:`solve_lower`, :func:`solve_lower_t`, :func:`chol_solve` — A = L Lᵀ and
+  the triangular solves, in place (column by column for matrix right-hand sides).
+* :func:`pinv_t` — the damped pseudo-inverse of a wide matrix given by its transpose, by one-sided
+  (Hestenes) Jacobi SVD: accurate to rounding like LAPACK's SVD, without squaring the condition
+  number as the normal equations would; with the variable damping of :mod:`qpctl.linalg`.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+JACOBI_TOL = 1e-15  # columns p, q count as orthogonal when |b_p·b_q| ≤ tol ‖b_p‖‖b_q‖
+JACOBI_SWEEPS = 40  # a 6-column matrix converges in 5–7 sweeps; this only bounds a pathological case
+
+
+@njit(cache=True)
+def cholesky(A: np.ndarray, L: np.ndarray) -> bool:
+    """L (lower, upper triangle zeroed) with A = L Lᵀ, reading A's lower triangle; False if A is
+    not (numerically) positive definite."""
+    n = A.shape[0]
+    for j in range(n):
+        s = A[j, j]
+        for k in range(j):
+            s -= L[j, k] * L[j, k]
+        if not s > 0.0:
+            return False
+        d = math.sqrt(s)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            s = A[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / d
+        for i in range(j):
+            L[i, j] = 0.0
+    return True
+
+
+@njit(cache=True)
+def solve_lower(L: np.ndarray, X: np.ndarray) -> None:
+    """X ← L⁻¹ X for lower-triangular L; X is (n,) or (n, k)."""
+    n = L.shape[0]
+    if X.ndim == 1:
+        for i in range(n):
+            s = X[i]
+            for k in range(i):
+                s -= L[i, k] * X[k]
+            X[i] = s / L[i, i]
+    else:
+        for c in range(X.shape[1]):
+            for i in range(n):
+                s = X[i, c]
+                for k in range(i):
+                    s -= L[i, k] * X[k, c]
+                X[i, c] = s / L[i, i]
+
+
+@njit(cache=True)
+def solve_lower_t(L: np.ndarray, X: np.ndarray) -> None:
+    """X ← L⁻ᵀ X for lower-triangular L; X is (n,) or (n, k)."""
+    n = L.shape[0]
+    if X.ndim == 1:
+        for i in range(n - 1, -1, -1):
+            s = X[i]
+            for k in range(i + 1, n):
+                s -= L[k, i] * X[k]
+            X[i] = s / L[i, i]
+    else:
+        for c in range(X.shape[1]):
+            for i in range(n - 1, -1, -1):
+                s = X[i, c]
+                for k in range(i + 1, n):
+                    s -= L[k, i] * X[k, c]
+                X[i, c] = s / L[i, i]
+
+
+@njit(cache=True)
+def chol_solve(L: np.ndarray, X: np.ndarray) -> None:
+    """X ← A⁻¹ X with A = L Lᵀ."""
+    solve_lower(L, X)
+    solve_lower_t(L, X)
+
+
+@njit(cache=True)
+def pinv_t(B: np.ndarray, eps: float, V: np.ndarray, out: np.ndarray) -> tuple[bool, float]:
+    """Damped pseudo-inverse A⁺ (n, m) of A (m, n, m ≤ n) given B = Aᵀ, which is overwritten.
+
+    One-sided Jacobi rotates B's columns until they are orthogonal: B V = U Σ, so A = V Σ Uᵀ and
+    A⁺ = U Σ⁺ Vᵀ = (B V) diag(1/σ²) Vᵀ. Below σ_min < eps σ_max each 1/σ² becomes 1/(σ² + λ²) with
+    λ² = (1 − (σ_min/(eps σ_max))²)(eps σ_max)² — :func:`qpctl.linalg.weighted_pinv`'s variable damping.
+    Returns (singular: the damping was used, σ_min/σ_max). V is an (m, m) scratch array.
+    """
+    n, m = B.shape
+    for i in range(m):
+        for j in range(m):
+            V[i, j] = 1.0 if i == j else 0.0
+    for _sweep in range(JACOBI_SWEEPS):
+        rotated = False
+        for p in range(m - 1):
+            for q in range(p + 1, m):
+                alpha = beta = gamma = 0.0
+                for i in range(n):
+                    alpha += B[i, p] * B[i, p]
+                    beta += B[i, q] * B[i, q]
+                    gamma += B[i, p] * B[i, q]
+                if abs(gamma) <= JACOBI_TOL * math.sqrt(alpha * beta):
+                    continue
+                rotated = True
+                zeta = (beta - alpha) / (2.0 * gamma)
+                t = math.copysign(1.0, zeta) / (abs(zeta) + math.sqrt(1.0 + zeta * zeta))
+                c = 1.0 / math.sqrt(1.0 + t * t)
+                s = c * t
+                for i in range(n):
+                    bp, bq = B[i, p], B[i, q]
+                    B[i, p] = c * bp - s * bq
+                    B[i, q] = s * bp + c * bq
+                for i in range(m):
+                    vp, vq = V[i, p], V[i, q]
+                    V[i, p] = c * vp - s * vq
+                    V[i, q] = s * vp + c * vq
+        if not rotated:
+            break
+    smax2, smin2 = 0.0, np.inf
+    for k in range(m):
+        s2 = 0.0
+        for i in range(n):
+            s2 += B[i, k] * B[i, k]
+        smax2 = max(smax2, s2)
+        smin2 = min(smin2, s2)
+    out[:, :] = 0.0
+    if not smax2 > 0.0:
+        return True, 0.0
+    smax, smin = math.sqrt(smax2), math.sqrt(smin2)
+    thresh = eps * smax
+    lam2 = 0.0
+    singular = smin < thresh
+    if singular:
+        lam2 = (1.0 - (smin / thresh) ** 2) * thresh * thresh
+    for k in range(m):
+        s2 = 0.0
+        for i in range(n):
+            s2 += B[i, k] * B[i, k]
+        if s2 + lam2 <= 0.0:
+            continue
+        w = 1.0 / (s2 + lam2)
+        for i in range(n):
+            bik = B[i, k] * w
+            for j in range(m):
+                out[i, j] += bik * V[j, k]
+    return singular, smin / smax

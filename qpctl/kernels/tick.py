@@ -1,0 +1,882 @@
+"""The tick's compiled kernels: (q, q̇, t) and Pinocchio's arrays in, torques and QP rows out.
+
+DESIGN.md §5. Each kernel reads and writes the fixed-shape arrays of one :class:`TickWork` (its
+fields are listed in :mod:`qpctl.kernels.work`); nothing here allocates per pair or per row, and the
+number of pairs changes the work inside a loop, never the number of Python calls. The stages, in
+tick order:
+
+* :func:`state` — the rigid-body terms from ``computeAllTerms``'s arrays (M, N, the task point's x,
+  J and J̇q̇, the capsules' segments, body Jacobians and q̈ = 0 acceleration fields), the obstacles
+  at t, the reference x_d(t), and the link–obstacle pairs within the cutoff: closed form for spheres
+  and capsules (:mod:`qpctl.kernels.geometry`), marked for python-fcl for the other shapes;
+* :func:`finish_pairs` — once python-fcl has filled its pairs: compaction, witness-point Jacobians
+  and drifts, the barrier's exact drift in closed form (:func:`barrier_drift`), the clearance;
+* :func:`law_terms` — a, g, e_N, q̈₀ of :mod:`qpctl.law` (paper eq. 7, 12, 18, 19);
+* :func:`closed_form` — the paper's q̈ = J_M⁺ a + (I − J_M⁺J) q̈₀, or Hsu's, and τ = M q̈ + N;
+* :func:`qp_build` — the QP's cost and rows written in place in DAQP's layout (``qpctl.tick``);
+* :func:`qp_finish` — the solution checked against the hard rows, τ = M q̈ + N within ±τ_max.
+
+References, which ``tests/test_kernels.py`` holds these against: Pinocchio's per-frame functions and
+finite differences (rigid terms), python-fcl (distances), :mod:`qpctl.law`, :mod:`qpctl.linalg`,
+:class:`qpctl.formulation.Formulation` and the tasks and constraints (law terms and QP rows).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from qpctl.kernels.geometry import capsule_pair, sphere_bound
+from qpctl.kernels.small import chol_solve, cholesky, pinv_t, solve_lower, solve_lower_t
+
+# Obstacle kinds
+KIND_SPHERE, KIND_CAPSULE, KIND_FCL = 0, 1, 2
+# Pair states
+PAIR_OK, PAIR_FCL, PAIR_FAR = 0, 1, 2
+
+# Float settings (TickWork.fpar)
+FP_KP, FP_KV, FP_KN, FP_VREF, FP_DI, FP_DS, FP_GDAMP, FP_PINV_EPS, FP_CUTOFF = range(9)
+FP_BK0, FP_BK1, FP_JK0, FP_JK1, FP_JKV, FP_SL1, FP_SL2, FP_WACC, FP_WPOST, FP_PKP, FP_PKD = range(9, 20)
+FP_GRID_H, FP_CLEARANCE, FP_T = 20, 21, 22
+FP_SIZE = 23
+# Int settings (TickWork.ipar)
+IP_JDOT_EN, IP_DRIFT_RIGID, IP_CAPACITY, IP_TORQUE_ROW0, IP_BARRIER_ROW0, IP_JOINT_LIMITS = range(6)
+IP_POSTURE, IP_N_IN, IP_BDRIFT, IP_JL_FINITE, IP_WEIGHTED = range(6, 11)
+IP_SIZE = 11
+# Counters (TickWork.cnt)
+CNT_PAIRS, CNT_FCL, CNT_LOOKAHEAD, CNT_DROPPED = range(4)
+CNT_SIZE = 4
+# Flags (TickWork.flags)
+FLAG_NONFINITE, FLAG_SINGULAR_TERMS, FLAG_SINGULAR_CF, FLAG_CLIPPED = range(4)
+FLAG_SIZE = 4
+
+# The output record (TickWork.rec): tau, qdd (n), x_d, ẋ_d, ẍ_d, x (m), e_N (n), then scalars
+R_CLEARANCE, R_SINGULAR, R_PAIRS, R_DROPPED, R_SLACK, R_ACTIVE, R_VIOLATION, R_CLIPPED = range(8)
+R_STATUS, R_ITERATIONS, R_FALLBACK = 8, 9, 10
+R_PIN_US, R_STATE_US, R_BUILD_US, R_SOLVE_US, R_TOTAL_US, R_FALLBACK_US = range(11, 17)
+R_ACTIVE_MASK = 17  # bit 0: a torque-limit row is active, bit 1: an obstacle-barrier row
+R_SCALARS = 18
+
+
+@njit(cache=True)
+def record_scalars(n: int, m: int) -> int:
+    """Offset of the record's scalars: after τ, q̈, x_d, ẋ_d, ẍ_d, x and e_N."""
+    return 3 * n + 4 * m
+
+
+# ---------------------------------------------------------------------------------------------------
+# Rigid-body terms
+# ---------------------------------------------------------------------------------------------------
+@njit(cache=True)
+def _world_acceleration(ws, j: int, out: np.ndarray) -> None:  # type: ignore[no-untyped-def]
+    """out (6,) = joint j's q̈ = 0 spatial acceleration in the world frame, at the world origin:
+    (R a + p × R α, R α)."""
+    P, A = ws.oMi, ws.acc_local
+    for r in range(3):
+        out[3 + r] = P[j, r] * A[j, 3] + P[j, r + 3] * A[j, 4] + P[j, r + 6] * A[j, 5]
+        out[r] = P[j, r] * A[j, 0] + P[j, r + 3] * A[j, 1] + P[j, r + 6] * A[j, 2]
+    px, py, pz = P[j, 9], P[j, 10], P[j, 11]
+    ax, ay, az = out[3], out[4], out[5]
+    out[0] += py * az - pz * ay
+    out[1] += pz * ax - px * az
+    out[2] += px * ay - py * ax
+
+
+@njit(cache=True)
+def _world_point(ws, j: int, local: np.ndarray, out: np.ndarray) -> None:  # type: ignore[no-untyped-def]
+    """out (3,) = oMi[j] · local."""
+    P = ws.oMi
+    for r in range(3):
+        out[r] = P[j, r] * local[0] + P[j, r + 3] * local[1] + P[j, r + 6] * local[2] + P[j, 9 + r]
+
+
+@njit(cache=True)
+def _point_jacobian(ws, support: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:  # type: ignore[no-untyped-def]
+    """out (3, n) = J_v − p × J_ω of the body whose joints are ``support`` (world Jacobian columns)."""
+    Jt = ws.Jt
+    for k in range(Jt.shape[0]):
+        s = support[k]
+        wx, wy, wz = Jt[k, 3] * s, Jt[k, 4] * s, Jt[k, 5] * s
+        out[0, k] = Jt[k, 0] * s - (p[1] * wz - p[2] * wy)
+        out[1, k] = Jt[k, 1] * s - (p[2] * wx - p[0] * wz)
+        out[2, k] = Jt[k, 2] * s - (p[0] * wy - p[1] * wx)
+
+
+@njit(cache=True)
+def _classical_acceleration(vel: np.ndarray, acc: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:
+    """out (3,) = the classical acceleration of body point p at q̈ = 0: a + α × p + ω × (v + ω × p),
+    from the body's world spatial velocity (v, ω) and acceleration (a, α) at the world origin."""
+    wx, wy, wz = vel[3], vel[4], vel[5]
+    vx = vel[0] + wy * p[2] - wz * p[1]
+    vy = vel[1] + wz * p[0] - wx * p[2]
+    vz = vel[2] + wx * p[1] - wy * p[0]
+    out[0] = acc[0] + acc[4] * p[2] - acc[5] * p[1] + wy * vz - wz * vy
+    out[1] = acc[1] + acc[5] * p[0] - acc[3] * p[2] + wz * vx - wx * vz
+    out[2] = acc[2] + acc[3] * p[1] - acc[4] * p[0] + wx * vy - wy * vx
+
+
+@njit(cache=True)
+def rigid_terms(ws, v: np.ndarray) -> bool:  # type: ignore[no-untyped-def]
+    """M, N, the task point's x, ẋ, J, J̇q̇ and the capsules' geometry from Pinocchio's arrays (after
+    ``computeAllTerms``); False if N is not finite (speeds so large that C(q, q̇)q̇ overflows)."""
+    n = ws.N.shape[0]
+    for i in range(n):
+        ws.N[i] = ws.nle[i]
+        for j in range(n):
+            ws.M[i, j] = ws.Mt[max(i, j), min(i, j)]
+    for i in range(n):
+        if not math.isfinite(ws.N[i]):
+            return False
+    acc = ws.w3  # scratch (≥ 6)
+    vel = np.empty(6)
+    p = np.empty(3)
+    J3 = np.empty((3, n))
+    # task point
+    _world_point(ws, ws.ee_joint, ws.ee_local, p)
+    _point_jacobian(ws, ws.ee_support, p, J3)
+    for r in range(6):
+        s = 0.0
+        for k in range(n):
+            s += ws.Jt[k, r] * ws.ee_support[k] * v[k]
+        vel[r] = s
+    _world_acceleration(ws, ws.ee_joint, acc)
+    a3 = np.empty(3)
+    _classical_acceleration(vel, acc, p, a3)
+    for r in range(ws.axes.shape[0]):
+        ax = ws.axes[r]
+        ws.x[r] = p[ax]
+        ws.drift[r] = a3[ax]
+        s = 0.0
+        for k in range(n):
+            ws.J[r, k] = J3[ax, k]
+            s += J3[ax, k] * v[k]
+        ws.xdot[r] = s
+    # capsules
+    for i in range(ws.cap_joint.shape[0]):
+        j = ws.cap_joint[i]
+        _world_point(ws, j, ws.cap_local[i, 0], ws.segments[i, 0])
+        _world_point(ws, j, ws.cap_local[i, 1], ws.segments[i, 1])
+        for r in range(6):
+            s = 0.0
+            for k in range(n):
+                val = ws.Jt[k, r] * ws.cap_support[i, k]
+                ws.body_jac[i, r, k] = val
+                s += val * v[k]
+            ws.body_vel[i, r] = s
+        for r in range(3):
+            p[r] = 0.5 * (ws.segments[i, 0, r] + ws.segments[i, 1, r])
+        _point_jacobian(ws, ws.cap_support[i], p, ws.link_jac[i])
+        # q̈ = 0 acceleration field of the body: a(p) = offset + K p, offset = a + ω × v, K = [α]× + [ω]×²
+        _world_acceleration(ws, j, acc)
+        bv = ws.body_vel[i]
+        wx, wy, wz = bv[3], bv[4], bv[5]
+        ws.acc_off[i, 0] = acc[0] + wy * bv[2] - wz * bv[1]
+        ws.acc_off[i, 1] = acc[1] + wz * bv[0] - wx * bv[2]
+        ws.acc_off[i, 2] = acc[2] + wx * bv[1] - wy * bv[0]
+        K = ws.acc_K[i]
+        K[0, 0], K[0, 1], K[0, 2] = -(wy * wy + wz * wz), -acc[5] + wx * wy, acc[4] + wx * wz
+        K[1, 0], K[1, 1], K[1, 2] = acc[5] + wx * wy, -(wx * wx + wz * wz), -acc[3] + wy * wz
+        K[2, 0], K[2, 1], K[2, 2] = -acc[4] + wx * wz, acc[3] + wy * wz, -(wx * wx + wy * wy)
+    return True
+
+
+# ---------------------------------------------------------------------------------------------------
+# Scene and reference at t
+# ---------------------------------------------------------------------------------------------------
+@njit(cache=True)
+def obstacles_at(ws, t: float) -> None:  # type: ignore[no-untyped-def]
+    """Centres, velocities and accelerations of the moving obstacles at t [s] (Obstacle.position_at)."""
+    for r in range(ws.moving.shape[0]):
+        j = ws.moving[r]
+        w = ws.ob_omega[j]
+        st, ct = math.sin(w * t), math.cos(w * t)
+        for i in range(3):
+            ws.ob_c[j, i] = ws.ob_pos0[j, i] + ws.ob_vel0[j, i] * t + ws.ob_amp[j, i] * st
+            ws.ob_v[j, i] = ws.ob_vel0[j, i] + ws.ob_amp[j, i] * w * ct
+            ws.ob_a[j, i] = -ws.ob_amp[j, i] * w * w * st
+
+
+@njit(cache=True)
+def reference(ws, t: float) -> None:  # type: ignore[no-untyped-def]
+    """x_d, ẋ_d, ẍ_d at t [s] into ws.ref: straight segments with quintic timing (WaypointPath)."""
+    t0, T_all = ws.path_t0, ws.path_T
+    nseg = T_all.shape[0]
+    k = 0
+    while k < nseg and t0[k] <= t:
+        k += 1
+    k = min(max(k - 1, 0), nseg - 1)
+    T = T_all[k]
+    tau = (t - t0[k]) / T
+    if tau <= 0.0:
+        s = ds = dds = 0.0
+    elif tau >= 1.0:
+        s, ds, dds = 1.0, 0.0, 0.0
+    else:
+        t2 = tau * tau
+        s = t2 * tau * (10 - 15 * tau + 6 * t2)
+        ds = 30 * t2 * (1 - tau) ** 2
+        dds = 60 * tau * (1 - tau) * (1 - 2 * tau)
+    pts = ws.path_pts
+    for r in range(pts.shape[1]):
+        delta = pts[k + 1, r] - pts[k, r]
+        ws.ref[0, r] = pts[k, r] + s * delta
+        ws.ref[1, r] = (ds / T) * delta
+        ws.ref[2, r] = (dds / T**2) * delta
+
+
+# ---------------------------------------------------------------------------------------------------
+# Pairs
+# ---------------------------------------------------------------------------------------------------
+@njit(cache=True)
+def _candidates(ws, i: int, out: np.ndarray) -> int:  # type: ignore[no-untyped-def]
+    """The obstacles that may lie within the cutoff of capsule i, ascending: all of them, or with the
+    grid, the static obstacles in the cells the inflated capsule's box touches plus every moving one."""
+    O = ws.ob_kind.shape[0]
+    dims = ws.grid_dims
+    if dims[0] == 0:
+        for j in range(O):
+            out[j] = j
+        return O
+    a, b = ws.segments[i, 0], ws.segments[i, 1]
+    reach = ws.cap_radius[i] + ws.fpar[FP_CUTOFF]
+    h = ws.fpar[FP_GRID_H]
+    lo = np.empty(3, np.int64)
+    hi = np.empty(3, np.int64)
+    for r in range(3):
+        low = (min(a[r], b[r]) - reach - ws.grid_lo[r]) / h
+        high = (max(a[r], b[r]) + reach - ws.grid_lo[r]) / h
+        lo[r] = max(math.floor(low), 0)
+        hi[r] = min(math.floor(high), dims[r] - 1)
+    count = 0
+    stamp = i + 1  # this link's mark (find_pairs clears the marks each tick)
+    for cx in range(lo[0], hi[0] + 1):
+        for cy in range(lo[1], hi[1] + 1):
+            for cz in range(lo[2], hi[2] + 1):
+                cell = (cx * dims[1] + cy) * dims[2] + cz
+                for e in range(ws.grid_start[cell], ws.grid_start[cell + 1]):
+                    j = ws.grid_items[e]
+                    if ws.stamp[j] != stamp:
+                        ws.stamp[j] = stamp
+                        out[count] = j
+                        count += 1
+    for r in range(ws.moving.shape[0]):
+        j = ws.moving[r]
+        if ws.stamp[j] != stamp:
+            ws.stamp[j] = stamp
+            out[count] = j
+            count += 1
+    # ascending, as without the grid (insertion sort: a handful of candidates)
+    for u in range(1, count):
+        val = out[u]
+        w = u - 1
+        while w >= 0 and out[w] > val:
+            out[w + 1] = out[w]
+            w -= 1
+        out[w + 1] = val
+    return count
+
+
+@njit(cache=True)
+def find_pairs(ws) -> int:  # type: ignore[no-untyped-def]
+    """Every link–obstacle pair within the cutoff, link-major and by obstacle index: distances,
+    normals and witness points in closed form for spheres and capsules; pairs with python-fcl's
+    shapes whose bounding sphere is within the cutoff are listed as PAIR_FCL for Python to query.
+    Returns the number of PAIR_FCL pairs."""
+    cutoff = ws.fpar[FP_CUTOFF]
+    L = ws.cap_joint.shape[0]
+    O = ws.ob_kind.shape[0]
+    cand = np.empty(O, np.int64)
+    c0 = np.empty(3)
+    c1 = np.empty(3)
+    if ws.grid_dims[0] != 0:
+        ws.stamp[:] = 0
+    k = 0
+    nfcl = 0
+    for i in range(L):
+        a, b = ws.segments[i, 0], ws.segments[i, 1]
+        rl = ws.cap_radius[i]
+        nc = _candidates(ws, i, cand)
+        for u in range(nc):
+            j = cand[u]
+            kind = ws.ob_kind[j]
+            c = ws.ob_c[j]
+            if kind != KIND_SPHERE and sphere_bound(a, b, rl, c, ws.ob_bound[j]) >= cutoff:
+                continue
+            if kind == KIND_FCL:
+                ws.pr_link[k], ws.pr_obs[k], ws.pr_state[k] = i, j, PAIR_FCL
+                ws.pr_d[k] = np.inf
+                k += 1
+                nfcl += 1
+                continue
+            for r in range(3):
+                half = 0.5 * ws.ob_axis[j, r]
+                c0[r] = c[r] - half
+                c1[r] = c[r] + half
+            d = capsule_pair(a, b, rl, c0, c1, ws.ob_radius[j], ws.pr_n[k], ws.pr_pl[k], ws.pr_po[k])
+            if d < cutoff:
+                ws.pr_link[k], ws.pr_obs[k], ws.pr_state[k] = i, j, PAIR_OK
+                ws.pr_d[k] = d
+                k += 1
+    ws.cnt[CNT_PAIRS] = k
+    ws.cnt[CNT_FCL] = nfcl
+    return nfcl
+
+
+@njit(cache=True)
+def barrier_drift(ws, r: int) -> bool:  # type: ignore[no-untyped-def]
+    """ḧ at q̈ = 0 of pair r (∂ḣ/∂q q̇ + ∂ḣ/∂t) into pr_bdrift[r], in closed form for a sphere or
+    capsule obstacle; False where it has none (python-fcl's shapes, meeting or parallel axes).
+
+    The axis points p = a + τu (link) and q = c₀ + σs (obstacle) are closest, so with w = p − q,
+    ρ = |w|, n = w/ρ and h = ρ − radii − d_s: ḣ = nᵀẇ and ḧ = nᵀẅ + (|ẇ|² − (nᵀẇ)²)/ρ, where
+    ẇ = v_p − v_q + τ̇u − σ̇s and nᵀẅ = nᵀ(a_p − a_q) + 2τ̇ nᵀu̇ (v_p, a_p: the body point's velocity
+    and q̈ = 0 acceleration; u̇ = ω × u; obstacles translate, ṡ = 0; τ̈ drops out where τ is interior
+    since n ⊥ u, and τ̇ = τ̈ = 0 where it is clamped; likewise σ). τ̇, σ̇ keep the closest-point
+    conditions wᵀu = 0, wᵀs = 0 for the free parameters.
+    """
+    i, j = ws.pr_link[r], ws.pr_obs[r]
+    kind = ws.ob_kind[j]
+    if kind == KIND_FCL:
+        return False
+    nx, ny, nz = ws.pr_n[r, 0], ws.pr_n[r, 1], ws.pr_n[r, 2]
+    rl, ro = ws.cap_radius[i], ws.ob_radius[j]
+    px, py, pz = ws.pr_pl[r, 0] + rl * nx, ws.pr_pl[r, 1] + rl * ny, ws.pr_pl[r, 2] + rl * nz  # link axis
+    qx, qy, qz = ws.pr_po[r, 0] - ro * nx, ws.pr_po[r, 1] - ro * ny, ws.pr_po[r, 2] - ro * nz  # obstacle's
+    wx, wy, wz = px - qx, py - qy, pz - qz
+    a, b = ws.segments[i, 0], ws.segments[i, 1]
+    ux, uy, uz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+    sx, sy, sz = ws.ob_axis[j, 0], ws.ob_axis[j, 1], ws.ob_axis[j, 2]
+    cx, cy, cz = ws.ob_c[j, 0], ws.ob_c[j, 1], ws.ob_c[j, 2]
+    bv = ws.body_vel[i]
+    vx, vy, vz, ox, oy, oz = bv[0], bv[1], bv[2], bv[3], bv[4], bv[5]
+    vpx, vpy, vpz = vx + oy * pz - oz * py, vy + oz * px - ox * pz, vz + ox * py - oy * px  # v + ω × p
+    udx, udy, udz = oy * uz - oz * uy, oz * ux - ox * uz, ox * uy - oy * ux  # u̇ = ω × u
+    K = ws.acc_K[i]
+    o = ws.acc_off[i]
+    apx = o[0] + K[0, 0] * px + K[0, 1] * py + K[0, 2] * pz  # a_p = offset + K p
+    apy = o[1] + K[1, 0] * px + K[1, 1] * py + K[1, 2] * pz
+    apz = o[2] + K[2, 0] * px + K[2, 1] * py + K[2, 2] * pz
+    vo, ao = ws.ob_v[j], ws.ob_a[j]
+    dvx, dvy, dvz = vpx - vo[0], vpy - vo[1], vpz - vo[2]
+    L2 = ux * ux + uy * uy + uz * uz
+    tau_l2 = (px - a[0]) * ux + (py - a[1]) * uy + (pz - a[2]) * uz  # τ L²
+    S2 = sx * sx + sy * sy + sz * sz
+    sigma_s2 = (qx - cx + 0.5 * sx) * sx + (qy - cy + 0.5 * sy) * sy + (qz - cz + 0.5 * sz) * sz  # σ |s|²
+    t_free = L2 > 1e-18 and 1e-9 * L2 < tau_l2 < (1.0 - 1e-9) * L2
+    s_free = S2 > 1e-18 and 1e-9 * S2 < sigma_s2 < (1.0 - 1e-9) * S2
+    e1 = -(dvx * ux + dvy * uy + dvz * uz + wx * udx + wy * udy + wz * udz)  # L²τ̇ − (u·s)σ̇ = e1
+    e2 = -(dvx * sx + dvy * sy + dvz * sz)  # (u·s)τ̇ − |s|²σ̇ = e2
+    us = ux * sx + uy * sy + uz * sz
+    tau_dot = sigma_dot = 0.0
+    if t_free and s_free:
+        det = us * us - L2 * S2
+        if abs(det) <= 1e-9 * L2 * S2:  # parallel axes: the closest points are not unique
+            return False
+        tau_dot, sigma_dot = (us * e2 - S2 * e1) / det, (L2 * e2 - us * e1) / det
+    elif t_free:
+        tau_dot = e1 / L2
+    elif s_free:
+        sigma_dot = -e2 / S2
+    rho2 = wx * wx + wy * wy + wz * wz
+    if not rho2 > 1e-18:  # the axes meet: the normal is not differentiable
+        return False
+    wdx = dvx + tau_dot * ux - sigma_dot * sx
+    wdy = dvy + tau_dot * uy - sigma_dot * sy
+    wdz = dvz + tau_dot * uz - sigma_dot * sz
+    nw = nx * wdx + ny * wdy + nz * wdz
+    ws.pr_bdrift[r] = (nx * (apx - ao[0]) + ny * (apy - ao[1]) + nz * (apz - ao[2])
+                       + 2.0 * tau_dot * (nx * udx + ny * udy + nz * udz)
+                       + (wdx * wdx + wdy * wdy + wdz * wdz - nw * nw) / math.sqrt(max(rho2, 1e-24)))
+    return True
+
+
+@njit(cache=True)
+def finish_pairs(ws) -> int:  # type: ignore[no-untyped-def]
+    """After python-fcl: drop the pairs it found beyond the cutoff (order kept), then each pair's
+    witness-point Jacobian and drift, the barrier drift (closed form where it exists, when the QP
+    needs it) and the clearance. Returns the number of pairs left for the look-ahead drift."""
+    k = 0
+    for r in range(ws.cnt[CNT_PAIRS]):
+        if ws.pr_state[r] == PAIR_FAR:
+            continue
+        if k != r:
+            ws.pr_link[k], ws.pr_obs[k], ws.pr_d[k], ws.pr_state[k] = (ws.pr_link[r], ws.pr_obs[r], ws.pr_d[r],
+                                                                         ws.pr_state[r])
+            for c in range(3):
+                ws.pr_n[k, c], ws.pr_pl[k, c], ws.pr_po[k, c] = ws.pr_n[r, c], ws.pr_pl[r, c], ws.pr_po[r, c]
+        k += 1
+    ws.cnt[CNT_PAIRS] = k
+    ws.cnt[CNT_FCL] = 0
+    clearance = np.inf
+    look = 0
+    need = ws.ipar[IP_BDRIFT] != 0
+    for r in range(k):
+        i = ws.pr_link[r]
+        clearance = min(clearance, ws.pr_d[r])
+        _point_jacobian(ws, ws.cap_support[i], ws.pr_pl[r], ws.pr_jac[r])
+        p = ws.pr_pl[r]
+        K = ws.acc_K[i]
+        for c in range(3):
+            ws.pr_drift[r, c] = ws.acc_off[i, c] + K[c, 0] * p[0] + K[c, 1] * p[1] + K[c, 2] * p[2]
+        ws.pr_bok[r] = 1
+        if need and not barrier_drift(ws, r):
+            ws.pr_bok[r] = 0
+            ws.pr_bdrift[r] = 0.0
+            look += 1
+    ws.fpar[FP_CLEARANCE] = clearance
+    ws.cnt[CNT_LOOKAHEAD] = look
+    return look
+
+
+@njit(cache=True)
+def state(ws, q: np.ndarray, v: np.ndarray, t: float) -> int:  # type: ignore[no-untyped-def]
+    """The tick's state after ``computeAllTerms(q, v)``: rigid terms, obstacles and reference at t,
+    pairs. Returns −1 when the dynamics overflow, else the number of pairs python-fcl must query
+    (when 0, :func:`finish_pairs` has run too)."""
+    for i in range(q.shape[0]):
+        ws.q[i], ws.v[i] = q[i], v[i]
+    ws.fpar[FP_T] = t
+    if not rigid_terms(ws, v):
+        return -1
+    obstacles_at(ws, t)
+    reference(ws, t)
+    nfcl = find_pairs(ws)
+    if nfcl == 0:
+        finish_pairs(ws)
+    return nfcl
+
+
+# ---------------------------------------------------------------------------------------------------
+# The law's terms and the closed forms
+# ---------------------------------------------------------------------------------------------------
+@njit(cache=True)
+def reference_velocity(ws) -> None:  # type: ignore[no-untyped-def]
+    """g [rad/s]: the joint velocity that best realises u = v_ref α(d) n at every link point within d_i
+    (rows and targets weighed by √α; damped least squares, λ = g_damping)."""
+    n = ws.g.shape[0]
+    di, ds = ws.fpar[FP_DI], ws.fpar[FP_DS]
+    v_ref = ws.fpar[FP_VREF]
+    H, rhs = ws.S, ws.g
+    H[:, :] = 0.0
+    rhs[:] = 0.0
+    any_active = False
+    for r in range(ws.cnt[CNT_PAIRS]):
+        d = ws.pr_d[r]
+        if not d < di:
+            continue
+        own = ws.ob_vref[ws.pr_obs[r]]
+        vr = v_ref if math.isnan(own) else own
+        if vr == 0.0:
+            continue
+        alpha = min(max((di - d) / (di - ds), 0.0), 1.0)
+        w = math.sqrt(alpha)
+        Jp = ws.pr_jac[r]
+        for c in range(3):
+            b = w * ((vr * alpha) * ws.pr_n[r, c])
+            for i in range(n):
+                ai = w * Jp[c, i]
+                rhs[i] += ai * b
+                for j in range(i + 1):
+                    H[i, j] += ai * (w * Jp[c, j])
+        any_active = True
+    if not any_active:
+        rhs[:] = 0.0
+        return
+    lam2 = ws.fpar[FP_GDAMP] ** 2
+    for i in range(n):
+        H[i, i] += lam2
+    if not cholesky(H, ws.Lb):  # λ = 0 and too few rows: regularise as W_b is
+        tr = 0.0
+        for i in range(n):
+            tr += H[i, i]
+        for i in range(n):
+            H[i, i] += 1e-9 * max(tr, 1.0)
+        cholesky(H, ws.Lb)
+    chol_solve(ws.Lb, rhs)
+
+
+@njit(cache=True)
+def _weighted_pinv(ws, L: np.ndarray, out: np.ndarray, mode: int) -> bool:  # type: ignore[no-untyped-def]
+    """out (n, m) = J_W⁺ of the task Jacobian: mode 0 unweighted, 1 with W = L Lᵀ (a Cholesky factor),
+    2 with W = MᵀM (L is M's Cholesky factor). Returns whether the damping was used."""
+    n, m = ws.Bt.shape
+    Bt = ws.Bt
+    for i in range(n):
+        for r in range(m):
+            Bt[i, r] = ws.J[r, i]
+    if mode == 1:
+        solve_lower(L, Bt)  # J̃ᵀ = L⁻¹ Jᵀ
+    elif mode == 2:
+        chol_solve(L, Bt)  # J̃ᵀ = M⁻¹ Jᵀ
+    singular, _ratio = pinv_t(Bt, ws.fpar[FP_PINV_EPS], ws.Vm, out)
+    if mode == 1:
+        solve_lower_t(L, out)  # L⁻ᵀ J̃⁺
+    elif mode == 2:
+        chol_solve(L, out)  # M⁻¹ J̃⁺
+    return singular
+
+
+@njit(cache=True)
+def law_terms(ws, weighted: bool) -> bool:  # type: ignore[no-untyped-def]
+    """a, g, e_N, q̈₀ (qpctl.law) into the workspace; False if M is not positive definite."""
+    n, m = ws.g.shape[0], ws.a.shape[0]
+    kp, kv, kn = ws.fpar[FP_KP], ws.fpar[FP_KV], ws.fpar[FP_KN]
+    for r in range(m):
+        ws.e[r] = ws.ref[0, r] - ws.x[r]
+        ws.edot[r] = ws.ref[1, r] - ws.xdot[r]
+        ws.a[r] = ws.ref[2, r] + kv * ws.edot[r] + kp * ws.e[r] - ws.drift[r]
+    if not cholesky(ws.M, ws.Lm):
+        return False
+    reference_velocity(ws)
+    if weighted:  # Ryu's W_b = Σ J_iᵀJ_i over the links' mid-points, + 1e-9·max(tr, 1)·I
+        W = ws.S
+        W[:, :] = 0.0
+        for i in range(ws.link_jac.shape[0]):
+            Jl = ws.link_jac[i]
+            for c in range(3):
+                for a in range(n):
+                    for b in range(a + 1):
+                        W[a, b] += Jl[c, a] * Jl[c, b]
+        tr = 0.0
+        for a in range(n):
+            tr += W[a, a]
+        for a in range(n):
+            W[a, a] += 1e-9 * max(tr, 1.0)
+        cholesky(W, ws.Lb)
+        singular = _weighted_pinv(ws, ws.Lb, ws.Jb, 1)
+    else:
+        singular = _weighted_pinv(ws, ws.Lb, ws.Jb, 0)
+    ws.flags[FLAG_SINGULAR_TERMS] = 1 if singular else 0
+    # e_N = (I − J_b⁺J)(g − q̇)
+    gv, Jgv = ws.w1, ws.w3
+    for i in range(n):
+        gv[i] = ws.g[i] - ws.v[i]
+    for r in range(m):
+        s = 0.0
+        for i in range(n):
+            s += ws.J[r, i] * gv[i]
+        Jgv[r] = s
+    for i in range(n):
+        s = gv[i]
+        for r in range(m):
+            s -= ws.Jb[i, r] * Jgv[r]
+        ws.e_null[i] = s
+    if ws.ipar[IP_JDOT_EN] != 0:
+        for r in range(m):
+            s = 0.0
+            for i in range(n):
+                s += ws.Jdot[r, i] * ws.e_null[i]
+            ws.a[r] += s
+    # q̈₀ = −M⁻¹N + K_N e_N (paper), K_N e_N (Hsu)
+    if weighted:
+        for i in range(n):
+            ws.w2[i] = ws.N[i]
+        chol_solve(ws.Lm, ws.w2)
+        for i in range(n):
+            ws.qdd0[i] = -ws.w2[i] + kn * ws.e_null[i]
+    else:
+        for i in range(n):
+            ws.qdd0[i] = kn * ws.e_null[i]
+    return True
+
+
+@njit(cache=True)
+def write_record(ws, singular: bool) -> None:  # type: ignore[no-untyped-def]
+    """The tick's outputs into ws.rec: τ, q̈, x_d, ẋ_d, ẍ_d, x, e_N, then the scalars R_*."""
+    n, m = ws.tau.shape[0], ws.a.shape[0]
+    rec = ws.rec
+    for i in range(n):
+        rec[i] = ws.tau[i]
+        rec[n + i] = ws.qdd[i]
+        rec[2 * n + 4 * m + i] = ws.e_null[i]
+    for r in range(m):
+        rec[2 * n + r] = ws.ref[0, r]
+        rec[2 * n + m + r] = ws.ref[1, r]
+        rec[2 * n + 2 * m + r] = ws.ref[2, r]
+        rec[2 * n + 3 * m + r] = ws.x[r]
+    s = 3 * n + 4 * m
+    rec[s + R_CLEARANCE] = ws.fpar[FP_CLEARANCE]
+    rec[s + R_SINGULAR] = 1.0 if singular else 0.0
+    rec[s + R_PAIRS] = ws.cnt[CNT_PAIRS]
+    rec[s + R_DROPPED] = ws.cnt[CNT_DROPPED]
+
+
+@njit(cache=True)
+def torque_of(ws) -> None:  # type: ignore[no-untyped-def]
+    """τ = M q̈ + N."""
+    n = ws.tau.shape[0]
+    for i in range(n):
+        s = 0.0
+        for j in range(n):
+            s += ws.M[i, j] * ws.qdd[j]
+        ws.tau[i] = s + ws.N[i]
+
+
+@njit(cache=True)
+def closed_form(ws, weighted: bool) -> bool:  # type: ignore[no-untyped-def]
+    """The paper's law (weighted, W = MᵀM) or Hsu's (unweighted) after :func:`law_terms`:
+    q̈ = J_W⁺ a + (I − J_W⁺J) q̈₀, τ = M q̈ + N; returns whether a pseudo-inverse was damped."""
+    n, m = ws.qdd.shape[0], ws.a.shape[0]
+    singular = _weighted_pinv(ws, ws.Lm, ws.Jp, 2 if weighted else 0)
+    Jq0 = ws.w3
+    for r in range(m):
+        s = 0.0
+        for i in range(n):
+            s += ws.J[r, i] * ws.qdd0[i]
+        Jq0[r] = s
+    for i in range(n):
+        s1 = 0.0
+        s2 = 0.0
+        for r in range(m):
+            s1 += ws.Jp[i, r] * ws.a[r]
+            s2 += ws.Jp[i, r] * Jq0[r]
+        ws.qdd[i] = s1 + ws.qdd0[i] - s2
+    torque_of(ws)
+    singular = singular or ws.flags[FLAG_SINGULAR_TERMS] != 0
+    ws.flags[FLAG_SINGULAR_CF] = 1 if singular else 0
+    return singular
+
+
+@njit(cache=True)
+def closed_form_tick(ws, weighted: bool) -> int:  # type: ignore[no-untyped-def]
+    """Law terms, the closed form and the record: 0, or 1 when M is not positive definite."""
+    if not law_terms(ws, weighted):
+        return 1
+    singular = closed_form(ws, weighted)
+    write_record(ws, singular)
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------------
+# The QP in DAQP's layout: x = [q̈ (n), s⁺ (k), s⁻ (k)];  bounds on x (nv), then the inequality rows
+# (n_in), then the equality rows (m): rows = [C; A], bu = [ub; u; b], bl = [lb; l; b]
+# ---------------------------------------------------------------------------------------------------
+@njit(cache=True)
+def joint_bounds(ws, lo: np.ndarray, hi: np.ndarray) -> None:  # type: ignore[no-untyped-def]
+    """JointLimit's bounds on q̈ [rad/s²]: ḧ + k₁ḣ + k₀h ≥ 0 on the positions, ḣ + k_v h ≥ 0 on the
+    speeds; ∞ − ∞ (NaN) counts as no bound; crossed bounds both become their mean."""
+    k0, k1, kv = ws.fpar[FP_JK0], ws.fpar[FP_JK1], ws.fpar[FP_JKV]
+    for i in range(lo.shape[0]):
+        q, v = ws.q[i], ws.v[i]
+        low = max(-k1 * v - k0 * (q - ws.q_min[i]), -kv * (ws.v_max[i] + v))
+        high = min(-k1 * v + k0 * (ws.q_max[i] - q), kv * (ws.v_max[i] - v))
+        if math.isnan(low):
+            low = -np.inf
+        if math.isnan(high):
+            high = np.inf
+        if low > high:
+            low = high = 0.5 * (low + high)
+        lo[i], hi[i] = low, high
+
+
+@njit(cache=True)
+def qp_build(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray,  # type: ignore[no-untyped-def]
+             bl: np.ndarray) -> None:
+    """The tick's cost and rows, in place (the slack columns, their costs and bounds, and the
+    inactive rows' infinite bounds are set once by qpctl.tick and not touched here)."""
+    n, m = ws.N.shape[0], ws.a.shape[0]
+    nv = H.shape[0]
+    n_in = ws.ipar[IP_N_IN]
+    M = ws.M
+    wacc = ws.fpar[FP_WACC]
+    # ½ w‖M(q̈ − q̈₀)‖²: H = w MᵀM, f = −w MᵀM q̈₀ (AccelerationTask)
+    for i in range(n):
+        for j in range(i + 1):
+            s = 0.0
+            for k in range(n):
+                s += M[k, i] * M[k, j]
+            H[i, j] = H[j, i] = wacc * s
+    for i in range(n):
+        s = 0.0
+        for j in range(n):
+            s += H[i, j] * ws.qdd0[j]
+        f[i] = -s
+    if ws.ipar[IP_POSTURE] != 0:  # ½ w‖q̈ − (K_p(q_ref − q) − K_d q̇)‖² (PostureTask)
+        w, pkp, pkd = ws.fpar[FP_WPOST], ws.fpar[FP_PKP], ws.fpar[FP_PKD]
+        for i in range(n):
+            H[i, i] += w
+            f[i] += -w * (pkp * (ws.q_ref[i] - ws.q[i]) - pkd * ws.v[i])
+    # J q̈ + s = a (EndEffectorTask)
+    e0 = nv + n_in
+    for r in range(m):
+        for k in range(n):
+            rows[n_in + r, k] = ws.J[r, k]
+        bu[e0 + r] = bl[e0 + r] = ws.a[r]
+    # −τ_max ≤ M q̈ + N ≤ τ_max (TorqueLimit)
+    t0 = ws.ipar[IP_TORQUE_ROW0]
+    if t0 >= 0:
+        for i in range(n):
+            for k in range(n):
+                rows[t0 + i, k] = M[i, k]
+            bl[nv + t0 + i] = -ws.tau_max[i] - ws.N[i]
+            bu[nv + t0 + i] = ws.tau_max[i] - ws.N[i]
+    # joint position and speed limits as bounds on q̈ (JointLimit)
+    if ws.ipar[IP_JOINT_LIMITS] != 0:
+        joint_bounds(ws, bl[:n], bu[:n])
+    # ḧ + k₁ḣ + k₀h ≥ 0 for the nearest pairs (ObstacleBarrier)
+    b0 = ws.ipar[IP_BARRIER_ROW0]
+    if b0 >= 0:
+        barrier_rows(ws, rows[b0:b0 + ws.ipar[IP_CAPACITY]], bl[nv + b0:nv + b0 + ws.ipar[IP_CAPACITY]])
+
+
+@njit(cache=True)
+def barrier_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no-untyped-def]
+    """nᵀJ_p q̈ ≥ −k₁ḣ − k₀h − drift for the nearest pairs, as many as there are rows (the rest
+    inactive: zero rows, −∞ bounds); h = d − d_s, ḣ = nᵀ(J_p q̇ − v_obs)."""
+    n = ws.N.shape[0]
+    k = ws.cnt[CNT_PAIRS]
+    cap = C.shape[0]
+    order = np.argsort(ws.pr_d[:k], kind="mergesort")
+    used = min(k, cap)
+    ws.cnt[CNT_DROPPED] = k - used
+    k0, k1, ds = ws.fpar[FP_BK0], ws.fpar[FP_BK1], ws.fpar[FP_DS]
+    rigid = ws.ipar[IP_DRIFT_RIGID] != 0
+    for r in range(used):
+        p = order[r]
+        ws.order[r] = p
+        j = ws.pr_obs[p]
+        nx, ny, nz = ws.pr_n[p, 0], ws.pr_n[p, 1], ws.pr_n[p, 2]
+        Jp = ws.pr_jac[p]
+        hdot = 0.0
+        for c in range(n):
+            val = nx * Jp[0, c] + ny * Jp[1, c] + nz * Jp[2, c]
+            C[r, c] = val
+            hdot += val * ws.v[c]
+        vo = ws.ob_v[j]
+        hdot -= nx * vo[0] + ny * vo[1] + nz * vo[2]
+        if rigid:
+            ao = ws.ob_a[j]
+            dr = ws.pr_drift[p]
+            drift = nx * (dr[0] - ao[0]) + ny * (dr[1] - ao[1]) + nz * (dr[2] - ao[2])
+        else:
+            drift = ws.pr_bdrift[p]
+        lower[r] = -k1 * hdot - k0 * (ws.pr_d[p] - ds) - drift
+    for r in range(used, cap):
+        for c in range(n):
+            C[r, c] = 0.0
+        lower[r] = -np.inf
+
+
+@njit(cache=True)
+def violation(x: np.ndarray, n: int, n_in: int, rows: np.ndarray, bu: np.ndarray,
+              bl: np.ndarray) -> float:
+    """Largest violation at x of the inequality rows and of the bounds on q̈, each relative to
+    1 + |its bound| (infinite bounds never count); the task's equality is the solver's business."""
+    nv = x.shape[0]
+    worst = 0.0
+    for r in range(n_in + n):
+        if r < n_in:
+            s = 0.0
+            for c in range(nv):
+                s += rows[r, c] * x[c]
+            lo, hi = bl[nv + r], bu[nv + r]
+        else:
+            s = x[r - n_in]
+            lo, hi = bl[r - n_in], bu[r - n_in]
+        if math.isfinite(lo) and lo - s > 0.0:
+            worst = max(worst, (lo - s) / (1.0 + abs(lo)))
+        if math.isfinite(hi) and s - hi > 0.0:
+            worst = max(worst, (s - hi) / (1.0 + abs(hi)))
+    return worst
+
+
+@njit(cache=True)
+def qp_finish(ws, x: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarray,  # type: ignore[no-untyped-def]
+              tol: float) -> bool:
+    """Check the solver's x against the hard rows (relative violation ≤ tol); if it holds, τ = M q̈ + N
+    within ±τ_max (the solver's residue clipped, q̈ recomputed), slack and active-row counts, and the
+    record. False (nothing written) if x is not finite or violates a row."""
+    n = ws.N.shape[0]
+    n_in = ws.ipar[IP_N_IN]
+    nv = x.shape[0]
+    for c in range(nv):
+        if not math.isfinite(x[c]):
+            return False
+    viol = violation(x, n, n_in, rows, bu, bl)
+    if viol > tol:
+        return False
+    for i in range(n):
+        ws.qdd[i] = x[i]
+    finish_torque(ws)
+    s = record_scalars(n, ws.a.shape[0])
+    half = (nv - n) // 2
+    sl = 0.0
+    for r in range(half):
+        d = x[n + r] - x[n + half + r]
+        sl += d * d
+    active = 0
+    mask = 0
+    t0, b0 = ws.ipar[IP_TORQUE_ROW0], ws.ipar[IP_BARRIER_ROW0]
+    for r in range(n_in):
+        cx = 0.0
+        for c in range(nv):
+            cx += rows[r, c] * x[c]
+        if min(abs(cx - bl[nv + r]), abs(cx - bu[nv + r])) <= 1e-6 * (1.0 + abs(cx)):
+            active += 1
+            if t0 >= 0 and t0 <= r < t0 + n:
+                mask |= 1
+            if b0 >= 0 and b0 <= r < b0 + ws.ipar[IP_CAPACITY]:
+                mask |= 2
+    for i in range(n):
+        if min(abs(x[i] - bl[i]), abs(x[i] - bu[i])) <= 1e-6:
+            active += 1
+    write_record(ws, ws.flags[FLAG_SINGULAR_TERMS] != 0)
+    ws.rec[s + R_SLACK] = math.sqrt(sl)
+    ws.rec[s + R_ACTIVE] = active
+    ws.rec[s + R_ACTIVE_MASK] = mask
+    ws.rec[s + R_VIOLATION] = viol
+    return True
+
+
+@njit(cache=True)
+def finish_torque(ws) -> float:  # type: ignore[no-untyped-def]
+    """τ = M q̈ + N, clipped to ±τ_max where the torque limits are constraints (q̈ then follows from the
+    clipped τ); returns the largest clip [N·m] (0 if none), also in the record."""
+    n = ws.N.shape[0]
+    torque_of(ws)
+    clip = 0.0
+    if ws.ipar[IP_TORQUE_ROW0] >= 0:
+        for i in range(n):
+            lim = ws.tau_max[i]
+            t = min(max(ws.tau[i], -lim), lim)
+            clip = max(clip, abs(t - ws.tau[i]))
+            ws.tau[i] = t
+        if clip > 0.0:
+            for i in range(n):
+                ws.qdd[i] = ws.tau[i] - ws.N[i]
+            chol_solve(ws.Lm, ws.qdd)
+    ws.rec[record_scalars(n, ws.a.shape[0]) + R_CLIPPED] = clip
+    ws.flags[FLAG_CLIPPED] = 1 if clip > 0.0 else 0
+    return clip
+
+
+@njit(cache=True)
+def finite_problem(H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarray) -> bool:
+    """No NaN anywhere and no infinity outside the bounds (where ±∞ means "no bound")."""
+    acc = 0.0
+    for i in range(H.shape[0]):
+        acc += f[i] * 0.0
+        for j in range(H.shape[1]):
+            acc += H[i, j] * 0.0
+    for i in range(rows.shape[0]):
+        for j in range(rows.shape[1]):
+            acc += rows[i, j] * 0.0
+    if acc != 0.0:  # NaN (0·∞ or NaN itself)
+        return False
+    for i in range(bu.shape[0]):
+        if math.isnan(bu[i]) or math.isnan(bl[i]):
+            return False
+    return True
+
+
+@njit(cache=True)
+def qp_terms_and_build(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray,  # type: ignore[no-untyped-def]
+                       bl: np.ndarray) -> int:
+    """The QP law's terms (the paper's, weighted) and its rows: 0; 1 if M is not positive definite;
+    2 if the problem's data are not finite (no solver may be trusted with it)."""
+    if not law_terms(ws, True):
+        return 1
+    qp_build(ws, H, f, rows, bu, bl)
+    return 0 if finite_problem(H, f, rows, bu, bl) else 2

@@ -1,0 +1,145 @@
+"""The tick's workspace: every fixed-shape array the compiled kernels read and write, in one object.
+
+A :class:`TickWork` is a numba structref: the kernels receive it as one argument (about 0.8 µs to
+pass, whatever the number of fields; forty separate arrays would cost 3–5 µs of dispatch per call),
+while Python keeps its own references to the same numpy arrays (:class:`qpctl.tick.Workspace`).
+Its fields are declared once here, in :data:`FIELDS`, grouped by who writes them:
+
+* bound once: Pinocchio's arrays as numpy views (``computeAllTerms`` refreshes them in place);
+* built once: the robot's capsules and task frame, the scene, the path, gains and QP settings;
+* written every tick: the rigid-body terms, the pairs (fixed capacity: every link × obstacle pair),
+  the law's terms, and the output record.
+"""
+
+from __future__ import annotations
+
+from numba import njit
+from numba.core import types
+from numba.experimental import structref
+
+
+@structref.register
+class TickWorkType(types.StructRef):
+    def preprocess_fields(self, fields: tuple[tuple[str, types.Type], ...]) -> tuple[tuple[str, types.Type], ...]:
+        return tuple((name, types.unliteral(typ)) for name, typ in fields)
+
+
+class TickWork(structref.StructRefProxy):
+    """The compiled kernels' view of a :class:`qpctl.tick.Workspace` (fields: :data:`FIELDS`)."""
+
+
+FIELDS = (
+    # -- Pinocchio's data, bound once as views (n joints, nj = n + 1 joint frames) --------------------
+    "oMi",  # (nj, 12) joint placements: rotation column-major (9), then translation (3)
+    "acc_local",  # (nj, 6) joint accelerations at q̈ = 0 in their own frames (linear, angular)
+    "Jt",  # (n, 6) data.J transposed: world Jacobian column of each joint
+    "Mt",  # (n, n) data.M transposed: its lower triangle holds the inertia matrix
+    "nle",  # (n,) C(q, q̇)q̇ + G(q)
+    # -- robot, built once (L capsules, m task coordinates) ------------------------------------------
+    "cap_joint",  # (L,) int: the joint whose body carries capsule i
+    "cap_local",  # (L, 2, 3) capsule axis end points in that joint's frame [m]
+    "cap_radius",  # (L,) [m]
+    "cap_support",  # (L, n) 1 where joint k moves capsule i's body
+    "ee_joint",  # int: the task frame's parent joint
+    "ee_local",  # (3,) task point in that joint's frame [m]
+    "ee_support",  # (n,)
+    "axes",  # (m,) int: the world axes of the task
+    # -- scene, built once (O obstacles) -------------------------------------------------------------
+    "ob_kind",  # (O,) int: KIND_SPHERE, KIND_CAPSULE or KIND_FCL (python-fcl's shapes)
+    "ob_radius",  # (O,) [m]
+    "ob_bound",  # (O,) bounding-sphere radius [m]
+    "ob_axis",  # (O, 3) capsule axis vector s (length × unit axis; zero for other shapes) [m]
+    "ob_pos0",  # (O, 3) centre at t = 0 [m]
+    "ob_vel0",  # (O, 3) constant velocity [m/s]
+    "ob_amp",  # (O, 3) sway amplitude [m]
+    "ob_omega",  # (O,) sway angular frequency 2πf [rad/s]
+    "ob_vref",  # (O,) the obstacle's own v_ref [m/s] (NaN: the controller's)
+    "moving",  # (Mo,) int: the obstacles that move
+    "grid_lo",  # (3,) broad phase: lower corner of the static obstacles' grid [m]
+    "grid_dims",  # (3,) int: cells along x, y, z (0: no grid, every obstacle is a candidate)
+    "grid_start",  # (cells + 1,) int: CSR offsets into grid_items
+    "grid_items",  # (entries,) int: static obstacles overlapping each cell
+    "stamp",  # (O,) int: last link that saw obstacle j as a candidate (deduplicates grid hits)
+    # -- path (WaypointPath: K segments with quintic timing) ----------------------------------------
+    "path_pts",  # (K + 1, m) [m]
+    "path_t0",  # (K,) segment start times [s]
+    "path_T",  # (K,) segment durations [s]
+    # -- gains and settings --------------------------------------------------------------------------
+    "fpar",  # (FP_SIZE,) float settings, indexed by the FP_* constants of qpctl.kernels.tick
+    "ipar",  # (IP_SIZE,) int settings, indexed by the IP_* constants
+    "q_ref",  # (n,) posture task target [rad]
+    "tau_max",  # (n,) [N·m]
+    "q_min",  # (n,)
+    "q_max",  # (n,)
+    "v_max",  # (n,)
+    # -- per tick: the state and the obstacles at t -----------------------------------------------
+    "q",  # (n,) joint positions of this tick [rad]
+    "v",  # (n,) joint velocities [rad/s]
+    "ob_c",  # (O, 3) centres [m]
+    "ob_v",  # (O, 3) velocities [m/s]
+    "ob_a",  # (O, 3) accelerations [m/s²]
+    # -- per tick: rigid-body terms ------------------------------------------------------------------
+    "M",  # (n, n) symmetric inertia [kg·m²]
+    "N",  # (n,) [N·m]
+    "x",  # (m,) task point [m]
+    "xdot",  # (m,) [m/s]
+    "J",  # (m, n)
+    "drift",  # (m,) J̇q̇ [m/s²]
+    "Jdot",  # (m, n) J̇, filled by Python only when the law's J̇e_N term is on
+    "segments",  # (L, 2, 3) capsule axes in the world [m]
+    "body_jac",  # (L, 6, n) world Jacobians of the capsules' bodies
+    "body_vel",  # (L, 6) their world spatial velocities (v at the origin, ω)
+    "acc_off",  # (L, 3) q̈ = 0 acceleration field a(p) = acc_off + acc_K p of each body
+    "acc_K",  # (L, 3, 3)
+    "link_jac",  # (L, 3, n) Jacobians of the capsules' mid-points
+    "ref",  # (3, m) x_d, ẋ_d, ẍ_d
+    # -- per tick: link–obstacle pairs (capacity KC = L × O; the first cnt[CNT_PAIRS] are valid) ----
+    "pr_link",  # (KC,) int
+    "pr_obs",  # (KC,) int
+    "pr_d",  # (KC,) signed distance [m]
+    "pr_n",  # (KC, 3) unit normal, obstacle → link
+    "pr_pl",  # (KC, 3) witness point on the link [m]
+    "pr_po",  # (KC, 3) witness point on the obstacle [m]
+    "pr_state",  # (KC,) int: PAIR_OK, PAIR_FCL (python-fcl to query), PAIR_FAR (dropped after it)
+    "pr_jac",  # (KC, 3, n) Jacobians of the link witness points
+    "pr_drift",  # (KC, 3) J̇_p q̇ of the link witness points [m/s²]
+    "pr_bdrift",  # (KC,) ḧ at q̈ = 0 (the barrier's drift) [m/s²]
+    "pr_bok",  # (KC,) int: 1 where pr_bdrift is in closed form, 0 where Python's look-ahead fills it
+    "order",  # (KC,) int: pairs by distance, nearest first
+    "cnt",  # (CNT_SIZE,) int counters, indexed by the CNT_* constants
+    # -- per tick: law terms -------------------------------------------------------------------------
+    "e",  # (m,) x_d − x [m]
+    "edot",  # (m,) [m/s]
+    "a",  # (m,) task acceleration target [m/s²]
+    "g",  # (n,) obstacle reference joint velocity [rad/s]
+    "e_null",  # (n,) null-space velocity error [rad/s]
+    "qdd0",  # (n,) null-space acceleration target [rad/s²]
+    "Jb",  # (n, m) J_b⁺ (Ryu-weighted, or Moore–Penrose for Hsu)
+    "Jp",  # (n, m) J_M⁺ of the closed form
+    "qdd",  # (n,) commanded acceleration [rad/s²]
+    "tau",  # (n,) commanded torque [N·m]
+    "Lm",  # (n, n) Cholesky factor of M
+    "Lb",  # (n, n) Cholesky factor of W_b (or of g's normal matrix, reused)
+    "S",  # (n, n) scratch
+    "Bt",  # (n, m) scratch: the transposed weighted Jacobian
+    "Vm",  # (m, m) scratch: Jacobi rotations
+    "w1",  # (n,) scratch
+    "w2",  # (n,) scratch
+    "w3",  # (max(n, 3),) scratch
+    "flags",  # (FLAG_SIZE,) int: per-tick flags, indexed by the FLAG_* constants
+    "rec",  # (record size,) the tick's output record (qpctl.tick.RecordLayout)
+)
+
+
+def _make_proxy() -> None:
+    structref.define_proxy(TickWork, TickWorkType, list(FIELDS))
+
+
+_make_proxy()
+
+
+@njit(cache=True)
+def new_tick_work(*fields):  # type: ignore[no-untyped-def]
+    """A TickWork of the arrays ``fields`` (in FIELDS order), built by a cached compiled constructor
+    (TickWork(...) itself compiles its constructor anew in every process: ~3 s)."""
+    return TickWork(*fields)

@@ -1,0 +1,415 @@
+"""The tick's workspace: fixed-shape arrays laid out once per controller, run by compiled kernels.
+
+DESIGN.md §5. A :class:`Workspace` owns its own ``pin.Data`` and binds Pinocchio's arrays as numpy
+views (``computeAllTerms`` refreshes them in place), allocates every array the kernels of
+:mod:`qpctl.kernels.tick` write (rigid-body terms, link–obstacle pairs at their full capacity,
+law terms, the QP in DAQP's layout, the output record), and runs a tick as a handful of calls:
+
+    computeAllTerms → kernels.state → [python-fcl for boxes and cylinders] → law kernel → [solve]
+
+Obstacles without a closed form (boxes, cylinders) are the only per-pair Python work: python-fcl's
+queries and the look-ahead difference of their barrier drift. Everything the kernels compute has a
+reference implementation elsewhere in the package (:class:`qpctl.state.Dynamics`'s Pinocchio and
+python-fcl path, :mod:`qpctl.law`, :class:`qpctl.formulation.Formulation`) that the tests compare.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from qpctl.geometry.distance import DistanceEngine, PairSet
+from qpctl.geometry.obstacles import Obstacle
+from qpctl.kernels import tick as K
+from qpctl.kernels.work import FIELDS, new_tick_work
+from qpctl.law import LawGains, LawTerms
+from qpctl.paths import Reference, WaypointPath
+from qpctl.qp import Problem
+from qpctl.robot.model import RobotModel
+from qpctl.state import TickState
+
+GRID_MIN_OBSTACLES = 32  # the broad-phase grid is used above this many static obstacles (broadphase=None)
+GRID_MAX_CELLS = 2_000_000
+
+
+def _view(address: int, shape: tuple[int, ...]) -> np.ndarray:
+    """A float64 numpy view of memory owned by someone else (kept alive by the Workspace)."""
+    size = int(np.prod(shape))
+    return np.ctypeslib.as_array((ctypes.c_double * size).from_address(address)).reshape(shape)
+
+
+def bind_pinocchio(model: pin.Model, data: pin.Data) -> dict[str, np.ndarray]:
+    """Numpy views of ``data``'s placements, accelerations, Jacobians, inertia and bias forces.
+
+    Checked against Pinocchio's own accessors once, on a random state: a Pinocchio build that lays
+    its ``Data`` out otherwise raises here rather than returning wrong numbers later.
+    """
+    nj, n = model.njoints, model.nv
+    placements = _view(data.oMi[0].rotation.__array_interface__["data"][0], (nj, 12))
+    accelerations = _view(data.a[0].linear.__array_interface__["data"][0], (nj, 6))
+    views = {"oMi": placements, "acc_local": accelerations, "Jt": data.J.T, "Mt": data.M.T, "nle": data.nle}
+    rng = np.random.default_rng(0)
+    q = pin.randomConfiguration(model, -np.ones(model.nq), np.ones(model.nq)) if model.nq else np.zeros(0)
+    pin.computeAllTerms(model, data, q, rng.uniform(-1, 1, n))
+    for j in range(nj):
+        H = data.oMi[j].homogeneous
+        ok = np.array_equal(placements[j, :9].reshape(3, 3).T, H[:3, :3]) and np.array_equal(placements[j, 9:],
+                                                                                            H[:3, 3])
+        ok = ok and np.array_equal(accelerations[j], data.a[j].vector)
+        if not ok:
+            raise RuntimeError("this Pinocchio build lays out pin.Data differently from what qpctl's tick expects")
+    for name in ("Jt", "Mt", "nle"):
+        if views[name].flags["OWNDATA"] or not views[name].flags["C_CONTIGUOUS"]:
+            raise RuntimeError(f"pin.Data's {name} is not a contiguous view in this Pinocchio build")
+    return views
+
+
+def _supports(model: pin.Model, joint: int) -> np.ndarray:
+    """(n,) 1 where joint velocity k moves joint ``joint``'s body."""
+    mask = np.zeros(model.nv)
+    for k in model.supports[joint]:
+        if k > 0:
+            jm = model.joints[k]
+            mask[jm.idx_v : jm.idx_v + jm.nv] = 1.0
+    return mask
+
+
+@dataclass
+class QPSpec:
+    """What the compiled QP assembly needs from a controller's tasks and constraints (one of each
+    standard kind; see :func:`qpctl.controllers.qp.compiled_spec`)."""
+
+    acc_weight: float
+    slack_l1: float
+    slack_l2: float
+    posture: tuple[np.ndarray, float, float, float] | None  # (q_ref, weight, kp, kd)
+    rows: list[tuple[str, int]]  # (constraint name, its row count), in the constraints' order
+    tau_max: np.ndarray | None
+    joint_limits: tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float] | None  # q_min, q_max, v_max, k0, k1, kv
+    barrier: tuple[int, float, float, bool] | None  # capacity, k0, k1, rigid drift
+    row_names: list[str]
+
+
+class QPBuffers:
+    """One QP layout in DAQP's convention, and a :class:`~qpctl.qp.Problem` of views onto it.
+
+    x = [q̈ (n), s⁺ (k), s⁻ (k)] with k slack rows (0 for the hard layout); rows = [C; A],
+    bu = [ub; u; b], bl = [lb; l; b], sense marks the equality rows. The tick-independent entries
+    (slack columns, costs and bounds, inactive rows' infinite bounds) are set here, once.
+    """
+
+    def __init__(self, n: int, m: int, spec: QPSpec, *, relax: bool) -> None:
+        soft = relax and (spec.slack_l1 > 0 or spec.slack_l2 > 0)
+        k = m if soft else 0
+        nv = n + 2 * k
+        n_in = sum(r for _, r in spec.rows)
+        self.n, self.nv, self.n_in, self.n_eq, self.relaxed = n, nv, n_in, m, soft
+        self.H = np.zeros((nv, nv))
+        self.f = np.zeros(nv)
+        self.rows = np.zeros((n_in + m, nv))
+        self.bu = np.full(nv + n_in + m, np.inf)
+        self.bl = np.full(nv + n_in + m, -np.inf)
+        self.sense = np.zeros(nv + n_in + m, dtype=np.int32)
+        self.sense[nv + n_in :] = 5  # equality
+        if k:
+            self.rows[n_in:, n : n + k] = np.eye(k)
+            self.rows[n_in:, n + k :] = -np.eye(k)
+            self.f[n:] = spec.slack_l1
+            self.H[np.arange(n, nv), np.arange(n, nv)] = max(spec.slack_l2, 1e-9)
+            self.bl[n:nv] = 0.0  # s⁺, s⁻ ≥ 0
+        self.x = np.zeros(nv)
+        self.problem = Problem(self.H, self.f, self.rows[n_in:], self.bu[nv + n_in :], self.rows[:n_in],
+                               self.bl[nv : nv + n_in], self.bu[nv : nv + n_in], self.bl[:nv], self.bu[:nv], n,
+                               list(spec.row_names))
+
+
+class RecordLayout:
+    """Where each output sits in the tick's record (one float64 row, copied once per tick)."""
+
+    def __init__(self, n: int, m: int) -> None:
+        self.n, self.m = n, m
+        self.tau = slice(0, n)
+        self.qdd = slice(n, 2 * n)
+        self.x_ref = slice(2 * n, 2 * n + m)
+        self.xd_ref = slice(2 * n + m, 2 * n + 2 * m)
+        self.xdd_ref = slice(2 * n + 2 * m, 2 * n + 3 * m)
+        self.x = slice(2 * n + 3 * m, 2 * n + 4 * m)
+        self.e_null = slice(2 * n + 4 * m, 3 * n + 4 * m)
+        self.scalars = 3 * n + 4 * m
+        self.size = self.scalars + K.R_SCALARS
+
+
+class Workspace:
+    """The arrays of one controller's tick and the :class:`TickWork` its kernels receive.
+
+    Args:
+        robot, obstacles, path: the controller's.
+        gains: its :class:`~qpctl.law.LawGains` (None: state only, no law).
+        cutoff: pairs farther than this [m] are not listed (the influence distance).
+        spec: the QP's layout, or None for the closed forms.
+        broadphase: a uniform grid over the static obstacles (None: above GRID_MIN_OBSTACLES).
+        barrier_drift: compute every pair's barrier drift (the QP's spec implies it unless its drift
+            is "rigid").
+    """
+
+    def __init__(self, robot: RobotModel, obstacles: Sequence[Obstacle], path: object, gains: LawGains | None,
+                 cutoff: float, *, spec: QPSpec | None = None, broadphase: bool | None = None,
+                 barrier_drift: bool = False) -> None:
+        model = robot.model
+        self.robot, self.model = robot, model
+        self.data = model.createData()
+        self.obstacles = list(obstacles)
+        self.path = path
+        self.spec = spec
+        n, m, L, O = model.nv, robot.m, len(robot.capsules), len(self.obstacles)
+        self.n, self.m = n, m
+        f = self.__dict__
+        f.update(bind_pinocchio(model, self.data))
+        # robot
+        self.cap_joint = np.array([c.joint_id for c in robot.capsules], dtype=np.int64)
+        self.cap_local = np.array([[c.p0, c.p1] for c in robot.capsules], float).reshape(L, 2, 3)
+        self.cap_radius = np.array([c.radius for c in robot.capsules], float)
+        self.cap_support = np.array([_supports(model, c.joint_id) for c in robot.capsules]).reshape(L, n)
+        frame = model.frames[robot.ee_frame_id]
+        self.ee_joint = int(frame.parentJoint)
+        self.ee_local = np.array(frame.placement.translation, float)
+        self.ee_support = _supports(model, self.ee_joint)
+        self.axes = np.array(robot.task_axes, dtype=np.int64)
+        # scene
+        kinds = {"sphere": K.KIND_SPHERE, "capsule": K.KIND_CAPSULE}
+        self.ob_kind = np.array([kinds.get(o.shape, K.KIND_FCL) for o in self.obstacles], dtype=np.int64)
+        self.ob_radius = np.array([o.radius for o in self.obstacles], float)
+        self.ob_bound = np.array([o.bounding_radius() for o in self.obstacles], float)
+        self.ob_axis = np.array([o.length * o.axis / np.linalg.norm(o.axis) if o.shape == "capsule" else np.zeros(3)
+                                 for o in self.obstacles], float).reshape(O, 3)
+        self.ob_pos0 = np.array([o.position for o in self.obstacles], float).reshape(O, 3)
+        self.ob_vel0 = np.array([o.velocity for o in self.obstacles], float).reshape(O, 3)
+        self.ob_amp = np.array([o.amplitude for o in self.obstacles], float).reshape(O, 3)
+        self.ob_omega = np.array([2 * np.pi * o.frequency for o in self.obstacles], float)
+        self.ob_vref = np.array([np.nan if o.v_ref is None else float(o.v_ref) for o in self.obstacles], float)
+        self.moving = np.array([j for j, o in enumerate(self.obstacles) if o.moving], dtype=np.int64)
+        self.ob_c = np.array([o.position_at(0.0) for o in self.obstacles], float).reshape(O, 3)
+        self.ob_v = np.array([o.velocity_at(0.0) for o in self.obstacles], float).reshape(O, 3)
+        self.ob_a = np.array([o.acceleration_at(0.0) for o in self.obstacles], float).reshape(O, 3)
+        self.has_fcl = bool(np.any(self.ob_kind == K.KIND_FCL))
+        self._fcl = DistanceEngine(self.cap_radius, self.obstacles, broadphase=False) if self.has_fcl else None
+        self._probe_data = model.createData() if self.has_fcl else None
+        self.pin_s = self.state_s = 0.0  # the last tick's stage wall times [s]
+        self.drift_step = 2e-3  # [s] look-ahead of the barrier drift's finite difference (python-fcl shapes)
+        self.fpar = np.zeros(K.FP_SIZE)
+        self.ipar = np.zeros(K.IP_SIZE, dtype=np.int64)
+        self._grid(broadphase, cutoff)
+        # path (None: state only)
+        self.path_in_kernel = isinstance(path, WaypointPath) or path is None
+        if isinstance(path, WaypointPath):
+            self.path_pts, self.path_t0, self.path_T = (np.ascontiguousarray(a, dtype=float)
+                                                        for a in (path.points, path.starts, path.durations))
+        else:  # None, or any callable t → Reference (evaluated in Python each tick)
+            self.path_pts, self.path_t0, self.path_T = np.zeros((2, m)), np.zeros(1), np.ones(1)
+        # gains and settings
+        fp, ip = self.fpar, self.ipar
+        g = gains if gains is not None else LawGains()
+        fp[K.FP_KP], fp[K.FP_KV], fp[K.FP_KN], fp[K.FP_VREF] = g.kp, g.kv, g.kn, g.v_ref
+        fp[K.FP_DI], fp[K.FP_DS], fp[K.FP_GDAMP] = g.d_influence, g.d_safe, g.g_damping
+        fp[K.FP_PINV_EPS], fp[K.FP_CUTOFF] = g.pinv_eps, cutoff
+        ip[K.IP_JDOT_EN] = int(bool(g.jdot_en))
+        ip[K.IP_BDRIFT] = int(barrier_drift)
+        if g.obstacle_v_ref:
+            self.ob_vref = np.asarray(g.obstacle_v_ref, float).copy()
+        self.q_ref, self.tau_max = np.zeros(n), np.full(n, np.inf)
+        self.q_min, self.q_max, self.v_max = np.full(n, -np.inf), np.full(n, np.inf), np.full(n, np.inf)
+        ip[K.IP_TORQUE_ROW0] = ip[K.IP_BARRIER_ROW0] = -1
+        capacity = 0
+        if spec is not None:
+            capacity = self._settings(spec)
+        # per tick
+        self.q, self.v = np.zeros(n), np.zeros(n)
+        self.M, self.N, self.x, self.xdot = np.zeros((n, n)), np.zeros(n), np.zeros(m), np.zeros(m)
+        self.J, self.drift, self.Jdot = np.zeros((m, n)), np.zeros(m), np.zeros((m, n))
+        self.segments, self.body_jac, self.body_vel = np.zeros((L, 2, 3)), np.zeros((L, 6, n)), np.zeros((L, 6))
+        self.acc_off, self.acc_K, self.link_jac = np.zeros((L, 3)), np.zeros((L, 3, 3)), np.zeros((L, 3, n))
+        self.ref = np.zeros((3, m))
+        KC = max(L * O, 1)
+        self.pr_link, self.pr_obs = np.zeros(KC, np.int64), np.zeros(KC, np.int64)
+        self.pr_d, self.pr_n, self.pr_pl, self.pr_po = np.zeros(KC), np.zeros((KC, 3)), np.zeros((KC, 3)), np.zeros((KC, 3))
+        self.pr_state = np.zeros(KC, np.int64)
+        self.pr_jac, self.pr_drift = np.zeros((KC, 3, n)), np.zeros((KC, 3))
+        self.pr_bdrift, self.pr_bok = np.zeros(KC), np.zeros(KC, np.int64)
+        self.order = np.zeros(max(capacity, 1), np.int64)
+        self.cnt = np.zeros(K.CNT_SIZE, np.int64)
+        self.e, self.edot, self.a = np.zeros(m), np.zeros(m), np.zeros(m)
+        self.g, self.e_null, self.qdd0 = np.zeros(n), np.zeros(n), np.zeros(n)
+        self.Jb, self.Jp, self.qdd, self.tau = np.zeros((n, m)), np.zeros((n, m)), np.zeros(n), np.zeros(n)
+        self.Lm, self.Lb, self.S = np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, n))
+        self.Bt, self.Vm = np.zeros((n, m)), np.zeros((m, m))
+        self.w1, self.w2, self.w3 = np.zeros(n), np.zeros(n), np.zeros(max(n, 6))
+        self.flags = np.zeros(K.FLAG_SIZE, np.int64)
+        self.layout = RecordLayout(n, m)
+        self.rec = np.zeros(self.layout.size)
+        self.fpar[K.FP_CLEARANCE] = np.inf
+        self.work = new_tick_work(*(f[name] for name in FIELDS))
+        # the QP's layouts: with the task slack, and hard (the "on_failure" relaxation's first try)
+        self.relaxed = QPBuffers(n, m, spec, relax=True) if spec is not None else None
+        self.hard = QPBuffers(n, m, spec, relax=False) if spec is not None else None
+
+    # -- construction helpers -------------------------------------------------------------------
+    def _settings(self, spec: QPSpec) -> int:
+        fp, ip = self.fpar, self.ipar
+        fp[K.FP_WACC], fp[K.FP_SL1], fp[K.FP_SL2] = spec.acc_weight, spec.slack_l1, spec.slack_l2
+        if spec.posture is not None:
+            q_ref, w, kp, kd = spec.posture
+            self.q_ref = np.asarray(q_ref, float).copy()
+            ip[K.IP_POSTURE] = 1
+            fp[K.FP_WPOST], fp[K.FP_PKP], fp[K.FP_PKD] = w, kp, kd
+        row = 0
+        capacity = 0
+        for name, count in spec.rows:
+            if name == "torque_limits":
+                ip[K.IP_TORQUE_ROW0] = row
+            elif name == "obstacles":
+                ip[K.IP_BARRIER_ROW0] = row
+                capacity = count
+            row += count
+        ip[K.IP_N_IN] = row
+        if spec.tau_max is not None:
+            self.tau_max = np.asarray(spec.tau_max, float).copy()
+        if spec.joint_limits is not None:
+            q_min, q_max, v_max, k0, k1, kv = spec.joint_limits
+            self.q_min, self.q_max, self.v_max = (np.asarray(a, float).copy() for a in (q_min, q_max, v_max))
+            fp[K.FP_JK0], fp[K.FP_JK1], fp[K.FP_JKV] = k0, k1, kv
+            ip[K.IP_JOINT_LIMITS] = 1
+        if spec.barrier is not None:
+            cap, k0, k1, rigid = spec.barrier
+            ip[K.IP_CAPACITY] = cap
+            fp[K.FP_BK0], fp[K.FP_BK1] = k0, k1
+            ip[K.IP_DRIFT_RIGID] = int(rigid)
+            ip[K.IP_BDRIFT] = int(not rigid or ip[K.IP_BDRIFT])
+        return capacity
+
+    def _grid(self, broadphase: bool | None, cutoff: float) -> None:
+        """A uniform grid over the static obstacles' bounding spheres (CSR: cell → obstacles)."""
+        static = [j for j, o in enumerate(self.obstacles) if not o.moving]
+        use = len(static) > GRID_MIN_OBSTACLES if broadphase is None else bool(broadphase)
+        use = use and bool(static) and math.isfinite(cutoff)
+        self.grid_dims = np.zeros(3, np.int64)
+        self.grid_lo = np.zeros(3)
+        self.grid_start = np.zeros(1, np.int64)
+        self.grid_items = np.zeros(0, np.int64)
+        self.stamp = np.zeros(max(len(self.obstacles), 1), np.int64)
+        if not use:
+            return
+        centres, radii = self.ob_c[static], self.ob_bound[static]
+        lo, hi = (centres - radii[:, None]).min(axis=0), (centres + radii[:, None]).max(axis=0)
+        h = max(cutoff + 2.0 * float(self.cap_radius.max(initial=0.0)), 1e-3)
+        dims = np.maximum(np.floor((hi - lo) / h).astype(np.int64) + 1, 1)
+        while int(np.prod(dims)) > GRID_MAX_CELLS:
+            h *= 2.0
+            dims = np.maximum(np.floor((hi - lo) / h).astype(np.int64) + 1, 1)
+        cells: list[list[int]] = [[] for _ in range(int(np.prod(dims)))]
+        for j, c, r in zip(static, centres, radii):
+            a = np.clip(np.floor((c - r - lo) / h).astype(np.int64), 0, dims - 1)
+            b = np.clip(np.floor((c + r - lo) / h).astype(np.int64), 0, dims - 1)
+            for cx in range(a[0], b[0] + 1):
+                for cy in range(a[1], b[1] + 1):
+                    for cz in range(a[2], b[2] + 1):
+                        cells[(cx * dims[1] + cy) * dims[2] + cz].append(j)
+        self.grid_dims, self.grid_lo = dims, lo
+        self.fpar[K.FP_GRID_H] = h
+        self.grid_start = np.concatenate([[0], np.cumsum([len(c) for c in cells])]).astype(np.int64)
+        self.grid_items = np.array([j for c in cells for j in c], dtype=np.int64)
+
+    # -- the tick -------------------------------------------------------------------------------
+    def state(self, q: np.ndarray, v: np.ndarray, t: float) -> int:
+        """computeAllTerms and the state kernel (and python-fcl's pairs, if any); −1 if the dynamics
+        overflow at this state, else the number of pairs. Records Pinocchio's and the kernel's wall
+        times [s] in ``pin_s`` and ``state_s``."""
+        start = time.perf_counter()
+        pin.computeAllTerms(self.model, self.data, q, v)
+        mid = time.perf_counter()
+        status = K.state(self.work, q, v, t)
+        if status < 0:
+            return -1
+        if status > 0:
+            self._fcl_pairs(t)
+        if not self.path_in_kernel:
+            ref = self.path(t)  # type: ignore[operator]
+            self.ref[0], self.ref[1], self.ref[2] = ref.x, ref.xd, ref.xdd
+        if self.cnt[K.CNT_LOOKAHEAD]:
+            self._look_ahead(q, v, t)
+        end = time.perf_counter()
+        self.pin_s, self.state_s = mid - start, end - mid
+        return int(self.cnt[K.CNT_PAIRS])
+
+    def _fcl_pairs(self, t: float) -> None:
+        """python-fcl for the pairs the kernel could not do in closed form (boxes, cylinders)."""
+        engine = self._fcl
+        assert engine is not None
+        k = int(self.cnt[K.CNT_PAIRS])
+        pending = np.flatnonzero(self.pr_state[:k] == K.PAIR_FCL)
+        links = sorted(set(self.pr_link[pending].tolist()))
+        engine.update(self.segments, t, links=links)
+        cutoff = float(self.fpar[K.FP_CUTOFF])
+        for r in pending.tolist():
+            out = engine._query(int(self.pr_link[r]), int(self.pr_obs[r]), cutoff)
+            if out is None:
+                self.pr_state[r] = K.PAIR_FAR
+                continue
+            self.pr_d[r], self.pr_n[r], self.pr_pl[r], self.pr_po[r] = out
+            self.pr_state[r] = K.PAIR_OK
+        K.finish_pairs(self.work)
+
+    def _look_ahead(self, q: np.ndarray, v: np.ndarray, t: float) -> None:
+        """∂ḣ/∂q q̇ + ∂ḣ/∂t of the pairs without a closed-form drift, by a forward difference of ḣ
+        along the motion (q + δq̇, t + δ), witness points and normal recomputed by python-fcl there;
+        δ = ``drift_step`` balances truncation (O(δ)) and the distance query's noise (O(1e-8/δ))."""
+        engine = self._fcl
+        data = self._probe_data
+        if engine is None or data is None:  # closed-form shapes only: meeting or parallel axes
+            engine = self._fcl = DistanceEngine(self.cap_radius, self.obstacles, broadphase=False)
+            data = self._probe_data = self.model.createData()
+        k = int(self.cnt[K.CNT_PAIRS])
+        idx = np.flatnonzero(self.pr_bok[:k] == 0)
+        delta = self.drift_step
+        pin.forwardKinematics(self.model, data, q + delta * v, v)
+        seg = np.empty_like(self.segments)
+        for i, jid in enumerate(self.cap_joint.tolist()):
+            seg[i, 0] = data.oMi[jid].act(self.cap_local[i, 0])
+            seg[i, 1] = data.oMi[jid].act(self.cap_local[i, 1])
+        links = self.pr_link[idx]
+        engine.update(seg, t + delta, links=sorted(set(links.tolist())))
+        for r in idx.tolist():
+            i, j = int(self.pr_link[r]), int(self.pr_obs[r])
+            hdot0 = float(self.pr_n[r] @ (self.pr_jac[r] @ v - self.ob_v[j]))
+            _, normal, p_link, _ = engine.pair(i, j)
+            body = pin.getVelocity(self.model, data, int(self.cap_joint[i]), pin.WORLD)
+            v_point = body.linear + np.cross(body.angular, p_link)
+            hdot1 = float(normal @ (v_point - engine.obstacle_velocities(np.array([j]))[0]))
+            self.pr_bdrift[r] = (hdot1 - hdot0) / delta
+
+    # -- snapshots for the Python paths ---------------------------------------------------------
+    def snapshot(self) -> TickState:
+        """The state of the last tick as a :class:`~qpctl.state.TickState` of copies."""
+        k = int(self.cnt[K.CNT_PAIRS])
+        pairs = PairSet(self.pr_link[:k].copy(), self.pr_obs[:k].copy(), self.pr_d[:k].copy(), self.pr_n[:k].copy(),
+                        self.pr_pl[:k].copy(), self.pr_po[:k].copy(), self.ob_v[self.pr_obs[:k]],
+                        self.ob_a[self.pr_obs[:k]])
+        bdrift = self.pr_bdrift[:k].copy() if self.ipar[K.IP_BDRIFT] else None
+        return TickState(float(self.fpar[K.FP_T]), self.q.copy(), self.v.copy(), self.M.copy(), self.N.copy(),
+                         self.x.copy(), self.xdot.copy(), self.J.copy(), self.drift.copy(), self.link_jac.copy(),
+                         self.segments.copy(), pairs, self.pr_jac[:k].copy(), self.pr_drift[:k].copy(),
+                         float(self.fpar[K.FP_CLEARANCE]), _barrier_drift=bdrift)
+
+    def reference(self) -> Reference:
+        """x_d, ẋ_d, ẍ_d of the last tick (copies)."""
+        return Reference(self.ref[0].copy(), self.ref[1].copy(), self.ref[2].copy())
+
+    def terms(self) -> LawTerms:
+        """The law's terms of the last tick (copies), as :func:`qpctl.law.law_terms` returns them."""
+        return LawTerms(self.reference(), self.e.copy(), self.edot.copy(), self.a.copy(), self.g.copy(),
+                        self.e_null.copy(), self.qdd0.copy(), bool(self.flags[K.FLAG_SINGULAR_TERMS]))
