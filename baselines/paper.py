@@ -51,10 +51,7 @@ class PaperController(Controller):
         if K.closed_form_tick(ws.work, self.weighted):
             raise InvalidStateError(f"the inertia matrix is not positive definite at q={q.tolist()}")
         end = time.perf_counter()
-        rec, s = ws.rec, ws.layout.scalars
-        rec[s + K.R_PIN_US], rec[s + K.R_STATE_US] = ws.pin_s * 1e6, ws.state_s * 1e6
-        rec[s + K.R_BUILD_US] = (end - mid) * 1e6
-        out = RecordOutput(rec.copy(), ws.layout, None, (end - start) * 1e6)
+        out = RecordOutput(ws.rec.copy(), ws.layout, None, (end - start) * 1e6, (ws.pin_s, ws.state_s, end - mid, 0.0))
         self.last = out
         return out
 

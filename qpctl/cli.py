@@ -1,4 +1,4 @@
-"""The ``qpctl`` command line: ``simulate``, ``bench``, ``solvers``.
+"""The ``qpctl`` command line: ``simulate``, ``bench``, ``solvers``, ``warmup``.
 
 Any :class:`~qpctl.errors.QpctlError` (or an ``OSError`` reading or writing files) becomes one line on
 stderr and exit status 2; any other exception (a bug) one line and exit status 3, with the traceback
@@ -47,6 +47,23 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return int(bench_main(quick=args.quick, out=Path(args.out)) or 0)
 
 
+def _cmd_warmup(args: argparse.Namespace) -> int:
+    import time
+
+    start = time.perf_counter()
+    import numba
+
+    from qpctl.kernels import tick
+    from qpctl.tick import warmup
+
+    times = warmup()
+    cache = tick.state.stats.cache_path
+    total = time.perf_counter() - start
+    print(f"the tick's kernels are ready in {total:.1f} s (numba {numba.__version__}; cache: {cache}); "
+          + ", ".join(f"{k} {v:.2f} s" for k, v in times.items()))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="qpctl", description=__doc__.splitlines()[0] if __doc__ else None)
     sub = p.add_subparsers(dest="command", required=True)
@@ -66,6 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
     b.set_defaults(func=_cmd_bench)
     v = sub.add_parser("solvers", help="list the installed QP solvers and their fast paths")
     v.set_defaults(func=_cmd_solvers)
+    w = sub.add_parser("warmup", help="compile the per-tick kernels into numba's on-disk cache")
+    w.set_defaults(func=_cmd_warmup)
     return p
 
 

@@ -327,24 +327,23 @@ class Workspace:
     # -- the tick -------------------------------------------------------------------------------
     def state(self, q: np.ndarray, v: np.ndarray, t: float) -> int:
         """computeAllTerms and the state kernel (and python-fcl's pairs, if any); −1 if the dynamics
-        overflow at this state, else the number of pairs. Records Pinocchio's and the kernel's wall
+        overflow at this state (or q, v are not finite), else 0. Records Pinocchio's and the kernel's wall
         times [s] in ``pin_s`` and ``state_s``."""
         start = time.perf_counter()
         pin.computeAllTerms(self.model, self.data, q, v)
         mid = time.perf_counter()
         status = K.state(self.work, q, v, t)
-        if status < 0:
-            return -1
-        if status > 0:
+        if status != 0:
+            if status < 0:
+                return -1
             self._fcl_pairs(t)
         if not self.path_in_kernel:
             ref = self.path(t)  # type: ignore[operator]
             self.ref[0], self.ref[1], self.ref[2] = ref.x, ref.xd, ref.xdd
         if self.cnt[K.CNT_LOOKAHEAD]:
             self._look_ahead(q, v, t)
-        end = time.perf_counter()
-        self.pin_s, self.state_s = mid - start, end - mid
-        return int(self.cnt[K.CNT_PAIRS])
+        self.pin_s, self.state_s = mid - start, time.perf_counter() - mid
+        return 0
 
     def _fcl_pairs(self, t: float) -> None:
         """python-fcl for the pairs the kernel could not do in closed form (boxes, cylinders)."""
@@ -413,3 +412,36 @@ class Workspace:
         """The law's terms of the last tick (copies), as :func:`qpctl.law.law_terms` returns them."""
         return LawTerms(self.reference(), self.e.copy(), self.edot.copy(), self.a.copy(), self.g.copy(),
                         self.e_null.copy(), self.qdd0.copy(), bool(self.flags[K.FLAG_SINGULAR_TERMS]))
+
+
+def warmup() -> dict[str, float]:
+    """Compile every kernel of the tick, or load it from numba's on-disk cache (``__pycache__`` beside
+    :mod:`qpctl.kernels`, or numba's user cache folder when the package's folder is read-only), by
+    running one tick of each law on a small scene that takes every path (sphere, capsule and box
+    obstacles, the broad-phase grid, a posture task). Returns the seconds each step took; a warm
+    cache makes it a fraction of a second, a cold one about 15 s."""
+    from qpctl.controllers.qp import QPConfig, QPController
+    from qpctl.law import LawGains
+    from qpctl.robot.model import planar_arm
+    from baselines import HsuController, PaperController
+
+    times: dict[str, float] = {}
+    robot = planar_arm(tau_max=500.0)
+    path = WaypointPath([[-1.0, -2.0], [1.0, -1.5]], duration=1.0)
+    scene = [Obstacle("sphere", np.array([-0.7, -1.5, 0.0]), radius=0.1),
+             Obstacle("capsule", np.array([-1.3, -1.2, 0.0]), radius=0.05, length=0.4, axis=np.array([0.0, 0.0, 1.0])),
+             Obstacle("box", np.array([0.5, -0.5, 0.0]), size=np.array([0.1, 0.1, 0.1]),
+                      velocity=np.array([0.0, 0.1, 0.0]))]
+    q0, v0 = robot.q_home.astype(float), np.array([0.1, -0.2, 0.3])
+    gains = LawGains(d_influence=0.5, d_safe=0.05)
+    for name, make in (("paper", lambda: PaperController(robot, path, scene, gains, broadphase=True)),
+                       ("hsu", lambda: HsuController(robot, path, scene, gains)),
+                       ("qp", lambda: QPController(robot, path, scene, gains, QPConfig(posture_weight=1.0),
+                                                   broadphase=True)),
+                       ("qp-on-failure", lambda: QPController(robot, path, scene, gains,
+                                                              QPConfig(task_relaxation="on_failure")))):
+        t0 = time.perf_counter()
+        ctrl = make()
+        ctrl.step(q0, v0, 0.1)
+        times[name] = time.perf_counter() - t0
+    return times

@@ -60,8 +60,10 @@ class RecordOutput(ControlOutput):
     copied once per tick; the arrays are views into it and ``info`` is built on first access."""
 
     def __init__(self, rec: np.ndarray, layout: RecordLayout, info: dict[str, Any] | None = None,
-                 compute_us: float = 0.0) -> None:
+                 compute_us: float = 0.0, stages: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)) -> None:
+        # no dataclass __init__: the fields are properties reading the record
         self._rec, self._layout, self._extra, self._info = rec, layout, info, None
+        self._stages = stages  # [s]: Pinocchio, the state kernel, the law (and QP rows), the solve
         self.compute_us = compute_us
 
     tau = property(lambda self: self._rec[self._layout.tau])  # type: ignore[assignment]
@@ -90,13 +92,20 @@ class RecordOutput(ControlOutput):
     def info(self) -> dict[str, Any]:
         """Per-tick diagnostics (stage timings [µs], pairs, and the law's own), built on first access."""
         if self._info is None:
-            r, s = self._rec, self._layout.scalars
-            info: dict[str, Any] = {"rigid_us": float(r[s + K.R_PIN_US]), "state_us": float(r[s + K.R_STATE_US]),
-                                    "build_us": float(r[s + K.R_BUILD_US]), "pairs": int(r[s + K.R_PAIRS])}
+            pin_s, state_s, build_s, solve_s = self._stages
+            info: dict[str, Any] = {"rigid_us": pin_s * 1e6, "state_us": (pin_s + state_s) * 1e6,
+                                    "build_us": build_s * 1e6,
+                                    "pairs": int(self._rec[self._layout.scalars + K.R_PAIRS])}
+            if solve_s:
+                info["solve_us"] = solve_s * 1e6
             if self._extra:
                 info.update(self._extra)
+            self._decode(info)
             self._info = info
         return self._info
+
+    def _decode(self, info: dict[str, Any]) -> None:
+        """Add the law's own entries from the record (none for the closed forms)."""
 
     @info.setter
     def info(self, value: dict[str, Any]) -> None:

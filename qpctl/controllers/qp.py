@@ -168,6 +168,30 @@ class QPConfig:
         return cls(**{k: v for k, v in cfg.items() if k in keys})
 
 
+class QPOutput(RecordOutput):
+    """A compiled QP tick's output: the record, and the solver's word; ``info`` built on first access
+    (status, iterations, solver, stage timings [µs], slack norm, active rows, and the fallback's
+    entries when one produced the torque)."""
+
+    def __init__(self, rec: np.ndarray, layout: Any, extra: dict[str, Any], compute_us: float,
+                 stages: tuple[float, float, float, float], solved: bool) -> None:
+        super().__init__(rec, layout, extra, compute_us, stages)
+        self._solved = solved
+
+    def _decode(self, info: dict[str, Any]) -> None:
+        r, s = self._rec, self._layout.scalars
+        if r[s + K.R_DROPPED]:
+            info["pairs_dropped"] = int(r[s + K.R_DROPPED])
+        if not self._solved:
+            return
+        if r[s + K.R_CLIPPED]:
+            info["clipped"] = float(r[s + K.R_CLIPPED])
+        info["slack_norm"] = float(r[s + K.R_SLACK])
+        info["active"] = int(r[s + K.R_ACTIVE])
+        mask = int(r[s + K.R_ACTIVE_MASK])
+        info["active_rows"] = [name for bit, name in ((1, "obstacles"), (0, "torque_limits")) if mask >> bit & 1]
+
+
 def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: int) -> QPSpec | None:
     """The compiled assembly's description of these tasks and constraints, or None when they are not
     exactly the standard ones (an AccelerationTask, an EndEffectorTask, at most one PostureTask; at
@@ -222,6 +246,7 @@ class QPController(Controller):
             name: make_solver(name) for name in cfg.fallback if name not in BUILT_IN_FALLBACKS}
         self._safe_stop_solver = DAQPSolver()  # the "safe-stop" fallback's small QP
         self._tick_start: float | None = None
+        self._hard_first = self.relaxation == "on_failure"
         if tasks is None:
             tasks = [AccelerationTask(), EndEffectorTask(cfg.slack_l1, cfg.slack_l2)]
             if cfg.posture_weight > 0:
@@ -282,6 +307,7 @@ class QPController(Controller):
         self._solver = make_solver(name, settings)
         self._solver_soft = make_solver(name, settings)
         self.config.solver = name
+        self._hard_first = self.relaxation == "on_failure"
 
     def reset(self) -> None:
         super().reset()
@@ -344,9 +370,8 @@ class QPController(Controller):
         t_state = time.perf_counter()
         budget = self.config.tick_budget_us
         deadline = start + budget * 1e-6 if budget > 0 else math.inf
-        hard_first = self.relaxation == "on_failure"
+        hard_first = self._hard_first
         buf = ws.hard if hard_first else ws.relaxed
-        assert buf is not None
         code = K.qp_terms_and_build(ws.work, buf.H, buf.f, buf.rows, buf.bu, buf.bl)
         if code == 1:
             raise InvalidStateError(f"the inertia matrix is not positive definite at q={q.tolist()}")
@@ -358,7 +383,6 @@ class QPController(Controller):
         extra: dict[str, Any] = {"status": status, "iterations": iters, "solver": solver.name}
         if hard_first and not ok and code == 0:  # the task conflicts with the hard rows: let it give way
             buf = ws.relaxed
-            assert buf is not None
             K.qp_build(ws.work, buf.H, buf.f, buf.rows, buf.bu, buf.bl)
             t3 = time.perf_counter()
             ok, status2, iters2 = self._solve_buffers(self._solver_soft, buf, deadline)
@@ -368,26 +392,13 @@ class QPController(Controller):
             extra.update(relaxed=True, hard_status=status, status=status2, iterations=iters + iters2)
             status = status2
         self._last_problem = buf.problem
-        rec, s = ws.rec, ws.layout.scalars
         if status == "time_limit":
             extra["budget_exhausted"] = True
         if not ok:
             self._compiled_fallback(ws, buf, status, extra, deadline, hard_first)
-        else:
-            if rec[s + K.R_DROPPED]:
-                extra["pairs_dropped"] = int(rec[s + K.R_DROPPED])
-            if rec[s + K.R_CLIPPED]:
-                extra["clipped"] = float(rec[s + K.R_CLIPPED])
-            extra["slack_norm"] = float(rec[s + K.R_SLACK])
-            extra["active"] = int(rec[s + K.R_ACTIVE])
-            mask = int(rec[s + K.R_ACTIVE_MASK])
-            extra["active_rows"] = [name for bit, name in ((1, "obstacles"), (0, "torque_limits")) if mask >> bit & 1]
         end = time.perf_counter()
-        rec[s + K.R_PIN_US], rec[s + K.R_STATE_US] = ws.pin_s * 1e6, ws.state_s * 1e6
-        rec[s + K.R_BUILD_US], rec[s + K.R_SOLVE_US] = (t_build - t_state) * 1e6, (t_solve - t_build) * 1e6
-        rec[s + K.R_ITERATIONS] = extra["iterations"]
-        extra["build_us"], extra["solve_us"] = rec[s + K.R_BUILD_US], rec[s + K.R_SOLVE_US]
-        out = RecordOutput(rec.copy(), ws.layout, extra, (end - start) * 1e6)
+        out = QPOutput(ws.rec.copy(), ws.layout, extra, (end - start) * 1e6,
+                       (ws.pin_s, ws.state_s, t_build - t_state, t_solve - t_build), ok)
         self.last = out
         return out
 

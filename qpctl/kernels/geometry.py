@@ -88,32 +88,67 @@ def segment_segment(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarr
 
 
 @njit(cache=True)
-def capsule_pair(a: np.ndarray, b: np.ndarray, r_link: float, c0: np.ndarray, c1: np.ndarray, r_obs: float,
-                 normal: np.ndarray, p_link: np.ndarray, p_obs: np.ndarray) -> float:
-    """Signed distance [m] between the link capsule (axis a–b, radius r_link) and an obstacle capsule
-    (axis c0–c1, radius r_obs; c0 = c1 for a sphere); writes the unit normal (obstacle → link) and
-    the witness points on each surface."""
-    if c0[0] == c1[0] and c0[1] == c1[1] and c0[2] == c1[2]:
-        s, t = closest_on_segment(a, b, c0), 0.0
-    else:
-        s, t = segment_segment(a, b, c0, c1)
-    px, py, pz = a[0] + s * (b[0] - a[0]), a[1] + s * (b[1] - a[1]), a[2] + s * (b[2] - a[2])
-    qx, qy, qz = c0[0] + t * (c1[0] - c0[0]), c0[1] + t * (c1[1] - c0[1]), c0[2] + t * (c1[2] - c0[2])
-    wx, wy, wz = px - qx, py - qy, pz - qz
-    wn = math.sqrt(wx * wx + wy * wy + wz * wz)
+def segment_params(ax: float, ay: float, az: float, ux: float, uy: float, uz: float, uu: float,
+                   cx: float, cy: float, cz: float, sx: float, sy: float, sz: float) -> tuple[float, float]:
+    """(τ, σ) of the closest points a + τu and c + σs of two segments (uu = u·u; s = 0 for a point),
+    as :func:`closest_on_segment` for a point and :func:`segment_segment` otherwise, in scalars."""
+    if sx == 0.0 and sy == 0.0 and sz == 0.0:
+        if uu == 0.0:
+            return 0.0, 0.0
+        return clamp01(((cx - ax) * ux + (cy - ay) * uy + (cz - az) * uz) / uu), 0.0
+    rx, ry, rz = ax - cx, ay - cy, az - cz
+    e = sx * sx + sy * sy + sz * sz
+    f = sx * rx + sy * ry + sz * rz
+    if uu <= 1e-300:
+        return 0.0, clamp01(f / e)
+    c = ux * rx + uy * ry + uz * rz
+    b = ux * sx + uy * sy + uz * sz
+    denom = uu * e - b * b
+    tau = clamp01((b * f - c * e) / denom) if denom > PARALLEL_EPS * uu * e else 0.0
+    sigma = (b * tau + f) / e
+    if sigma < 0.0:
+        return clamp01(-c / uu), 0.0
+    if sigma > 1.0:
+        return clamp01((b - c) / uu), 1.0
+    return tau, sigma
+
+
+@njit(cache=True)
+def contact_frame(px: float, py: float, pz: float, qx: float, qy: float, qz: float, wx: float, wy: float,
+                  wz: float, wn: float, ux: float, uy: float, uz: float, sx: float, sy: float, sz: float,
+                  r_link: float, r_obs: float, normal: np.ndarray, p_link: np.ndarray, p_obs: np.ndarray) -> None:
+    """The unit normal n = w/|w| (obstacle → link) of the closest axis points P (link) and Q
+    (obstacle), w = P − Q, and the witness points P − r_link n and Q + r_obs n. Where the axes meet
+    (|w| ≤ 1e-12) n is ⊥ both axes (u × s), or for a point obstacle or parallel axes ⊥ the link's axis
+    and the world axis least aligned with it (:func:`perpendicular`)."""
     if wn > 1e-12:
         normal[0], normal[1], normal[2] = wx / wn, wy / wn, wz / wn
     else:
-        ux, uy, uz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
-        vx, vy, vz = c1[0] - c0[0], c1[1] - c0[1], c1[2] - c0[2]
-        cx, cy, cz = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+        cx, cy, cz = uy * sz - uz * sy, uz * sx - ux * sz, ux * sy - uy * sx
         cn = math.sqrt(cx * cx + cy * cy + cz * cz)
-        if cn > 1e-12 * math.sqrt((ux * ux + uy * uy + uz * uz) * (vx * vx + vy * vy + vz * vz)) and cn > 0.0:
+        if cn > 1e-12 * math.sqrt((ux * ux + uy * uy + uz * uz) * (sx * sx + sy * sy + sz * sz)) and cn > 0.0:
             normal[0], normal[1], normal[2] = cx / cn, cy / cn, cz / cn
         else:
             perpendicular(ux, uy, uz, normal)
     p_link[0], p_link[1], p_link[2] = px - r_link * normal[0], py - r_link * normal[1], pz - r_link * normal[2]
     p_obs[0], p_obs[1], p_obs[2] = qx + r_obs * normal[0], qy + r_obs * normal[1], qz + r_obs * normal[2]
+
+
+@njit(cache=True)
+def capsule_pair(a: np.ndarray, b: np.ndarray, r_link: float, c0: np.ndarray, c1: np.ndarray, r_obs: float,
+                 normal: np.ndarray, p_link: np.ndarray, p_obs: np.ndarray) -> float:
+    """Signed distance [m] between the link capsule (axis a–b, radius r_link) and an obstacle capsule
+    (axis c0–c1, radius r_obs; c0 = c1 for a sphere); writes the unit normal (obstacle → link) and
+    the witness points on each surface (the kernels' pair loop does the same, inline)."""
+    ux, uy, uz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+    sx, sy, sz = c1[0] - c0[0], c1[1] - c0[1], c1[2] - c0[2]
+    tl, to = segment_params(a[0], a[1], a[2], ux, uy, uz, ux * ux + uy * uy + uz * uz, c0[0], c0[1], c0[2],
+                            sx, sy, sz)
+    px, py, pz = a[0] + tl * ux, a[1] + tl * uy, a[2] + tl * uz
+    qx, qy, qz = c0[0] + to * sx, c0[1] + to * sy, c0[2] + to * sz
+    wx, wy, wz = px - qx, py - qy, pz - qz
+    wn = math.sqrt(wx * wx + wy * wy + wz * wz)
+    contact_frame(px, py, pz, qx, qy, qz, wx, wy, wz, wn, ux, uy, uz, sx, sy, sz, r_link, r_obs, normal, p_link, p_obs)
     return wn - r_link - r_obs
 
 

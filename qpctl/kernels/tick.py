@@ -28,7 +28,7 @@ import math
 import numpy as np
 from numba import njit
 
-from qpctl.kernels.geometry import capsule_pair, sphere_bound
+from qpctl.kernels.geometry import contact_frame, segment_params, sphere_bound
 from qpctl.kernels.small import chol_solve, cholesky, pinv_t, solve_lower, solve_lower_t
 
 # Obstacle kinds
@@ -121,61 +121,65 @@ def _classical_acceleration(vel: np.ndarray, acc: np.ndarray, p: np.ndarray, out
 def rigid_terms(ws, v: np.ndarray) -> bool:  # type: ignore[no-untyped-def]
     """M, N, the task point's x, ẋ, J, J̇q̇ and the capsules' geometry from Pinocchio's arrays (after
     ``computeAllTerms``); False if N is not finite (speeds so large that C(q, q̇)q̇ overflows)."""
-    n = ws.N.shape[0]
+    M, N, Mt, nle, Jt = ws.M, ws.N, ws.Mt, ws.nle, ws.Jt
+    n = N.shape[0]
     for i in range(n):
-        ws.N[i] = ws.nle[i]
-        for j in range(n):
-            ws.M[i, j] = ws.Mt[max(i, j), min(i, j)]
-    for i in range(n):
-        if not math.isfinite(ws.N[i]):
+        N[i] = nle[i]
+        if not math.isfinite(nle[i]):
             return False
+        for j in range(i + 1):
+            M[i, j] = M[j, i] = Mt[i, j]
     acc = ws.w3  # scratch (≥ 6)
     vel = np.empty(6)
     p = np.empty(3)
     J3 = np.empty((3, n))
     # task point
+    support = ws.ee_support
     _world_point(ws, ws.ee_joint, ws.ee_local, p)
-    _point_jacobian(ws, ws.ee_support, p, J3)
+    _point_jacobian(ws, support, p, J3)
     for r in range(6):
         s = 0.0
         for k in range(n):
-            s += ws.Jt[k, r] * ws.ee_support[k] * v[k]
+            s += Jt[k, r] * support[k] * v[k]
         vel[r] = s
     _world_acceleration(ws, ws.ee_joint, acc)
     a3 = np.empty(3)
     _classical_acceleration(vel, acc, p, a3)
-    for r in range(ws.axes.shape[0]):
-        ax = ws.axes[r]
-        ws.x[r] = p[ax]
-        ws.drift[r] = a3[ax]
+    axes, x, drift, J, xdot = ws.axes, ws.x, ws.drift, ws.J, ws.xdot
+    for r in range(axes.shape[0]):
+        ax = axes[r]
+        x[r] = p[ax]
+        drift[r] = a3[ax]
         s = 0.0
         for k in range(n):
-            ws.J[r, k] = J3[ax, k]
+            J[r, k] = J3[ax, k]
             s += J3[ax, k] * v[k]
-        ws.xdot[r] = s
+        xdot[r] = s
     # capsules
-    for i in range(ws.cap_joint.shape[0]):
-        j = ws.cap_joint[i]
-        _world_point(ws, j, ws.cap_local[i, 0], ws.segments[i, 0])
-        _world_point(ws, j, ws.cap_local[i, 1], ws.segments[i, 1])
+    cap_joint, cap_local, cap_support = ws.cap_joint, ws.cap_local, ws.cap_support
+    segments, body_jac, body_vel = ws.segments, ws.body_jac, ws.body_vel
+    link_jac, acc_off, acc_K = ws.link_jac, ws.acc_off, ws.acc_K
+    for i in range(cap_joint.shape[0]):
+        j = cap_joint[i]
+        _world_point(ws, j, cap_local[i, 0], segments[i, 0])
+        _world_point(ws, j, cap_local[i, 1], segments[i, 1])
         for r in range(6):
             s = 0.0
             for k in range(n):
-                val = ws.Jt[k, r] * ws.cap_support[i, k]
-                ws.body_jac[i, r, k] = val
+                val = Jt[k, r] * cap_support[i, k]
+                body_jac[i, r, k] = val
                 s += val * v[k]
-            ws.body_vel[i, r] = s
+            body_vel[i, r] = s
         for r in range(3):
-            p[r] = 0.5 * (ws.segments[i, 0, r] + ws.segments[i, 1, r])
-        _point_jacobian(ws, ws.cap_support[i], p, ws.link_jac[i])
+            p[r] = 0.5 * (segments[i, 0, r] + segments[i, 1, r])
+        _point_jacobian(ws, cap_support[i], p, link_jac[i])
         # q̈ = 0 acceleration field of the body: a(p) = offset + K p, offset = a + ω × v, K = [α]× + [ω]×²
         _world_acceleration(ws, j, acc)
-        bv = ws.body_vel[i]
-        wx, wy, wz = bv[3], bv[4], bv[5]
-        ws.acc_off[i, 0] = acc[0] + wy * bv[2] - wz * bv[1]
-        ws.acc_off[i, 1] = acc[1] + wz * bv[0] - wx * bv[2]
-        ws.acc_off[i, 2] = acc[2] + wx * bv[1] - wy * bv[0]
-        K = ws.acc_K[i]
+        vx, vy, vz, wx, wy, wz = body_vel[i, 0], body_vel[i, 1], body_vel[i, 2], body_vel[i, 3], body_vel[i, 4], body_vel[i, 5]
+        acc_off[i, 0] = acc[0] + wy * vz - wz * vy
+        acc_off[i, 1] = acc[1] + wz * vx - wx * vz
+        acc_off[i, 2] = acc[2] + wx * vy - wy * vx
+        K = acc_K[i]
         K[0, 0], K[0, 1], K[0, 2] = -(wy * wy + wz * wz), -acc[5] + wx * wy, acc[4] + wx * wz
         K[1, 0], K[1, 1], K[1, 2] = acc[5] + wx * wy, -(wx * wx + wz * wz), -acc[3] + wy * wz
         K[2, 0], K[2, 1], K[2, 2] = -acc[4] + wx * wz, acc[3] + wy * wz, -(wx * wx + wy * wy)
@@ -281,44 +285,58 @@ def _candidates(ws, i: int, out: np.ndarray) -> int:  # type: ignore[no-untyped-
 @njit(cache=True)
 def find_pairs(ws) -> int:  # type: ignore[no-untyped-def]
     """Every link–obstacle pair within the cutoff, link-major and by obstacle index: distances,
-    normals and witness points in closed form for spheres and capsules; pairs with python-fcl's
-    shapes whose bounding sphere is within the cutoff are listed as PAIR_FCL for Python to query.
-    Returns the number of PAIR_FCL pairs."""
+    normals and witness points in closed form for spheres and capsules (:mod:`qpctl.kernels.geometry`);
+    pairs with python-fcl's shapes whose bounding sphere is within the cutoff are listed as PAIR_FCL
+    for Python to query. Returns the number of PAIR_FCL pairs."""
     cutoff = ws.fpar[FP_CUTOFF]
-    L = ws.cap_joint.shape[0]
-    O = ws.ob_kind.shape[0]
-    cand = np.empty(O, np.int64)
-    c0 = np.empty(3)
-    c1 = np.empty(3)
-    if ws.grid_dims[0] != 0:
+    segments, cap_radius = ws.segments, ws.cap_radius
+    ob_kind, ob_c, ob_axis, ob_radius, ob_bound = ws.ob_kind, ws.ob_c, ws.ob_axis, ws.ob_radius, ws.ob_bound
+    pr_link, pr_obs, pr_state, pr_d = ws.pr_link, ws.pr_obs, ws.pr_state, ws.pr_d
+    pr_n, pr_pl, pr_po = ws.pr_n, ws.pr_pl, ws.pr_po
+    L = segments.shape[0]
+    O = ob_kind.shape[0]
+    grid = ws.grid_dims[0] != 0
+    cand = np.empty(O if grid else 0, np.int64)
+    if grid:
         ws.stamp[:] = 0
     k = 0
     nfcl = 0
     for i in range(L):
-        a, b = ws.segments[i, 0], ws.segments[i, 1]
-        rl = ws.cap_radius[i]
-        nc = _candidates(ws, i, cand)
-        for u in range(nc):
-            j = cand[u]
-            kind = ws.ob_kind[j]
-            c = ws.ob_c[j]
-            if kind != KIND_SPHERE and sphere_bound(a, b, rl, c, ws.ob_bound[j]) >= cutoff:
+        ax, ay, az = segments[i, 0, 0], segments[i, 0, 1], segments[i, 0, 2]
+        ux, uy, uz = segments[i, 1, 0] - ax, segments[i, 1, 1] - ay, segments[i, 1, 2] - az
+        uu = ux * ux + uy * uy + uz * uz
+        rl = cap_radius[i]
+        nc = _candidates(ws, i, cand) if grid else O
+        for e in range(nc):
+            j = cand[e] if grid else e
+            kind = ob_kind[j]
+            cx, cy, cz = ob_c[j, 0], ob_c[j, 1], ob_c[j, 2]
+            if kind == KIND_SPHERE:
+                sx = sy = sz = 0.0
+            else:
+                if sphere_bound(segments[i, 0], segments[i, 1], rl, ob_c[j], ob_bound[j]) >= cutoff:
+                    continue
+                if kind == KIND_FCL:
+                    pr_link[k], pr_obs[k], pr_state[k], pr_d[k] = i, j, PAIR_FCL, np.inf
+                    k += 1
+                    nfcl += 1
+                    continue
+                sx, sy, sz = ob_axis[j, 0], ob_axis[j, 1], ob_axis[j, 2]
+            # obstacle axis c0 + t·s, c0 = centre − s/2 (a point for a sphere)
+            c0x, c0y, c0z = cx - 0.5 * sx, cy - 0.5 * sy, cz - 0.5 * sz
+            tl, to = segment_params(ax, ay, az, ux, uy, uz, uu, c0x, c0y, c0z, sx, sy, sz)
+            px, py, pz = ax + tl * ux, ay + tl * uy, az + tl * uz
+            qx, qy, qz = c0x + to * sx, c0y + to * sy, c0z + to * sz
+            wx, wy, wz = px - qx, py - qy, pz - qz
+            wn = math.sqrt(wx * wx + wy * wy + wz * wz)
+            ro = ob_radius[j]
+            d = wn - rl - ro
+            if not d < cutoff:
                 continue
-            if kind == KIND_FCL:
-                ws.pr_link[k], ws.pr_obs[k], ws.pr_state[k] = i, j, PAIR_FCL
-                ws.pr_d[k] = np.inf
-                k += 1
-                nfcl += 1
-                continue
-            for r in range(3):
-                half = 0.5 * ws.ob_axis[j, r]
-                c0[r] = c[r] - half
-                c1[r] = c[r] + half
-            d = capsule_pair(a, b, rl, c0, c1, ws.ob_radius[j], ws.pr_n[k], ws.pr_pl[k], ws.pr_po[k])
-            if d < cutoff:
-                ws.pr_link[k], ws.pr_obs[k], ws.pr_state[k] = i, j, PAIR_OK
-                ws.pr_d[k] = d
-                k += 1
+            contact_frame(px, py, pz, qx, qy, qz, wx, wy, wz, wn, ux, uy, uz, sx, sy, sz, rl, ro,
+                          pr_n[k], pr_pl[k], pr_po[k])
+            pr_link[k], pr_obs[k], pr_state[k], pr_d[k] = i, j, PAIR_OK, d
+            k += 1
     ws.cnt[CNT_PAIRS] = k
     ws.cnt[CNT_FCL] = nfcl
     return nfcl
@@ -760,10 +778,11 @@ def barrier_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[
 
 
 @njit(cache=True)
-def violation(x: np.ndarray, n: int, n_in: int, rows: np.ndarray, bu: np.ndarray,
-              bl: np.ndarray) -> float:
+def violation(x: np.ndarray, n: int, n_in: int, rows: np.ndarray, bu: np.ndarray, bl: np.ndarray,
+              Cx: np.ndarray) -> float:
     """Largest violation at x of the inequality rows and of the bounds on q̈, each relative to
-    1 + |its bound| (infinite bounds never count); the task's equality is the solver's business."""
+    1 + |its bound| (infinite bounds never count); the task's equality is the solver's business.
+    Leaves C x in ``Cx`` (n_in,)."""
     nv = x.shape[0]
     worst = 0.0
     for r in range(n_in + n):
@@ -771,13 +790,14 @@ def violation(x: np.ndarray, n: int, n_in: int, rows: np.ndarray, bu: np.ndarray
             s = 0.0
             for c in range(nv):
                 s += rows[r, c] * x[c]
+            Cx[r] = s
             lo, hi = bl[nv + r], bu[nv + r]
         else:
             s = x[r - n_in]
             lo, hi = bl[r - n_in], bu[r - n_in]
-        if math.isfinite(lo) and lo - s > 0.0:
+        if lo - s > 0.0 and math.isfinite(lo):
             worst = max(worst, (lo - s) / (1.0 + abs(lo)))
-        if math.isfinite(hi) and s - hi > 0.0:
+        if s - hi > 0.0 and math.isfinite(hi):
             worst = max(worst, (s - hi) / (1.0 + abs(hi)))
     return worst
 
@@ -789,18 +809,19 @@ def qp_finish(ws, x: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarra
     within ±τ_max (the solver's residue clipped, q̈ recomputed), slack and active-row counts, and the
     record. False (nothing written) if x is not finite or violates a row."""
     n = ws.N.shape[0]
-    n_in = ws.ipar[IP_N_IN]
+    ip = ws.ipar
+    n_in = ip[IP_N_IN]
     nv = x.shape[0]
     for c in range(nv):
         if not math.isfinite(x[c]):
             return False
-    viol = violation(x, n, n_in, rows, bu, bl)
+    Cx = np.empty(n_in)
+    viol = violation(x, n, n_in, rows, bu, bl, Cx)
     if viol > tol:
         return False
     for i in range(n):
         ws.qdd[i] = x[i]
     finish_torque(ws)
-    s = record_scalars(n, ws.a.shape[0])
     half = (nv - n) // 2
     sl = 0.0
     for r in range(half):
@@ -808,25 +829,25 @@ def qp_finish(ws, x: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarra
         sl += d * d
     active = 0
     mask = 0
-    t0, b0 = ws.ipar[IP_TORQUE_ROW0], ws.ipar[IP_BARRIER_ROW0]
+    t0, b0, cap = ip[IP_TORQUE_ROW0], ip[IP_BARRIER_ROW0], ip[IP_CAPACITY]
     for r in range(n_in):
-        cx = 0.0
-        for c in range(nv):
-            cx += rows[r, c] * x[c]
+        cx = Cx[r]
         if min(abs(cx - bl[nv + r]), abs(cx - bu[nv + r])) <= 1e-6 * (1.0 + abs(cx)):
             active += 1
             if t0 >= 0 and t0 <= r < t0 + n:
                 mask |= 1
-            if b0 >= 0 and b0 <= r < b0 + ws.ipar[IP_CAPACITY]:
+            if b0 >= 0 and b0 <= r < b0 + cap:
                 mask |= 2
     for i in range(n):
         if min(abs(x[i] - bl[i]), abs(x[i] - bu[i])) <= 1e-6:
             active += 1
     write_record(ws, ws.flags[FLAG_SINGULAR_TERMS] != 0)
-    ws.rec[s + R_SLACK] = math.sqrt(sl)
-    ws.rec[s + R_ACTIVE] = active
-    ws.rec[s + R_ACTIVE_MASK] = mask
-    ws.rec[s + R_VIOLATION] = viol
+    s = record_scalars(n, ws.a.shape[0])
+    rec = ws.rec
+    rec[s + R_SLACK] = math.sqrt(sl)
+    rec[s + R_ACTIVE] = active
+    rec[s + R_ACTIVE_MASK] = mask
+    rec[s + R_VIOLATION] = viol
     return True
 
 
