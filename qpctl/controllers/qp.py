@@ -405,8 +405,6 @@ class QPController(Controller):
     def _solve_buffers(self, solver: QPSolver, buf: QPBuffers, deadline: float) -> tuple[bool, str, int]:
         """Solve the tick's QP held in ``buf`` within what is left of the budget, and check the answer
         (:func:`qpctl.kernels.tick.qp_finish` writes τ, q̈ and the record when it holds)."""
-        ws = self._ws
-        assert ws is not None
         if deadline != math.inf:
             left_us = (deadline - time.perf_counter()) * 1e6
             if left_us <= 0:
@@ -418,7 +416,8 @@ class QPController(Controller):
         else:
             sol = self._attempt(solver, buf.problem, deadline, check=False)
             x, status, iters = (sol.x if sol.found else None), sol.status, sol.iterations
-        if x is not None and not K.qp_finish(ws.work, x, buf.rows, buf.bu, buf.bl, SOLUTION_RTOL):
+        if x is not None and not K.qp_finish(self._ws.work, x, buf.rows, buf.bu, buf.bl,  # type: ignore[union-attr]
+                                             SOLUTION_RTOL):
             # The solver's own test runs on its scaled problem: a row it scaled up (say nᵀJ_p ≈ 1e-5
             # at a link's fixed base) can be violated by m/s² in our units while it reports "solved".
             status = "inaccurate" if np.isfinite(x).all() else "nonfinite_solution"

@@ -20,7 +20,11 @@ import math
 import numpy as np
 from numba import njit
 
-PARALLEL_EPS = 1e-12  # segments with |d1|²|d2|² − (d1·d2)² ≤ eps·|d1|²|d2|² are treated as parallel
+# Segments with |u|²|s|² − (u·s)² ≤ eps·|u|²|s|² (sin²θ ≤ eps) take the "parallel" branch (the first
+# segment's start). Near that limit the denominator is rounding noise, but any start parameter then
+# leads Ericson's clamping to a closest pair to within ~θ·L; a looser eps (1e-12, θ ≈ 1e-6) left
+# crossing, nearly parallel axes off by θ·L/2 (5e-7 m), which tests/test_kernels.py catches.
+PARALLEL_EPS = 1e-16
 
 
 @njit(cache=True)

@@ -472,34 +472,34 @@ def state(ws, q: np.ndarray, v: np.ndarray, t: float) -> int:  # type: ignore[no
 @njit(cache=True)
 def reference_velocity(ws) -> None:  # type: ignore[no-untyped-def]
     """g [rad/s]: the joint velocity that best realises u = v_ref α(d) n at every link point within d_i
-    (rows and targets weighed by √α; damped least squares, λ = g_damping)."""
+    (rows and targets weighed by √α; damped least squares, λ = g_damping). An obstacle whose own
+    v_ref is 0 keeps its rows, asking its links to hold still; g = 0 when no pair is within d_i or
+    every such pair's v_ref is 0 (qpctl.law.reference_velocity)."""
     n = ws.g.shape[0]
     di, ds = ws.fpar[FP_DI], ws.fpar[FP_DS]
     v_ref = ws.fpar[FP_VREF]
+    pr_d, pr_obs, pr_n, pr_jac, ob_vref = ws.pr_d, ws.pr_obs, ws.pr_n, ws.pr_jac, ws.ob_vref
     H, rhs = ws.S, ws.g
     H[:, :] = 0.0
     rhs[:] = 0.0
-    any_active = False
+    any_moving = False
     for r in range(ws.cnt[CNT_PAIRS]):
-        d = ws.pr_d[r]
+        d = pr_d[r]
         if not d < di:
             continue
-        own = ws.ob_vref[ws.pr_obs[r]]
+        own = ob_vref[pr_obs[r]]
         vr = v_ref if math.isnan(own) else own
-        if vr == 0.0:
-            continue
+        any_moving = any_moving or vr != 0.0
         alpha = min(max((di - d) / (di - ds), 0.0), 1.0)
         w = math.sqrt(alpha)
-        Jp = ws.pr_jac[r]
         for c in range(3):
-            b = w * ((vr * alpha) * ws.pr_n[r, c])
+            b = w * ((vr * alpha) * pr_n[r, c])
             for i in range(n):
-                ai = w * Jp[c, i]
+                ai = w * pr_jac[r, c, i]
                 rhs[i] += ai * b
                 for j in range(i + 1):
-                    H[i, j] += ai * (w * Jp[c, j])
-        any_active = True
-    if not any_active:
+                    H[i, j] += ai * (w * pr_jac[r, c, j])
+    if not any_moving:
         rhs[:] = 0.0
         return
     lam2 = ws.fpar[FP_GDAMP] ** 2

@@ -53,27 +53,27 @@ class DAQPSolver(QPSolver):
     def reset(self) -> None:
         self._shape, self._lam = None, None
         self._model: Any = None
-        self._model_key: tuple[int, ...] | None = None
+        self._model_key: np.ndarray | None = None  # the H the model was set up on
         self._model_limit = 0.0
 
     def solve_buffers(self, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarray,
                       sense: np.ndarray) -> tuple[np.ndarray | None, str, int]:
         """Solve the QP held in DAQP's layout by these arrays (x, bounds, rows — see the module
-        docstring) on a persistent ``daqp.Model``: (x or None, status, iterations)."""
-        key = (H.shape[0], rows.shape[0], id(H))
+        docstring) on a persistent ``daqp.Model`` set up on these very arrays: (x or None, status,
+        iterations). The model's working set is the next tick's warm start."""
         limit = 0.0 if self.time_limit_us is None else max(self.time_limit_us * 1e-6, 1e-9)
         model = self._model
         try:
-            if model is None or self._model_key != key:
+            if model is None or self._model_key is not H:
                 model = daqp.Model()
                 flag, _ = model.setup(H, f, rows, bu, bl, sense)
                 if flag < 0:
                     self._model = None
                     return None, _STATUS.get(int(flag), f"exitflag {int(flag)}"), 0
                 model.settings = {**self.settings, "time_limit": limit}
-                self._model, self._model_key, self._model_limit = model, key, limit
+                self._model, self._model_key, self._model_limit = model, H, limit
             else:
-                model.update(H=H, f=f, A=rows, bupper=bu, blower=bl)
+                model.update(H, f, rows, bu, bl)
                 if limit != self._model_limit:
                     model.settings = {"time_limit": limit}
                     self._model_limit = limit
@@ -81,11 +81,10 @@ class DAQPSolver(QPSolver):
         except Exception as exc:  # noqa: BLE001 — DAQP's own error: a failed solve
             self._model = None
             return None, f"error: {type(exc).__name__}: {exc}", 0
-        status = _STATUS.get(int(flag), f"exitflag {int(flag)}")
-        if status != "solved":
-            self._model = None  # the next tick starts from a fresh workspace, not a failed working set
-            return None, status, int(info.get("iterations", 0))
-        return x, status, int(info["iterations"])
+        if flag > 0:  # 1: optimal, 2: optimal with soft constraints
+            return x, "solved", info["iterations"]
+        self._model = None  # the next tick starts from a fresh workspace, not a failed working set
+        return None, _STATUS.get(int(flag), f"exitflag {int(flag)}"), int(info.get("iterations", 0))
 
     def solve(self, problem: Problem) -> Solution:
         start = time.perf_counter()
