@@ -19,7 +19,6 @@ import time
 from collections.abc import Callable
 
 import numpy as np
-
 import pinocchio as pin
 
 from benchmarks.scenes import canopy_scene

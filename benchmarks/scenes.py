@@ -1,6 +1,9 @@
 """The benchmark scenes, built in code and seeded.
 
-* :func:`paper_scene` — the paper's scenario (``Scenario.load("paper")``).
+* :func:`paper_scene` — the paper's scenario (``Scenario.load("paper")``): the planar paper arm.
+* :func:`spheres_scene` — the packaged ``panda_spheres`` scenario: the Panda picking three fruits
+  in turn among 10 sphere obstacles (issue #10's reference scene).
+* :func:`free_scene` — the same Panda task with no obstacles (what TSID's tick is compared with).
 * :func:`planar_scene` — the paper's arm reaching a random point past 2–4 random discs.
 * :func:`canopy_scene` — the Franka Panda reaching a fruit inside a canopy of branch capsules and
   leaf spheres (position-only task: 7 joints, 3 task coordinates, 4 degrees of redundancy).
@@ -47,7 +50,7 @@ class BenchScene:
     """
 
     name: str
-    family: str  # "paper", "planar" or "canopy": the suite it belongs to
+    family: str  # "paper", "planar", "spheres", "free" or "canopy": the scene group it belongs to
     robot: RobotModel
     q0: np.ndarray
     path: WaypointPath
@@ -71,14 +74,36 @@ class BenchScene:
         return make_controller(cfg, self.robot, self.path, list(self.obstacles), self.gains, broadphase=broadphase)
 
 
-def paper_scene() -> BenchScene:
-    """The packaged ``paper`` scenario as a benchmark scene."""
-    scen = Scenario.load("paper")
+def scenario_scene(scenario: str, family: str, name: str | None = None) -> BenchScene:
+    """A packaged scenario (by name) as a benchmark scene: its robot, start, path, obstacles, gains,
+    dt and duration, and its ``[controller]`` keys (QP settings) for every controller."""
+    scen = Scenario.load(scenario)
     robot = scen.build_robot()
     q0 = scen.q0(robot)
     cfg = {k: v for k, v in scen.data["controller"].items() if k not in ("kind", "broadphase")}
-    return BenchScene("paper", "paper", robot, q0, scen.build_path(robot, q0), tuple(scen.build_obstacles()),
+    return BenchScene(name or scen.name, family, robot, q0, scen.build_path(robot, q0), tuple(scen.build_obstacles()),
                       scen.gains(), scen.data["sim"]["dt"], scen.data["sim"]["duration"], None, cfg)
+
+
+def paper_scene() -> BenchScene:
+    """The packaged ``paper`` scenario as a benchmark scene."""
+    return scenario_scene("paper", "paper")
+
+
+#: The packaged scenario of the Panda + 10 spheres scene (issue #10's reference scene).
+SPHERES_SCENARIO = "panda_spheres"
+
+
+def spheres_scene() -> BenchScene:
+    """The packaged ``panda_spheres`` scenario: the Panda from its home pose to three fruits in turn
+    (straight quintic legs of 1.5 s, 0.5 s dwells; 6 s at 1 ms) among 10 sphere obstacles."""
+    return scenario_scene(SPHERES_SCENARIO, "spheres", "panda-spheres")
+
+
+def free_scene(spheres: BenchScene | None = None) -> BenchScene:
+    """:func:`spheres_scene`'s task (robot, start, path, gains, QP settings) with no obstacles."""
+    base = spheres if spheres is not None else spheres_scene()
+    return replace(base, name="panda-free", family="free", obstacles=())
 
 
 def _segment_distance(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> float:

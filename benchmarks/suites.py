@@ -3,9 +3,10 @@
 * :func:`closed_loop` — one controller on one scene in the built-in simulator (RK4, the scene's dt):
   success (reached the target, no collision), tracking error, peak torque and torque rate, least
   clearance, compute time per tick by stage.
-* :func:`same_ticks` — every controller timed on the states of one closed-loop run
-  (:mod:`benchmarks.timing`).
-* :func:`scaling` — the canopy scene tiled to more obstacles (broad phase on), timed on the same states.
+* :func:`same_ticks` — every controller, and the floor (``pin.computeAllTerms`` alone), timed on the
+  states of one closed-loop run (:mod:`benchmarks.timing`).
+* :func:`scaling` — the canopy scene tiled to more obstacles (the uniform-grid broad phase on), timed
+  on the same states.
 """
 
 from __future__ import annotations
@@ -17,7 +18,15 @@ from typing import Any
 import numpy as np
 
 from benchmarks.scenes import BenchScene, orchard_scene
-from benchmarks.timing import StateSequence, TickTimes, time_on_states
+from benchmarks.timing import (
+    FLOOR,
+    STAGES,
+    PinocchioFloor,
+    StateSequence,
+    Steppable,
+    TickTimes,
+    time_on_states,
+)
 from qpctl.errors import QpctlError
 from qpctl.simulation.metrics import compute_metrics
 from qpctl.simulation.simulator import Simulator
@@ -55,7 +64,7 @@ class ClosedLoop:
 
 def _stage_medians(infos: list[dict[str, Any]]) -> dict[str, float]:
     out = {}
-    for stage in ("rigid_us", "distance_us", "state_us", "build_us", "solve_us"):
+    for stage in STAGES:
         vals = [float(i[stage]) for i in infos if stage in i]
         if vals:
             out[f"{stage[:-3]}_us_median"] = float(np.median(vals))
@@ -67,6 +76,7 @@ def closed_loop(scene: BenchScene, spec: ControllerSpec, *, max_ticks: int | Non
     duration = scene.duration if max_ticks is None else min(scene.duration, (max_ticks - 1) * scene.dt)
     controller = scene.controller(spec.kind, spec.solver)
     try:
+        controller.warmup()  # as before a control loop: the first tick's workspace and compiled code ready
         traj = Simulator(controller, dt=scene.dt, duration=duration).run(scene.q0)
     except QpctlError as exc:  # diverged, or a controller error: a failed run, reported as such
         return ClosedLoop(scene.name, spec.label, {"success": False, "reached": False, "collided": None,
@@ -97,17 +107,20 @@ def closed_loop(scene: BenchScene, spec: ControllerSpec, *, max_ticks: int | Non
 
 
 def same_ticks(scene: BenchScene, specs: Sequence[ControllerSpec], states: StateSequence, *,
-               progress: bool = False) -> dict[str, TickTimes]:
-    """Every controller of ``specs`` timed on ``states`` of ``scene`` (interleaved)."""
-    controllers = {s.label: scene.controller(s.kind, s.solver) for s in specs}
+               floor: bool = True, progress: bool = False) -> dict[str, TickTimes]:
+    """Every controller of ``specs`` timed on ``states`` of ``scene`` (interleaved), and with ``floor``
+    the floor (label ``"floor"``: ``pin.computeAllTerms`` alone, interleaved like a controller)."""
+    controllers: dict[str, Steppable] = {FLOOR: PinocchioFloor(scene.robot)} if floor else {}
+    controllers.update({s.label: scene.controller(s.kind, s.solver) for s in specs})
     return time_on_states(controllers, states, progress=progress, desc=f"same ticks {scene.name}")
 
 
 def scaling(scene: BenchScene, counts: Sequence[int], specs: Sequence[ControllerSpec], states: StateSequence, *,
             seed: int = 0, progress: bool = False) -> dict[int, dict[str, TickTimes]]:
-    """Tick times against the number of obstacles: ``scene`` tiled to each count (broad phase on), every
-    (count, controller) timed on the same ``states``, all interleaved."""
-    controllers = {}
+    """Tick times against the number of obstacles: ``scene`` tiled to each count (the uniform-grid broad
+    phase on at every count, 10 included), every (count, controller) timed on the same ``states``, all
+    interleaved."""
+    controllers: dict[tuple[int, str], Steppable] = {}
     for count in counts:
         tiled = orchard_scene(scene, count, seed=seed)
         for s in specs:
