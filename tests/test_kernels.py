@@ -1097,11 +1097,18 @@ CHILD = textwrap.dedent("""
     import qpctl
     from qpctl import Scenario
     from qpctl.kernels import tick as K
+    from qpctl.solvers import daqp_native
     for kind in ("paper", "qp"):
-        Scenario.load("paper").build_controller(kind).step(np.array([np.pi, np.pi / 2, 0.0]), np.zeros(3), 0.5)
+        ctrl = Scenario.load("paper").build_controller(kind)
+        for t in (0.5, 0.501):  # the QP's first tick sets DAQP up, the second runs the whole tick in one kernel
+            ctrl.step(np.array([np.pi, np.pi / 2, 0.0]), np.zeros(3), t)
+    kernels = [("state", K.state), ("closed_form_tick", K.closed_form_tick), ("qp_terms_and_build", K.qp_terms_and_build)]
+    if daqp_native.available():
+        kernels += [("native_solve_finish", K.native_solve_finish), ("qp_tick_native", K.qp_tick_native)]
+    else:
+        kernels += [("qp_finish", K.qp_finish)]
     out = {name: [sum(k.stats.cache_hits.values()), sum(k.stats.cache_misses.values()), k.stats.cache_path]
-           for name, k in (("state", K.state), ("closed_form_tick", K.closed_form_tick),
-                           ("qp_terms_and_build", K.qp_terms_and_build), ("qp_finish", K.qp_finish))}
+           for name, k in kernels}
     out["module"] = qpctl.__file__
     print(json.dumps(out))
 """)
@@ -1113,7 +1120,9 @@ def test_kernels_load_from_the_cache_in_a_worker_process(tmp_path):
     paper scenario's closed-form and QP controllers and runs a tick of each loads the kernels from the
     on-disk cache: cache hits, no misses (a miss is a compilation)."""
     for kind in ("paper", "qp"):  # compiled (and cached) here, if no earlier test did
-        Scenario.load("paper").build_controller(kind).step(np.array([np.pi, np.pi / 2, 0.0]), np.zeros(3), 0.5)
+        ctrl = Scenario.load("paper").build_controller(kind)
+        for t in (0.5, 0.501):
+            ctrl.step(np.array([np.pi, np.pi / 2, 0.0]), np.zeros(3), t)
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     proc = subprocess.run([sys.executable, "-c", CHILD], cwd=tmp_path, env=env, capture_output=True, text=True,
                           timeout=120, check=False)

@@ -63,7 +63,8 @@ class RecordOutput(ControlOutput):
                  compute_us: float = 0.0, stages: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)) -> None:
         # no dataclass __init__: the fields are properties reading the record
         self._rec, self._layout, self._extra, self._info = rec, layout, info, None
-        self._stages = stages  # [s]: Pinocchio, the state kernel, the law (and QP rows), the solve
+        self._stages = stages  # [s]: Pinocchio, the state kernel, the law (and QP rows), the solve;
+        # the last two < 0: read them from the record, where the tick measured them [µs]
         self.compute_us = compute_us
 
     tau = property(lambda self: self._rec[self._layout.tau])  # type: ignore[assignment]
@@ -93,11 +94,13 @@ class RecordOutput(ControlOutput):
         """Per-tick diagnostics (stage timings [µs], pairs, and the law's own), built on first access."""
         if self._info is None:
             pin_s, state_s, build_s, solve_s = self._stages
+            r, s = self._rec, self._layout.scalars
+            if build_s < 0:  # measured inside the tick and kept in the record [µs]
+                build_s, solve_s = r[s + K.R_BUILD_US] * 1e-6, r[s + K.R_SOLVE_US] * 1e-6
             info: dict[str, Any] = {"rigid_us": pin_s * 1e6, "state_us": (pin_s + state_s) * 1e6,
-                                    "build_us": build_s * 1e6,
-                                    "pairs": int(self._rec[self._layout.scalars + K.R_PAIRS])}
+                                    "build_us": float(build_s) * 1e6, "pairs": int(r[s + K.R_PAIRS])}
             if solve_s:
-                info["solve_us"] = solve_s * 1e6
+                info["solve_us"] = float(solve_s) * 1e6
             if self._extra:
                 info.update(self._extra)
             self._decode(info)

@@ -46,6 +46,7 @@ from qpctl.paths import WaypointPath
 from qpctl.qp import Problem, Solution
 from qpctl.robot.model import RobotModel
 from qpctl.solvers.base import DEFAULT_SOLVER, QPSolver, make_solver
+from qpctl.solvers.daqp_ import STATUS as DAQP_STATUS
 from qpctl.solvers.daqp_ import DAQPSolver
 from qpctl.state import TickState
 from qpctl.tasks.tasks import AccelerationTask, EndEffectorTask, PostureTask, Task
@@ -350,7 +351,7 @@ class QPController(Controller):
         if isinstance(last, tuple):
             x, status, iters, name = last
             nv = self._last_problem.n_var if self._last_problem is not None else self.n
-            last = Solution(x is not None, x if x is not None else np.zeros(nv), status, iters, 0.0, name)
+            last = Solution(x is not None, x.copy() if x is not None else np.zeros(nv), status, iters, 0.0, name)
             self._last = last
         return last
 
@@ -372,58 +373,102 @@ class QPController(Controller):
         deadline = start + budget * 1e-6 if budget > 0 else math.inf
         hard_first = self._hard_first
         buf = ws.hard if hard_first else ws.relaxed
-        code = K.qp_terms_and_build(ws.work, buf.H, buf.f, buf.rows, buf.bu, buf.bl)
+        solver = self._solver if hard_first else self._solver_soft
+        code, status, iters = self._solve_layout(solver, buf, deadline, terms_done=False)
         if code == 1:
             raise InvalidStateError(f"the inertia matrix is not positive definite at q={q.tolist()}")
-        t_build = time.perf_counter()
-        solver = self._solver if hard_first else self._solver_soft
-        ok, status, iters = (self._solve_buffers(solver, buf, deadline) if code == 0
-                             else (False, "nonfinite_problem", 0))
-        t_solve = time.perf_counter()
         extra: dict[str, Any] = {"status": status, "iterations": iters, "solver": solver.name}
-        if hard_first and not ok and code == 0:  # the task conflicts with the hard rows: let it give way
+        if hard_first and code == 3:  # the task conflicts with the hard rows: let it give way
             buf = ws.relaxed
-            K.qp_build(ws.work, buf.H, buf.f, buf.rows, buf.bu, buf.bl)
-            t3 = time.perf_counter()
-            ok, status2, iters2 = self._solve_buffers(self._solver_soft, buf, deadline)
-            t4 = time.perf_counter()
-            t_build += t3 - t_solve
-            t_solve = t4
+            code, status2, iters2 = self._solve_layout(self._solver_soft, buf, deadline, terms_done=True)
             extra.update(relaxed=True, hard_status=status, status=status2, iterations=iters + iters2)
             status = status2
         self._last_problem = buf.problem
         if status == "time_limit":
             extra["budget_exhausted"] = True
+        ok = code == 0
         if not ok:
             self._compiled_fallback(ws, buf, status, extra, deadline, hard_first)
         end = time.perf_counter()
-        out = QPOutput(ws.rec.copy(), ws.layout, extra, (end - start) * 1e6,
-                       (ws.pin_s, ws.state_s, t_build - t_state, t_solve - t_build), ok)
+        out = QPOutput(ws.rec.copy(), ws.layout, extra, (end - start) * 1e6, (ws.pin_s, ws.state_s, -1.0, -1.0), ok)
         self.last = out
         return out
 
-    def _solve_buffers(self, solver: QPSolver, buf: QPBuffers, deadline: float) -> tuple[bool, str, int]:
-        """Solve the tick's QP held in ``buf`` within what is left of the budget, and check the answer
-        (:func:`qpctl.kernels.tick.qp_finish` writes τ, q̈ and the record when it holds)."""
+    def _solve_layout(self, solver: QPSolver, buf: QPBuffers, deadline: float, *,
+                      terms_done: bool) -> tuple[int, str, int]:
+        """The law's terms (unless ``terms_done``) and the QP's rows written into ``buf``, solved within
+        what is left of the budget, the answer checked (:func:`qpctl.kernels.tick.qp_finish` writes τ,
+        q̈ and the record when it holds); the build and solve times [µs] go into the record (added to
+        those of an earlier attempt in this tick when ``terms_done``). Returns (code, status,
+        iterations), code 0: solved and accepted; 1: M not positive definite; 2: non-finite problem;
+        3: failed, timed out or rejected."""
+        ws = self._ws
+        assert ws is not None
+        rec, s = ws.rec, ws.layout.scalars
+        nat = solver.native(buf) if type(solver) is DAQPSolver else None
+        left_us = math.inf
         if deadline != math.inf:
             left_us = (deadline - time.perf_counter()) * 1e6
-            if left_us <= 0:
-                self._last = (None, "time_limit", 0, solver.name)
-                return False, "time_limit", 0
-            solver.set_time_limit(left_us)
+            if nat is not None:
+                nat.set_time_limit(max(left_us * 1e-6, 1e-9))
+            else:
+                solver.set_time_limit(max(left_us, 0.0))
+        if nat is not None and nat.ready and not terms_done and left_us > 0:
+            code = K.qp_tick_native(ws.work, buf.H, buf.f, buf.rows, buf.bu, buf.bl, *nat.addresses, nat.flag,
+                                    nat.x, SOLUTION_RTOL)  # the whole tick in one call; times in the record
+            return self._native_outcome(code, nat, solver)
+        before_build, before_solve = (rec[s + K.R_BUILD_US], rec[s + K.R_SOLVE_US]) if terms_done else (0.0, 0.0)
+        t0 = time.perf_counter()
+        code = (K.qp_rebuild if terms_done else K.qp_terms_and_build)(ws.work, buf.H, buf.f, buf.rows, buf.bu, buf.bl)
+        t1 = time.perf_counter()
+        rec[s + K.R_BUILD_US], rec[s + K.R_SOLVE_US] = before_build + (t1 - t0) * 1e6, before_solve
+        if code:
+            self._last = (None, "nonfinite_problem", 0, solver.name)
+            return code, "nonfinite_problem", 0
+        if left_us <= 0:
+            self._last = (None, "time_limit", 0, solver.name)
+            return 3, "time_limit", 0
+        if nat is not None:
+            flag = 1 if nat.ready else nat.setup()
+            if flag < 0:  # DAQP could not even set the QP up (its exit flag says why)
+                nat.flag[0], nat.flag[1], code = flag, 0, 3
+            else:
+                code = K.native_solve_finish(ws.work, buf.rows, buf.bu, buf.bl, *nat.addresses, nat.flag, nat.x,
+                                             SOLUTION_RTOL)
+            rec[s + K.R_SOLVE_US] = before_solve + (time.perf_counter() - t1) * 1e6
+            return self._native_outcome(code, nat, solver)
         if type(solver) is DAQPSolver:
             x, status, iters = solver.solve_buffers(buf.H, buf.f, buf.rows, buf.bu, buf.bl, buf.sense)
         else:
             sol = self._attempt(solver, buf.problem, deadline, check=False)
             x, status, iters = (sol.x if sol.found else None), sol.status, sol.iterations
-        if x is not None and not K.qp_finish(self._ws.work, x, buf.rows, buf.bu, buf.bl,  # type: ignore[union-attr]
-                                             SOLUTION_RTOL):
+        if x is not None and not K.qp_finish(ws.work, x, buf.rows, buf.bu, buf.bl, SOLUTION_RTOL):
             # The solver's own test runs on its scaled problem: a row it scaled up (say nᵀJ_p ≈ 1e-5
             # at a link's fixed base) can be violated by m/s² in our units while it reports "solved".
             status = "inaccurate" if np.isfinite(x).all() else "nonfinite_solution"
             x = None
+        rec[s + K.R_SOLVE_US] = before_solve + (time.perf_counter() - t1) * 1e6
+        if x is not None:
+            rec[s + K.R_ITERATIONS] = iters
         self._last = (x, status, iters, solver.name)
-        return x is not None, status, iters
+        return (0 if x is not None else 3), status, iters
+
+    def _native_outcome(self, code: int, nat: Any, solver: QPSolver) -> tuple[int, str, int]:
+        """(code, status, iterations) of a native DAQP tick (see :meth:`_solve_layout`); a failed solve
+        frees DAQP's workspace, so the next tick starts cold rather than from a failed working set."""
+        iters = int(nat.flag[1])
+        if code == 0:
+            self._last = (nat.x, "solved", iters, solver.name)
+            return 0, "solved", iters
+        if code in (1, 2):
+            status = "nonfinite_problem"
+        elif code == 4:
+            status = "inaccurate" if np.isfinite(nat.x).all() else "nonfinite_solution"
+        else:
+            status = DAQP_STATUS.get(int(nat.flag[0]), f"exitflag {int(nat.flag[0])}")
+            nat.free()
+        self._last = (None, status, iters, solver.name)
+        return code if code in (1, 2) else 3, status, iters
 
     def _compiled_fallback(self, ws: Workspace, buf: QPBuffers, status: str, info: dict[str, Any],
                            deadline: float, hard_first: bool) -> None:

@@ -24,12 +24,19 @@ finite differences (rigid terms), python-fcl (distances), :mod:`qpctl.law`, :mod
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
-from numba import njit
+from numba import njit, types
 
 from qpctl.kernels.geometry import contact_frame, segment_params, sphere_bound
 from qpctl.kernels.small import chol_solve, cholesky, pinv_t, solve_lower, solve_lower_t
+from qpctl.solvers.daqp_native import UPDATE_ALL, daqp_solve, update_ldp
+
+# The process's monotonic clock (time.perf_counter's) inside kernels: stage timings without a return
+# to Python. clock_gettime(clockid, struct timespec*) from the C library; the pointer as an integer.
+_clock_gettime = types.ExternalFunction("clock_gettime", types.intc(types.intc, types.intp))
+_MONOTONIC = time.CLOCK_MONOTONIC
 
 # Obstacle kinds
 KIND_SPHERE, KIND_CAPSULE, KIND_FCL = 0, 1, 2
@@ -893,6 +900,15 @@ def finite_problem(H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarra
 
 
 @njit(cache=True)
+def qp_rebuild(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray,  # type: ignore[no-untyped-def]
+               bl: np.ndarray) -> int:
+    """The QP's rows in another layout from this tick's terms (the relaxed layout after the hard one
+    failed): 0, or 2 if the problem's data are not finite."""
+    qp_build(ws, H, f, rows, bu, bl)
+    return 0 if finite_problem(H, f, rows, bu, bl) else 2
+
+
+@njit(cache=True)
 def qp_terms_and_build(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray,  # type: ignore[no-untyped-def]
                        bl: np.ndarray) -> int:
     """The QP law's terms (the paper's, weighted) and its rows: 0; 1 if M is not positive definite;
@@ -901,3 +917,58 @@ def qp_terms_and_build(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: n
         return 1
     qp_build(ws, H, f, rows, bu, bl)
     return 0 if finite_problem(H, f, rows, bu, bl) else 2
+
+
+@njit(cache=True)
+def native_solve(work: int, problem: int, result: int, flag: np.ndarray) -> int:
+    """DAQP's update and solve on a workspace set up by :class:`qpctl.solvers.daqp_native.NativeDAQP`
+    (the QP's arrays changed in place): DAQP's exit flag (> 0 solved)."""
+    update_ldp(UPDATE_ALL, work, problem)
+    daqp_solve(result, work)
+    return flag[0]
+
+
+@njit(cache=True)
+def now_us(ts: np.ndarray) -> float:
+    """The monotonic clock [µs]; ``ts`` is an int64 (2,) scratch for the timespec."""
+    _clock_gettime(_MONOTONIC, ts.ctypes.data)
+    return ts[0] * 1e6 + ts[1] * 1e-3
+
+
+@njit(cache=True)
+def qp_tick_native(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray,  # type: ignore[no-untyped-def]
+                   bl: np.ndarray, work: int, problem: int, result: int, flag: np.ndarray, x: np.ndarray,
+                   tol: float) -> int:
+    """The whole QP tick after the state, on DAQP's C API: law terms, rows, solve, check, record
+    (with the build and solve times [µs]). 0: solved and accepted; 1: M not positive definite;
+    2: non-finite problem (not solved); 3: DAQP failed (its exit flag in ``flag[0]``); 4: x violates a
+    hard row or is not finite."""
+    ts = np.empty(2, np.int64)
+    t0 = now_us(ts)
+    code = qp_terms_and_build(ws, H, f, rows, bu, bl)
+    t1 = now_us(ts)
+    s = record_scalars(ws.N.shape[0], ws.a.shape[0])
+    ws.rec[s + R_BUILD_US] = t1 - t0
+    ws.rec[s + R_SOLVE_US] = 0.0
+    if code != 0:
+        return code
+    ok = native_solve(work, problem, result, flag) > 0
+    ws.rec[s + R_SOLVE_US] = now_us(ts) - t1
+    if not ok:
+        return 3
+    if not qp_finish(ws, x, rows, bu, bl, tol):
+        return 4
+    ws.rec[s + R_ITERATIONS] = flag[1]
+    return 0
+
+
+@njit(cache=True)
+def native_solve_finish(ws, rows: np.ndarray, bu: np.ndarray, bl: np.ndarray, work: int,  # type: ignore[no-untyped-def]
+                        problem: int, result: int, flag: np.ndarray, x: np.ndarray, tol: float) -> int:
+    """:func:`qp_tick_native` after its rows are built (the tick that set DAQP's workspace up)."""
+    if native_solve(work, problem, result, flag) <= 0:
+        return 3
+    if not qp_finish(ws, x, rows, bu, bl, tol):
+        return 4
+    ws.rec[record_scalars(ws.N.shape[0], ws.a.shape[0]) + R_ITERATIONS] = flag[1]
+    return 0

@@ -11,9 +11,12 @@ passed as they are (DAQP treats any bound beyond ±1e30 as absent). Warm start: 
 multipliers (``dual_start``) give DAQP its initial working set, so a tick whose active set did not
 change takes one or two iterations. A time limit is passed as DAQP's own ``time_limit`` [s].
 
-The compiled tick (:mod:`qpctl.tick`) writes its QP straight into arrays in this layout and calls
-:meth:`DAQPSolver.solve_buffers`, which keeps one ``daqp.Model`` (DAQP's workspace, allocated once)
-and ``update``s it every tick: the working set of the previous solve is the warm start.
+The compiled tick (:mod:`qpctl.tick`) writes its QP straight into arrays in this layout. Where the
+native path is available (:mod:`qpctl.solvers.daqp_native`: a checked DAQP version, self-tested in
+the process) its kernel calls DAQP's C API on them (:meth:`DAQPSolver.native`); otherwise
+:meth:`DAQPSolver.solve_buffers` keeps one ``daqp.Model`` and ``update``s it every tick. Either way
+DAQP's workspace is set up once and the working set of the previous solve is the warm start; a
+failed solve starts the next tick cold.
 """
 
 from __future__ import annotations
@@ -26,10 +29,12 @@ import numpy as np
 
 from qpctl.errors import ConfigError
 from qpctl.qp import Problem, Solution
+from qpctl.solvers import daqp_native
 from qpctl.solvers.base import QPSolver
+from qpctl.solvers.daqp_native import NativeDAQP
 
 _SENSE_EQ = 5
-_STATUS = {1: "solved", 2: "solved", -1: "primal_infeasible", -2: "cycling", -3: "unbounded", -4: "max_iter",
+STATUS = {1: "solved", 2: "solved", -1: "primal_infeasible", -2: "cycling", -3: "unbounded", -4: "max_iter",
            -5: "nonconvex", -6: "overdetermined_initial", -7: "time_limit", -8: "unsupported"}
 _SETTINGS = ("primal_tol", "dual_tol", "zero_tol", "pivot_tol", "progress_tol", "cycle_tol", "iter_limit",
              "fval_bound", "eps_prox", "eta_prox", "rho_soft", "rel_subopt", "abs_subopt", "sing_tol",
@@ -48,13 +53,31 @@ class DAQPSolver(QPSolver):
                                   key=f"controller.solver_settings.{key}")
         self._shape: tuple[int, int, int] | None = None
         self._lam: np.ndarray | None = None
+        self._natives: dict[int, NativeDAQP] = {}
+        self._native_ok: bool | None = None
         self.reset()
 
     def reset(self) -> None:
         self._shape, self._lam = None, None
+        for nat in getattr(self, "_natives", {}).values():
+            nat.free()  # the next tick sets DAQP up afresh: a cold start
         self._model: Any = None
         self._model_key: np.ndarray | None = None  # the H the model was set up on
         self._model_limit = 0.0
+
+    def native(self, buffers: Any) -> NativeDAQP | None:
+        """DAQP's C API set up on these QP buffers (:class:`qpctl.tick.QPBuffers`), or None where the
+        native path is not available (another DAQP version, or settings its C struct lacks)."""
+        nat = self._natives.get(id(buffers))
+        if nat is None:
+            if self._native_ok is None:
+                self._native_ok = daqp_native.available() and all(k in daqp_native.SETTINGS for k in self.settings)
+            if not self._native_ok:
+                return None
+            nat = NativeDAQP(buffers.H, buffers.f, buffers.rows, buffers.bu, buffers.bl, buffers.sense,
+                             self.settings)
+            self._natives[id(buffers)] = nat
+        return nat
 
     def solve_buffers(self, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarray,
                       sense: np.ndarray) -> tuple[np.ndarray | None, str, int]:
@@ -69,7 +92,7 @@ class DAQPSolver(QPSolver):
                 flag, _ = model.setup(H, f, rows, bu, bl, sense)
                 if flag < 0:
                     self._model = None
-                    return None, _STATUS.get(int(flag), f"exitflag {int(flag)}"), 0
+                    return None, STATUS.get(int(flag), f"exitflag {int(flag)}"), 0
                 model.settings = {**self.settings, "time_limit": limit}
                 self._model, self._model_key, self._model_limit = model, H, limit
             else:
@@ -84,7 +107,7 @@ class DAQPSolver(QPSolver):
         if flag > 0:  # 1: optimal, 2: optimal with soft constraints
             return x, "solved", info["iterations"]
         self._model = None  # the next tick starts from a fresh workspace, not a failed working set
-        return None, _STATUS.get(int(flag), f"exitflag {int(flag)}"), int(info.get("iterations", 0))
+        return None, STATUS.get(int(flag), f"exitflag {int(flag)}"), int(info.get("iterations", 0))
 
     def solve(self, problem: Problem) -> Solution:
         start = time.perf_counter()
@@ -114,7 +137,7 @@ class DAQPSolver(QPSolver):
             self._lam = None
             return Solution(False, np.zeros(nv), f"error: {type(exc).__name__}: {exc}",
                             solve_us=(time.perf_counter() - start) * 1e6, solver=self.name)
-        status = _STATUS.get(int(flag), f"exitflag {int(flag)}")
+        status = STATUS.get(int(flag), f"exitflag {int(flag)}")
         x = np.asarray(x, float)
         found = status == "solved" and bool(np.isfinite(x).all())
         self._lam = np.asarray(info["lam"], float).copy() if found else None
