@@ -222,6 +222,8 @@ class Workspace:
         ip[K.IP_BDRIFT] = int(barrier_drift)
         if g.obstacle_v_ref:
             self.ob_vref = np.asarray(g.obstacle_v_ref, float).copy()
+        # a whole tick in one kernel call when the law needs nothing from Python between state and law
+        self.fast = self.path_in_kernel and not g.jdot_en
         self.q_ref, self.tau_max = np.zeros(n), np.full(n, np.inf)
         self.q_min, self.q_max, self.v_max = np.full(n, -np.inf), np.full(n, np.inf), np.full(n, np.inf)
         ip[K.IP_TORQUE_ROW0] = ip[K.IP_BARRIER_ROW0] = -1
@@ -344,6 +346,16 @@ class Workspace:
             self._look_ahead(q, v, t)
         self.pin_s, self.state_s = mid - start, time.perf_counter() - mid
         return 0
+
+    def finish_state(self, q: np.ndarray, v: np.ndarray, t: float) -> None:
+        """What the state kernel left to Python (it returned STATE_PYTHON): python-fcl's pairs, then
+        the look-ahead drift of the pairs without a closed form."""
+        start = time.perf_counter()
+        if self.cnt[K.CNT_FCL]:
+            self._fcl_pairs(t)
+        if self.cnt[K.CNT_LOOKAHEAD]:
+            self._look_ahead(q, v, t)
+        self.rec[self.layout.scalars + K.R_STATE_US] += (time.perf_counter() - start) * 1e6
 
     def _fcl_pairs(self, t: float) -> None:
         """python-fcl for the pairs the kernel could not do in closed form (boxes, cylinders)."""

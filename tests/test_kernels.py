@@ -1102,9 +1102,11 @@ CHILD = textwrap.dedent("""
         ctrl = Scenario.load("paper").build_controller(kind)
         for t in (0.5, 0.501):  # the QP's first tick sets DAQP up, the second runs the whole tick in one kernel
             ctrl.step(np.array([np.pi, np.pi / 2, 0.0]), np.zeros(3), t)
-    kernels = [("state", K.state), ("closed_form_tick", K.closed_form_tick), ("qp_terms_and_build", K.qp_terms_and_build)]
+    # what the ticks dispatch: the paper law one call; the QP's first tick three (state, rows, then
+    # DAQP's setup and solve), later ones one call on DAQP's C API (or, without it, daqp.Model's path)
+    kernels = [("tick_closed_form", K.tick_closed_form), ("state", K.state), ("qp_terms_and_build", K.qp_terms_and_build)]
     if daqp_native.available():
-        kernels += [("native_solve_finish", K.native_solve_finish), ("qp_tick_native", K.qp_tick_native)]
+        kernels += [("native_solve_finish", K.native_solve_finish), ("tick_qp_native", K.tick_qp_native)]
     else:
         kernels += [("qp_finish", K.qp_finish)]
     out = {name: [sum(k.stats.cache_hits.values()), sum(k.stats.cache_misses.values()), k.stats.cache_path]

@@ -64,7 +64,7 @@ class RecordOutput(ControlOutput):
         # no dataclass __init__: the fields are properties reading the record
         self._rec, self._layout, self._extra, self._info = rec, layout, info, None
         self._stages = stages  # [s]: Pinocchio, the state kernel, the law (and QP rows), the solve;
-        # the last two < 0: read them from the record, where the tick measured them [µs]
+        # negative: read from the record, where the kernel measured it [µs]
         self.compute_us = compute_us
 
     tau = property(lambda self: self._rec[self._layout.tau])  # type: ignore[assignment]
@@ -95,7 +95,9 @@ class RecordOutput(ControlOutput):
         if self._info is None:
             pin_s, state_s, build_s, solve_s = self._stages
             r, s = self._rec, self._layout.scalars
-            if build_s < 0:  # measured inside the tick and kept in the record [µs]
+            if state_s < 0:  # measured inside the tick's kernel and kept in the record [µs]
+                state_s = r[s + K.R_STATE_US] * 1e-6
+            if build_s < 0:
                 build_s, solve_s = r[s + K.R_BUILD_US] * 1e-6, r[s + K.R_SOLVE_US] * 1e-6
             info: dict[str, Any] = {"rigid_us": pin_s * 1e6, "state_us": (pin_s + state_s) * 1e6,
                                     "build_us": float(build_s) * 1e6, "pairs": int(r[s + K.R_PAIRS])}
@@ -190,12 +192,17 @@ class Controller(ABC):
         is not finite or the dynamics overflow."""
         ws = self._ws if self._ws is not None else self.workspace()
         if ws.state(q, v, t) < 0:
-            if not (np.isfinite(q).all() and np.isfinite(v).all()):
-                raise InvalidStateError(f"non-finite state: q={q.tolist()}, v={v.tolist()}, t={t}")
-            raise InvalidStateError(f"the dynamics overflow at this state: q={q.tolist()}, v={v.tolist()}")
+            self._bad_state(q, v, t)
         if self.gains.jdot_en:
             ws.Jdot[:] = self.dynamics.task_jacobian_derivative(q, v)
         return ws
+
+    @staticmethod
+    def _bad_state(q: np.ndarray, v: np.ndarray, t: float) -> None:
+        """Raise the InvalidStateError of a state the kernels refused (non-finite, or overflowing)."""
+        if not (np.isfinite(q).all() and np.isfinite(v).all()):
+            raise InvalidStateError(f"non-finite state: q={q.tolist()}, v={v.tolist()}, t={t}")
+        raise InvalidStateError(f"the dynamics overflow at this state: q={q.tolist()}, v={v.tolist()}")
 
     def torque(self, q: np.ndarray, v: np.ndarray, t: float) -> np.ndarray:
         """Joint torques [N·m] for state (q, v) at time t [s] (see module docstring)."""

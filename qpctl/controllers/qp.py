@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+import pinocchio as pin
 
 from qpctl.constraints.constraints import Constraint, JointLimit, ObstacleBarrier, TorqueLimit
 from qpctl.controllers.base import Controller, ControlOutput, RecordOutput, fast_state
@@ -367,14 +368,28 @@ class QPController(Controller):
             finally:
                 self._tick_start = None
         q, v, t = fast_state(q, v, t, self.n)
-        self._state(q, v, t)
-        t_state = time.perf_counter()
         budget = self.config.tick_budget_us
         deadline = start + budget * 1e-6 if budget > 0 else math.inf
         hard_first = self._hard_first
         buf = ws.hard if hard_first else ws.relaxed
         solver = self._solver if hard_first else self._solver_soft
-        code, status, iters = self._solve_layout(solver, buf, deadline, terms_done=False)
+        nat = self._fast_native(ws, solver, buf) if budget <= 0 else None
+        if nat is not None:  # computeAllTerms, then the whole tick in one kernel call
+            t0 = time.perf_counter()
+            pin.computeAllTerms(ws.model, ws.data, q, v)
+            t1 = time.perf_counter()
+            code = K.tick_qp_native(ws.work, q, v, t, *nat.kernel_args, SOLUTION_RTOL)
+            if code == K.STATE_PYTHON:
+                ws.finish_state(q, v, t)
+                code = K.qp_tick_native(ws.work, *nat.kernel_args, SOLUTION_RTOL)
+            if code < 0:
+                self._bad_state(q, v, t)
+            code, status, iters = self._native_outcome(code, nat, solver)
+            stages = (t1 - t0, -1.0, -1.0, -1.0)
+        else:
+            self._state(q, v, t)
+            code, status, iters = self._solve_layout(solver, buf, deadline, terms_done=False)
+            stages = (ws.pin_s, ws.state_s, -1.0, -1.0)
         if code == 1:
             raise InvalidStateError(f"the inertia matrix is not positive definite at q={q.tolist()}")
         extra: dict[str, Any] = {"status": status, "iterations": iters, "solver": solver.name}
@@ -390,9 +405,17 @@ class QPController(Controller):
         if not ok:
             self._compiled_fallback(ws, buf, status, extra, deadline, hard_first)
         end = time.perf_counter()
-        out = QPOutput(ws.rec.copy(), ws.layout, extra, (end - start) * 1e6, (ws.pin_s, ws.state_s, -1.0, -1.0), ok)
+        out = QPOutput(ws.rec.copy(), ws.layout, extra, (end - start) * 1e6, stages, ok)
         self.last = out
         return out
+
+    def _fast_native(self, ws: Workspace, solver: QPSolver, buf: QPBuffers) -> Any:
+        """The native DAQP of ``buf`` when this tick can run as one kernel call (no tick budget; DAQP's
+        workspace already set up; nothing for Python between state and law), else None."""
+        if not ws.fast or type(solver) is not DAQPSolver:
+            return None
+        nat = solver.native(buf)
+        return nat if nat is not None and nat.ready else None
 
     def _solve_layout(self, solver: QPSolver, buf: QPBuffers, deadline: float, *,
                       terms_done: bool) -> tuple[int, str, int]:

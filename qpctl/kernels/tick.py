@@ -972,3 +972,50 @@ def native_solve_finish(ws, rows: np.ndarray, bu: np.ndarray, bl: np.ndarray, wo
         return 4
     ws.rec[record_scalars(ws.N.shape[0], ws.a.shape[0]) + R_ITERATIONS] = flag[1]
     return 0
+
+
+# ---------------------------------------------------------------------------------------------------
+# Whole ticks in one call (after computeAllTerms), for scenes with closed-form shapes only
+# ---------------------------------------------------------------------------------------------------
+STATE_PYTHON = 5  # the state needs Python (python-fcl's pairs or a look-ahead drift) before the law
+
+
+@njit(cache=True)
+def _state_timed(ws, q: np.ndarray, v: np.ndarray, t: float, ts: np.ndarray) -> int:  # type: ignore[no-untyped-def]
+    """:func:`state`, its time [µs] into the record; −1 overflow, STATE_PYTHON if Python must finish
+    the state (python-fcl's pairs, or a look-ahead barrier drift), else 0."""
+    t0 = now_us(ts)
+    st = state(ws, q, v, t)
+    ws.rec[record_scalars(ws.N.shape[0], ws.a.shape[0]) + R_STATE_US] = now_us(ts) - t0
+    if st < 0:
+        return -1
+    if st > 0 or ws.cnt[CNT_LOOKAHEAD] > 0:
+        return STATE_PYTHON
+    return 0
+
+
+@njit(cache=True)
+def tick_closed_form(ws, q: np.ndarray, v: np.ndarray, t: float, weighted: bool) -> int:  # type: ignore[no-untyped-def]
+    """State, law terms and closed form in one call: 0; −1 the dynamics overflow; 1 M not positive
+    definite; STATE_PYTHON: the state is waiting for Python (then call :func:`closed_form_tick`)."""
+    ts = np.empty(2, np.int64)
+    code = _state_timed(ws, q, v, t, ts)
+    if code != 0:
+        return code
+    t1 = now_us(ts)
+    code = closed_form_tick(ws, weighted)
+    ws.rec[record_scalars(ws.N.shape[0], ws.a.shape[0]) + R_BUILD_US] = now_us(ts) - t1
+    return code
+
+
+@njit(cache=True)
+def tick_qp_native(ws, q: np.ndarray, v: np.ndarray, t: float, H: np.ndarray, f: np.ndarray,  # type: ignore[no-untyped-def]
+                   rows: np.ndarray, bu: np.ndarray, bl: np.ndarray, work: int, problem: int, result: int,
+                   flag: np.ndarray, x: np.ndarray, tol: float) -> int:
+    """State and :func:`qp_tick_native` in one call: its codes, or −1 (the dynamics overflow) or
+    STATE_PYTHON (the state is waiting for Python; then call :func:`qp_tick_native`)."""
+    ts = np.empty(2, np.int64)
+    code = _state_timed(ws, q, v, t, ts)
+    if code != 0:
+        return code
+    return qp_tick_native(ws, H, f, rows, bu, bl, work, problem, result, flag, x, tol)

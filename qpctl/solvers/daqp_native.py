@@ -116,6 +116,8 @@ class NativeDAQP:
         assert _Result.iter.offset == _Result.exitflag.offset + 4
         self.flag = np.frombuffer(raw, np.int32, 2, _Result.exitflag.offset)  # [exit flag, iterations]
         self.addresses = (int(self.work.ctypes.data), C.addressof(self.problem), C.addressof(self.result))
+        # what qpctl.kernels.tick.qp_tick_native takes after the workspace (and before the tolerance)
+        self.kernel_args = (H, f, rows, bu, bl, *self.addresses, self.flag, self.x)
         self.settings = dict(settings or {})
         self.ready = False
         self._time_limit = 0.0
