@@ -432,10 +432,10 @@ def warmup() -> dict[str, float]:
     running one tick of each law on a small scene that takes every path (sphere, capsule and box
     obstacles, the broad-phase grid, a posture task). Returns the seconds each step took; a warm
     cache makes it a fraction of a second, a cold one about 15 s."""
+    from baselines import HsuController, PaperController
     from qpctl.controllers.qp import QPConfig, QPController
     from qpctl.law import LawGains
     from qpctl.robot.model import planar_arm
-    from baselines import HsuController, PaperController
 
     times: dict[str, float] = {}
     robot = planar_arm(tau_max=500.0)

@@ -215,9 +215,8 @@ def _self_test() -> bool:
         bu[:3], bl[:3] = 0.3, -0.3
         bu[nv : nv + n_in], bl[nv : nv + n_in] = rng.uniform(0.2, 1.0, n_in), -np.inf
         bu[nv + n_in :] = bl[nv + n_in :] = rng.normal(size=n_eq) * 0.1
-        if not native.ready:
-            if native.setup() < 0:
-                return False
+        if not native.ready and native.setup() < 0:
+            return False
         flag = native_solve(*native.addresses, native.flag)
         x, _fval, ref_flag, _info = daqp.solve(H, f, rows, bu, bl, sense.copy())
         if (flag > 0) != (ref_flag > 0) or (flag > 0 and not np.allclose(native.x, x, rtol=1e-9, atol=1e-12)):
