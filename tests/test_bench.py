@@ -195,9 +195,9 @@ def test_same_ticks_run_in_rotating_blocks_in_order() -> None:
     ts = np.arange(T) * scene.dt
     states = StateSequence(ts, np.tile(scene.q0, (T, 1)), np.zeros((T, scene.robot.nv)))
     res = time_on_states(ctrls, states, block=block)
-    warm = [lb for lb, _ in calls[:2]]
-    assert warm == ["paper", "qp"]  # warmup() (the floor has none)
-    timed = calls[2:]
+    warm = [lb for lb, _ in calls[:4]]
+    assert warm == ["paper", "paper", "qp", "qp"]  # warmup(): two ticks each (the floor has none)
+    timed = calls[4:]
     for label in ctrls:
         expected: list[float] = []
         for k0 in range(0, T, block):

@@ -179,11 +179,17 @@ class Controller(ABC):
                          barrier_drift=True)
 
     def warmup(self) -> float:
-        """Compile (or load from the on-disk cache) the tick's kernels and build the workspace, so the
-        first tick of a loop runs at speed; returns the seconds it took. Run it before a real-time
-        loop starts (``qpctl warmup`` fills the cache for every controller)."""
+        """Compile (or load from the on-disk cache) every kernel of the tick (:func:`qpctl.tick.warmup`,
+        once per process), build this controller's workspace and run two ticks at its home pose (the
+        QP's first tick sets its solver up), then :meth:`reset`; returns the seconds it took. Call it
+        before a real-time loop starts, so that no tick compiles, loads or allocates a workspace;
+        ``qpctl warmup`` fills the on-disk cache ahead of time."""
+        from qpctl.tick import warmup
+
         start = time.perf_counter()
-        self.step(self.robot.q_home.astype(float), np.zeros(self.n), 0.0)
+        warmup()
+        for k in range(2):
+            self.step(self.robot.q_home.astype(float), np.zeros(self.n), 1e-3 * k)
         self.reset()
         return time.perf_counter() - start
 
