@@ -55,7 +55,7 @@ from qpctl.kernels import tick as K
 from qpctl.law import law_terms
 from qpctl.robot.model import RobotModel
 from qpctl.tasks import AccelerationTask, EndEffectorTask, PostureTask
-from qpctl.tick import GRID_MIN_OBSTACLES, Workspace, bind_pinocchio
+from qpctl.tick import GRID_MIN_OBSTACLES, WorldClearance, Workspace, bind_pinocchio
 
 SEED = 20240611
 EPA_TOL = 2e-3  # python-fcl's signed distance of penetrating shapes (libccd EPA) [m]
@@ -676,6 +676,32 @@ def reference_pairs(robot: RobotModel, segments: np.ndarray, obstacles: Sequence
             assert abs(exact - d) <= (1e-9 if d > 0 else EPA_TOL)  # the two references agree
             out[i, j] = (exact, 1e-9, p1, p2)
     return out
+
+
+@pytest.mark.parametrize("which", ["planar", "panda"])
+def test_world_clearance_is_the_least_distance_over_every_pair(which):
+    """The simulators' clearance (WorldClearance: every pair, no cutoff; closed form for spheres and
+    capsules, python-fcl for boxes and cylinders) equals the least distance of the enumeration of
+    every pair by python-fcl and brute force, on random states of a mixed, partly moving scene, to that
+    pair's reference tolerance."""
+    rng = np.random.default_rng(SEED + 40 + (which == "panda"))
+    robot = planar_arm() if which == "planar" else panda()
+    obstacles = planar_scene(rng) if which == "planar" else panda_scene(rng)
+    world = WorldClearance(robot, obstacles)
+    data = robot.model.createData()
+    penetrating = 0
+    for _ in range(25):
+        q = pin.randomConfiguration(robot.model, np.full(robot.nv, -2.5), np.full(robot.nv, 2.5))
+        t = float(rng.uniform(0.0, 2.0))
+        pin.forwardKinematics(robot.model, data, q)
+        segments = np.array([[data.oMi[c.joint_id].act(c.p0), data.oMi[c.joint_id].act(c.p1)]
+                             for c in robot.capsules])
+        ref = reference_pairs(robot, segments, obstacles, t)
+        (d_ref, tol, _, _) = min(ref.values(), key=lambda r: r[0])
+        assert world(q, t) == pytest.approx(d_ref, abs=max(tol, 1e-9))
+        penetrating += d_ref < 0
+    assert 0 < penetrating < 25  # both kinds of state were checked
+    assert WorldClearance(robot, [])(q, 0.0) == math.inf
 
 
 @pytest.mark.parametrize("which", ["planar", "panda"])

@@ -16,7 +16,7 @@ compilation of the mesh-stripped URDF.
 
 Obstacles become geoms (moving ones on mocap bodies, moved every step) and the links carry their
 collision capsules as geoms, all with ``contype = conaffinity = 0`` and contacts disabled: MuJoCo
-never pushes the arm; clearance and distances come from python-fcl, as in the built-in simulator.
+never pushes the arm; clearance and distances are qpctl's own, as in the built-in simulator.
 Joint limits are off by default, as in the built-in simulator (the closed-form laws do not know
 them); ``joint_limits=True`` turns them into MuJoCo's hard limit constraints.
 
@@ -50,10 +50,10 @@ import pinocchio as pin
 from qpctl.adapters.joint_map import JointMap
 from qpctl.controllers.base import Controller
 from qpctl.errors import ConfigError, SimulationError
-from qpctl.geometry.distance import DistanceEngine
 from qpctl.geometry.obstacles import Obstacle, rotation_z_to
 from qpctl.robot.model import RobotModel
 from qpctl.simulation.simulator import Trajectory
+from qpctl.tick import WorldClearance
 
 try:
     import mujoco
@@ -303,19 +303,11 @@ class MujocoSimulator:
                 bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, obs.name or f"obstacle{i}")
                 if bid >= 0 and model.body_mocapid[bid] >= 0:
                     self._mocap.append((int(model.body_mocapid[bid]), obs))
-        self._pin_data = self.robot.model.createData()
-        self._world = DistanceEngine([c.radius for c in self.robot.capsules], controller.obstacles)
+        self._world = WorldClearance(self.robot, controller.obstacles)
 
     def clearance(self, q: np.ndarray, t: float) -> float:
-        """Exact least link–obstacle distance [m] at (q, t), by python-fcl (as the built-in simulator)."""
-        if not self.controller.obstacles:
-            return float("inf")
-        model, data = self.robot.model, self._pin_data
-        pin.forwardKinematics(model, data, q)
-        segments = np.array([[data.oMi[c.joint_id].act(c.p0), data.oMi[c.joint_id].act(c.p1)]
-                             for c in self.robot.capsules])
-        self._world.update(segments, t)
-        return self._world.min_distance()
+        """Exact least link–obstacle distance [m] at (q, t), as the built-in simulator measures it."""
+        return self._world(q, t)
 
     def _move_obstacles(self, t: float) -> None:
         for mocap_id, obs in self._mocap:

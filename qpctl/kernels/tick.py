@@ -1019,3 +1019,31 @@ def tick_qp_native(ws, q: np.ndarray, v: np.ndarray, t: float, H: np.ndarray, f:
     if code != 0:
         return code
     return qp_tick_native(ws, H, f, rows, bu, bl, work, problem, result, flag, x, tol)
+
+
+@njit(cache=True)
+def min_distance(ws, t: float) -> float:  # type: ignore[no-untyped-def]
+    """The least signed distance [m] between any link capsule and any sphere or capsule obstacle at
+    t [s], every pair, no cutoff (a simulator's clearance; python-fcl's shapes are left to Python),
+    from the joint placements only (after ``forwardKinematics``); the segments are left in ws."""
+    segments = ws.segments
+    for i in range(ws.cap_joint.shape[0]):
+        _world_point(ws, ws.cap_joint[i], ws.cap_local[i, 0], segments[i, 0])
+        _world_point(ws, ws.cap_joint[i], ws.cap_local[i, 1], segments[i, 1])
+    obstacles_at(ws, t)
+    best = np.inf
+    for i in range(segments.shape[0]):
+        ax, ay, az = segments[i, 0, 0], segments[i, 0, 1], segments[i, 0, 2]
+        ux, uy, uz = segments[i, 1, 0] - ax, segments[i, 1, 1] - ay, segments[i, 1, 2] - az
+        uu = ux * ux + uy * uy + uz * uz
+        for j in range(ws.ob_kind.shape[0]):
+            if ws.ob_kind[j] == KIND_FCL:
+                continue
+            sx, sy, sz = ws.ob_axis[j, 0], ws.ob_axis[j, 1], ws.ob_axis[j, 2]
+            c0x, c0y, c0z = ws.ob_c[j, 0] - 0.5 * sx, ws.ob_c[j, 1] - 0.5 * sy, ws.ob_c[j, 2] - 0.5 * sz
+            tl, to = segment_params(ax, ay, az, ux, uy, uz, uu, c0x, c0y, c0z, sx, sy, sz)
+            wx = ax + tl * ux - (c0x + to * sx)
+            wy = ay + tl * uy - (c0y + to * sy)
+            wz = az + tl * uz - (c0z + to * sz)
+            best = min(best, math.sqrt(wx * wx + wy * wy + wz * wz) - ws.cap_radius[i] - ws.ob_radius[j])
+    return best

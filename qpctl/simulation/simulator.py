@@ -1,8 +1,8 @@
 """Fixed-step simulation: the controller is sampled once per step, its torque held (zero-order hold)
 while RK4 (as in the paper) integrates q̇ = v, v̇ = ABA(q, v, τ) from Pinocchio.
 
-The world's clearance is measured by its own python-fcl distance engine over every link–obstacle
-pair (exact, not limited to the controller's influence distance), outside the controller's timing.
+The world's clearance is measured over every link–obstacle pair (exact, not limited to the
+controller's influence distance; :class:`qpctl.tick.WorldClearance`), outside the controller's timing.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import pinocchio as pin
 
 from qpctl.controllers.base import Controller
 from qpctl.errors import ConfigError, SimulationError
-from qpctl.geometry.distance import DistanceEngine
+from qpctl.tick import WorldClearance
 
 INTEGRATORS = ("rk4", "euler")
 
@@ -69,10 +69,6 @@ class Trajectory:
             return cls(**{k: data[k] for k in cls.ARRAYS if k in data.files})
 
 
-def world_clearance(engine: DistanceEngine) -> float:
-    return engine.min_distance()
-
-
 class Simulator:
     """Runs a controller on the robot it controls, in the scene it knows.
 
@@ -100,20 +96,11 @@ class Simulator:
         self.integrator = rk4_step if integrator == "rk4" else euler_step
         self.progress = progress
         self._data = self.robot.model.createData()
-        self._world = DistanceEngine([c.radius for c in self.robot.capsules], controller.obstacles)
-
-    def _segments(self, q: np.ndarray) -> np.ndarray:
-        model, data = self.robot.model, self._data
-        pin.forwardKinematics(model, data, q)
-        return np.array([[data.oMi[c.joint_id].act(c.p0), data.oMi[c.joint_id].act(c.p1)]
-                         for c in self.robot.capsules])
+        self._world = WorldClearance(self.robot, controller.obstacles)
 
     def clearance(self, q: np.ndarray, t: float) -> float:
         """Exact least distance [m] between any link and any obstacle at (q, t)."""
-        if not self.controller.obstacles:
-            return float("inf")
-        self._world.update(self._segments(q), t)
-        return world_clearance(self._world)
+        return self._world(q, t)
 
     def run(self, q0: np.ndarray, v0: np.ndarray | None = None) -> Trajectory:
         n = self.robot.nv
