@@ -55,7 +55,7 @@ from qpctl.kernels import tick as K
 from qpctl.law import law_terms
 from qpctl.robot.model import RobotModel
 from qpctl.tasks import AccelerationTask, EndEffectorTask, PostureTask
-from qpctl.tick import GRID_MIN_OBSTACLES, WorldClearance, Workspace, bind_pinocchio
+from qpctl.tick import GRID_MIN_OBSTACLES, Workspace, WorldClearance, bind_pinocchio
 
 SEED = 20240611
 EPA_TOL = 2e-3  # python-fcl's signed distance of penetrating shapes (libccd EPA) [m]
