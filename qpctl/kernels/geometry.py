@@ -62,40 +62,20 @@ def perpendicular(x: float, y: float, z: float, out: np.ndarray) -> None:
 
 @njit(cache=True)
 def segment_segment(p1: np.ndarray, q1: np.ndarray, p2: np.ndarray, q2: np.ndarray) -> tuple[float, float]:
-    """Parameters (s, t) of the closest points p1 + s(q1 − p1) and p2 + t(q2 − p2) of two segments.
-
-    Ericson, *Real-Time Collision Detection* (2005), §5.1.9; for parallel segments the point of the
-    first segment is its clamped start (one of the closest pairs).
-    """
-    d1x, d1y, d1z = q1[0] - p1[0], q1[1] - p1[1], q1[2] - p1[2]
-    d2x, d2y, d2z = q2[0] - p2[0], q2[1] - p2[1], q2[2] - p2[2]
-    rx, ry, rz = p1[0] - p2[0], p1[1] - p2[1], p1[2] - p2[2]
-    a = d1x * d1x + d1y * d1y + d1z * d1z
-    e = d2x * d2x + d2y * d2y + d2z * d2z
-    f = d2x * rx + d2y * ry + d2z * rz
-    if a <= 1e-300 and e <= 1e-300:
-        return 0.0, 0.0
-    if a <= 1e-300:
-        return 0.0, clamp01(f / e)
-    c = d1x * rx + d1y * ry + d1z * rz
-    if e <= 1e-300:
-        return clamp01(-c / a), 0.0
-    b = d1x * d2x + d1y * d2y + d1z * d2z
-    denom = a * e - b * b
-    s = clamp01((b * f - c * e) / denom) if denom > PARALLEL_EPS * a * e else 0.0
-    t = (b * s + f) / e
-    if t < 0.0:
-        return clamp01(-c / a), 0.0
-    if t > 1.0:
-        return clamp01((b - c) / a), 1.0
-    return s, t
+    """Parameters (s, t) of the closest points p1 + s(q1 − p1) and p2 + t(q2 − p2) of two segments
+    (:func:`segment_params` with arrays)."""
+    ux, uy, uz = q1[0] - p1[0], q1[1] - p1[1], q1[2] - p1[2]
+    return segment_params(p1[0], p1[1], p1[2], ux, uy, uz, ux * ux + uy * uy + uz * uz, p2[0], p2[1], p2[2],
+                          q2[0] - p2[0], q2[1] - p2[1], q2[2] - p2[2])
 
 
 @njit(cache=True)
 def segment_params(ax: float, ay: float, az: float, ux: float, uy: float, uz: float, uu: float,
                    cx: float, cy: float, cz: float, sx: float, sy: float, sz: float) -> tuple[float, float]:
-    """(τ, σ) of the closest points a + τu and c + σs of two segments (uu = u·u; s = 0 for a point),
-    as :func:`closest_on_segment` for a point and :func:`segment_segment` otherwise, in scalars."""
+    """(τ, σ) of the closest points a + τu and c + σs of two segments (uu = u·u; s = 0 for a point:
+    the clamped projection of c), in scalars. Ericson, *Real-Time Collision Detection* (2005),
+    §5.1.9; for parallel segments the first segment's point is its clamped start (one of the
+    closest pairs)."""
     if sx == 0.0 and sy == 0.0 and sz == 0.0:
         if uu == 0.0:
             return 0.0, 0.0

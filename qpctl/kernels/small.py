@@ -47,6 +47,16 @@ def cholesky(A: np.ndarray, L: np.ndarray) -> bool:
 
 
 @njit(cache=True)
+def add_trace_ridge(A: np.ndarray, rel: float = 1e-9) -> None:
+    """A ← A + rel·max(tr A, 1)·I: a ridge that keeps a sum of Jᵀ J positive definite."""
+    tr = 0.0
+    for i in range(A.shape[0]):
+        tr += A[i, i]
+    for i in range(A.shape[0]):
+        A[i, i] += rel * max(tr, 1.0)
+
+
+@njit(cache=True)
 def solve_lower(L: np.ndarray, X: np.ndarray) -> None:
     """X ← L⁻¹ X for lower-triangular L; X is (n,) or (n, k)."""
     n = L.shape[0]

@@ -30,7 +30,7 @@ import numpy as np
 from numba import njit, types
 
 from qpctl.kernels.geometry import contact_frame, segment_params, sphere_bound
-from qpctl.kernels.small import chol_solve, cholesky, pinv_t, solve_lower, solve_lower_t
+from qpctl.kernels.small import add_trace_ridge, chol_solve, cholesky, pinv_t, solve_lower, solve_lower_t
 from qpctl.solvers.daqp_native import UPDATE_ALL, daqp_solve, update_ldp
 
 # The process's monotonic clock (time.perf_counter's) inside kernels: stage timings without a return
@@ -513,11 +513,7 @@ def reference_velocity(ws) -> None:  # type: ignore[no-untyped-def]
     for i in range(n):
         H[i, i] += lam2
     if not cholesky(H, ws.Lb):  # λ = 0 and too few rows: regularise as W_b is
-        tr = 0.0
-        for i in range(n):
-            tr += H[i, i]
-        for i in range(n):
-            H[i, i] += 1e-9 * max(tr, 1.0)
+        add_trace_ridge(H)
         cholesky(H, ws.Lb)
     chol_solve(ws.Lb, rhs)
 
@@ -564,11 +560,7 @@ def law_terms(ws, weighted: bool) -> bool:  # type: ignore[no-untyped-def]
                 for a in range(n):
                     for b in range(a + 1):
                         W[a, b] += Jl[c, a] * Jl[c, b]
-        tr = 0.0
-        for a in range(n):
-            tr += W[a, a]
-        for a in range(n):
-            W[a, a] += 1e-9 * max(tr, 1.0)
+        add_trace_ridge(W)
         cholesky(W, ws.Lb)
         singular = _weighted_pinv(ws, ws.Lb, ws.Jb, 1)
     else:
