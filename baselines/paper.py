@@ -26,7 +26,7 @@ import time
 import numpy as np
 import pinocchio as pin
 
-from qpctl.controllers.base import Controller, ControlOutput, RecordOutput, fast_state
+from qpctl.controllers.base import Controller, ControlOutput, RecordOutput, TickStatus, fast_state
 from qpctl.errors import InvalidStateError
 from qpctl.kernels import tick as K
 from qpctl.law import closed_form_acceleration, law_terms
@@ -80,4 +80,4 @@ class PaperController(Controller):
         tau = state.M @ qdd + state.N
         return ControlOutput(tau=tau, qdd=qdd, ref=ref, x=state.x, e_null=terms.e_null,
                              clearance=state.clearance, singular=singular,
-                             info={"g_norm": float(np.linalg.norm(terms.g))})
+                             info={"g_norm": float(np.linalg.norm(terms.g))}, status=TickStatus.CLOSED_FORM)

@@ -4,7 +4,7 @@ The public API: robot models, obstacles, reference paths, the per-tick state, th
 (``tau = controller.torque(q, v, t)``), the simulator, scenarios and errors.
 """
 
-from qpctl.controllers.base import Controller, ControlOutput
+from qpctl.controllers.base import Controller, ControlOutput, TickStatus
 from qpctl.errors import (
     ConfigError,
     InfeasibleError,
@@ -48,6 +48,7 @@ __all__ = [
     "Simulator",
     "SolverError",
     "TickState",
+    "TickStatus",
     "Trajectory",
     "UnknownFrameError",
     "UnknownSolverError",

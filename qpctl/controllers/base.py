@@ -21,6 +21,7 @@ diagnostics (tracking error, null-space error, singularity flag, solver statisti
 from __future__ import annotations
 
 import dataclasses
+import enum
 import math
 import time
 from abc import ABC, abstractmethod
@@ -40,6 +41,15 @@ from qpctl.state import Dynamics, TickState, validate_state
 from qpctl.tick import RecordLayout, Workspace
 
 
+class TickStatus(enum.Enum):
+    """What produced a tick's torque."""
+
+    CLOSED_FORM = "closed_form"  # a closed-form law (paper, hsu)
+    SOLVED = "solved"  # the QP, solved and its answer checked against the hard rows
+    FALLBACK = "fallback"  # the QP failed; an entry of the fallback chain (info["fallback"]) gave it
+    CUSTOM = "custom"  # a law written in Python that did not say
+
+
 @dataclass
 class ControlOutput:
     """One tick's command and diagnostics."""
@@ -53,6 +63,7 @@ class ControlOutput:
     singular: bool  # a pseudo-inverse was damped at this tick
     compute_us: float = 0.0  # wall time of the whole tick [µs]
     info: dict[str, Any] = field(default_factory=dict)  # law-specific: QP status, iterations, timings
+    status: TickStatus = TickStatus.CUSTOM
 
 
 class RecordOutput(ControlOutput):
@@ -84,6 +95,15 @@ class RecordOutput(ControlOutput):
     @property  # type: ignore[override]
     def singular(self) -> bool:
         return bool(self._rec[self._layout.scalars + K.R_SINGULAR])
+
+    @property  # type: ignore[override]
+    def status(self) -> TickStatus:
+        return TickStatus.CLOSED_FORM
+
+    @property
+    def iterations(self) -> int:
+        """The QP solver's iterations this tick (0 for the closed forms)."""
+        return int(self._rec[self._layout.scalars + K.R_ITERATIONS])
 
     def scalar(self, index: int) -> float:
         """The record's scalar ``index`` (one of :mod:`qpctl.kernels.tick`'s R_* constants)."""

@@ -37,7 +37,7 @@ import numpy as np
 import pinocchio as pin
 
 from qpctl.constraints.constraints import Constraint, JointLimit, ObstacleBarrier, TorqueLimit
-from qpctl.controllers.base import Controller, ControlOutput, RecordOutput, fast_state
+from qpctl.controllers.base import Controller, ControlOutput, RecordOutput, TickStatus, fast_state
 from qpctl.errors import ConfigError, InvalidStateError
 from qpctl.formulation import Formulation
 from qpctl.geometry.obstacles import Obstacle
@@ -179,6 +179,14 @@ class QPOutput(RecordOutput):
                  stages: tuple[float, float, float, float], solved: bool) -> None:
         super().__init__(rec, layout, extra, compute_us, stages)
         self._solved = solved
+
+    @property  # type: ignore[override]
+    def status(self) -> TickStatus:
+        return TickStatus.SOLVED if self._solved else TickStatus.FALLBACK
+
+    @property
+    def iterations(self) -> int:
+        return int(self._extra["iterations"]) if self._extra else 0
 
     def _decode(self, info: dict[str, Any]) -> None:
         r, s = self._rec, self._layout.scalars
@@ -781,4 +789,5 @@ class QPController(Controller):
                 info["pairs_dropped"] = con.dropped
         self._last_problem, self._last = problem, sol
         return ControlOutput(tau=tau, qdd=qdd, ref=ref, x=state.x, e_null=terms.e_null,
-                             clearance=state.clearance, singular=terms.singular, info=info)
+                             clearance=state.clearance, singular=terms.singular, info=info,
+                             status=TickStatus.SOLVED if sol.found and "fallback" not in info else TickStatus.FALLBACK)

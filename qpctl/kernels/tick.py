@@ -50,21 +50,23 @@ FP_GRID_H, FP_CLEARANCE, FP_T = 20, 21, 22
 FP_SIZE = 23
 # Int settings (TickWork.ipar)
 IP_JDOT_EN, IP_DRIFT_RIGID, IP_CAPACITY, IP_TORQUE_ROW0, IP_BARRIER_ROW0, IP_JOINT_LIMITS = range(6)
-IP_POSTURE, IP_N_IN, IP_BDRIFT, IP_JL_FINITE, IP_WEIGHTED = range(6, 11)
-IP_SIZE = 11
+IP_POSTURE, IP_N_IN, IP_BDRIFT = range(6, 9)
+IP_SIZE = 9
 # Counters (TickWork.cnt)
 CNT_PAIRS, CNT_FCL, CNT_LOOKAHEAD, CNT_DROPPED = range(4)
 CNT_SIZE = 4
 # Flags (TickWork.flags)
-FLAG_NONFINITE, FLAG_SINGULAR_TERMS, FLAG_SINGULAR_CF, FLAG_CLIPPED = range(4)
-FLAG_SIZE = 4
+FLAG_SINGULAR_TERMS, FLAG_SINGULAR_CF, FLAG_CLIPPED = range(3)
+FLAG_SIZE = 3
 
 # The output record (TickWork.rec): tau, qdd (n), x_d, ẋ_d, ẍ_d, x (m), e_N (n), then scalars
+#   clearance [m], singular (0/1), pairs, pairs dropped (beyond the barrier's rows), slack norm,
+#   active rows, the answer's largest relative violation, the torque clip [N·m], solver iterations,
+#   stage times [µs] (state kernel, law and rows, solve), active families (bit 0: a torque-limit row,
+#   bit 1: an obstacle-barrier row)
 R_CLEARANCE, R_SINGULAR, R_PAIRS, R_DROPPED, R_SLACK, R_ACTIVE, R_VIOLATION, R_CLIPPED = range(8)
-R_STATUS, R_ITERATIONS, R_FALLBACK = 8, 9, 10
-R_PIN_US, R_STATE_US, R_BUILD_US, R_SOLVE_US, R_TOTAL_US, R_FALLBACK_US = range(11, 17)
-R_ACTIVE_MASK = 17  # bit 0: a torque-limit row is active, bit 1: an obstacle-barrier row
-R_SCALARS = 18
+R_ITERATIONS, R_STATE_US, R_BUILD_US, R_SOLVE_US, R_ACTIVE_MASK = range(8, 13)
+R_SCALARS = 13
 
 
 @njit(cache=True)
