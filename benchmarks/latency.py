@@ -61,8 +61,8 @@ def measure(scenario: str = "panda_spheres", runs: int = 3) -> dict[str, Any]:
 def markdown(res: dict[str, Any]) -> str:
     rows = [("cold cache (compiles)", res["cold"])] + [(f"warm cache, run {i + 1}", r) for i, r in enumerate(res["warm"])]
     lines = [f"Scenario `{res['scenario']}`, each row a fresh interpreter (`python -m benchmarks.latency`):", "",
-             "| run | `import qpctl` [s] | build controllers [s] | first `paper` tick [s] | first `qp` tick [s] "
-             "| then `paper` / `qp` median [µs] |", "|---|---|---|---|---|---|"]
+             ("| run | `import qpctl` [s] | build controllers [s] | first `paper` tick [s] | first `qp` tick [s] "
+             "| then `paper` / `qp` median [µs] |"), "|---|---|---|---|---|---|"]
     for name, r in rows:
         lines.append(f"| {name} | {r['import_s']:.2f} | {r['build_s']:.2f} | {r['first_paper_tick_s']:.2f} | "
                      f"{r['first_qp_tick_s']:.2f} | {r['tick_us_median']['paper']:.1f} / {r['tick_us_median']['qp']:.1f} |")
