@@ -32,6 +32,7 @@ def main(duration: float) -> float:
     dofs = [model.joint(name).dofadr[0] for name in robot.joint_names]
     data.qpos[qpos] = scenario.q0(robot)
     mujoco.mj_forward(model, data)
+    controller.warmup()  # compile or load the tick's kernels now, not in the loop's first tick
 
     for k in range(round(duration / model.opt.timestep)):
         t = k * model.opt.timestep

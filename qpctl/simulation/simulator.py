@@ -115,7 +115,7 @@ class Simulator:
         infos: list[dict[str, Any]] = []
         model, data = self.robot.model, self._data
         ctrl = self.controller
-        ctrl.reset()
+        ctrl.warmup()  # kernels loaded, workspace built, solver set up: not in the first tick (ends in reset())
         tau = np.zeros(n)
 
         def accel(qq: np.ndarray, vv: np.ndarray) -> np.ndarray:
