@@ -12,6 +12,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -115,16 +116,28 @@ class Dynamics:
 
     def __init__(self, robot: RobotModel, obstacles: Sequence[Obstacle] = (), cutoff: float = np.inf,
                  broadphase: bool | None = None) -> None:
-        from qpctl.tick import Workspace
-
         self.robot = robot
         self.model = robot.model
         self.obstacles = list(obstacles)
         self.cutoff = float(cutoff)
-        self.workspace = Workspace(robot, self.obstacles, None, None, self.cutoff, broadphase=broadphase,
-                                   barrier_drift=True)
-        self.data = self.workspace.data  # Pinocchio's data after the last compute (computeAllTerms)
+        self.broadphase = broadphase
+        self._workspace: Any = None
         self._jdot_data = robot.model.createData()
+
+    @property
+    def workspace(self) -> Any:
+        """The :class:`~qpctl.tick.Workspace` :meth:`compute` runs on (built on first use)."""
+        if self._workspace is None:
+            from qpctl.tick import Workspace
+
+            self._workspace = Workspace(self.robot, self.obstacles, None, None, self.cutoff,
+                                        broadphase=self.broadphase, barrier_drift=True)
+        return self._workspace
+
+    @property
+    def data(self) -> pin.Data:
+        """Pinocchio's data after the last :meth:`compute` (``computeAllTerms``)."""
+        return self.workspace.data
 
     def compute(self, q: np.ndarray, v: np.ndarray, t: float = 0.0) -> TickState:
         """Everything at (q [rad], v [rad/s], t [s]); raises :class:`InvalidStateError` on bad input."""
