@@ -35,7 +35,6 @@ class Formulation:
         # the rows of C that are obstacle barriers
         self.barrier_rows = next((slice(lo, hi) for name, lo, hi in self.row_ranges
                                   if name == ObstacleBarrier.name), slice(0, 0))
-        self.torque_limit = next((c.tau_max for c in self.constraints if isinstance(c, TorqueLimit)), None)
         self.barriers = [c for c in self.constraints if isinstance(c, ObstacleBarrier)]
         self._templates: dict[tuple[Any, ...], tuple[np.ndarray, ...]] = {}
         self._evaluated: tuple[TickState, LawTerms, Any] | None = None

@@ -128,6 +128,8 @@ SCHEMA: dict[str, Any] = {
         "q0": (_vec, None),
         "tau_max": (_num_or_vec, None),
         "v_max": (_num_or_vec, None),
+        "tau_rate_max": (_num_or_vec, None),
+        "qdd_max": (_num_or_vec, None),
     },
     "path": {
         "start": (_vec, None),
@@ -382,7 +384,7 @@ class Scenario:
                 except UnknownSolverError as exc:
                     raise self._err("controller.fallback", f"{exc} (or {', '.join(BUILT_IN_FALLBACKS)})") from None
         r = self.data["robot"]
-        for key in ("tau_max", "v_max"):
+        for key in ("tau_max", "v_max", "tau_rate_max", "qdd_max"):
             if r[key] is not None and not np.all(np.asarray(r[key], float) > 0):  # inf allowed, NaN not
                 raise self._err(f"robot.{key}", f"must be positive (inf: no limit), got {r[key]}")
 
@@ -441,8 +443,9 @@ class Scenario:
             else:
                 kw = {"gravity": r["gravity"]} if r["gravity"] is not None else {}
                 robot = load_robot(r["kind"], **kw)
-            if r["tau_max"] is not None or r["v_max"] is not None:
-                robot = robot.with_limits(tau_max=r["tau_max"], v_max=r["v_max"])
+            limits = {k: r[k] for k in ("tau_max", "v_max", "tau_rate_max", "qdd_max") if r[k] is not None}
+            if limits:
+                robot = robot.with_limits(**limits)
         except ConfigError as exc:
             raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key or "robot") from None
         return robot

@@ -20,6 +20,7 @@ import math
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -90,8 +91,8 @@ class QPSpec:
     slack_l2: float
     posture: tuple[np.ndarray, float, float, float] | None  # (q_ref, weight, kp, kd)
     rows: list[tuple[str, int]]  # (constraint name, its row count), in the constraints' order
-    tau_max: np.ndarray | None
-    joint_limits: tuple[np.ndarray, np.ndarray, np.ndarray, float, float, float] | None  # q_min, q_max, v_max, k0, k1, kv
+    torque: Any  # the TorqueLimit (its limits, and the last commanded torque the workspace shares), or None
+    joint_limits: tuple[np.ndarray, ...] | None  # q_min, q_max, v_max, k0, k1, kv, qdd_max
     barrier: tuple[int, float, float, bool] | None  # capacity, k0, k1, rigid drift
     row_names: list[str]
 
@@ -224,8 +225,10 @@ class Workspace:
             self.ob_vref = np.asarray(g.obstacle_v_ref, float).copy()
         # a whole tick in one kernel call when the law needs nothing from Python between state and law
         self.fast = self.path_in_kernel and not g.jdot_en
-        self.q_ref, self.tau_max = np.zeros(n), np.full(n, np.inf)
+        self.q_ref, self.tau_max, self.tau_rate = np.zeros(n), np.full(n, np.inf), np.full(n, np.inf)
+        self.tau_prev, self.t_prev = np.full(n, np.nan), np.full(1, np.nan)
         self.q_min, self.q_max, self.v_max = np.full(n, -np.inf), np.full(n, np.inf), np.full(n, np.inf)
+        self.qdd_max = np.full(n, np.inf)
         ip[K.IP_TORQUE_ROW0] = ip[K.IP_BARRIER_ROW0] = -1
         capacity = 0
         if spec is not None:
@@ -279,11 +282,13 @@ class Workspace:
                 capacity = count
             row += count
         ip[K.IP_N_IN] = row
-        if spec.tau_max is not None:
-            self.tau_max = np.asarray(spec.tau_max, float).copy()
+        if spec.torque is not None:
+            self.tau_max, self.tau_rate = spec.torque.tau_max.copy(), spec.torque.tau_rate_max.copy()
+            self.tau_prev, self.t_prev = spec.torque.previous, spec.torque.t_previous  # shared: the same arrays
         if spec.joint_limits is not None:
-            q_min, q_max, v_max, k0, k1, kv = spec.joint_limits
-            self.q_min, self.q_max, self.v_max = (np.asarray(a, float).copy() for a in (q_min, q_max, v_max))
+            q_min, q_max, v_max, k0, k1, kv, qdd_max = spec.joint_limits
+            self.q_min, self.q_max, self.v_max, self.qdd_max = (np.asarray(a, float).copy()
+                                                                for a in (q_min, q_max, v_max, qdd_max))
             fp[K.FP_JK0], fp[K.FP_JK1], fp[K.FP_JKV] = k0, k1, kv
             ip[K.IP_JOINT_LIMITS] = 1
         if spec.barrier is not None:

@@ -1,8 +1,8 @@
 """Hard constraints on q̈ that no closed form can hold (DESIGN.md §2, "QP law").
 
-* :class:`TorqueLimit` — −τ_max ≤ M q̈ + N ≤ τ_max.
+* :class:`TorqueLimit` — −τ_max ≤ M q̈ + N ≤ τ_max, and the torque-rate limit |τ − τ_prev| ≤ τ̇_max dt.
 * :class:`JointLimit` — joint positions and speeds kept inside their limits by second-order
-  (position) and first-order (speed) barriers expressed as bounds on q̈.
+  (position) and first-order (speed) barriers expressed as bounds on q̈, within the acceleration limits.
 * :class:`ObstacleBarrier` — for each (link, obstacle) pair within the influence distance,
   ḧ + k₁ḣ + k₀h ≥ 0 with h = d − d_s, ḣ = nᵀ(J_p q̇ − v_obs), ḧ = nᵀJ_p q̈ + (∂ḣ/∂q q̇ + ∂ḣ/∂t).
   The drift in brackets is :meth:`TickState.barrier_drift` (``drift="exact"``, the default: closed
@@ -44,33 +44,71 @@ class Constraint(ABC):
 
 
 class TorqueLimit(Constraint):
-    """|M q̈ + N| ≤ τ_max [N·m] per joint (n rows)."""
+    """The drives' limits on τ = M q̈ + N, n rows: |τ| ≤ τ_max [N·m] and, once a torque τ_prev was
+    commanded at t_prev, |τ − τ_prev| ≤ τ̇_max (t − t_prev) with τ̇_max [N·m/s] the torque-rate limit
+    (:meth:`window`). The controller records each tick's commanded torque with :meth:`remember`
+    (after any fallback) and forgets it on reset."""
 
     name = "torque_limits"
 
-    def __init__(self, tau_max: np.ndarray) -> None:
+    def __init__(self, tau_max: np.ndarray, tau_rate_max: np.ndarray | float | None = None) -> None:
         tau_max = np.asarray(tau_max, float).reshape(-1)
         if np.any(np.isnan(tau_max)) or np.any(tau_max <= 0):
             raise ConfigError(f"torque limits must be positive, got {tau_max.tolist()}", key="robot.tau_max")
-        self.tau_max = tau_max
+        rate = np.broadcast_to(np.asarray(np.inf if tau_rate_max is None else tau_rate_max, float),
+                               tau_max.shape).copy()
+        if np.any(np.isnan(rate)) or np.any(rate <= 0):
+            raise ConfigError(f"torque-rate limits must be positive, got {rate.tolist()}", key="robot.tau_rate_max")
+        self.tau_max, self.tau_rate_max = tau_max, rate
         self.rows = tau_max.size
+        self.previous = np.full(tau_max.size, np.nan)  # [N·m] the torque commanded last (NaN: none yet)
+        self.t_previous = np.full(1, np.nan)  # [s] when
+
+    def window(self, t: float) -> tuple[np.ndarray, np.ndarray]:
+        """(lo, hi) [N·m]: the torques that may be commanded at t [s] (where the rate window and ±τ_max
+        do not meet — the limits changed — the torque limit wins)."""
+        lo, hi = -self.tau_max, self.tau_max.copy()
+        dt = t - self.t_previous[0]
+        if dt > 0:  # False for NaN: nothing commanded yet
+            w = self.tau_rate_max * dt
+            lo2, hi2 = np.maximum(lo, self.previous - w), np.minimum(hi, self.previous + w)
+            meet = lo2 <= hi2
+            lo, hi = np.where(meet, lo2, lo), np.where(meet, hi2, hi)
+        return lo, hi
+
+    def remember(self, tau: np.ndarray, t: float) -> None:
+        """The torque [N·m] commanded at t [s]: the next tick's rate limit is about it."""
+        self.previous[:] = tau
+        self.t_previous[0] = t
+
+    def forget(self) -> None:
+        self.previous[:] = np.nan
+        self.t_previous[0] = np.nan
 
     def compute(self, state: TickState, terms: LawTerms) -> Inequality:
-        return Inequality(state.M, -self.tau_max - state.N, self.tau_max - state.N)
+        lo, hi = self.window(state.t)
+        return Inequality(state.M, lo - state.N, hi - state.N)
 
 
 class JointLimit(Constraint):
     """Position limits by ḧ + k₁ḣ + k₀h ≥ 0 (h = q − q_min, q_max − q), speed limits by
-    ḣ + k_v h ≥ 0 (h = v_max ∓ q̇), both as bounds on q̈ [rad/s²].
+    ḣ + k_v h ≥ 0 (h = v_max ∓ q̇), both as bounds on q̈ [rad/s²], then within ±q̈_max, the drives'
+    acceleration limits.
 
-    Where the two bounds cross (a state already outside its limits) both are set to their mean.
+    Where the two bounds cross (a state already outside its limits) both are set to their mean;
+    where that asks for more than q̈_max, both become the limit on that side.
     """
 
     name = "joint_limits"
 
     def __init__(self, q_min: np.ndarray, q_max: np.ndarray, v_max: np.ndarray, *, k0: float = 100.0,
-                 k1: float = 20.0, kv: float = 50.0) -> None:
+                 k1: float = 20.0, kv: float = 50.0, qdd_max: np.ndarray | float | None = None) -> None:
         self.q_min, self.q_max, self.v_max = (np.asarray(a, float) for a in (q_min, q_max, v_max))
+        self.qdd_max = np.broadcast_to(np.asarray(np.inf if qdd_max is None else qdd_max, float),
+                                       self.q_min.shape).copy()
+        if np.any(np.isnan(self.qdd_max)) or np.any(self.qdd_max <= 0):
+            raise ConfigError(f"acceleration limits must be positive, got {self.qdd_max.tolist()}",
+                              key="robot.qdd_max")
         self.k0 = _positive("controller.joint_k0", k0)
         self.k1 = _positive("controller.joint_k1", k1)
         self.kv = _positive("controller.velocity_gain", kv)
@@ -89,7 +127,13 @@ class JointLimit(Constraint):
         if cross.any():
             mid = 0.5 * (lo + hi)
             lo, hi = np.where(cross, mid, lo), np.where(cross, mid, hi)
-        return Bounds(lo, hi)
+        a = self.qdd_max
+        lo2, hi2 = np.maximum(lo, -a), np.minimum(hi, a)
+        cross = lo2 > hi2
+        if cross.any():
+            edge = np.clip(0.5 * (lo + hi), -a, a)
+            lo2, hi2 = np.where(cross, edge, lo2), np.where(cross, edge, hi2)
+        return Bounds(lo2, hi2)
 
 
 class ObstacleBarrier(Constraint):

@@ -196,6 +196,8 @@ class QPOutput(RecordOutput):
             return
         if r[s + K.R_CLIPPED]:
             info["clipped"] = float(r[s + K.R_CLIPPED])
+        if r[s + K.R_RATE_HITS]:
+            info["rate_limited"] = int(r[s + K.R_RATE_HITS])
         info["slack_norm"] = float(r[s + K.R_SLACK])
         info["active"] = int(r[s + K.R_ACTIVE])
         mask = int(r[s + K.R_ACTIVE_MASK])
@@ -227,8 +229,9 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
         acc_weight=acc.weight, slack_l1=ee.slack_l1, slack_l2=ee.slack_l2,
         posture=None if post is None else (post.q_ref, post.weight, post.kp, post.kd),
         rows=[(c.name, c.rows) for c in constraints if c.rows],
-        tau_max=None if torque is None else torque.tau_max,
-        joint_limits=None if joint is None else (joint.q_min, joint.q_max, joint.v_max, joint.k0, joint.k1, joint.kv),
+        torque=torque,
+        joint_limits=None if joint is None else (joint.q_min, joint.q_max, joint.v_max, joint.k0, joint.k1, joint.kv,
+                                                 joint.qdd_max),
         barrier=None if barrier is None else (barrier.rows, barrier.k0, barrier.k1, barrier.drift == "rigid"),
         row_names=[c.name for c in constraints for _ in range(c.rows)],
     )
@@ -264,12 +267,12 @@ class QPController(Controller):
                                          cfg.posture_weight))
         if constraints is None:
             constraints = []
-            if cfg.torque_limits and np.any(np.isfinite(robot.tau_max)):
-                constraints.append(TorqueLimit(robot.tau_max))
-            finite = np.isfinite(np.concatenate([robot.q_min, robot.q_max, robot.v_max]))
+            if cfg.torque_limits and np.any(np.isfinite(np.concatenate([robot.tau_max, robot.tau_rate_max]))):
+                constraints.append(TorqueLimit(robot.tau_max, robot.tau_rate_max))
+            finite = np.isfinite(np.concatenate([robot.q_min, robot.q_max, robot.v_max, robot.qdd_max]))
             if cfg.joint_limits and np.any(finite):
                 constraints.append(JointLimit(robot.q_min, robot.q_max, robot.v_max, k0=cfg.joint_k0,
-                                              k1=cfg.joint_k1, kv=cfg.velocity_gain))
+                                              k1=cfg.joint_k1, kv=cfg.velocity_gain, qdd_max=robot.qdd_max))
             if self.obstacles:
                 cap = cfg.max_pairs or len(robot.capsules) * min(len(self.obstacles), 4)
                 constraints.append(ObstacleBarrier(cap, self.gains.d_safe, k0=cfg.barrier_k0, k1=cfg.barrier_k1,
@@ -321,6 +324,9 @@ class QPController(Controller):
 
     def reset(self) -> None:
         super().reset()
+        limit = self._torque_limit_constraint()
+        if limit is not None:
+            limit.forget()
         self._solver.reset()
         self._solver_soft.reset()
         self._safe_stop_solver.reset()
@@ -566,7 +572,8 @@ class QPController(Controller):
         limits allow (None if even that fails):
 
             min ½‖M(q̈ − q̈_brake)‖² + ½ρ‖t‖²  s.t.  C_obs q̈ + t ≥ l_obs, t ≥ 0,
-                                                 −τ_max ≤ M q̈ + N ≤ τ_max, joint-limit bounds on q̈,
+                                                 M q̈ + N in the torque window (±τ_max, the rate limit),
+                                                 joint-limit bounds on q̈,
 
         with ρ = SAFE_STOP_WEIGHT · tr(MᵀM)/n: where the barriers cannot all hold (the tick's QP was
         infeasible) it decelerates the approach as hard as the torque limits allow, which the brake's
@@ -582,15 +589,15 @@ class QPController(Controller):
         P = np.zeros((nv, nv))
         P[:n, :n] = H
         P[n:, n:] = self.SAFE_STOP_WEIGHT * max(float(np.trace(H)) / n, 1e-12) * np.eye(k)
-        limit = form.torque_limit
-        torque = limit is not None
+        window = self._torque_window(state.t)
+        torque = window is not None
         C = np.zeros((k + (n if torque else 0), nv))
         C[:k, :n], C[:k, n:] = C_obs, np.eye(k)
         lower, upper = [l_obs], [np.full(k, np.inf)]
-        if torque:
+        if window is not None:
             C[k:, :n] = state.M
-            lower.append(-limit - state.N)
-            upper.append(limit - state.N)
+            lower.append(window[0] - state.N)
+            upper.append(window[1] - state.N)
         lb = np.concatenate([problem.lb[:n], np.zeros(k)])  # the joint-limit bounds; t ≥ 0
         ub = np.concatenate([problem.ub[:n], np.full(k, np.inf)])
         safe = Problem(P, np.concatenate([-H @ qb, np.zeros(k)]), np.zeros((0, nv)), np.zeros(0), C,
@@ -600,19 +607,26 @@ class QPController(Controller):
         sol = self._safe_stop_solver.solve(safe)
         return sol.x[:n] if sol.found else None
 
-    def _torque_limit(self) -> np.ndarray | None:
-        return self.formulation().torque_limit
+    def _torque_limit_constraint(self) -> TorqueLimit | None:
+        return next((c for c in self.constraints if isinstance(c, TorqueLimit)), None)
+
+    def _torque_window(self, t: float) -> tuple[np.ndarray, np.ndarray] | None:
+        """The torques [N·m] the drives accept at t [s] (TorqueLimit.window), or None without limits."""
+        limit = self._torque_limit_constraint()
+        return None if limit is None else limit.window(t)
 
     def _scale_to_torque_limits(self, state: TickState, qdd: np.ndarray) -> np.ndarray:
-        """s·q̈ with the largest s ∈ [0, 1] that keeps M s q̈ + N within ±τ_max (direction kept, unlike a
-        per-joint clip; s = 0, gravity compensation alone, when N itself is beyond a limit)."""
-        limit = self._torque_limit()
-        if limit is None or not np.isfinite(qdd).all():
+        """s·q̈ with the largest s ∈ [0, 1] that keeps M s q̈ + N within the torque window (±τ_max and
+        the rate limit; direction kept, unlike a per-joint clip; s = 0, gravity compensation alone,
+        when N itself is outside it — the final clip then holds the window)."""
+        window = self._torque_window(state.t)
+        if window is None or not np.isfinite(qdd).all():
             return qdd
+        t_lo, t_hi = window
         d = state.M @ qdd
         with np.errstate(divide="ignore", invalid="ignore"):
-            hi = np.where(d > 0, (limit - state.N) / d, np.inf)
-            lo = np.where(d < 0, (-limit - state.N) / d, np.inf)
+            hi = np.where(d > 0, (t_hi - state.N) / d, np.inf)
+            lo = np.where(d < 0, (t_lo - state.N) / d, np.inf)
         scale = float(np.clip(np.min(np.concatenate([hi, lo, [1.0]])), 0.0, 1.0))
         return qdd * scale
 
@@ -708,9 +722,9 @@ class QPController(Controller):
     def _clip_torque(self, state: TickState, tau: np.ndarray, qdd: np.ndarray,
                      info: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
         """The solver meets the torque rows to its tolerance; clip that residue (and any fallback's
-        excess) so the commanded torque never exceeds a limit the controller was asked to hold."""
-        limit = self._torque_limit()
-        clipped = tau if limit is None else np.minimum(np.maximum(tau, -limit), limit)  # np.clip, cheaper
+        excess) so the commanded torque never leaves the window the drives accept (±τ_max, rate)."""
+        window = self._torque_window(state.t)
+        clipped = tau if window is None else np.minimum(np.maximum(tau, window[0]), window[1])  # np.clip, cheaper
         if (clipped != tau).any():
             info["clipped"] = float(np.max(np.abs(clipped - tau)))
             tau = clipped
@@ -788,6 +802,9 @@ class QPController(Controller):
             if con.dropped:
                 info["pairs_dropped"] = con.dropped
         self._last_problem, self._last = problem, sol
+        limit = self._torque_limit_constraint()
+        if limit is not None:  # the rate limit of the next tick is about this torque
+            limit.remember(tau, state.t)
         return ControlOutput(tau=tau, qdd=qdd, ref=ref, x=state.x, e_null=terms.e_null,
                              clearance=state.clearance, singular=terms.singular, info=info,
                              status=TickStatus.SOLVED if sol.found and "fallback" not in info else TickStatus.FALLBACK)

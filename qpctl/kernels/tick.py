@@ -63,10 +63,10 @@ FLAG_SIZE = 3
 #   clearance [m], singular (0/1), pairs, pairs dropped (beyond the barrier's rows), slack norm,
 #   active rows, the answer's largest relative violation, the torque clip [N·m], solver iterations,
 #   stage times [µs] (state kernel, law and rows, solve), active families (bit 0: a torque-limit row,
-#   bit 1: an obstacle-barrier row)
+#   bit 1: an obstacle-barrier row), joints whose torque moved by its whole rate limit
 R_CLEARANCE, R_SINGULAR, R_PAIRS, R_DROPPED, R_SLACK, R_ACTIVE, R_VIOLATION, R_CLIPPED = range(8)
-R_ITERATIONS, R_STATE_US, R_BUILD_US, R_SOLVE_US, R_ACTIVE_MASK = range(8, 13)
-R_SCALARS = 13
+R_ITERATIONS, R_STATE_US, R_BUILD_US, R_SOLVE_US, R_ACTIVE_MASK, R_RATE_HITS = range(8, 14)
+R_SCALARS = 14
 
 
 @njit(cache=True)
@@ -620,6 +620,10 @@ def write_record(ws, singular: bool) -> None:  # type: ignore[no-untyped-def]
     rec[s + R_SINGULAR] = 1.0 if singular else 0.0
     rec[s + R_PAIRS] = ws.cnt[CNT_PAIRS]
     rec[s + R_DROPPED] = ws.cnt[CNT_DROPPED]
+    # the torque commanded, for the next tick's rate limit (TorqueLimit.previous, shared)
+    for i in range(n):
+        ws.tau_prev[i] = ws.tau[i]
+    ws.t_prev[0] = ws.fpar[FP_T]
 
 
 @njit(cache=True)
@@ -675,7 +679,9 @@ def closed_form_tick(ws, weighted: bool) -> int:  # type: ignore[no-untyped-def]
 @njit(cache=True)
 def joint_bounds(ws, lo: np.ndarray, hi: np.ndarray) -> None:  # type: ignore[no-untyped-def]
     """JointLimit's bounds on q̈ [rad/s²]: ḧ + k₁ḣ + k₀h ≥ 0 on the positions, ḣ + k_v h ≥ 0 on the
-    speeds; ∞ − ∞ (NaN) counts as no bound; crossed bounds both become their mean."""
+    speeds; ∞ − ∞ (NaN) counts as no bound; crossed bounds both become their mean. Then within
+    ±q̈_max, the drive's acceleration limit; where the position or speed barrier asks for more than
+    that, both bounds become the limit on that side (the most the drive may do)."""
     k0, k1, kv = ws.fpar[FP_JK0], ws.fpar[FP_JK1], ws.fpar[FP_JKV]
     for i in range(lo.shape[0]):
         q, v = ws.q[i], ws.v[i]
@@ -687,7 +693,27 @@ def joint_bounds(ws, lo: np.ndarray, hi: np.ndarray) -> None:  # type: ignore[no
             high = np.inf
         if low > high:
             low = high = 0.5 * (low + high)
-        lo[i], hi[i] = low, high
+        a = ws.qdd_max[i]
+        low2, high2 = max(low, -a), min(high, a)
+        if low2 > high2:
+            low2 = high2 = min(max(0.5 * (low + high), -a), a)
+        lo[i], hi[i] = low2, high2
+
+
+@njit(cache=True)
+def torque_window(ws, i: int) -> tuple[float, float]:
+    """The torque joint i may be commanded this tick [N·m]: within ±τ_max and, once a torque was
+    commanded at t_prev < t, within τ_prev ± τ̇_max (t − t_prev). Where the two do not meet (τ_prev
+    beyond τ_max: the limit changed) the torque limit wins."""
+    lim = ws.tau_max[i]
+    lo, hi = -lim, lim
+    dt = ws.fpar[FP_T] - ws.t_prev[0]
+    if dt > 0.0:  # False for NaN: no torque commanded yet
+        w = ws.tau_rate[i] * dt
+        lo2, hi2 = max(lo, ws.tau_prev[i] - w), min(hi, ws.tau_prev[i] + w)
+        if lo2 <= hi2:
+            return lo2, hi2
+    return lo, hi
 
 
 @njit(cache=True)
@@ -723,14 +749,15 @@ def qp_build(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray,
         for k in range(n):
             rows[n_in + r, k] = ws.J[r, k]
         bu[e0 + r] = bl[e0 + r] = ws.a[r]
-    # −τ_max ≤ M q̈ + N ≤ τ_max (TorqueLimit)
+    # −τ_max ≤ M q̈ + N ≤ τ_max and |M q̈ + N − τ_prev| ≤ τ̇_max dt (TorqueLimit)
     t0 = ws.ipar[IP_TORQUE_ROW0]
     if t0 >= 0:
         for i in range(n):
             for k in range(n):
                 rows[t0 + i, k] = M[i, k]
-            bl[nv + t0 + i] = -ws.tau_max[i] - ws.N[i]
-            bu[nv + t0 + i] = ws.tau_max[i] - ws.N[i]
+            lo, hi = torque_window(ws, i)
+            bl[nv + t0 + i] = lo - ws.N[i]
+            bu[nv + t0 + i] = hi - ws.N[i]
     # joint position and speed limits as bounds on q̈ (JointLimit)
     if ws.ipar[IP_JOINT_LIMITS] != 0:
         joint_bounds(ws, bl[:n], bu[:n])
@@ -854,22 +881,30 @@ def qp_finish(ws, x: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarra
 
 @njit(cache=True)
 def finish_torque(ws) -> float:  # type: ignore[no-untyped-def]
-    """τ = M q̈ + N, clipped to ±τ_max where the torque limits are constraints (q̈ then follows from the
-    clipped τ); returns the largest clip [N·m] (0 if none), also in the record."""
+    """τ = M q̈ + N, clipped to the torque window (±τ_max and the rate limit, :func:`torque_window`)
+    where the drive limits are constraints (q̈ then follows from the clipped τ); returns the largest
+    clip [N·m] (0 if none), also in the record, with the joints whose torque moved by its whole rate
+    limit."""
     n = ws.N.shape[0]
     torque_of(ws)
     clip = 0.0
+    hits = 0
     if ws.ipar[IP_TORQUE_ROW0] >= 0:
+        dt = ws.fpar[FP_T] - ws.t_prev[0]
         for i in range(n):
-            lim = ws.tau_max[i]
-            t = min(max(ws.tau[i], -lim), lim)
+            lo, hi = torque_window(ws, i)
+            t = min(max(ws.tau[i], lo), hi)
             clip = max(clip, abs(t - ws.tau[i]))
             ws.tau[i] = t
+            if dt > 0.0 and abs(t - ws.tau_prev[i]) >= ws.tau_rate[i] * dt * (1.0 - 1e-6):
+                hits += 1
         if clip > 0.0:
             for i in range(n):
                 ws.qdd[i] = ws.tau[i] - ws.N[i]
             chol_solve(ws.Lm, ws.qdd)
-    ws.rec[record_scalars(n, ws.a.shape[0]) + R_CLIPPED] = clip
+    s = record_scalars(n, ws.a.shape[0])
+    ws.rec[s + R_CLIPPED] = clip
+    ws.rec[s + R_RATE_HITS] = hits
     ws.flags[FLAG_CLIPPED] = 1 if clip > 0.0 else 0
     return clip
 

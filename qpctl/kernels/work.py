@@ -69,6 +69,10 @@ FIELDS = (
     "ipar",  # (IP_SIZE,) int settings, indexed by the IP_* constants
     "q_ref",  # (n,) posture task target [rad]
     "tau_max",  # (n,) [N·m]
+    "tau_rate",  # (n,) torque-rate limits [N·m/s]
+    "tau_prev",  # (n,) the torque commanded last tick [N·m] (TorqueLimit.previous, shared; NaN: none)
+    "t_prev",  # (1,) its time [s] (TorqueLimit.t_previous, shared; NaN: none)
+    "qdd_max",  # (n,) joint acceleration limits [rad/s²]
     "q_min",  # (n,)
     "q_max",  # (n,)
     "v_max",  # (n,)

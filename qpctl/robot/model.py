@@ -54,6 +54,9 @@ class RobotModel:
         v_max: joint speed limits [rad/s] (inf where unlimited).
         tau_max: joint torque limits [N·m] (inf where unlimited); symmetric, ``|τ| ≤ tau_max``.
         q_home: a default configuration.
+        tau_rate_max: the drives' torque-rate limits [N·m/s] (inf where unlimited): between two
+            commands dt apart, ``|τ_k − τ_{k−1}| ≤ tau_rate_max · dt``.
+        qdd_max: joint acceleration limits [rad/s² or m/s²] (inf where unlimited), ``|q̈| ≤ qdd_max``.
     """
 
     name: str
@@ -67,6 +70,8 @@ class RobotModel:
     tau_max: np.ndarray
     q_home: np.ndarray
     joint_names: list[str] = field(default_factory=list)
+    tau_rate_max: np.ndarray | None = None
+    qdd_max: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.model.nq != self.model.nv:
@@ -75,7 +80,10 @@ class RobotModel:
         self.ee_frame_id = self.frame_id(self.ee_frame)
         if not self.joint_names:
             self.joint_names = [self.model.names[i] for i in range(1, self.model.njoints)]
-        for name in ("q_min", "q_max", "v_max", "tau_max", "q_home"):
+        for name in ("tau_rate_max", "qdd_max"):
+            if getattr(self, name) is None:
+                setattr(self, name, np.full(self.nv, np.inf))
+        for name in ("q_min", "q_max", "v_max", "tau_max", "q_home", "tau_rate_max", "qdd_max"):
             arr = np.asarray(getattr(self, name), dtype=float).reshape(-1)
             if arr.shape != (self.nv,):
                 raise ConfigError(f"{name} must have {self.nv} entries, got {arr.shape[0]}", key=name)
@@ -98,15 +106,21 @@ class RobotModel:
         return int(self.model.getFrameId(name))
 
     def with_limits(self, *, tau_max: Sequence[float] | float | None = None,
-                    v_max: Sequence[float] | float | None = None) -> RobotModel:
-        """Return a copy with torque and/or speed limits replaced (a scalar applies to every joint)."""
+                    v_max: Sequence[float] | float | None = None,
+                    tau_rate_max: Sequence[float] | float | None = None,
+                    qdd_max: Sequence[float] | float | None = None) -> RobotModel:
+        """Return a copy with torque, speed, torque-rate and/or acceleration limits replaced (a scalar
+        applies to every joint; inf: no limit)."""
         out = RobotModel(self.name, self.model, self.ee_frame, self.task_axes, list(self.capsules),
                          self.q_min.copy(), self.q_max.copy(), self.v_max.copy(), self.tau_max.copy(),
-                         self.q_home.copy(), list(self.joint_names))
-        if tau_max is not None:
-            out.tau_max = np.broadcast_to(np.asarray(tau_max, float), (self.nv,)).copy()
-        if v_max is not None:
-            out.v_max = np.broadcast_to(np.asarray(v_max, float), (self.nv,)).copy()
+                         self.q_home.copy(), list(self.joint_names), self.tau_rate_max.copy(),  # type: ignore[union-attr]
+                         self.qdd_max.copy())  # type: ignore[union-attr]
+        for name, val in (("tau_max", tau_max), ("v_max", v_max), ("tau_rate_max", tau_rate_max), ("qdd_max", qdd_max)):
+            if val is not None:
+                arr = np.asarray(val, float)
+                if arr.ndim > 1 or arr.size not in (1, self.nv):
+                    raise ConfigError(f"needs one value or {self.nv} (one per joint), got {arr.size}", key=f"robot.{name}")
+                setattr(out, name, np.broadcast_to(arr.reshape(-1) if arr.ndim else arr, (self.nv,)).copy())
         return out
 
     @classmethod
@@ -239,8 +253,18 @@ _PANDA_CAPSULES: list[tuple[str, tuple[float, float, float], tuple[float, float,
 ]
 
 
+# Franka's published limits for the Panda's joints (Franka Control Interface documentation, "Robot
+# and interface specifications", limits in the joint space): torque rate τ̇_max 1000 N·m/s and
+# acceleration q̈_max per joint — what the FCI accepts in a command (libfranka's kMaxTorqueRate,
+# kMaxJointAcceleration).
+PANDA_TAU_RATE_MAX = 1000.0  # [N·m/s]
+PANDA_QDD_MAX = (15.0, 7.5, 10.0, 12.5, 15.0, 20.0, 20.0)  # [rad/s²]
+
+
 def panda(*, gravity: Sequence[float] = (0.0, 0.0, -9.81)) -> RobotModel:
-    """The Franka Panda (7 DoF, fingers locked) from example-robot-data, task point between the fingertips."""
+    """The Franka Panda (7 DoF, fingers locked) from example-robot-data, task point between the
+    fingertips; the URDF's torque, speed and position limits, and Franka's published torque-rate
+    and acceleration limits (:data:`PANDA_TAU_RATE_MAX`, :data:`PANDA_QDD_MAX`)."""
     urdf = example_robot_data_path("panda_description/urdf/panda.urdf")
     locked = ["panda_finger_joint1", "panda_finger_joint2"]
     robot = RobotModel.from_urdf(urdf, "panda_hand", locked_joints=locked, gravity=gravity,
@@ -249,6 +273,8 @@ def panda(*, gravity: Sequence[float] = (0.0, 0.0, -9.81)) -> RobotModel:
     model = robot.model
     robot.capsules = [LinkCapsule(jn, int(model.getJointId(jn)), np.array(a), np.array(b), r)
                       for jn, a, b, r in _PANDA_CAPSULES]
+    robot.tau_rate_max = np.full(robot.nv, PANDA_TAU_RATE_MAX)
+    robot.qdd_max = np.array(PANDA_QDD_MAX, float)
     return robot
 
 

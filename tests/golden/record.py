@@ -119,19 +119,26 @@ def scene_for(spec: dict[str, Any], golden_dir: Path = HERE) -> dict[str, Any]:
     raise ValueError(f"unknown case source {spec['source']!r}")
 
 
+# Limits added after the recording (issue #16: the drives' torque-rate and acceleration limits, on
+# by default on the Panda), switched off in a replay: the golden ticks hold the law as it was.
+LATER_LIMITS_OFF = {"tau_rate_max": float("inf"), "qdd_max": float("inf")}
+
+
 def build_controller(frozen: dict[str, Any], label: str) -> Any:
-    """A fresh controller ``label`` (a key of CONTROLLERS) for the scene ``frozen`` (scene_for()'s)."""
+    """A fresh controller ``label`` (a key of CONTROLLERS) for the scene ``frozen`` (scene_for()'s),
+    without the limits added after the recording (LATER_LIMITS_OFF)."""
     kind, solver = CONTROLLERS[label]
     if frozen["type"] == "scenario":  # the validated scenario, re-read as it was recorded
         from qpctl import Scenario
 
-        return Scenario.from_dict(frozen["data"], source=frozen["source"]).build_controller(kind, solver)
+        data = {**frozen["data"], "robot": {**frozen["data"]["robot"], **LATER_LIMITS_OFF}}
+        return Scenario.from_dict(data, source=frozen["source"]).build_controller(kind, solver)
     if frozen["type"] == "bench":  # as benchmarks.scenes.BenchScene.controller() builds it
         from qpctl import LawGains, Obstacle, WaypointPath
         from qpctl.controllers.factory import make_controller
         from qpctl.robot.model import load_robot
 
-        robot = load_robot(frozen["robot"])
+        robot = load_robot(frozen["robot"]).with_limits(**LATER_LIMITS_OFF)
         p = frozen["path"]
         path = WaypointPath(p["points"], durations=p["durations"], start_time=p["start_time"], dwell=p["dwell"])
         obstacles = [Obstacle(**o) for o in frozen["obstacles"]]
