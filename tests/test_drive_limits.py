@@ -23,7 +23,7 @@ RATE = 1000.0  # [N·m/s]
 DRIVES = ["robot.tau_max=1000.0", f"robot.tau_rate_max={RATE}", "sim.duration=1.5"]
 
 
-def torque_rates(traj) -> np.ndarray:  # noqa: ANN001
+def torque_rates(traj) -> np.ndarray:
     """(T − 1, n) |τ_k − τ_k−1| / (t_k − t_k−1) [N·m/s] of a recorded run."""
     return np.abs(np.diff(traj.tau, axis=0)) / np.diff(traj.t)[:, None]
 
@@ -116,7 +116,7 @@ def test_a_fallback_holds_the_rate_window(monkeypatch):
     run = simulate(Scenario.load("paper", DRIVES), kind="qp")
     traj = run.trajectory
 
-    def failing(self, *args, **kwargs):  # noqa: ANN001
+    def failing(self, *args, **kwargs):
         return None, "max_iter", 1000
 
     monkeypatch.setattr(DAQPSolver, "native", lambda self, buf: None)
