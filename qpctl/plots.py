@@ -30,6 +30,23 @@ def plot_torques(ax: plt.Axes, traj: Trajectory, title: str = "") -> None:
         ax.set_title(title)
 
 
+def plot_torque_rates(ax: plt.Axes, traj: Trajectory, tau_rate_max: np.ndarray | None = None) -> None:
+    """|τ̇| per joint [N·m/s] (torques differenced tick to tick, log scale) and the drives' rate limit."""
+    if traj.t.size < 2:
+        return
+    rate = np.abs(np.diff(traj.tau, axis=0)) / np.diff(traj.t)[:, None]
+    for j in range(rate.shape[1]):
+        ax.semilogy(traj.t[1:], np.maximum(rate[:, j], 1e-3), lw=0.8, label=f"|τ̇{j + 1}|")
+    if tau_rate_max is not None and np.any(np.isfinite(tau_rate_max)):
+        for lim in sorted(set(np.asarray(tau_rate_max)[np.isfinite(tau_rate_max)].tolist())):
+            ax.axhline(lim, color="k", ls="--", lw=1.0)
+        ax.text(traj.t[-1], float(np.nanmin(np.where(np.isfinite(tau_rate_max), tau_rate_max, np.nan))),
+                "rate limit", ha="right", va="bottom", fontsize="small")
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("torque rate [N·m/s]")
+    ax.grid(alpha=0.3, which="both")
+
+
 def draw_obstacles(ax: plt.Axes, obstacles: Sequence[Obstacle], t: float = 0.0) -> None:
     """Obstacles in the x–y plane at time t [s]: boxes as rectangles, the other shapes as circles."""
     for o in obstacles:
@@ -86,11 +103,14 @@ def plot_tracking(ax: plt.Axes, traj: Trajectory, title: str = "") -> None:
 
 
 def write_figures(out: Path, traj: Trajectory, segments: np.ndarray, obstacles: Sequence[Obstacle],
-                  label: str) -> list[Path]:
-    """Write torques.png, configurations.png (planar robots) and tracking.png into ``out``."""
+                  label: str, tau_rate_max: np.ndarray | None = None) -> list[Path]:
+    """Write torques.png (torques, and their rates against the drives' rate limit),
+    configurations.png (planar robots) and tracking.png into ``out``."""
     files = []
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig, (ax, ax_rate) = plt.subplots(2, 1, figsize=(7, 6), sharex=True, height_ratios=[3, 2])
     plot_torques(ax, traj, f"joint torques — {label}")
+    ax.set_xlabel("")
+    plot_torque_rates(ax_rate, traj, tau_rate_max)
     files.append(out / "torques.png")
     fig.tight_layout()
     fig.savefig(files[-1], dpi=120)

@@ -87,7 +87,8 @@ def write_outputs(result: RunResult, out: Path, *, figures: bool = True) -> list
 
             segs = link_segments(result.controller, result.trajectory.q)
             label = f"{result.scenario.name}, {result.controller.kind}"
-            write_figures(tmp, result.trajectory, segs, result.controller.obstacles, label)
+            write_figures(tmp, result.trajectory, segs, result.controller.obstacles, label,
+                          tau_rate_max=result.controller.robot.tau_rate_max)
         names = sorted(f.name for f in tmp.iterdir())
         if not out.exists():  # the usual case: one rename, so the folder appears complete or not at all
             mask = os.umask(0)

@@ -28,6 +28,7 @@ def compute_metrics(traj: Trajectory, *, d_safe: float = 0.0) -> dict[str, Any]:
         "max_abs_torque": float(np.max(np.abs(traj.tau))),
         "max_abs_torque_per_joint": np.max(np.abs(traj.tau), axis=0).tolist(),
         "max_abs_torque_rate": float(np.max(rate)),
+        "max_abs_torque_rate_per_joint": np.max(rate, axis=0).tolist(),
         "min_clearance": _finite_or_none(min_clear),
         "collided": bool(min_clear < 0.0),
         "safety_violated": bool(min_clear < d_safe - 1e-9),
@@ -51,4 +52,6 @@ def compute_metrics(traj: Trajectory, *, d_safe: float = 0.0) -> dict[str, Any]:
                 out[f"{stage[:-3]}_us_median"] = float(np.median(vals))
         fb = [i.get("fallback") for i in qp if i.get("fallback")]
         out["qp_fallbacks"] = dict(Counter(str(f) for f in fb))
+        # ticks at which a joint's torque moved by its whole rate limit (the drives' limit binding)
+        out["torque_rate_limit_hits"] = sum(1 for i in qp if i.get("rate_limited"))
     return out
