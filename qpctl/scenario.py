@@ -23,6 +23,7 @@ from qpctl.law import LawGains
 from qpctl.paths import WaypointPath
 from qpctl.robot.model import RobotModel, load_robot
 from qpctl.solvers.base import DEFAULT_SOLVER
+from qpctl.tasks.tasks import DEFAULT_DAMPING
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -166,6 +167,8 @@ SCHEMA: dict[str, Any] = {
         "max_pairs": (_int, 0),
         "posture_weight": (_num, 0.0),
         "posture": (_vec, None),
+        "damping": (_num, DEFAULT_DAMPING),
+        "damping_gain": (_num, 10.0),
         "fallback": (_str_list, ["closed-form", "safe-stop"]),
         "tick_budget_us": (_num, 0.0),
         "broadphase": (_str, "auto"),

@@ -90,6 +90,7 @@ class QPSpec:
     slack_l1: float
     slack_l2: float
     posture: tuple[np.ndarray, float, float, float] | None  # (q_ref, weight, kp, kd)
+    damping: tuple[float, float] | None  # (relative weight ρ, gain K_d)
     rows: list[tuple[str, int]]  # (constraint name, its row count), in the constraints' order
     torque: Any  # the TorqueLimit (its limits, and the last commanded torque the workspace shares), or None
     joint_limits: tuple[np.ndarray, ...] | None  # q_min, q_max, v_max, k0, k1, kv, qdd_max
@@ -272,6 +273,9 @@ class Workspace:
             self.q_ref = np.asarray(q_ref, float).copy()
             ip[K.IP_POSTURE] = 1
             fp[K.FP_WPOST], fp[K.FP_PKP], fp[K.FP_PKD] = w, kp, kd
+        if spec.damping is not None:
+            ip[K.IP_DAMPING] = 1
+            fp[K.FP_DAMP], fp[K.FP_DAMP_KD] = spec.damping
         row = 0
         capacity = 0
         for name, count in spec.rows:

@@ -20,7 +20,9 @@ from qpctl.solvers.daqp_ import DAQPSolver
 from qpctl.tasks import AccelerationTask, EndEffectorTask
 
 RATE = 1000.0  # [N·m/s]
-DRIVES = ["robot.tau_max=1000.0", f"robot.tau_rate_max={RATE}", "sim.duration=1.5"]
+# The paper's cost alone (no damping task), so that the unlimited QP changes its torques faster than
+# the drives allow and the rows, not the damping, hold the limit.
+DRIVES = ["robot.tau_max=1000.0", f"robot.tau_rate_max={RATE}", "sim.duration=1.5", "controller.damping=0.0"]
 
 
 def torque_rates(traj) -> np.ndarray:
@@ -95,7 +97,7 @@ def test_compiled_and_python_paths_hold_the_same_window():
 def test_acceleration_limits_bound_every_commanded_acceleration():
     """The Panda (Franka's q̈_max by default) among the canopy: every commanded q̈ — checked from τ by
     Pinocchio's forward dynamics, not the controller's own q̈ — within ±q̈_max on every tick."""
-    sc = Scenario.load("panda_canopy", ["sim.duration=1.0"])
+    sc = Scenario.load("panda_canopy", ["sim.duration=1.0", "controller.damping=0.0"])
     run = simulate(sc, kind="qp")
     robot = run.controller.robot
     assert np.all(np.isfinite(robot.qdd_max)) and np.all(robot.tau_rate_max == 1000.0)

@@ -54,7 +54,7 @@ from qpctl.kernels import small as S
 from qpctl.kernels import tick as K
 from qpctl.law import law_terms
 from qpctl.robot.model import RobotModel
-from qpctl.tasks import AccelerationTask, EndEffectorTask, PostureTask
+from qpctl.tasks import AccelerationTask, DampingTask, EndEffectorTask, PostureTask
 from qpctl.tick import GRID_MIN_OBSTACLES, Workspace, WorldClearance, bind_pinocchio
 
 SEED = 20240611
@@ -1057,6 +1057,10 @@ class SubPosture(PostureTask):
     pass
 
 
+class SubDamping(DampingTask):
+    pass
+
+
 @pytest.mark.parametrize("solver", ["daqp", "proxqp"])
 @pytest.mark.parametrize("key", ["panda_canopy", "paper-posture-limits"])
 def test_qp_compiled_torque_equals_python_path(key, solver):
@@ -1071,6 +1075,8 @@ def test_qp_compiled_torque_equals_python_path(key, solver):
             tasks.append(SubAcceleration(task.weight))
         elif type(task) is EndEffectorTask:
             tasks.append(SubEndEffector(task.slack_l1, task.slack_l2))
+        elif type(task) is DampingTask:
+            tasks.append(SubDamping(task.weight, task.gain))
         else:
             tasks.append(SubPosture(task.q_ref, task.weight, task.kp, task.kd))
     slow = QPController(fast.robot, fast.path, fast.obstacles, fast.gains, QPConfig(**vars(fast.config)), tasks=tasks,

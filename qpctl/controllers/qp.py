@@ -50,7 +50,7 @@ from qpctl.solvers.base import DEFAULT_SOLVER, QPSolver, make_solver
 from qpctl.solvers.daqp_ import STATUS as DAQP_STATUS
 from qpctl.solvers.daqp_ import DAQPSolver
 from qpctl.state import TickState
-from qpctl.tasks.tasks import AccelerationTask, EndEffectorTask, PostureTask, Task
+from qpctl.tasks.tasks import DEFAULT_DAMPING, AccelerationTask, DampingTask, EndEffectorTask, PostureTask, Task
 from qpctl.tick import QPBuffers, QPSpec, Workspace
 
 FALLBACK_CLOSED_FORM = "closed-form"
@@ -132,6 +132,8 @@ class QPConfig:
     (``"closed-form"``, ``"safe-stop"``, ``"brake"``: tens of µs each). ``info["budget_exhausted"]``
     marks such ticks.
     posture / posture_weight: an optional PostureTask.
+    damping [1], damping_gain [1/s]: the DampingTask's relative weight ρ and gain K_d (ρ = 0: none,
+    the QP then reduces exactly to the paper law where no inequality is active).
     """
 
     solver: str = DEFAULT_SOLVER
@@ -152,12 +154,14 @@ class QPConfig:
     tick_budget_us: float = 0.0
     posture: list[float] | None = None
     posture_weight: float = 0.0
+    damping: float = DEFAULT_DAMPING
+    damping_gain: float = 10.0
 
     def __post_init__(self) -> None:
         if isinstance(self.fallback, str) or not all(isinstance(x, str) for x in self.fallback):
             raise ConfigError(f"must be a list of names, got {self.fallback!r}", key="controller.fallback")
         self.fallback = list(self.fallback)
-        for key in ("tick_budget_us", "slack_l1", "slack_l2", "posture_weight"):
+        for key in ("tick_budget_us", "slack_l1", "slack_l2", "posture_weight", "damping", "damping_gain"):
             val = getattr(self, key)
             if isinstance(val, bool) or not isinstance(val, (int, float)) or not (np.isfinite(val) and val >= 0):
                 raise ConfigError(f"must be a number >= 0, got {val!r}", key=f"controller.{key}")
@@ -209,9 +213,11 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
     exactly the standard ones (an AccelerationTask, an EndEffectorTask, at most one PostureTask; at
     most one TorqueLimit, JointLimit and ObstacleBarrier): those go through the Python formulation."""
     kinds = [type(t) for t in tasks]
-    if kinds.count(AccelerationTask) != 1 or kinds.count(EndEffectorTask) != 1 or kinds.count(PostureTask) > 1:
+    if kinds.count(AccelerationTask) != 1 or kinds.count(EndEffectorTask) != 1:
         return None
-    if len(kinds) != 2 + kinds.count(PostureTask):
+    if kinds.count(PostureTask) > 1 or kinds.count(DampingTask) > 1:
+        return None
+    if len(kinds) != 2 + kinds.count(PostureTask) + kinds.count(DampingTask):
         return None
     ckinds = [type(c) for c in constraints]
     if any(ckinds.count(k) > 1 for k in ckinds) or not all(k in (TorqueLimit, JointLimit, ObstacleBarrier)
@@ -220,6 +226,10 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
     acc = next(t for t in tasks if isinstance(t, AccelerationTask))
     ee = next(t for t in tasks if isinstance(t, EndEffectorTask))
     post = next((t for t in tasks if isinstance(t, PostureTask)), None)
+    damp = next((t for t in tasks if isinstance(t, DampingTask)), None)
+    order = [t for t in tasks if isinstance(t, (PostureTask, DampingTask))]
+    if len(order) == 2 and isinstance(order[0], DampingTask):  # the kernel adds the posture first
+        return None
     if post is not None and post.q_ref.shape != (n,):
         raise ConfigError(f"q_ref has {post.q_ref.size} entries, the robot {n}", key="PostureTask.q_ref")
     torque = next((c for c in constraints if isinstance(c, TorqueLimit)), None)
@@ -228,6 +238,7 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
     return QPSpec(
         acc_weight=acc.weight, slack_l1=ee.slack_l1, slack_l2=ee.slack_l2,
         posture=None if post is None else (post.q_ref, post.weight, post.kp, post.kd),
+        damping=None if damp is None else (damp.weight, damp.gain),
         rows=[(c.name, c.rows) for c in constraints if c.rows],
         torque=torque,
         joint_limits=None if joint is None else (joint.q_min, joint.q_max, joint.v_max, joint.k0, joint.k1, joint.kv,
@@ -265,6 +276,8 @@ class QPController(Controller):
             if cfg.posture_weight > 0:
                 tasks.append(PostureTask(cfg.posture if cfg.posture is not None else robot.q_home,
                                          cfg.posture_weight))
+            if cfg.damping > 0:
+                tasks.append(DampingTask(cfg.damping, cfg.damping_gain))
         if constraints is None:
             constraints = []
             if cfg.torque_limits and np.any(np.isfinite(np.concatenate([robot.tau_max, robot.tau_rate_max]))):

@@ -46,12 +46,12 @@ PAIR_OK, PAIR_FCL, PAIR_FAR = 0, 1, 2
 # Float settings (TickWork.fpar)
 FP_KP, FP_KV, FP_KN, FP_VREF, FP_DI, FP_DS, FP_GDAMP, FP_PINV_EPS, FP_CUTOFF = range(9)
 FP_BK0, FP_BK1, FP_JK0, FP_JK1, FP_JKV, FP_SL1, FP_SL2, FP_WACC, FP_WPOST, FP_PKP, FP_PKD = range(9, 20)
-FP_GRID_H, FP_CLEARANCE, FP_T = 20, 21, 22
-FP_SIZE = 23
+FP_GRID_H, FP_CLEARANCE, FP_T, FP_DAMP, FP_DAMP_KD = 20, 21, 22, 23, 24
+FP_SIZE = 25
 # Int settings (TickWork.ipar)
 IP_JDOT_EN, IP_DRIFT_RIGID, IP_CAPACITY, IP_TORQUE_ROW0, IP_BARRIER_ROW0, IP_JOINT_LIMITS = range(6)
-IP_POSTURE, IP_N_IN, IP_BDRIFT = range(6, 9)
-IP_SIZE = 9
+IP_POSTURE, IP_N_IN, IP_BDRIFT, IP_DAMPING = range(6, 10)
+IP_SIZE = 10
 # Counters (TickWork.cnt)
 CNT_PAIRS, CNT_FCL, CNT_LOOKAHEAD, CNT_DROPPED = range(4)
 CNT_SIZE = 4
@@ -743,6 +743,15 @@ def qp_build(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray,
         for i in range(n):
             H[i, i] += w
             f[i] += -w * (pkp * (ws.q_ref[i] - ws.q[i]) - pkd * ws.v[i])
+    if ws.ipar[IP_DAMPING] != 0:  # ½ w‖q̈ + K_d q̇‖², w = ρ tr(MᵀM)/n (DampingTask)
+        trmm = 0.0
+        for i in range(n):
+            for k in range(n):
+                trmm += M[k, i] * M[k, i]
+        w, kd = ws.fpar[FP_DAMP] * trmm / n, ws.fpar[FP_DAMP_KD]
+        for i in range(n):
+            H[i, i] += w
+            f[i] += w * kd * ws.v[i]
     # J q̈ + s = a (EndEffectorTask)
     e0 = nv + n_in
     for r in range(m):

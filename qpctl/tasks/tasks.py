@@ -5,6 +5,8 @@
 * :class:`EndEffectorTask` — J q̈ = a (eq. 3 with a from eq. 7), softened by an exact ℓ₁ slack
   so that obstacles and torque limits (hard) win when they conflict with the path.
 * :class:`PostureTask` — ½ w ‖q̈ − (K_p(q_ref − q) − K_d q̇)‖², an optional extra.
+* :class:`DampingTask` — ½ w ‖q̈ + K_d q̇‖² with w relative to M: damps the redundant self-motion
+  that the paper's local torque minimisation leaves free (on by default in the QP).
 """
 
 from __future__ import annotations
@@ -89,3 +91,30 @@ class PostureTask(Task):
             raise ConfigError(f"q_ref has {self.q_ref.size} entries, the robot {state.n}", key="PostureTask.q_ref")
         target = self.kp * (self.q_ref - state.q) - self.kd * state.v
         return Objective(self.weight * np.eye(state.n), -self.weight * target)
+
+
+DEFAULT_DAMPING = 1.0  # the QP's DampingTask weight ρ by default (README, "Drive limits": measured)
+
+
+class DampingTask(Task):
+    """½ w ‖q̈ + K_d q̇‖², w = ρ · tr(MᵀM)/n: a pull of every joint's acceleration toward −K_d q̇.
+
+    The task rows are equalities, so this shapes only the null space: it damps the self-motion that
+    the paper's cost ½‖M(q̈ − q̈₀)‖² (a local torque minimisation) lets fall under gravity and swing
+    — the cause of the QP's torque chatter at an active barrier and of joint speeds and
+    accelerations beyond what real drives allow. ``weight`` ρ is relative to the acceleration cost
+    (the mean diagonal of MᵀM, per tick, so one value suits a planar arm of 10 kg links and the
+    Panda alike); ``gain`` K_d [1/s]. ρ = 0 leaves the paper's law exact.
+    """
+
+    name = "damping"
+
+    def __init__(self, weight: float = DEFAULT_DAMPING, gain: float = 10.0) -> None:
+        for key, val in (("damping", weight), ("damping_gain", gain)):
+            if not (np.isfinite(val) and val >= 0):
+                raise ConfigError(f"must be a number >= 0, got {val}", key=f"controller.{key}")
+        self.weight, self.gain = float(weight), float(gain)
+
+    def compute(self, state: TickState, terms: LawTerms) -> Objective:
+        w = self.weight * float(np.sum(state.M * state.M)) / state.n
+        return Objective(w * np.eye(state.n), w * self.gain * state.v)

@@ -119,19 +119,22 @@ def scene_for(spec: dict[str, Any], golden_dir: Path = HERE) -> dict[str, Any]:
     raise ValueError(f"unknown case source {spec['source']!r}")
 
 
-# Limits added after the recording (issue #16: the drives' torque-rate and acceleration limits, on
-# by default on the Panda), switched off in a replay: the golden ticks hold the law as it was.
+# Added after the recording (issue #16), switched off in a replay: the golden ticks hold the law as
+# it was. The drives' torque-rate and acceleration limits (on by default on the Panda), and the QP's
+# damping of the self-motion (on by default).
 LATER_LIMITS_OFF = {"tau_rate_max": float("inf"), "qdd_max": float("inf")}
+LATER_COSTS_OFF = {"damping": 0.0}
 
 
 def build_controller(frozen: dict[str, Any], label: str) -> Any:
     """A fresh controller ``label`` (a key of CONTROLLERS) for the scene ``frozen`` (scene_for()'s),
-    without the limits added after the recording (LATER_LIMITS_OFF)."""
+    without the limits and costs added after the recording (LATER_LIMITS_OFF, LATER_COSTS_OFF)."""
     kind, solver = CONTROLLERS[label]
     if frozen["type"] == "scenario":  # the validated scenario, re-read as it was recorded
         from qpctl import Scenario
 
-        data = {**frozen["data"], "robot": {**frozen["data"]["robot"], **LATER_LIMITS_OFF}}
+        data = {**frozen["data"], "robot": {**frozen["data"]["robot"], **LATER_LIMITS_OFF},
+                "controller": {**frozen["data"]["controller"], **LATER_COSTS_OFF}}
         return Scenario.from_dict(data, source=frozen["source"]).build_controller(kind, solver)
     if frozen["type"] == "bench":  # as benchmarks.scenes.BenchScene.controller() builds it
         from qpctl import LawGains, Obstacle, WaypointPath
@@ -142,7 +145,7 @@ def build_controller(frozen: dict[str, Any], label: str) -> Any:
         p = frozen["path"]
         path = WaypointPath(p["points"], durations=p["durations"], start_time=p["start_time"], dwell=p["dwell"])
         obstacles = [Obstacle(**o) for o in frozen["obstacles"]]
-        cfg = dict(frozen["controller_cfg"], kind=kind)
+        cfg = dict(frozen["controller_cfg"], kind=kind, **LATER_COSTS_OFF)
         if solver is not None:
             cfg["solver"] = solver
         return make_controller(cfg, robot, path, obstacles, LawGains(**frozen["gains"]))
