@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from qpctl.constraints.constraints import Constraint, ObstacleBarrier, TorqueLimit
+from qpctl.constraints.constraints import Constraint, ObstacleBarrier
 from qpctl.law import LawTerms
 from qpctl.qp import Bounds, Equality, Inequality, Objective, Problem
 from qpctl.state import TickState

@@ -50,7 +50,14 @@ from qpctl.solvers.base import DEFAULT_SOLVER, QPSolver, make_solver
 from qpctl.solvers.daqp_ import STATUS as DAQP_STATUS
 from qpctl.solvers.daqp_ import DAQPSolver
 from qpctl.state import TickState
-from qpctl.tasks.tasks import DEFAULT_DAMPING, AccelerationTask, DampingTask, EndEffectorTask, PostureTask, Task
+from qpctl.tasks.tasks import (
+    DEFAULT_DAMPING,
+    AccelerationTask,
+    DampingTask,
+    EndEffectorTask,
+    PostureTask,
+    Task,
+)
 from qpctl.tick import QPBuffers, QPSpec, Workspace
 
 FALLBACK_CLOSED_FORM = "closed-form"
