@@ -134,6 +134,9 @@ def planar_scene(rng: np.random.Generator, k: int) -> dict[str, Any]:
     robot: dict[str, Any] = {"kind": "planar3", "q0": q0.tolist(), "tau_max": float(rng.uniform(500.0, 1500.0))}
     if rng.uniform() < 0.5:
         robot["v_max"] = float(rng.uniform(3.0, 8.0))
+    drives = np.random.default_rng([SEED, k])  # its own stream: the scenes above stay as they were
+    if drives.uniform() < 0.5:  # a torque-rate limit in half the scenes (the Panda has Franka's always)
+        robot["tau_rate_max"] = float(drives.uniform(1000.0, 5000.0))
     route = [_ee(PLANAR, q0)] + [np.array([*w, 0.0]) for w in waypoints]
     length = sum(float(np.linalg.norm(b[:2] - a[:2])) for a, b in itertools.pairwise(route))
     duration = max(duration, length / 1.5)  # at most 1.5 m/s on average (peaks 1.9× that)
@@ -180,6 +183,7 @@ class Checker:
         budget = getattr(getattr(ctrl, "config", None), "tick_budget_us", 0.0)
         self.budget = budget
         self.k = 0
+        self.previous: tuple[np.ndarray, float] | None = None  # (τ, t) of the last tick
         ctrl.step = self.step
 
     def step(self, q: np.ndarray, v: np.ndarray, t: float) -> Any:
@@ -192,6 +196,12 @@ class Checker:
             return out
         if np.any(np.abs(out.tau) > ctrl.robot.tau_max + 1e-9):
             s["torque_limit_exceeded"] += 1
+        if ctrl.kind == "qp" and self.previous is not None and t > self.previous[1]:  # the drives' rate limit
+            allowed = ctrl.robot.tau_rate_max * (t - self.previous[1])
+            if np.any(np.abs(out.tau - self.previous[0]) > allowed * (1 + 1e-6) + 1e-9):
+                s["rate_limit_exceeded"] += 1
+            s["rate_limited_ticks"] += bool(out.info.get("rate_limited"))
+        self.previous = (out.tau.copy(), t)
         s["singular_ticks"] += int(out.singular)
         if ctrl.kind != "qp":
             return out
@@ -250,6 +260,7 @@ class Checker:
 
 def new_stats() -> dict[str, Any]:
     return {"ticks": 0, "qp_solved_ticks": 0, "nonfinite_torques": 0, "torque_limit_exceeded": 0,
+            "rate_limit_exceeded": 0, "rate_limited_ticks": 0,
             "singular_ticks": 0, "status": Counter(), "fallbacks": Counter(), "barrier_violations": 0,
             "barrier_rel_violation_max": -np.inf, "torque_clip_max_Nm": 0.0, "independent_rows_exact": 0, "independent_rows_gjk": 0,
             "independent_violations": 0, "independent_rel_violation_max_exact": -np.inf,
@@ -265,6 +276,7 @@ def run_scene(raw: dict[str, Any], kind: str, stats: dict[str, Any], exceptions:
     scen = Scenario.from_dict(raw, source=raw["name"])
     try:
         ctrl = scen.build_controller(kind)
+        ctrl.warmup()  # before the Checker: its two ticks are not the run's
         Checker(ctrl, stats)
         sim = Simulator(ctrl, dt=DT, duration=raw["sim"]["duration"])
         traj = sim.run(scen.q0(ctrl.robot))
@@ -362,5 +374,6 @@ def test_soak():
     assert qp["ticks"] >= TARGET_QP_TICKS
     assert qp["nonfinite_torques"] == 0 and closed["nonfinite_torques"] == 0
     assert qp["torque_limit_exceeded"] == 0
+    assert qp["rate_limit_exceeded"] == 0
     assert qp["barrier_violations"] == 0, qp["barrier_rel_violation_max"]
     assert qp["independent_violations"] == 0, qp["independent_cases"][:5]

@@ -342,7 +342,10 @@ class MujocoSimulator:
         singular = np.zeros(steps, bool)
         infos: list[dict[str, Any]] = []
         ctrl, data = self.controller, self.data
-        ctrl.warmup()  # kernels loaded, workspace built, solver set up: not in the first tick (ends in reset())
+        if ctrl.warm:  # kernels loaded, workspace built, solver set up: not in the first tick
+            ctrl.reset()
+        else:
+            ctrl.warmup()  # (ends in reset())
         iterator: Any = range(steps)
         if self.progress:
             from tqdm import tqdm

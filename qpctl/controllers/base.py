@@ -176,6 +176,7 @@ class Controller(ABC):
         self.dynamics = Dynamics(robot, self.obstacles, cutoff=self.cutoff, broadphase=broadphase)
         self.last: ControlOutput | None = None
         self._ws: Workspace | None = None
+        self.warm = False  # warmup() has run
 
     @property
     def cutoff(self) -> float:
@@ -211,6 +212,7 @@ class Controller(ABC):
         for k in range(2):
             self.step(self.robot.q_home.astype(float), np.zeros(self.n), 1e-3 * k)
         self.reset()
+        self.warm = True
         return time.perf_counter() - start
 
     def _state(self, q: np.ndarray, v: np.ndarray, t: float) -> Workspace:

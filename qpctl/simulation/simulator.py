@@ -115,7 +115,10 @@ class Simulator:
         infos: list[dict[str, Any]] = []
         model, data = self.robot.model, self._data
         ctrl = self.controller
-        ctrl.warmup()  # kernels loaded, workspace built, solver set up: not in the first tick (ends in reset())
+        if ctrl.warm:  # kernels loaded, workspace built, solver set up: not in the first tick
+            ctrl.reset()
+        else:
+            ctrl.warmup()  # (ends in reset())
         tau = np.zeros(n)
 
         def accel(qq: np.ndarray, vv: np.ndarray) -> np.ndarray:
