@@ -295,6 +295,7 @@ def run_scene(raw: dict[str, Any], kind: str, stats: dict[str, Any], exceptions:
             "pairs_dropped_ticks": sum("pairs_dropped" in i for i in traj.infos),
             "shapes": sorted({o.shape for o in ctrl.obstacles}),
             "collided": bool(np.min(traj.clearance) < 0.0),
+            "rate_limited": bool(np.isfinite(ctrl.robot.tau_rate_max).any()),
             "moving": any(o.moving for o in ctrl.obstacles)}
 
 
@@ -364,7 +365,12 @@ def test_soak():
                       "collided_with_safe_stop": sum(c["collided"] and FALLBACK_SAFE_STOP in c["chain"]
                                                      for c in clearance),
                       "collided_without_safe_stop": sum(c["collided"] and FALLBACK_SAFE_STOP not in c["chain"]
-                                                        for c in clearance)},
+                                                        for c in clearance),
+                      # with and without a torque-rate limit on the drives
+                      "scenes_with_rate_limit": sum(c["rate_limited"] for c in clearance),
+                      "collided_with_rate_limit": sum(c["collided"] and c["rate_limited"] for c in clearance),
+                      "collided_without_rate_limit": sum(c["collided"] and not c["rate_limited"]
+                                                         for c in clearance)},
     }
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "summary.json").write_text(json.dumps(summary, indent=2, default=float) + "\n")
