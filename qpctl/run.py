@@ -51,7 +51,13 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
     which = simulator or sim_cfg["simulator"]
     q0 = scenario.q0(controller.robot)
     if which == "mujoco":
-        from qpctl.adapters.mujoco import MujocoSimulator
+        try:
+            from qpctl.adapters.mujoco import MujocoSimulator
+        except ImportError as exc:  # the optional extra is not installed: the user's to fix, not a bug
+            from qpctl.errors import ConfigError
+
+            raise ConfigError(f"MuJoCo is not installed ({exc}); pip install 'qpctl[mujoco]' (or mujoco)",
+                              source=scenario.source, key="sim.simulator") from None
 
         traj = MujocoSimulator(controller, dt=sim_cfg["dt"], duration=sim_cfg["duration"],
                                integrator=sim_cfg["integrator"], progress=progress).run(q0)

@@ -304,6 +304,7 @@ class Scenario:
 
     data: dict[str, Any]
     source: str
+    base_dir: Path | None = None  # where relative paths in it (robot.urdf) are resolved: the file's folder
 
     @classmethod
     def load(cls, spec: str | Path, overrides: Sequence[str] = ()) -> Scenario:
@@ -312,28 +313,31 @@ class Scenario:
         if path.suffix == ".toml" or path.exists():
             if not path.is_file():
                 raise ConfigError(f"scenario file not found: {path}")
-            source, text = str(path), path.read_text()
+            source, text, base = str(path), path.read_text(), path.resolve().parent
         else:
             res = resources.files("qpctl") / "scenarios" / f"{spec}.toml"
             if not res.is_file():
                 raise ConfigError(f"no scenario named {str(spec)!r}; packaged: {', '.join(packaged_scenarios())}"
                                   " (or give a path to a .toml file)")
-            source, text = f"{spec} (packaged)", res.read_text()
+            source, text, base = f"{spec} (packaged)", res.read_text(), None
         try:
             raw = tomllib.loads(text)
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"not valid TOML: {exc}", source=source) from None
-        return cls.from_dict(raw, source=source, overrides=overrides)
+        return cls.from_dict(raw, source=source, overrides=overrides, base_dir=base)
 
     @classmethod
-    def from_dict(cls, raw: dict[str, Any], *, source: str = "<dict>", overrides: Sequence[str] = ()) -> Scenario:
+    def from_dict(cls, raw: dict[str, Any], *, source: str = "<dict>", overrides: Sequence[str] = (),
+                  base_dir: str | Path | None = None) -> Scenario:
+        """A scenario from a dict as TOML would give it; relative paths in it (``robot.urdf``) are
+        resolved from ``base_dir`` (default: the working folder)."""
         raw = apply_overrides(raw, overrides) if overrides else raw
         data = _validate_table(raw, SCHEMA, source, "")
         kind = data["controller"]["kind"]
         if kind not in CONTROLLER_KINDS:
             raise ConfigError(f"unknown controller {kind!r}; one of {', '.join(CONTROLLER_KINDS)}", source=source,
                               key="controller.kind")
-        scen = cls(data, source)
+        scen = cls(data, source, Path(base_dir) if base_dir is not None else None)
         scen._check_values()
         return scen
 
@@ -429,6 +433,11 @@ class Scenario:
     def name(self) -> str:
         return str(self.data["name"])
 
+    def resolve(self, path: str) -> Path:
+        """A path of the scenario's, relative ones from the scenario file's folder (or the working folder)."""
+        p = Path(path).expanduser()
+        return p if p.is_absolute() or self.base_dir is None else self.base_dir / p
+
     # -- builders -------------------------------------------------------------------------------
     def build_robot(self) -> RobotModel:
         r = self.data["robot"]
@@ -439,10 +448,14 @@ class Scenario:
                     kwargs["gravity"] = r["gravity"]
                 robot = load_robot(f"planar{r['links']}" if r["kind"] == "planar" else r["kind"], **kwargs)
             elif r["kind"] == "urdf":
-                kw: dict[str, Any] = {"ee_frame": r["ee_frame"], "capsule_radius": r["radius"]}
+                for key in ("urdf", "ee_frame"):
+                    if not r[key]:
+                        raise self._err(f"robot.{key}", 'is required with robot.kind = "urdf" (the URDF file and '
+                                                         "the frame whose origin is the task point)")
+                kw: dict[str, Any] = {"capsule_radius": r["radius"]}
                 if r["gravity"] is not None:
                     kw["gravity"] = r["gravity"]
-                robot = load_robot(r["urdf"], **kw)
+                robot = RobotModel.from_urdf(self.resolve(r["urdf"]), r["ee_frame"], **kw)
             else:
                 kw = {"gravity": r["gravity"]} if r["gravity"] is not None else {}
                 robot = load_robot(r["kind"], **kw)

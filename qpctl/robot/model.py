@@ -24,6 +24,20 @@ import pinocchio as pin
 
 from qpctl.errors import ConfigError, UnknownFrameError
 
+# Where a URDF names a link and a joint alike (example-robot-data's Z1: "gripperStator"), Pinocchio
+# has several frames of that name; the task point is then the first of these kinds.
+_FRAME_PREFERENCE = (pin.FrameType.OP_FRAME, pin.FrameType.BODY, pin.FrameType.FIXED_JOINT, pin.FrameType.JOINT)
+
+
+def frame_index(model: pin.Model, name: str) -> int:
+    """Pinocchio id of frame ``name`` (an operational frame, else the link's, else a joint's, where
+    several share the name); :class:`UnknownFrameError` lists the frames that exist."""
+    ids = [i for i, f in enumerate(model.frames) if f.name == name]
+    if not ids:
+        raise UnknownFrameError(name, [f.name for f in model.frames])
+    rank = {t: k for k, t in enumerate(_FRAME_PREFERENCE)}
+    return min(ids, key=lambda i: (rank.get(model.frames[i].type, len(rank)), i))
+
 
 @dataclass(frozen=True)
 class LinkCapsule:
@@ -101,9 +115,7 @@ class RobotModel:
 
     def frame_id(self, name: str) -> int:
         """Pinocchio id of frame ``name``; :class:`UnknownFrameError` lists the frames that exist."""
-        if not self.model.existFrame(name):
-            raise UnknownFrameError(name, [f.name for f in self.model.frames])
-        return int(self.model.getFrameId(name))
+        return frame_index(self.model, name)
 
     def with_limits(self, *, tau_max: Sequence[float] | float | None = None,
                     v_max: Sequence[float] | float | None = None,
@@ -146,23 +158,18 @@ class RobotModel:
         else:
             model = full
         model.gravity.linear = np.asarray(gravity, float)
-        if not model.existFrame(ee_frame):
-            raise UnknownFrameError(ee_frame, [f.name for f in model.frames])
+        ee_id = frame_index(model, ee_frame)
         if ee_offset is not None:
-            parent = model.frames[model.getFrameId(ee_frame)]
+            parent = model.frames[ee_id]
             placement = parent.placement * pin.SE3(np.eye(3), np.asarray(ee_offset, float))
             tcp = f"{ee_frame}_tcp"
             while model.existFrame(tcp):  # the URDF may already name a frame so (example-robot-data ≥ 4.2)
                 tcp = f"{tcp}_offset"
-            model.addFrame(pin.Frame(tcp, parent.parentJoint, model.getFrameId(ee_frame), placement,
-                                     pin.FrameType.OP_FRAME))
+            model.addFrame(pin.Frame(tcp, parent.parentJoint, ee_id, placement, pin.FrameType.OP_FRAME))
             ee_frame = tcp
+            ee_id = frame_index(model, tcp)
         if capsules is None:
-            capsules = []
-            for j in range(1, model.njoints):
-                children = [c for c in range(j + 1, model.njoints) if model.parents[c] == j]
-                p1 = model.jointPlacements[children[0]].translation.copy() if children else np.zeros(3)
-                capsules.append(LinkCapsule(model.names[j], j, np.zeros(3), p1, capsule_radius))
+            capsules = default_capsules(model, capsule_radius)
         nv = model.nv
         return cls(
             name=name or path.stem, model=model, ee_frame=ee_frame, task_axes=(0, 1, 2), capsules=capsules,
@@ -172,6 +179,23 @@ class RobotModel:
             tau_max=np.where(model.effortLimit > 0, model.effortLimit, np.inf)[:nv],
             q_home=np.asarray(q_home, float) if q_home is not None else pin.neutral(model),
         )
+
+
+def default_capsules(model: pin.Model, radius: float) -> list[LinkCapsule]:
+    """One capsule per joint's body, from the joint to its first child joint — or, on a link with no
+    child joint (the last), to the farthest frame the URDF attaches to it (the task frame, a tool or
+    tip link), so that every link with a length is covered. A link with neither is a sphere at its
+    joint."""
+    capsules = []
+    for j in range(1, model.njoints):
+        children = [c for c in range(j + 1, model.njoints) if model.parents[c] == j]
+        if children:
+            p1 = model.jointPlacements[children[0]].translation.copy()
+        else:
+            ends = [f.placement.translation for f in model.frames if f.parentJoint == j]
+            p1 = max(ends, key=lambda p: float(np.linalg.norm(p)), default=np.zeros(3)).copy()
+        capsules.append(LinkCapsule(model.names[j], j, np.zeros(3), p1, radius))
+    return capsules
 
 
 def planar_arm(n: int = 3, *, length: float = 1.0, mass: float = 10.0, radius: float = 0.05,
@@ -280,6 +304,11 @@ def panda(*, gravity: Sequence[float] = (0.0, 0.0, -9.81)) -> RobotModel:
 
 def load_robot(kind: str, **kwargs: object) -> RobotModel:
     """Build a robot by name: ``"planar3"`` (or ``"planarN"``), ``"panda"``, or a path to a URDF."""
+    if kind.lower().endswith(".urdf"):  # before the names: a file may be called planar4.urdf
+        ee = kwargs.pop("ee_frame", None)
+        if not isinstance(ee, str):
+            raise ConfigError("a URDF robot needs robot.ee_frame", key="robot.ee_frame")
+        return RobotModel.from_urdf(kind, ee, **kwargs)  # type: ignore[arg-type]
     if kind.startswith("planar"):
         suffix = kind[len("planar"):]
         if suffix and not suffix.isdigit():
@@ -287,9 +316,4 @@ def load_robot(kind: str, **kwargs: object) -> RobotModel:
         return planar_arm(int(suffix or 3), **kwargs)  # type: ignore[arg-type]
     if kind == "panda":
         return panda(**kwargs)  # type: ignore[arg-type]
-    if kind.endswith(".urdf"):
-        ee = kwargs.pop("ee_frame", None)
-        if not isinstance(ee, str):
-            raise ConfigError("a URDF robot needs robot.ee_frame", key="robot.ee_frame")
-        return RobotModel.from_urdf(kind, ee, **kwargs)  # type: ignore[arg-type]
     raise ConfigError(f"unknown robot {kind!r}; use planar3, panda or a path to a .urdf file", key="robot.kind")
