@@ -126,6 +126,7 @@ SCHEMA: dict[str, Any] = {
         "gravity": (_vec, None),
         "urdf": (_str, ""),
         "ee_frame": (_str, ""),
+        "task_axes": (_str_list, None),
         "q0": (_vec, None),
         "tau_max": (_num_or_vec, None),
         "v_max": (_num_or_vec, None),
@@ -459,6 +460,10 @@ class Scenario:
             else:
                 kw = {"gravity": r["gravity"]} if r["gravity"] is not None else {}
                 robot = load_robot(r["kind"], **kw)
+            if r["task_axes"] is not None:
+                robot = robot.with_task_axes(r["task_axes"])
+            else:
+                robot.check_task_axes()
             limits = {k: r[k] for k in ("tau_max", "v_max", "tau_rate_max", "qdd_max") if r[k] is not None}
             if limits:
                 robot = robot.with_limits(**limits)

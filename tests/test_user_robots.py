@@ -12,6 +12,7 @@ import builtins
 from pathlib import Path
 
 import numpy as np
+import pinocchio as pin
 import pytest
 
 from qpctl import ConfigError, Scenario
@@ -43,12 +44,16 @@ def planar_urdf(n: int) -> str:
     return "\n".join(parts)
 
 
-def scenario_text(urdf: str, *, ee_frame: str = "tip", obstacle: tuple[float, float] = (0.5, 1.2)) -> str:
+def scenario_text(urdf: str, *, ee_frame: str = "tip", obstacle: tuple[float, float] = (0.5, 1.2),
+                  planar: bool = True) -> str:
+    """A scenario for the planar URDF; ``planar``: a task in x–y (else the default, x–y–z)."""
     lines = ["[robot]", 'kind = "urdf"', f'urdf = "{urdf}"']
     if ee_frame:
         lines.append(f'ee_frame = "{ee_frame}"')
+    if planar:
+        lines.append('task_axes = ["x", "y"]')
     lines += [f"radius = {RADIUS}", "gravity = [0.0, 0.0, 0.0]", "q0 = [0.3, 0.3, 0.3, 0.3]",
-              "[path]", "waypoints = [[1.2, 1.0, 0.0]]", "duration = 0.2",
+              "[path]", f"waypoints = [{'[1.2, 1.0]' if planar else '[1.2, 1.0, 0.0]'}]", "duration = 0.2",
               "[[obstacles]]", 'shape = "sphere"', f"position = [{obstacle[0]}, {obstacle[1]}, 0.0]", "radius = 0.1",
               "[sim]", "duration = 0.05"]
     return "\n".join(lines) + "\n"
@@ -156,3 +161,38 @@ def test_mujoco_missing_is_a_config_error(monkeypatch, capsys, tmp_path):
     assert code == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "MuJoCo" in err and "sim.simulator" in err
+
+
+def test_a_task_axis_the_arm_cannot_move_along_is_refused(user_folder):
+    """The planar URDF in the default x–y–z task: the z row of its Jacobian is zero everywhere, so
+    every tick was flagged singular (issue 12); now the scenario is refused, naming the key."""
+    toml = user_folder / "scene.toml"
+    toml.write_text(scenario_text("planar4.urdf", planar=False))
+    with pytest.raises(ConfigError) as info:
+        Scenario.load(toml).build_robot()
+    assert info.value.key == "robot.task_axes" and '["x", "y"]' in str(info.value)
+
+
+def test_planar_urdf_in_its_plane_is_not_singular(user_folder):
+    """With task_axes = ["x", "y"] the 2×4 task Jacobian has full rank along the run: no tick is
+    flagged singular by any law (its smallest singular value, from numpy, is well above zero)."""
+    toml = user_folder / "scene.toml"
+    toml.write_text(scenario_text("planar4.urdf").replace("duration = 0.05", "duration = 0.3"))
+    scen = Scenario.load(toml)
+    for kind in ("paper", "hsu", "qp"):
+        ctrl = scen.build_controller(kind)
+        traj = Simulator(ctrl, dt=1e-3, duration=0.3).run(scen.q0(ctrl.robot))
+        assert not traj.singular.any(), kind
+        robot = ctrl.robot
+        data = robot.model.createData()
+        J = pin.computeFrameJacobian(robot.model, data, traj.q[-1], robot.ee_frame_id, pin.LOCAL_WORLD_ALIGNED)[:2]
+        assert np.linalg.svd(J, compute_uv=False).min() > 0.05
+
+
+@pytest.mark.parametrize("axes", [["x", "x"], ["y", "x"], ["w"], []])
+def test_bad_task_axes_name_the_key(user_folder, axes):
+    toml = user_folder / "scene.toml"
+    toml.write_text(scenario_text("planar4.urdf").replace('task_axes = ["x", "y"]', f"task_axes = {axes}".replace("'", '"')))
+    with pytest.raises(ConfigError) as info:
+        Scenario.load(toml).build_robot()
+    assert info.value.key == "robot.task_axes"

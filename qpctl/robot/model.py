@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import importlib.metadata
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -116,6 +116,47 @@ class RobotModel:
     def frame_id(self, name: str) -> int:
         """Pinocchio id of frame ``name``; :class:`UnknownFrameError` lists the frames that exist."""
         return frame_index(self.model, name)
+
+    def with_task_axes(self, axes: Sequence[str | int]) -> RobotModel:
+        """A copy whose task is the task point's position along ``axes`` ("x", "y", "z" or 0, 1, 2, in
+        that order), checked with :meth:`check_task_axes`."""
+        names = {"x": 0, "y": 1, "z": 2}
+        try:
+            idx = tuple(names[a.lower()] if isinstance(a, str) else int(a) for a in axes)
+        except (KeyError, AttributeError, ValueError):
+            raise ConfigError(f"must be world axes among x, y, z, got {list(axes)}", key="robot.task_axes") from None
+        if not idx or len(set(idx)) != len(idx) or any(not 0 <= i <= 2 for i in idx) or list(idx) != sorted(idx):
+            raise ConfigError(f"must be distinct world axes in the order x, y, z, got {list(axes)}",
+                              key="robot.task_axes")
+        out = replace(self, task_axes=idx, capsules=list(self.capsules), joint_names=list(self.joint_names))
+        out.check_task_axes()
+        return out
+
+    def immobile_axes(self, samples: int = 8, seed: int = 0) -> list[int]:
+        """World axes along which the task point cannot move at all: its Jacobian's row is zero at
+        ``samples`` random configurations within the joint limits (a planar arm's normal, say)."""
+        rng = np.random.default_rng(seed)
+        lo = np.where(np.isfinite(self.q_min), self.q_min, -np.pi)
+        hi = np.where(np.isfinite(self.q_max), self.q_max, np.pi)
+        data = self.model.createData()
+        reach = np.zeros(3)
+        for _ in range(samples):
+            q = rng.uniform(lo, hi)
+            J = pin.computeFrameJacobian(self.model, data, q, self.ee_frame_id, pin.LOCAL_WORLD_ALIGNED)[:3]
+            reach = np.maximum(reach, np.abs(J).max(axis=1))
+        return [i for i in range(3) if reach[i] <= 1e-9 * max(1.0, float(reach.max()))]
+
+    def check_task_axes(self) -> None:
+        """:class:`ConfigError` if the task asks for motion along an axis the task point cannot move
+        along: that row of the task Jacobian is zero everywhere, so every tick would be singular."""
+        stuck = [i for i in self.immobile_axes() if i in self.task_axes]
+        if stuck:
+            keep = [a for a in self.task_axes if a not in stuck]
+            names = "xyz"
+            raise ConfigError(
+                f"the task point ({self.ee_frame}) cannot move along {', '.join(names[i] for i in stuck)} "
+                f"(a planar arm?): set robot.task_axes = {[names[i] for i in keep]}".replace("'", '"'),
+                key="robot.task_axes")
 
     def with_limits(self, *, tau_max: Sequence[float] | float | None = None,
                     v_max: Sequence[float] | float | None = None,
