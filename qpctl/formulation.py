@@ -54,6 +54,12 @@ class Formulation:
         self._evaluated = (state, terms, result)
         return result
 
+    def penalty_weights(self, state: TickState, terms: LawTerms) -> np.ndarray:
+        """The ℓ₁ slack weight of each equality row at this tick (inf for a row that is hard
+        whether or not the problem is relaxed): see :func:`qpctl.qp.penalty_is_exact`."""
+        _, eqs, _ = self._evaluate(state, terms)
+        return np.concatenate([np.full(e.A.shape[0], e.slack_l1 if e.soft else np.inf) for e in eqs] or [np.zeros(0)])
+
     def _template(self, eqs: list[Equality], relax: bool) -> tuple[np.ndarray, ...]:
         """(P, q, A, b, C, l, u, lb, ub) with every tick-independent entry set: the slack columns of A
         (±I), their costs (ℓ₁ in q, ℓ₂ on P's diagonal, at least 1e-9 so that P is positive definite

@@ -100,3 +100,47 @@ class Solution:
     iterations: int = 0
     solve_us: float = 0.0
     solver: str = ""
+
+
+# A row counts as active in :func:`penalty_is_exact` within this much of its bound (relative to
+# 1 + |bound|): loose enough for an ADMM answer polished to its own tolerance, and a row taken for
+# active that is not can only make the test refuse (then the relaxed QP is solved: never wrong).
+ACTIVE_RTOL = 1e-6
+# The stationarity residual allowed, relative to ‖P x‖ + ‖c‖.
+STATIONARITY_RTOL = 1e-6
+
+
+def penalty_is_exact(problem: Problem, x: np.ndarray, l1: np.ndarray | float) -> bool:
+    """Whether x, the solution of ``problem`` with its equality rows hard, is also the solution of
+    the same QP with those rows soft at ℓ₁ weights ``l1`` (one per row, or one for all; inf: a row
+    that stays hard), i.e. the slack would be zero: KKT multipliers y of the equality rows with
+    |y_i| ≤ l1_i exist at x (the exact-penalty condition).
+
+    The multipliers are found by non-negative least squares on the stationarity condition
+    P x + c = Aᵀy + Σ_active ±C_iᵀλ_i + Σ_active ±e_j μ_j (λ, μ ≥ 0, y = y⁺ − y⁻), independently of
+    whatever the solver reports; False when no multipliers make it hold (x is not optimal even for
+    the hard problem) or when they exceed the weights (the relaxed QP gives a different answer).
+    """
+    from scipy.optimize import nnls
+
+    x = np.asarray(x, float)
+    g = problem.P @ x + problem.c
+    scale = float(np.linalg.norm(problem.P @ x) + np.linalg.norm(problem.c))
+    m = problem.A.shape[0]
+    cols = [problem.A.T, -problem.A.T]
+    Cx = problem.C @ x
+    with np.errstate(invalid="ignore"):
+        low = np.isfinite(problem.l) & (Cx - problem.l <= ACTIVE_RTOL * (1.0 + np.abs(problem.l)))
+        up = np.isfinite(problem.u) & (problem.u - Cx <= ACTIVE_RTOL * (1.0 + np.abs(problem.u)))
+        lb = np.isfinite(problem.lb) & (x - problem.lb <= ACTIVE_RTOL * (1.0 + np.abs(problem.lb)))
+        ub = np.isfinite(problem.ub) & (problem.ub - x <= ACTIVE_RTOL * (1.0 + np.abs(problem.ub)))
+    eye = np.eye(x.shape[0])
+    cols += [problem.C[low].T, -problem.C[up].T, eye[:, lb], -eye[:, ub]]
+    G = np.hstack(cols)
+    if G.shape[1] == 0:
+        return bool(np.linalg.norm(g) <= STATIONARITY_RTOL * scale)
+    z, residual = nnls(G, g, maxiter=50 * G.shape[1])
+    if not residual <= STATIONARITY_RTOL * max(scale, np.finfo(float).tiny):
+        return False
+    y = z[:m] - z[m : 2 * m]
+    return bool(np.all(np.abs(y) <= np.broadcast_to(np.asarray(l1, float), (m,)) * (1.0 + 1e-9)))

@@ -44,7 +44,7 @@ from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels import tick as K
 from qpctl.law import LawGains, LawTerms, closed_form_acceleration, law_terms
 from qpctl.paths import WaypointPath
-from qpctl.qp import Problem, Solution
+from qpctl.qp import Problem, Solution, penalty_is_exact
 from qpctl.robot.model import RobotModel
 from qpctl.solvers.base import DEFAULT_SOLVER, QPSolver, make_solver
 from qpctl.solvers.daqp_ import STATUS as DAQP_STATUS
@@ -407,7 +407,7 @@ class QPController(Controller):
         hard_first = self._hard_first
         buf = ws.hard if hard_first else ws.relaxed
         solver = self._solver if hard_first else self._solver_soft
-        nat = self._fast_native(ws, solver, buf) if budget <= 0 else None
+        nat = self._fast_native(ws, solver, buf) if budget <= 0 and not hard_first else None
         if nat is not None:  # computeAllTerms, then the whole tick in one kernel call
             t0 = time.perf_counter()
             pin.computeAllTerms(ws.model, ws.data, q, v)
@@ -462,7 +462,10 @@ class QPController(Controller):
         ws = self._ws
         assert ws is not None
         rec, s = ws.rec, ws.layout.scalars
-        nat = solver.native(buf) if type(solver) is DAQPSolver else None
+        # The task hard first (task_relaxation "on_failure"): an answer is used only if the relaxed QP
+        # would give the same one (checked here, so DAQP goes through Python rather than its kernel)
+        check_penalty = self._hard_first and not buf.relaxed and ws.relaxed is not None and ws.relaxed.relaxed
+        nat = solver.native(buf) if type(solver) is DAQPSolver and not check_penalty else None
         left_us = math.inf
         if deadline != math.inf:
             left_us = (deadline - time.perf_counter()) * 1e6
@@ -499,6 +502,11 @@ class QPController(Controller):
         else:
             sol = self._attempt(solver, buf.problem, deadline, check=False)
             x, status, iters = (sol.x if sol.found else None), sol.status, sol.iterations
+        if (x is not None and check_penalty and np.isfinite(x).all()
+                and not penalty_is_exact(buf.problem, x, ws.spec.slack_l1)):  # type: ignore[union-attr]
+            # Feasible, and the hard QP's optimum, but not the relaxed QP's: the task's multipliers
+            # exceed the slack weight, so every other solver (task relaxed) trades tracking for torque
+            status, x = "penalty_inexact", None
         if x is not None and not K.qp_finish(ws.work, x, buf.rows, buf.bu, buf.bl, SOLUTION_RTOL):
             # The solver's own test runs on its scaled problem: a row it scaled up (say nᵀJ_p ≈ 1e-5
             # at a link's fixed base) can be violated by m/s² in our units while it reports "solved".
@@ -783,6 +791,11 @@ class QPController(Controller):
         primary = self._solver if hard_first else self._solver_soft
         if finite:
             sol = self._attempt(primary, problem, deadline)
+            if hard_first and sol.found:  # used only if the relaxed QP would give the same answer
+                l1 = form.penalty_weights(state, terms)
+                if np.isfinite(l1).any() and not penalty_is_exact(problem, sol.x, l1):
+                    sol = Solution(False, np.zeros(problem.n_var), "penalty_inexact", sol.iterations, sol.solve_us,
+                                   sol.solver)
         else:  # non-finite data (e.g. a degenerate distance query): no solver can be trusted with it
             sol = Solution(False, np.zeros(problem.n_var), "nonfinite_problem", solver=primary.name)
         t2 = time.perf_counter()
