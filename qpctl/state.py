@@ -46,6 +46,7 @@ class TickState:
     pair_drift: np.ndarray  # (k, 3) J̇_p q̇ of the link witness points
     clearance: float  # least signed distance over the pairs (inf when none within the cutoff)
     timing: dict[str, float] = field(default_factory=dict)  # stage wall times [µs]
+    R: np.ndarray | None = None  # (3, 3) the task frame's rotation (world), where the task has orientation rows
     _barrier_drift: np.ndarray | None = field(default=None, repr=False)  # (k,) set by the workspace
     _dynamics: Dynamics | None = field(default=None, repr=False)
     _jdot: np.ndarray | None = field(default=None, repr=False)

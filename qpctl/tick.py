@@ -25,12 +25,13 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
+from qpctl.errors import ConfigError
 from qpctl.geometry.distance import DistanceEngine, PairSet
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels import tick as K
 from qpctl.kernels.work import FIELDS, new_tick_work
 from qpctl.law import LawGains, LawTerms
-from qpctl.paths import Reference, WaypointPath
+from qpctl.paths import PosePath, Reference, WaypointPath
 from qpctl.qp import Problem
 from qpctl.robot.model import RobotModel
 from qpctl.state import TickState
@@ -183,6 +184,17 @@ class Workspace:
         self.ee_local = np.array(frame.placement.translation, float)
         self.ee_support = _supports(model, self.ee_joint)
         self.axes = np.array(robot.task_axes, dtype=np.int64)
+        self.ee_rot = robot.ee_rotation
+        if robot.orientation == "pose":
+            self.ori_rows = np.array(robot.orientation_axes, dtype=np.int64)
+        elif robot.orientation == "approach":
+            self.ori_rows = np.array([3, 4], dtype=np.int64)
+        else:
+            self.ori_rows = np.zeros(0, dtype=np.int64)
+        self.ori_basis = robot.approach_basis()
+        self.ori_axis = np.asarray(robot.approach_axis, float).copy()
+        self.ee_R, self.ee_w = np.eye(3), np.zeros(6)
+        m_p = robot.m_position
         # scene
         kinds = {"sphere": K.KIND_SPHERE, "capsule": K.KIND_CAPSULE}
         self.ob_kind = np.array([kinds.get(o.shape, K.KIND_FCL) for o in self.obstacles], dtype=np.int64)
@@ -213,7 +225,14 @@ class Workspace:
             self.path_pts, self.path_t0, self.path_T = (np.ascontiguousarray(a, dtype=float)
                                                         for a in (path.points, path.starts, path.durations))
         else:  # None, or any callable t → Reference (evaluated in Python each tick)
-            self.path_pts, self.path_t0, self.path_T = np.zeros((2, m)), np.zeros(1), np.ones(1)
+            self.path_pts, self.path_t0, self.path_T = np.zeros((2, m_p)), np.zeros(1), np.ones(1)
+        if isinstance(path, PosePath):
+            self.rot_pts, self.rot_theta = np.ascontiguousarray(path.rotations), np.ascontiguousarray(path.theta)
+        else:
+            self.rot_pts, self.rot_theta = np.tile(np.eye(3), (2, 1, 1)), np.zeros((1, 3))
+            if len(self.ori_rows) and path is not None:
+                raise ConfigError("an orientation task needs a PosePath (a rotation at every point)",
+                                  key="path.orientations")
         # gains and settings
         fp, ip = self.fpar, self.ipar
         g = gains if gains is not None else LawGains()
@@ -423,7 +442,8 @@ class Workspace:
         return TickState(float(self.fpar[K.FP_T]), self.q.copy(), self.v.copy(), self.M.copy(), self.N.copy(),
                          self.x.copy(), self.xdot.copy(), self.J.copy(), self.drift.copy(), self.link_jac.copy(),
                          self.segments.copy(), pairs, self.pr_jac[:k].copy(), self.pr_drift[:k].copy(),
-                         float(self.fpar[K.FP_CLEARANCE]), _barrier_drift=bdrift)
+                         float(self.fpar[K.FP_CLEARANCE]), _barrier_drift=bdrift,
+                         R=self.ee_R.copy() if len(self.ori_rows) else None)
 
     def reference(self) -> Reference:
         """x_d, ẋ_d, ẍ_d of the last tick (copies)."""

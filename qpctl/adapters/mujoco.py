@@ -52,7 +52,7 @@ from qpctl.controllers.base import Controller
 from qpctl.errors import ConfigError, SimulationError
 from qpctl.geometry.obstacles import Obstacle, rotation_z_to
 from qpctl.robot.model import RobotModel
-from qpctl.simulation.simulator import Trajectory
+from qpctl.simulation.simulator import Trajectory, finish_trajectory
 from qpctl.tick import WorldClearance
 
 try:
@@ -373,5 +373,6 @@ class MujocoSimulator:
                 self._move_obstacles(t + self.dt)
                 if self._diverged():
                     raise SimulationError(f"MuJoCo state diverged at t = {t + self.dt:.4f} s")
-        return Trajectory(t_arr, rec["q"], rec["v"], rec["tau"], rec["x"], rec["x_ref"], rec["xd_ref"],
-                          rec["xdd_ref"], clear, rec["e_null"], tick_us, singular, infos)
+        return finish_trajectory(Trajectory(t_arr, rec["q"], rec["v"], rec["tau"], rec["x"], rec["x_ref"],
+                                            rec["xd_ref"], rec["xdd_ref"], clear, rec["e_null"], tick_us, singular,
+                                            infos), ctrl)

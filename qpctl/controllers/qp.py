@@ -781,7 +781,7 @@ class QPController(Controller):
         budget = self.config.tick_budget_us
         start = self._tick_start if self._tick_start is not None else t0
         deadline = start + budget * 1e-6 if budget > 0 else np.inf
-        ref = self.path(state.t)
+        ref = self.reference(state)
         terms = law_terms(state, ref, self.gains, weighted=True)
         form = self.formulation()
         hard_first = self.relaxation == "on_failure"

@@ -56,17 +56,50 @@ class Trajectory:
     tick_us: np.ndarray
     singular: np.ndarray
     infos: list[dict[str, Any]] = field(default_factory=list, repr=False)
+    # with an orientation task: the task frame's orientation and its reference, quaternions (x, y, z, w)
+    quat: np.ndarray | None = None
+    quat_ref: np.ndarray | None = None
+    orientation_error_deg: np.ndarray | None = None  # (T,) the angle between them (approach: the axis's)
 
     ARRAYS = ("t", "q", "v", "tau", "x", "x_ref", "xd_ref", "xdd_ref", "clearance", "e_null", "tick_us",
               "singular")
+    OPTIONAL = ("quat", "quat_ref", "orientation_error_deg")
 
     def save(self, path: str | Path) -> None:
-        np.savez_compressed(path, **{k: getattr(self, k) for k in self.ARRAYS})
+        arrays = {k: getattr(self, k) for k in self.ARRAYS}
+        arrays.update({k: getattr(self, k) for k in self.OPTIONAL if getattr(self, k) is not None})
+        np.savez_compressed(path, **arrays)
 
     @classmethod
     def load(cls, path: str | Path) -> Trajectory:
         with np.load(path) as data:
-            return cls(**{k: data[k] for k in cls.ARRAYS if k in data.files})
+            return cls(**{k: data[k] for k in cls.ARRAYS + cls.OPTIONAL if k in data.files})
+
+
+def finish_trajectory(traj: Trajectory, controller: Controller) -> Trajectory:
+    """The task's position columns only in x, x_ref, ẋ_ref, ẍ_ref (the orientation rows' coordinates are
+    centred at each tick's orientation: not a trajectory), and, with an orientation task, the frame's
+    orientation and its reference as quaternions and the angle between them, from the recorded q
+    and the path (after the run, outside the tick's timing)."""
+    robot = controller.robot
+    if not robot.m_orientation:
+        return traj
+    from qpctl.orientation import orientation_error_deg
+
+    m_p = robot.m_position
+    for name in ("x", "x_ref", "xd_ref", "xdd_ref"):
+        setattr(traj, name, np.ascontiguousarray(getattr(traj, name)[:, :m_p]))
+    model, data = robot.model, robot.model.createData()
+    T = traj.t.size
+    traj.quat, traj.quat_ref, traj.orientation_error_deg = np.zeros((T, 4)), np.zeros((T, 4)), np.zeros(T)
+    for k in range(T):
+        pin.framesForwardKinematics(model, data, traj.q[k])
+        R = data.oMf[robot.ee_frame_id].rotation
+        R_d = controller.path.orientation(float(traj.t[k]))[0]  # type: ignore[attr-defined]
+        traj.quat[k] = pin.Quaternion(R).coeffs()
+        traj.quat_ref[k] = pin.Quaternion(R_d).coeffs()
+        traj.orientation_error_deg[k] = orientation_error_deg(robot, R, R_d)
+    return traj
 
 
 class Simulator:
@@ -147,5 +180,6 @@ class Simulator:
                 q, v = self.integrator(accel, q, v, self.dt)
                 if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v))):
                     raise SimulationError(f"state diverged at t = {t + self.dt:.4f} s")
-        return Trajectory(t_arr, rec["q"], rec["v"], rec["tau"], rec["x"], rec["x_ref"], rec["xd_ref"],
-                          rec["xdd_ref"], clear, rec["e_null"], tick_us, singular, infos)
+        return finish_trajectory(Trajectory(t_arr, rec["q"], rec["v"], rec["tau"], rec["x"], rec["x_ref"],
+                                            rec["xd_ref"], rec["xdd_ref"], clear, rec["e_null"], tick_us, singular,
+                                            infos), ctrl)
