@@ -91,6 +91,13 @@ def _str_list(v: Any) -> list[str]:
     return v
 
 
+def _pairs_of_names(v: Any) -> list[list[str]]:
+    if not isinstance(v, list) or not all(isinstance(p, list) and len(p) == 2 and all(isinstance(x, str) for x in p)
+                                          for p in v):
+        raise TypeError('a list of pairs of link names ([["a", "b"], ...])')
+    return v
+
+
 def _table(v: Any) -> dict[str, Any]:
     if not isinstance(v, dict):
         raise TypeError("a table")
@@ -176,6 +183,9 @@ SCHEMA: dict[str, Any] = {
         "posture": (_vec, None),
         "damping": (_num, DEFAULT_DAMPING),
         "damping_gain": (_num, 10.0),
+        "self_collision": (_bool, True),
+        "self_d_safe": (_num, 0.02),
+        "self_collision_pairs": (_pairs_of_names, None),
         "fallback": (_str_list, ["closed-form", "safe-stop"]),
         "tick_budget_us": (_num, 0.0),
         "broadphase": (_str, "auto"),

@@ -34,7 +34,7 @@ from qpctl.law import LawGains, LawTerms
 from qpctl.paths import PosePath, Reference, WaypointPath
 from qpctl.qp import Problem
 from qpctl.robot.model import RobotModel
-from qpctl.state import TickState
+from qpctl.state import SelfPairState, TickState
 
 GRID_MIN_OBSTACLES = 32  # the broad-phase grid is used above this many static obstacles (broadphase=None)
 GRID_MAX_CELLS = 2_000_000
@@ -97,6 +97,7 @@ class QPSpec:
     joint_limits: tuple[np.ndarray, ...] | None  # q_min, q_max, v_max, k0, k1, kv, qdd_max
     barrier: tuple[int, float, float, bool] | None  # capacity, k0, k1, rigid drift
     row_names: list[str]
+    self_barrier: tuple[float, float, float] | None = None  # k0, k1, d_safe of the self-collision rows
 
 
 class QPBuffers:
@@ -163,7 +164,7 @@ class Workspace:
 
     def __init__(self, robot: RobotModel, obstacles: Sequence[Obstacle], path: object, gains: LawGains | None,
                  cutoff: float, *, spec: QPSpec | None = None, broadphase: bool | None = None,
-                 barrier_drift: bool = False) -> None:
+                 barrier_drift: bool = False, self_pairs: Sequence[tuple[int, int]] = ()) -> None:
         model = robot.model
         self.robot, self.model = robot, model
         self.data = model.createData()
@@ -194,6 +195,10 @@ class Workspace:
         self.ori_basis = robot.approach_basis()
         self.ori_axis = np.asarray(robot.approach_axis, float).copy()
         self.ee_R, self.ee_w = np.eye(3), np.zeros(6)
+        P = len(self_pairs)
+        self.sc_pairs = np.array(self_pairs, dtype=np.int64).reshape(P, 2)
+        self.sc_d, self.sc_n, self.sc_row = np.full(P, np.inf), np.zeros((P, 3)), np.zeros((P, n))
+        self.sc_hdot, self.sc_drift = np.zeros(P), np.zeros(P)
         m_p = robot.m_position
         # scene
         kinds = {"sphere": K.KIND_SPHERE, "capsule": K.KIND_CAPSULE}
@@ -249,7 +254,8 @@ class Workspace:
         self.tau_prev, self.t_prev = np.full(n, np.nan), np.full(1, np.nan)
         self.q_min, self.q_max, self.v_max = np.full(n, -np.inf), np.full(n, np.inf), np.full(n, np.inf)
         self.qdd_max = np.full(n, np.inf)
-        ip[K.IP_TORQUE_ROW0] = ip[K.IP_BARRIER_ROW0] = -1
+        ip[K.IP_TORQUE_ROW0] = ip[K.IP_BARRIER_ROW0] = ip[K.IP_SELF_ROW0] = -1
+        self.fpar[K.FP_SELF_CLEARANCE] = np.inf
         capacity = 0
         if spec is not None:
             capacity = self._settings(spec)
@@ -303,6 +309,10 @@ class Workspace:
             elif name == "obstacles":
                 ip[K.IP_BARRIER_ROW0] = row
                 capacity = count
+            elif name == "self_collision":
+                if count != len(self.sc_pairs):
+                    raise ValueError("the self-collision rows and the workspace's pairs differ")
+                ip[K.IP_SELF_ROW0] = row
             row += count
         ip[K.IP_N_IN] = row
         if spec.torque is not None:
@@ -314,6 +324,8 @@ class Workspace:
                                                                 for a in (q_min, q_max, v_max, qdd_max))
             fp[K.FP_JK0], fp[K.FP_JK1], fp[K.FP_JKV] = k0, k1, kv
             ip[K.IP_JOINT_LIMITS] = 1
+        if spec.self_barrier is not None:
+            fp[K.FP_SK0], fp[K.FP_SK1], fp[K.FP_SDS] = spec.self_barrier
         if spec.barrier is not None:
             cap, k0, k1, rigid = spec.barrier
             ip[K.IP_CAPACITY] = cap
@@ -443,7 +455,10 @@ class Workspace:
                          self.x.copy(), self.xdot.copy(), self.J.copy(), self.drift.copy(), self.link_jac.copy(),
                          self.segments.copy(), pairs, self.pr_jac[:k].copy(), self.pr_drift[:k].copy(),
                          float(self.fpar[K.FP_CLEARANCE]), _barrier_drift=bdrift,
-                         R=self.ee_R.copy() if len(self.ori_rows) else None)
+                         R=self.ee_R.copy() if len(self.ori_rows) else None,
+                         self_pairs=SelfPairState(self.sc_d.copy(), self.sc_n.copy(), self.sc_row.copy(),
+                                                  self.sc_hdot.copy(), self.sc_drift.copy())
+                         if len(self.sc_pairs) else None)
 
     def reference(self) -> Reference:
         """x_d, ẋ_d, ẍ_d of the last tick (copies)."""
@@ -460,18 +475,22 @@ class WorldClearance:
     simulator records as the world's clearance (negative when penetrating). Closed form for spheres
     and capsules (:func:`qpctl.kernels.tick.min_distance`), python-fcl for the other shapes."""
 
-    def __init__(self, robot: RobotModel, obstacles: Sequence[Obstacle]) -> None:
-        self.ws = Workspace(robot, obstacles, None, None, math.inf)
+    def __init__(self, robot: RobotModel, obstacles: Sequence[Obstacle],
+                 self_pairs: Sequence[tuple[int, int]] = ()) -> None:
+        self.ws = Workspace(robot, obstacles, None, None, math.inf, self_pairs=self_pairs)
         others = [o for o in obstacles if o.shape not in ("sphere", "capsule")]
         self._fcl = DistanceEngine(self.ws.cap_radius, others, broadphase=False) if others else None
         self.any = bool(obstacles)
+        self.self_clearance = math.inf  # [m] between the self pairs' capsules, at the last call
 
     def __call__(self, q: np.ndarray, t: float) -> float:
-        if not self.any:
+        if not self.any and not len(self.ws.sc_pairs):
             return math.inf
         ws = self.ws
         pin.forwardKinematics(ws.model, ws.data, np.asarray(q, float))
         best = float(K.min_distance(ws.work, float(t)))
+        if len(ws.sc_pairs):
+            self.self_clearance = float(K.min_self_distance(ws.work))
         if self._fcl is not None:
             self._fcl.update(ws.segments, t)
             best = min(best, self._fcl.min_distance())

@@ -1008,7 +1008,7 @@ def test_qp_assembly_equals_formulation(key):
     rng = np.random.default_rng(SEED + 60)
     ctrl = qp_controller(key)
     names = [c.name for c in ctrl.constraints]
-    assert names == ["torque_limits", "joint_limits", "obstacles"], names
+    assert names == ["torque_limits", "joint_limits", "obstacles", "self_collision"], names
     assert ("posture" in [t.name for t in ctrl.tasks]) == key.startswith("paper")
     form = ctrl.formulation()
     barrier_rows = form.barrier_rows

@@ -186,7 +186,7 @@ def test_qp_reduces_to_the_closed_form_with_orientation_rows(kind):
     rots = (approach_rotations(R0, robot.approach_axis, [[0.3, 0.0, -1.0]]) if kind == "approach"
             else [R0, pin.exp3(np.array([0.2, 0.3, -0.1])) @ R0])
     path = PosePath([[0.3, 0.0, 0.5], [0.4, 0.1, 0.4]], rots, duration=2.0)
-    cfg = QPConfig(damping=0.0, torque_limits=False, joint_limits=False)
+    cfg = QPConfig(damping=0.0, torque_limits=False, joint_limits=False, self_collision=False)
     # J M⁻¹ of the Panda's 6-row task has σ_min/σ_max ≈ 1.7e-3 near home (M's own spread, not a
     # singularity): pinv_eps 1e-4 keeps the law undamped there (README, "Orientation tasks")
     gains = LawGains(pinv_eps=1e-4)

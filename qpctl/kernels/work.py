@@ -120,6 +120,13 @@ FIELDS = (
     "pr_bok",  # (KC,) int: 1 where pr_bdrift is in closed form, 0 where Python's look-ahead fills it
     "order",  # (KC,) int: pairs by distance, nearest first
     "cnt",  # (CNT_SIZE,) int counters, indexed by the CNT_* constants
+    # -- self-collision pairs (P capsule pairs, fixed at build) ----------------------------------------
+    "sc_pairs",  # (P, 2) int: capsule indices i < j
+    "sc_d",  # (P,) distance between the capsules [m]
+    "sc_n",  # (P, 3) unit normal from capsule j's axis to capsule i's
+    "sc_row",  # (P, n) nᵀ(J_p − J_q): ḣ = sc_row q̇
+    "sc_hdot",  # (P,) [m/s]
+    "sc_drift",  # (P,) ḧ at q̈ = 0 [m/s²]
     # -- per tick: law terms -------------------------------------------------------------------------
     "e",  # (m,) x_d − x [m]
     "edot",  # (m,) [m/s]

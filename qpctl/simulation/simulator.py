@@ -60,10 +60,11 @@ class Trajectory:
     quat: np.ndarray | None = None
     quat_ref: np.ndarray | None = None
     orientation_error_deg: np.ndarray | None = None  # (T,) the angle between them (approach: the axis's)
+    self_clearance: np.ndarray | None = None  # (T,) least distance between the self-collision pairs [m]
 
     ARRAYS = ("t", "q", "v", "tau", "x", "x_ref", "xd_ref", "xdd_ref", "clearance", "e_null", "tick_us",
               "singular")
-    OPTIONAL = ("quat", "quat_ref", "orientation_error_deg")
+    OPTIONAL = ("quat", "quat_ref", "orientation_error_deg", "self_clearance")
 
     def save(self, path: str | Path) -> None:
         arrays = {k: getattr(self, k) for k in self.ARRAYS}
@@ -74,6 +75,23 @@ class Trajectory:
     def load(cls, path: str | Path) -> Trajectory:
         with np.load(path) as data:
             return cls(**{k: data[k] for k in cls.ARRAYS + cls.OPTIONAL if k in data.files})
+
+
+def measured_self_pairs(controller: Controller) -> tuple[tuple[int, int], ...]:
+    """The link pairs whose distance a simulator records as the self clearance: the controller's
+    self-collision pairs, or those a default SelfCollisionBarrier would keep (for every law)."""
+    from qpctl.constraints.constraints import SelfCollisionBarrier
+    from qpctl.geometry.self_collision import self_collision_pairs
+
+    for c in getattr(controller, "constraints", ()):
+        if isinstance(c, SelfCollisionBarrier):
+            return c.pairs
+    if len(controller.robot.capsules) < 3:
+        return ()
+    return self_collision_pairs(controller.robot, SELF_D_SAFE).pairs
+
+
+SELF_D_SAFE = 0.02  # [m] QPConfig.self_d_safe's default, for the pairs measured under other laws
 
 
 def finish_trajectory(traj: Trajectory, controller: Controller) -> Trajectory:
@@ -129,7 +147,7 @@ class Simulator:
         self.integrator = rk4_step if integrator == "rk4" else euler_step
         self.progress = progress
         self._data = self.robot.model.createData()
-        self._world = WorldClearance(self.robot, controller.obstacles)
+        self._world = WorldClearance(self.robot, controller.obstacles, measured_self_pairs(controller))
 
     def clearance(self, q: np.ndarray, t: float) -> float:
         """Exact least distance [m] between any link and any obstacle at (q, t)."""
@@ -144,6 +162,7 @@ class Simulator:
         rec = {k: np.zeros((steps, n)) for k in ("q", "v", "tau", "e_null")}
         rec.update({k: np.zeros((steps, m)) for k in ("x", "x_ref", "xd_ref", "xdd_ref")})
         t_arr, clear, tick_us = np.zeros(steps), np.zeros(steps), np.zeros(steps)
+        self_clear = np.full(steps, np.inf)
         singular = np.zeros(steps, bool)
         infos: list[dict[str, Any]] = []
         model, data = self.robot.model, self._data
@@ -173,6 +192,7 @@ class Simulator:
             rec["x"][k], rec["x_ref"][k] = out.x, out.ref.x
             rec["xd_ref"][k], rec["xdd_ref"][k] = out.ref.xd, out.ref.xdd
             clear[k] = self.clearance(q, t)
+            self_clear[k] = self._world.self_clearance
             tick_us[k] = out.compute_us
             singular[k] = out.singular
             infos.append(out.info)
@@ -180,6 +200,8 @@ class Simulator:
                 q, v = self.integrator(accel, q, v, self.dt)
                 if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v))):
                     raise SimulationError(f"state diverged at t = {t + self.dt:.4f} s")
-        return finish_trajectory(Trajectory(t_arr, rec["q"], rec["v"], rec["tau"], rec["x"], rec["x_ref"],
-                                            rec["xd_ref"], rec["xdd_ref"], clear, rec["e_null"], tick_us, singular,
-                                            infos), ctrl)
+        traj = Trajectory(t_arr, rec["q"], rec["v"], rec["tau"], rec["x"], rec["x_ref"], rec["xd_ref"],
+                          rec["xdd_ref"], clear, rec["e_null"], tick_us, singular, infos)
+        if len(self._world.ws.sc_pairs):
+            traj.self_clearance = self_clear
+        return finish_trajectory(traj, ctrl)
