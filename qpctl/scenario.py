@@ -489,16 +489,16 @@ class Scenario:
         r, c = self.data["robot"], self.data["controller"]
         task, mask = c["task"], c["task_mask"]
         if task not in ("position", "pose", "approach"):
-            raise self._err("controller.task", f"must be position, pose or approach, got {task!r}")
+            raise ConfigError(f"must be position, pose or approach, got {task!r}", key="controller.task")
         if mask is not None:
             if task != "pose":
-                raise self._err("controller.task_mask", 'applies to controller.task = "pose" only')
+                raise ConfigError('applies to controller.task = "pose" only', key="controller.task_mask")
             if r["task_axes"] is not None:
-                raise self._err("controller.task_mask", "replaces robot.task_axes in a pose task: give one of them")
+                raise ConfigError("replaces robot.task_axes in a pose task: give one of them", key="controller.task_mask")
             if len(mask) != 6 or any(v not in (0.0, 1.0) for v in mask):
-                raise self._err("controller.task_mask", f"needs 6 entries of 0 or 1 (x, y, z, rx, ry, rz), got {mask}")
+                raise ConfigError(f"needs 6 entries of 0 or 1 (x, y, z, rx, ry, rz), got {mask}", key="controller.task_mask")
             if not any(mask[:3]):
-                raise self._err("controller.task_mask", "must keep at least one position axis (x, y or z)")
+                raise ConfigError("must keep at least one position axis (x, y or z)", key="controller.task_mask")
         if r["task_axes"] is not None:
             robot = robot.with_task_axes(r["task_axes"])
         elif mask is not None:
@@ -509,7 +509,7 @@ class Scenario:
         for key, kinds in (("orientations", ("pose",)), ("approach", ("approach",)),
                            ("start_orientation", ("pose", "approach"))):
             if p[key] is not None and task not in kinds:
-                raise self._err(f"path.{key}", f"applies to controller.task = {' or '.join(kinds)} only")
+                raise ConfigError(f"applies to controller.task = {' or '.join(kinds)} only", key=f"path.{key}")
         if task == "position":
             return robot
         axes = [i for i in range(3) if mask is None or mask[3 + i]]

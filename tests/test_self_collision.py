@@ -85,9 +85,9 @@ def test_barrier_rate_and_drift_are_the_distance_derivatives(robot, pairs):
         q, v = rng.uniform(robot.q_min + 0.2, robot.q_max - 0.2), rng.normal(size=7)
         ws.state(q, v, 0.0)
         d, row, hdot, drift = ws.sc_d.copy(), ws.sc_row.copy(), ws.sc_hdot.copy(), ws.sc_drift.copy()
-        np.testing.assert_allclose(hdot, row @ v, atol=1e-12)
+        near = (d > 1e-3) & (d < 0.3)  # rows and drifts are computed within the cutoff only
+        np.testing.assert_allclose(hdot[near], row[near] @ v, atol=1e-12)
         (dp, hp), (dm, hm) = at(q, v, h), at(q, v, -h)
-        near = (d > 1e-3) & (d < 0.3)
         np.testing.assert_allclose(hdot[near], ((dp - dm) / (2 * h))[near], atol=1e-5)
         fd = ((hp - hm) / (2 * h))[near]
         assert np.all(np.abs(drift[near] - fd) <= 1e-4 * (1 + np.abs(fd))), (drift[near], fd)

@@ -31,7 +31,14 @@ from numba import njit, types
 
 from qpctl.kernels.geometry import contact_frame, segment_params, sphere_bound
 from qpctl.kernels.rotation import exp3, log3, matmul3, matmul3_bt
-from qpctl.kernels.small import add_trace_ridge, chol_solve, cholesky, pinv_t, solve_lower, solve_lower_t
+from qpctl.kernels.small import (
+    add_trace_ridge,
+    chol_solve,
+    cholesky,
+    pinv_t_normal,
+    solve_lower,
+    solve_lower_t,
+)
 from qpctl.solvers.daqp_native import UPDATE_ALL, daqp_solve, update_ldp
 
 # The process's monotonic clock (time.perf_counter's) inside kernels: stage timings without a return
@@ -557,8 +564,8 @@ def _body_point(ws, i: int, p: np.ndarray, vel: np.ndarray, acc: np.ndarray) -> 
 
 @njit(cache=True)
 def self_pairs(ws) -> None:  # type: ignore[no-untyped-def]
-    """Every self-collision pair's distance, normal, ḣ's row and ḧ at q̈ = 0 (the least distance into
-    fpar[FP_SELF_CLEARANCE]).
+    """Every self-collision pair's distance and normal, and, for those within the cutoff, ḣ's row and ḧ
+    at q̈ = 0 (the least distance into fpar[FP_SELF_CLEARANCE]).
 
     As in :func:`barrier_drift`, with both capsules moving: p = a + τu on capsule i's axis, q = c + σs
     on capsule j's, w = p − q, ρ = |w|, n = w/ρ, h = ρ − r_i − r_j; ḣ = nᵀ(v_p − v_q) (the body points'
@@ -568,6 +575,7 @@ def self_pairs(ws) -> None:  # type: ignore[no-untyped-def]
     """
     P = ws.sc_pairs.shape[0]
     n = ws.v.shape[0]
+    cut = ws.fpar[FP_CUTOFF]
     seg, cap_support = ws.segments, ws.cap_support
     Jp, Jq = np.empty((3, n)), np.empty((3, n))
     p, q, vp, vq, ap, aq = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
@@ -593,6 +601,8 @@ def self_pairs(ws) -> None:  # type: ignore[no-untyped-def]
             nn = math.sqrt(nx * nx + ny * ny + nz * nz)
             nx, ny, nz = (nx / nn, ny / nn, nz / nn) if nn > 1e-12 else (0.0, 0.0, 1.0)
         ws.sc_n[r, 0], ws.sc_n[r, 1], ws.sc_n[r, 2] = nx, ny, nz
+        if not d < cut:  # beyond the influence distance: no row this tick (self_rows), nothing more
+            continue
         _point_jacobian(ws, cap_support[i], p, Jp)
         _point_jacobian(ws, cap_support[j], q, Jq)
         hdot = 0.0
@@ -735,7 +745,7 @@ def _weighted_pinv(ws, L: np.ndarray, out: np.ndarray, mode: int) -> bool:  # ty
         solve_lower(L, Bt)  # J̃ᵀ = L⁻¹ Jᵀ
     elif mode == 2:
         chol_solve(L, Bt)  # J̃ᵀ = M⁻¹ Jᵀ
-    singular, _ratio = pinv_t(Bt, ws.fpar[FP_PINV_EPS], ws.Vm, out)
+    singular, _ratio = pinv_t_normal(Bt, ws.fpar[FP_PINV_EPS], ws.Vm, out)
     if mode == 1:
         solve_lower_t(L, out)  # L⁻ᵀ J̃⁺
     elif mode == 2:
