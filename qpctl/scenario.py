@@ -157,6 +157,7 @@ SCHEMA: dict[str, Any] = {
         "task": (_str, "position"),
         "task_mask": (_vec, None),
         "approach_axis": (_vec, [0.0, 0.0, 1.0]),
+        "task_weights": (_vec, None),
         "solver": (_str, DEFAULT_SOLVER),
         "kp": (_num, 100.0),
         "kv": (_num, 20.0),
@@ -383,6 +384,10 @@ class Scenario:
         # Validated on load (DESIGN.md §4), not when the run starts: obstacles, robot, q0, path.
         obstacles = self.build_obstacles()
         robot = self.build_robot()
+        w = self.data["controller"]["task_weights"]
+        if w is not None and (len(w) != robot.m or not all(np.isfinite(x) and x > 0 for x in w)):
+            raise self._err("controller.task_weights", f"needs {robot.m} positive numbers (one per task row: "
+                            f"{robot.m_position} position, {robot.m_orientation} orientation), got {w}")
         q0 = self.q0(robot)
         self._check_reach(robot, self.build_path(robot, q0))
         self._check_start_clear(robot, obstacles, q0)

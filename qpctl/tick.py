@@ -98,6 +98,7 @@ class QPSpec:
     barrier: tuple[int, float, float, bool] | None  # capacity, k0, k1, rigid drift
     row_names: list[str]
     self_barrier: tuple[float, float, float] | None = None  # k0, k1, d_safe of the self-collision rows
+    task_weights: np.ndarray | None = None  # (m,) the task rows' weights (None: 1)
 
 
 class QPBuffers:
@@ -195,6 +196,12 @@ class Workspace:
         self.ori_basis = robot.approach_basis()
         self.ori_axis = np.asarray(robot.approach_axis, float).copy()
         self.ee_R, self.ee_w = np.eye(3), np.zeros(6)
+        self.task_w = np.ones(m)
+        if spec is not None and spec.task_weights is not None:
+            if spec.task_weights.shape != (m,):
+                raise ConfigError(f"needs {m} weights (one per task row), got {spec.task_weights.size}",
+                                  key="controller.task_weights")
+            self.task_w = np.asarray(spec.task_weights, float).copy()
         P = len(self_pairs)
         self.sc_pairs = np.array(self_pairs, dtype=np.int64).reshape(P, 2)
         self.sc_d, self.sc_n, self.sc_row = np.full(P, np.inf), np.zeros((P, 3)), np.zeros((P, n))

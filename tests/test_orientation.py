@@ -315,3 +315,70 @@ def test_pose_mask_drops_rows(tmp_path):
     ctrl = scen.build_controller("qp")
     traj = Simulator(ctrl, dt=1e-3, duration=0.05).run(scen.q0(robot))
     assert traj.x.shape == (51, 3) and np.all(np.isfinite(traj.tau))
+
+
+INFEASIBLE_APPROACH = """
+[robot]
+kind = "panda"
+[path]
+waypoints = [[0.45, 0.1, 0.4], [0.5, 0.0, 0.3]]
+approach = [[0.3, 0.0, -1.0], [1.0, 0.0, 0.0]]
+duration = 3.0
+[controller]
+kind = "qp"
+task = "approach"
+[sim]
+duration = 3.5
+"""
+
+
+def test_task_weights_choose_which_rows_give_way(tmp_path):
+    """The last approach is out of the Panda's reach within its joint limits (paper and hsu exceed
+    them): the QP gives way. Weighting the position rows 100× over the axis rows moves the error
+    from the position to the axis; on a reachable task the weights change nothing."""
+    def final(sets):
+        from qpctl.run import simulate
+
+        run = simulate(_load(INFEASIBLE_APPROACH, tmp_path, *sets), kind="qp")
+        return run.metrics["final_tracking_error"], run.metrics["final_orientation_error_deg"], run.trajectory.tau
+    pos1, ang1, _ = final([])
+    pos2, ang2, _ = final(["controller.task_weights=[100.0, 100.0, 100.0, 1.0, 1.0]"])
+    assert pos1 > 0.05 and ang1 < 1.0  # equal weights: the position gave way
+    assert pos2 < 0.2 * pos1 and ang2 > 10 * ang1, (pos1, ang1, pos2, ang2)
+    reachable = PANDA_POSE.replace("duration = 2.0", "duration = 0.3")
+    base = Simulator(_load(reachable, tmp_path).build_controller("qp"), dt=1e-3, duration=0.3).run(panda().q_home)
+    scen = _load(reachable, tmp_path, "controller.task_weights=[3.0, 1.0, 2.0, 0.5, 1.0, 4.0]")
+    weighted = Simulator(scen.build_controller("qp"), dt=1e-3, duration=0.3).run(panda().q_home)
+    np.testing.assert_allclose(weighted.tau, base.tau, rtol=0, atol=1e-6 * np.abs(base.tau).max())
+    with pytest.raises(ConfigError) as info:
+        _load(reachable, tmp_path, "controller.task_weights=[1.0, 1.0]")
+    assert info.value.key == "controller.task_weights"
+
+
+def test_weighted_rows_compiled_and_python_agree(tmp_path):
+    """The weights in the compiled assembly and in EndEffectorTask (the Python formulation, taken by
+    a subclass): the same torques to 1e-8 on ticks where the task gives way."""
+    from qpctl.tasks import AccelerationTask, EndEffectorTask
+
+    class _Acc(AccelerationTask):
+        pass
+
+    class _EE(EndEffectorTask):
+        pass
+
+    sets = ["controller.task_weights=[100.0, 100.0, 100.0, 1.0, 1.0]"]
+    scen = _load(INFEASIBLE_APPROACH, tmp_path, *sets)
+    fast, slow = scen.build_controller("qp"), scen.build_controller("qp")
+    ee = next(t for t in slow.tasks if isinstance(t, EndEffectorTask))
+    slow.tasks = [_Acc(), _EE(ee.slack_l1, ee.slack_l2, ee.weights)] + [
+        t for t in slow.tasks if not isinstance(t, (AccelerationTask, EndEffectorTask))]
+    slow._formulation = slow._ws = None
+    assert fast.workspace().spec is not None and slow.workspace().spec is None
+    traj = Simulator(scen.build_controller("qp"), dt=1e-3, duration=3.5).run(scen.q0(fast.robot))
+    gave_way = 0
+    for k in range(2000, 3500, 10):
+        a = fast.step(traj.q[k], traj.v[k], float(traj.t[k]))
+        b = slow.step(traj.q[k], traj.v[k], float(traj.t[k]))
+        np.testing.assert_allclose(a.tau, b.tau, rtol=1e-8, atol=1e-8 * np.abs(b.tau).max())
+        gave_way += a.info.get("slack_norm", 0.0) > 1e-6
+    assert gave_way >= 50, gave_way

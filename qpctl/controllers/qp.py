@@ -148,6 +148,7 @@ class QPConfig:
     posture / posture_weight: an optional PostureTask.
     damping [1], damping_gain [1/s]: the DampingTask's relative weight ρ and gain K_d (ρ = 0: none,
     the QP then reduces exactly to the paper law where no inequality is active).
+    task_weights: one per task row (> 0): how much more a row's slack costs (EndEffectorTask).
     self_collision: keep the arm's own links ``self_d_safe`` [m] apart (a SelfCollisionBarrier on
     the pairs :func:`qpctl.geometry.self_collision.self_collision_pairs` keeps, or on
     ``self_collision_pairs``, pairs of link names), with the obstacle barrier's gains.
@@ -173,6 +174,7 @@ class QPConfig:
     posture_weight: float = 0.0
     damping: float = DEFAULT_DAMPING
     damping_gain: float = 10.0
+    task_weights: list[float] | None = None
     self_collision: bool = True
     self_d_safe: float = 0.02
     self_collision_pairs: list[list[str]] | None = None
@@ -266,6 +268,7 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
         barrier=None if barrier is None else (barrier.rows, barrier.k0, barrier.k1, barrier.drift == "rigid"),
         row_names=[c.name for c in constraints for _ in range(c.rows)],
         self_barrier=next(((c.k0, c.k1, c.d_safe) for c in constraints if isinstance(c, SelfCollisionBarrier)), None),
+        task_weights=ee.weights,
     )
 
 
@@ -293,7 +296,7 @@ class QPController(Controller):
         self._tick_start: float | None = None
         self._hard_first = self.relaxation == "on_failure"
         if tasks is None:
-            tasks = [AccelerationTask(), EndEffectorTask(cfg.slack_l1, cfg.slack_l2)]
+            tasks = [AccelerationTask(), EndEffectorTask(cfg.slack_l1, cfg.slack_l2, cfg.task_weights)]
             if cfg.posture_weight > 0:
                 tasks.append(PostureTask(cfg.posture if cfg.posture is not None else robot.q_home,
                                          cfg.posture_weight))

@@ -967,9 +967,10 @@ def qp_build(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray,
     # J q̈ + s = a (EndEffectorTask)
     e0 = nv + n_in
     for r in range(m):
+        w = ws.task_w[r]
         for k in range(n):
-            rows[n_in + r, k] = ws.J[r, k]
-        bu[e0 + r] = bl[e0 + r] = ws.a[r]
+            rows[n_in + r, k] = w * ws.J[r, k]
+        bu[e0 + r] = bl[e0 + r] = w * ws.a[r]
     # −τ_max ≤ M q̈ + N ≤ τ_max and |M q̈ + N − τ_prev| ≤ τ̇_max dt (TorqueLimit)
     t0 = ws.ipar[IP_TORQUE_ROW0]
     if t0 >= 0:

@@ -98,6 +98,7 @@ FIELDS = (
     "drift",  # (m,) J̇q̇ [m/s²] ([rad/s²] on orientation rows)
     "ee_R",  # (3, 3) the task frame's rotation in the world
     "ee_w",  # (6,) its angular velocity ω [rad/s] and q̈ = 0 angular acceleration α₀ [rad/s²] (world)
+    "task_w",  # (m,) the task rows' weights in the QP (EndEffectorTask.weights; 1 by default)
     "Jdot",  # (m, n) J̇, filled by Python only when the law's J̇e_N term is on
     "segments",  # (L, 2, 3) capsule axes in the world [m]
     "body_jac",  # (L, 6, n) world Jacobians of the capsules' bodies
