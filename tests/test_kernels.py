@@ -288,6 +288,21 @@ def _orthonormal(rng: np.random.Generator, n: int, m: int) -> np.ndarray:
 PINV_CASES = ["full", "below", "above", "far_below", "duplicate_row", "zero_row", "zero"]
 
 
+def _pinv_case(rng: np.random.Generator, case: str, m: int, n: int, eps: float) -> np.ndarray:
+    """An m × n matrix of the PINV_CASES kind ``case`` (see the test below)."""
+    s = np.sort(rng.uniform(0.5, 3.0, m))[::-1] * 10 ** rng.uniform(-2, 2)
+    if m > 1:
+        s[-1] = {"below": 0.99 * eps, "above": 1.01 * eps, "far_below": 1e-6}.get(case, s[-1] / s[0]) * s[0]
+    A = (_orthonormal(rng, m, m) * s) @ _orthonormal(rng, n, m).T
+    if case == "duplicate_row" and m > 1:
+        A[-1] = A[0] * rng.uniform(0.5, 2.0)
+    if case == "zero_row" and m > 1:
+        A[-1] = 0.0
+    if case == "zero":
+        A[:] = 0.0
+    return A
+
+
 @pytest.mark.parametrize("case", PINV_CASES)
 def test_pinv_t_equals_numpy_svd_damped_pseudo_inverse(case):
     """pinv_t against weighted_pinv (numpy's LAPACK SVD, same damping) for m = 1..6 rows, n = m..9
@@ -300,16 +315,7 @@ def test_pinv_t_equals_numpy_svd_damped_pseudo_inverse(case):
     for m in range(1, 7):
         for n in range(m, 10):
             for _ in range(3):
-                s = np.sort(rng.uniform(0.5, 3.0, m))[::-1] * 10 ** rng.uniform(-2, 2)
-                if m > 1:
-                    s[-1] = {"below": 0.99 * eps, "above": 1.01 * eps, "far_below": 1e-6}.get(case, s[-1] / s[0]) * s[0]
-                A = (_orthonormal(rng, m, m) * s) @ _orthonormal(rng, n, m).T
-                if case == "duplicate_row" and m > 1:
-                    A[-1] = A[0] * rng.uniform(0.5, 2.0)
-                if case == "zero_row" and m > 1:
-                    A[-1] = 0.0
-                if case == "zero":
-                    A[:] = 0.0
+                A = _pinv_case(rng, case, m, n, eps)
                 B = np.ascontiguousarray(A.T)
                 V, out = np.full((m, m), 5.0), np.full((n, m), 7.0)
                 singular, ratio = S.pinv_t(B, eps, V, out)
@@ -347,16 +353,7 @@ def test_pinv_t_normal_equals_pinv_t(case):
     for m in range(1, 7):
         for n in range(m, 10):
             for _ in range(3):
-                s = np.sort(rng.uniform(0.5, 3.0, m))[::-1] * 10 ** rng.uniform(-2, 2)
-                if m > 1:
-                    s[-1] = {"below": 0.99 * eps, "above": 1.01 * eps, "far_below": 1e-6}.get(case, s[-1] / s[0]) * s[0]
-                A = (_orthonormal(rng, m, m) * s) @ _orthonormal(rng, n, m).T
-                if case == "duplicate_row" and m > 1:
-                    A[-1] = A[0] * rng.uniform(0.5, 2.0)
-                if case == "zero_row" and m > 1:
-                    A[-1] = 0.0
-                if case == "zero":
-                    A[:] = 0.0
+                A = _pinv_case(rng, case, m, n, eps)
                 B1, B2 = np.ascontiguousarray(A.T), np.ascontiguousarray(A.T)
                 o1, o2 = np.full((n, m), 7.0), np.full((n, m), 7.0)
                 s1, _ = S.pinv_t(B1, eps, np.zeros((m, m)), o1)
