@@ -307,6 +307,14 @@ def test_approach_scenario_turns_the_axis_only(tmp_path):
     assert traj.orientation_error_deg[-1] == pytest.approx(np.degrees(np.arccos(np.clip(z @ d, -1, 1))), abs=1e-6)
 
 
+def test_jdot_term_is_refused_with_orientation_rows(tmp_path):
+    scen = _load(PANDA_POSE, tmp_path, "controller.jdot_en=true")
+    for kind in ("paper", "hsu", "qp"):
+        with pytest.raises(ConfigError) as info:
+            scen.build_controller(kind)
+        assert info.value.key == "controller.jdot_en"
+
+
 def test_pose_mask_drops_rows(tmp_path):
     """task_mask = x, y, z, rz: 4 rows; the path's points keep 3 coordinates."""
     scen = _load(PANDA_POSE, tmp_path, "controller.task_mask=[1,1,1,0,0,1]")

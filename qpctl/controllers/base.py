@@ -175,6 +175,8 @@ class Controller(ABC):
         if robot.m_orientation and not isinstance(path, PosePath):
             raise ConfigError(f"the {robot.orientation} task needs a PosePath (a rotation at every point)",
                               key="path.orientations")
+        if robot.m_orientation and self.gains.jdot_en:
+            raise ConfigError("the J̇e_N term is implemented for position tasks only", key="controller.jdot_en")
         self.broadphase = broadphase
         self.dynamics = Dynamics(robot, self.obstacles, cutoff=self.cutoff, broadphase=broadphase)
         self.last: ControlOutput | None = None
