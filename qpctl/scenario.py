@@ -22,6 +22,7 @@ from qpctl.geometry.obstacles import Obstacle
 from qpctl.law import LawGains
 from qpctl.paths import WaypointPath
 from qpctl.robot.model import RobotModel, load_robot
+from qpctl.simulation.faults import Faults
 from qpctl.solvers.base import DEFAULT_SOLVER
 from qpctl.tasks.tasks import DEFAULT_DAMPING
 
@@ -91,6 +92,15 @@ def _str_list(v: Any) -> list[str]:
     return v
 
 
+def _num_or_auto(v: Any) -> float | str:
+    if v == "auto":
+        return "auto"
+    try:
+        return _num(v)
+    except TypeError:
+        raise TypeError('a number or "auto"') from None
+
+
 def _table(v: Any) -> dict[str, Any]:
     if not isinstance(v, dict):
         raise TypeError("a table")
@@ -151,6 +161,7 @@ SCHEMA: dict[str, Any] = {
         "v_ref": (_num, 0.5),
         "d_influence": (_num, 0.3),
         "d_safe": (_num, 0.05),
+        "d_safe_margin": (_num_or_auto, 0.0),
         "g_damping": (_num, 0.05),
         "pinv_eps": (_num, 1e-3),
         "jdot_en": (_bool, False),
@@ -174,6 +185,22 @@ SCHEMA: dict[str, Any] = {
         "tick_budget_us": (_num, 0.0),
         "broadphase": (_str, "auto"),
         "solver_settings": (_table, {}),
+    },
+    "faults": {  # all off; qpctl.simulation.faults documents each
+        "q_noise": (_num, 0.0),
+        "q_quantum": (_num, 0.0),
+        "v_noise": (_num, 0.0),
+        "delay_ticks": (_int, 0),
+        "miss_rate": (_num, 0.0),
+        "torque_lag": (_num, 0.0),
+        "torque_saturation": (_num_or_vec, None),
+        "mass_error": (_num, 0.0),
+        "payload_mass": (_num, 0.0),
+        "payload_time": (_num, 0.0),
+        "payload_radius": (_num, 0.04),
+        "obstacle_noise": (_num, 0.0),
+        "obstacle_velocity": (_num, 0.0),
+        "seed": (_int, 0),
     },
     "sim": {
         "dt": (_num, 1e-3),
@@ -359,6 +386,7 @@ class Scenario:
             raise self._err("sim.integrator", f"must be rk4 or euler, got {sim['integrator']!r}")
         if sim["simulator"] not in ("builtin", "mujoco"):
             raise self._err("sim.simulator", f"must be builtin or mujoco, got {sim['simulator']!r}")
+        faults = self.faults()
         try:
             self.gains()
         except ConfigError as exc:
@@ -370,6 +398,13 @@ class Scenario:
         q0 = self.q0(robot)
         self._check_reach(robot, self.build_path(robot, q0))
         self._check_start_clear(robot, obstacles, q0)
+        sat = faults.torque_saturation
+        if sat is not None and np.size(sat) not in (1, robot.nv):
+            raise self._err("faults.torque_saturation", f"needs one value or {robot.nv} (one per joint), got "
+                            f"{np.size(sat)}")
+        if faults.active and sim["simulator"] != "builtin":
+            raise self._err("faults", f"the {sim['simulator']} simulator does not apply faults ({', '.join(faults.kinds())}"
+                            "); use sim.simulator = \"builtin\"")
 
     def _check_controller(self) -> None:
         """The QP's keys, whichever controller the file names (``--controller qp`` may pick it later)."""
@@ -518,14 +553,40 @@ class Scenario:
                                   key=f"obstacles[{i}].{(exc.key or '').rsplit('.', 1)[-1]}") from None
         return out
 
-    def gains(self) -> LawGains:
+    def faults(self) -> Faults:
+        """The run's faults (``[faults]``, all off by default; :mod:`qpctl.simulation.faults`)."""
+        try:
+            return Faults.from_dict(self.data["faults"])
+        except ConfigError as exc:
+            raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key) from None
+
+    def d_safe_margin(self, robot: RobotModel | None = None) -> float:
+        """The margin [m] the controllers add to d_safe (``controller.d_safe_margin``; ``"auto"``: the one
+        :meth:`Faults.margin` derives from ``[faults]``'s noise levels, 0 without faults)."""
+        margin = self.data["controller"]["d_safe_margin"]
+        if margin != "auto":
+            if not (np.isfinite(margin) and margin >= 0):
+                raise self._err("controller.d_safe_margin", f'must be a number >= 0 [m] or "auto", got {margin}')
+            return float(margin)
+        faults = self.faults()
+        return faults.margin(robot if robot is not None else self.build_robot()) if faults.active else 0.0
+
+    def gains(self, robot: RobotModel | None = None) -> LawGains:
+        """The laws' gains, with d_safe raised by :meth:`d_safe_margin` (``controller.d_safe`` stays the
+        distance the run is judged by)."""
         c = self.data["controller"]
+        margin = self.d_safe_margin(robot)
+        if margin > 0 and not c["d_safe"] + margin < c["d_influence"]:
+            raise self._err("controller.d_safe_margin", f"d_safe {c['d_safe']} m + margin {margin:.4g} m must stay "
+                            f"below d_influence {c['d_influence']} m")
         return LawGains(kp=c["kp"], kv=c["kv"], kn=c["kn"], v_ref=c["v_ref"], d_influence=c["d_influence"],
-                        d_safe=c["d_safe"], g_damping=c["g_damping"], pinv_eps=c["pinv_eps"], jdot_en=c["jdot_en"])
+                        d_safe=c["d_safe"] + margin, g_damping=c["g_damping"], pinv_eps=c["pinv_eps"],
+                        jdot_en=c["jdot_en"])
 
     def build_controller(self, kind: str | None = None, solver: str | None = None,
-                         robot: RobotModel | None = None) -> Any:
-        """The scenario's controller (``kind``/``solver`` override the file)."""
+                         robot: RobotModel | None = None, obstacles: list[Obstacle] | None = None) -> Any:
+        """The scenario's controller (``kind``/``solver`` override the file; ``obstacles`` replaces the
+        scenario's in the controller's map, e.g. :meth:`Faults.perceived`)."""
         from qpctl.controllers.factory import make_controller
 
         robot = robot or self.build_robot()
@@ -540,5 +601,6 @@ class Scenario:
         bp = {"auto": None, "on": True, "off": False}.get(c["broadphase"], "bad")
         if bp == "bad":
             raise self._err("controller.broadphase", f"must be auto, on or off, got {c['broadphase']!r}")
-        return make_controller(c, robot, self.build_path(robot, q0), self.build_obstacles(), self.gains(),
+        scene = self.build_obstacles() if obstacles is None else obstacles
+        return make_controller(c, robot, self.build_path(robot, q0), scene, self.gains(robot),
                                broadphase=bp, source=self.source)  # type: ignore[arg-type]
