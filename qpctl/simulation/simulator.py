@@ -224,7 +224,8 @@ class Simulator:
             rec["e_null"][k] = out.e_null
             pin.framesForwardKinematics(robot.model, kin, q)
             rec["x"][k] = kin.oMf[ee].translation[axes]
-            rec["x_ref"][k], rec["xd_ref"][k], rec["xdd_ref"][k] = out.ref.x, out.ref.xd, out.ref.xdd
+            ref = out.ref
+            rec["x_ref"][k], rec["xd_ref"][k], rec["xdd_ref"][k] = ref.x, ref.xd, ref.xdd
             clear[k] = self.clearance(q, t)
             tick_us[k] = out.compute_us
             singular[k] = out.singular
