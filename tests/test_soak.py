@@ -13,8 +13,9 @@ python-fcl queries). It writes ``results/soak/summary.json`` (the README's "Reli
 (a stream of their own) with random faults on (:func:`random_faults`: sensing noise and encoder
 steps, delays, lost commands, torque lag and saturation, mass errors, payloads, map noise and drift)
 and asserts the same, the applied torques within the limits too; it counts the collisions and
-explains each: whether the controller saw it coming (its own clearance, on its map and measured
-state, went below d_safe) or not (its view kept d_safe while the truth did not). It writes
+explains each: whether the same scene collides without faults too, and whether the controller saw
+it coming (its own clearance, on its map and measured state, went below d_safe) or not (its view
+kept d_safe while the truth did not). It writes
 ``results/soak/summary_faults.json``.
 """
 
@@ -471,6 +472,10 @@ def test_soak_with_faults():
         faulthandler.dump_traceback_later(SCENE_WATCHDOG_S, exit=True, file=sys.stderr)
         try:
             res = run_scene(raw, "qp", qp, exceptions, qp_diverged)
+            if res is not None and res["collided"]:  # the same scene without faults: does it collide anyway?
+                ideal = run_scene({key: val for key, val in raw.items() if key != "faults"}, "qp", new_stats(),
+                                  exceptions, qp_diverged)
+                res["collided_without_faults"] = ideal is not None and ideal["collided"]
             if res is not None:
                 runs.append({**res, "robot": which})
             if k % 4 == 0:
@@ -499,6 +504,7 @@ def test_soak_with_faults():
             # explained: did the controller's own view (its map, its measured state) go below d_safe first?
             "collided_seen_below_d_safe": sum(r["seen_below_d_safe"] for r in collided),
             "collided_unseen": sum(not r["seen_below_d_safe"] for r in collided),
+            "collided_without_faults_too": sum(r["collided_without_faults"] for r in collided),
             "collided_with_fallback_ticks": sum(r["fallback_ticks"] > 0 for r in collided),
             "collided_with_rate_limit": sum(r["rate_limited"] for r in collided),
             "scenes_with_rate_limit": sum(r["rate_limited"] for r in runs),
