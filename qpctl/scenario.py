@@ -22,7 +22,7 @@ from qpctl.geometry.obstacles import Obstacle
 from qpctl.law import LawGains
 from qpctl.paths import WaypointPath
 from qpctl.robot.model import RobotModel, load_robot
-from qpctl.simulation.faults import Faults
+from qpctl.simulation.faults import Faults, with_payload
 from qpctl.solvers.base import DEFAULT_SOLVER
 from qpctl.tasks.tasks import DEFAULT_DAMPING
 
@@ -142,6 +142,8 @@ SCHEMA: dict[str, Any] = {
         "v_max": (_num_or_vec, None),
         "tau_rate_max": (_num_or_vec, None),
         "qdd_max": (_num_or_vec, None),
+        "payload_mass": (_num, 0.0),
+        "payload_radius": (_num, 0.04),
     },
     "path": {
         "start": (_vec, None),
@@ -502,6 +504,12 @@ class Scenario:
             limits = {k: r[k] for k in ("tau_max", "v_max", "tau_rate_max", "qdd_max") if r[k] is not None}
             if limits:
                 robot = robot.with_limits(**limits)
+            if not (np.isfinite(r["payload_mass"]) and r["payload_mass"] >= 0):
+                raise ConfigError(f"must be a finite number >= 0 [kg], got {r['payload_mass']}", key="robot.payload_mass")
+            if not (np.isfinite(r["payload_radius"]) and r["payload_radius"] > 0):
+                raise ConfigError(f"must be a positive number [m], got {r['payload_radius']}", key="robot.payload_radius")
+            if r["payload_mass"]:  # known to the controller, and carried by the simulated robot too
+                robot = with_payload(robot, r["payload_mass"], r["payload_radius"])
         except ConfigError as exc:
             raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key or "robot") from None
         return robot

@@ -208,6 +208,19 @@ def test_payload_gravity_is_its_weight_through_the_task_jacobian(robot_name, req
         np.testing.assert_allclose(extra, -J.T @ (mass * g), atol=1e-10)  # m·g times each joint's lever
 
 
+def test_a_declared_payload_is_in_the_controllers_model_and_the_simulated_one():
+    plain = Scenario.load("panda_canopy").build_robot()
+    declared = Scenario.load("panda_canopy", ["robot.payload_mass=0.5", "robot.payload_radius=0.05"]).build_robot()
+    _, unknown = Faults(payload_mass=0.5, payload_radius=0.05).simulated_models(plain)
+    for i in range(plain.model.njoints):  # the same body as the unknown payload's
+        assert declared.model.inertias[i].isApprox(unknown.inertias[i], 1e-14)
+    jid = plain.model.frames[plain.ee_frame_id].parentJoint
+    assert declared.model.inertias[jid].mass == pytest.approx(plain.model.inertias[jid].mass + 0.5)
+    assert plain.model.inertias[jid].mass != declared.model.inertias[jid].mass  # the plain model untouched
+    ctrl = Scenario.load("panda_canopy", ["robot.payload_mass=0.5"]).build_controller("qp")
+    assert ctrl.robot.model.inertias[jid].mass == pytest.approx(plain.model.inertias[jid].mass + 0.5)
+
+
 def test_the_simulation_integrates_the_true_robot_and_takes_the_payload_on_time(planar):
     faults = Faults(mass_error=0.2, payload_mass=2.0, payload_time=0.03, seed=2)
     script = _script(3)
@@ -330,6 +343,8 @@ BAD = [
     ("faults.obstacle_noise=-0.01", "faults.obstacle_noise"),
     ("faults.obstacle_velocity=nan", "faults.obstacle_velocity"),
     ("faults.seed=1.5", "faults.seed"),
+    ("robot.payload_mass=-0.5", "robot.payload_mass"),
+    ("robot.payload_radius=0", "robot.payload_radius"),
     ("controller.d_safe_margin=-0.01", "controller.d_safe_margin"),
     ('controller.d_safe_margin="big"', "controller.d_safe_margin"),
     ("controller.d_safe_margin=0.3", "controller.d_safe_margin"),  # d_safe + margin ≥ d_influence

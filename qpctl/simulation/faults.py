@@ -214,7 +214,7 @@ class Faults:
         if self.payload_mass:
             frame = after.frames[robot.ee_frame_id]
             sphere = pin.Inertia.FromSphere(self.payload_mass, self.payload_radius)
-            after.inertias[frame.parentJoint] += frame.placement.act(sphere)
+            after.inertias[frame.parentJoint] += frame.placement.act(sphere)  # as with_payload does
         return before, after
 
     # -- the controller's d_safe margin -----------------------------------------------------------------
@@ -228,6 +228,15 @@ class Faults:
         lever = reach[1] if reach is not None else 1.0
         joint = (3.0 * self.q_noise + 0.5 * self.q_quantum) * lever * robot.nv
         return 3.0 * self.obstacle_noise + joint
+
+
+def with_payload(robot: RobotModel, mass: float, radius: float = PAYLOAD_RADIUS) -> RobotModel:
+    """A copy of ``robot`` carrying a solid sphere of ``mass`` [kg] and ``radius`` [m] centred on its task
+    frame (added to that frame's body with Pinocchio's spatial-inertia algebra): a declared payload."""
+    model = robot.model.copy()
+    frame = model.frames[robot.ee_frame_id]
+    model.inertias[frame.parentJoint] += frame.placement.act(pin.Inertia.FromSphere(mass, radius))
+    return dataclasses.replace(robot, model=model, capsules=list(robot.capsules), joint_names=list(robot.joint_names))
 
 
 class FaultState:
