@@ -10,8 +10,10 @@ Jacobian).
 from __future__ import annotations
 
 import math
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pinocchio as pin
@@ -21,6 +23,11 @@ from qpctl import ConfigError, Controller, ControlOutput, Faults, Obstacle, Scen
 from qpctl.run import simulate
 from qpctl.simulation.faults import FaultState
 from qpctl.tick import WorldClearance
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
 
 
 class _Scripted(Controller):
@@ -369,3 +376,12 @@ def test_faults_refused_by_mujoco_and_reported_on_the_command_line(tmp_path):
            str(tmp_path / "x")]
     proc = subprocess.run(cmd, check=False, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "faults.miss_rate" in proc.stderr
+
+
+def test_the_readmes_faults_example_is_a_valid_table():
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = next(b for b in re.findall(r"```toml\n(.*?)```", readme, flags=re.DOTALL) if b.startswith("[faults]"))
+    raw = tomllib.loads(block)
+    scen = Scenario.from_dict({**tomllib.loads((Path(__file__).resolve().parents[1] / "qpctl" / "scenarios"
+                                                / "paper.toml").read_text()), **raw})
+    assert scen.faults() == Faults(**raw["faults"]) and scen.faults().active
