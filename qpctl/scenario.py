@@ -8,6 +8,7 @@ values raise :class:`~qpctl.errors.ConfigError` naming the file and the dotted k
 from __future__ import annotations
 
 import copy
+import dataclasses
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -22,7 +23,7 @@ from qpctl.geometry.obstacles import Obstacle
 from qpctl.law import LawGains
 from qpctl.paths import WaypointPath
 from qpctl.robot.model import RobotModel, load_robot
-from qpctl.simulation.faults import Faults, with_payload
+from qpctl.simulation.faults import PAYLOAD_RADIUS, Faults, with_payload
 from qpctl.solvers.base import DEFAULT_SOLVER
 from qpctl.tasks.tasks import DEFAULT_DAMPING
 
@@ -143,7 +144,7 @@ SCHEMA: dict[str, Any] = {
         "tau_rate_max": (_num_or_vec, None),
         "qdd_max": (_num_or_vec, None),
         "payload_mass": (_num, 0.0),
-        "payload_radius": (_num, 0.04),
+        "payload_radius": (_num, PAYLOAD_RADIUS),
     },
     "path": {
         "start": (_vec, None),
@@ -188,22 +189,9 @@ SCHEMA: dict[str, Any] = {
         "broadphase": (_str, "auto"),
         "solver_settings": (_table, {}),
     },
-    "faults": {  # all off; qpctl.simulation.faults documents each
-        "q_noise": (_num, 0.0),
-        "q_quantum": (_num, 0.0),
-        "v_noise": (_num, 0.0),
-        "delay_ticks": (_int, 0),
-        "miss_rate": (_num, 0.0),
-        "torque_lag": (_num, 0.0),
-        "torque_saturation": (_num_or_vec, None),
-        "mass_error": (_num, 0.0),
-        "payload_mass": (_num, 0.0),
-        "payload_time": (_num, 0.0),
-        "payload_radius": (_num, 0.04),
-        "obstacle_noise": (_num, 0.0),
-        "obstacle_velocity": (_num, 0.0),
-        "seed": (_int, 0),
-    },
+    # every fault off; the keys, defaults and meanings are Faults' fields (qpctl.simulation.faults)
+    "faults": {f.name: ({"float": _num, "int": _int}.get(str(f.type), _num_or_vec), f.default)
+               for f in dataclasses.fields(Faults)},
     "sim": {
         "dt": (_num, 1e-3),
         "duration": (_num, 5.0),

@@ -57,12 +57,6 @@ from qpctl.robot.model import RobotModel
 #: Default radius [m] of the payload sphere (a fruit of 8 cm).
 PAYLOAD_RADIUS = 0.04
 
-#: The keys of ``[faults]``: (checker kind, default); ``torque_saturation`` is a number or a list.
-FAULT_KEYS = ("q_noise", "q_quantum", "v_noise", "delay_ticks", "miss_rate", "torque_lag", "torque_saturation",
-              "mass_error", "payload_mass", "payload_time", "payload_radius", "obstacle_noise",
-              "obstacle_velocity", "seed")
-
-
 def _stream(seed: int, name: str) -> np.random.Generator:
     """The random stream of one fault: seeded by ``seed`` and the fault's name (stable across runs)."""
     return np.random.default_rng([int(seed) & 0xFFFFFFFF, zlib.crc32(name.encode())])
@@ -70,7 +64,8 @@ def _stream(seed: int, name: str) -> np.random.Generator:
 
 @dataclass(frozen=True)
 class Faults:
-    """What is not ideal in a run (module docstring); every field's default is "no fault"."""
+    """What is not ideal in a run (module docstring); every field's default is "no fault". The fields
+    are the keys of the scenario's ``[faults]`` table (:data:`qpctl.scenario.SCHEMA` reads them here)."""
 
     q_noise: float = 0.0  # [rad] σ of the measured joint positions
     q_quantum: float = 0.0  # [rad] encoder resolution (0: none)
@@ -239,8 +234,13 @@ def with_payload(robot: RobotModel, mass: float, radius: float = PAYLOAD_RADIUS)
     return dataclasses.replace(robot, model=model, capsules=list(robot.capsules), joint_names=list(robot.joint_names))
 
 
+#: The keys of ``[faults]``, in order.
+FAULT_KEYS = tuple(f.name for f in dataclasses.fields(Faults))
+
+
 class FaultState:
-    """One run's faults as they unfold: the sensors' and the drives' state (the Simulator's)."""
+    """One run's faults as they unfold: the sensors' and the drives' state (the Simulator's). The first
+    command always arrives; each later one is lost with probability ``miss_rate``."""
 
     def __init__(self, faults: Faults, n: int, dt: float) -> None:
         self.faults, self.n, self.dt = faults, n, dt
