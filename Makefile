@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: all env demo test soak robust bench bench-quick lint clean
+.PHONY: all env demo test soak robust bench bench-quick harvest lint clean
 
 all: test
 
@@ -36,6 +36,10 @@ bench: $(STAMP)
 
 bench-quick: $(STAMP)
 	MPLBACKEND=Agg $(VENV)/bin/qpctl bench --quick --out results/bench-quick
+
+# The harvesting scenario under every law, approach and pose tasks: results/harvest/harvest.md (README, "Harvesting").
+harvest: $(STAMP)
+	MPLBACKEND=Agg $(PY) -m benchmarks.harvest --out results/harvest
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check qpctl baselines benchmarks tests

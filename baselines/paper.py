@@ -74,7 +74,7 @@ class PaperController(Controller):
         return out
 
     def control(self, state: TickState) -> ControlOutput:
-        ref = self.path(state.t)
+        ref = self.reference(state)
         terms = law_terms(state, ref, self.gains, weighted=self.weighted)
         qdd, singular = closed_form_acceleration(state, terms, self.gains, weighted=self.weighted)
         tau = state.M @ qdd + state.N

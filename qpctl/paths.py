@@ -4,12 +4,16 @@ Each segment from p_k to p_{k+1} takes T_k seconds and follows p(t) = p_k + s(τ
 τ = (t − t_k)/T_k, s(τ) = 10τ³ − 15τ⁴ + 6τ⁵, so velocity and acceleration are zero at every waypoint
 (the paper's "zero initial and final velocities"). Before the start and after the end the
 reference holds still.
+
+A :class:`PosePath` adds a rotation at every waypoint, interpolated on SO(3) with the same timing
+(slerp): R_d(t) = exp(s(τ) [θ_k]×) R_k with θ_k = log(R_{k+1} R_kᵀ) in the world frame, so the
+angular velocity ω_d = (ṡ/T_k) θ_k and acceleration ω̇_d = (s̈/T_k²) θ_k keep one axis per segment.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -51,7 +55,7 @@ class WaypointPath:
         if pts.ndim != 2 or pts.shape[0] < 2 or not np.all(np.isfinite(pts)):
             raise ConfigError("needs a start point and at least one finite waypoint", key="path.waypoints")
         self.points = pts
-        lengths = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        lengths = self._lengths()
         if durations is not None:
             T = np.asarray(durations, dtype=float)
             if T.shape != lengths.shape:
@@ -75,15 +79,64 @@ class WaypointPath:
         self.starts = np.array(starts)
         self.end_time = float(self.starts[-1] + self.durations[-1])
 
+    def _lengths(self) -> np.ndarray:
+        """Each segment's length, by which a total ``duration`` is shared [m]."""
+        return np.linalg.norm(np.diff(self.points, axis=0), axis=1)
+
     @property
     def dim(self) -> int:
         return int(self.points.shape[1])
 
-    def __call__(self, t: float) -> Reference:
-        """The reference at time t [s]."""
+    def timing(self, t: float) -> tuple[int, float, float, float]:
+        """(segment k, s, ṡ [1/s], s̈ [1/s²]) at time t [s]."""
         k = int(np.searchsorted(self.starts, t, side="right") - 1)
         k = min(max(k, 0), len(self.durations) - 1)
         T = self.durations[k]
         s, ds, dds = quintic((t - self.starts[k]) / T)
+        return k, s, ds / T, dds / T**2
+
+    def __call__(self, t: float) -> Reference:
+        """The reference at time t [s]."""
+        k, s, ds, dds = self.timing(t)
         delta = self.points[k + 1] - self.points[k]
-        return Reference(self.points[k] + s * delta, (ds / T) * delta, (dds / T**2) * delta)
+        return Reference(self.points[k] + s * delta, ds * delta, dds * delta)
+
+
+# How a rotation counts in sharing a PosePath's total duration: a turn of θ [rad] as a move of
+# ROTATION_LENGTH·θ [m] (a point 0.1 m from the axis), so a pure turn gets time in proportion.
+ROTATION_LENGTH = 0.1
+
+
+class PosePath(WaypointPath):
+    """A :class:`WaypointPath` with a rotation at every point ((k+1, 3, 3), world frame), slerped with
+    the same quintic timing. A total ``duration`` is shared by max(‖Δp‖, ROTATION_LENGTH·|θ|) per
+    segment. :meth:`orientation` gives R_d, ω_d [rad/s], ω̇_d [rad/s²]."""
+
+    def __init__(self, points: Sequence[Sequence[float]] | np.ndarray,
+                 rotations: Sequence[np.ndarray] | np.ndarray, **kwargs: Any) -> None:
+        import pinocchio as pin
+
+        R = np.asarray(rotations, dtype=float)
+        pts = np.asarray(points, dtype=float)
+        if R.ndim != 3 or R.shape[1:] != (3, 3) or pts.ndim != 2 or R.shape[0] != pts.shape[0]:
+            raise ConfigError(f"needs one rotation per point ({pts.shape[0] if pts.ndim == 2 else '?'}), "
+                              f"got an array of shape {R.shape}", key="path.orientations")
+        for k, Rk in enumerate(R):
+            if not (np.all(np.isfinite(Rk)) and np.allclose(Rk @ Rk.T, np.eye(3), atol=1e-6)
+                    and np.linalg.det(Rk) > 0):
+                raise ConfigError(f"rotation {k} is not a rotation matrix", key="path.orientations")
+        self.rotations = np.array([pin.Quaternion(Rk).normalized().matrix() for Rk in R])
+        self.theta = np.array([pin.log3(self.rotations[k + 1] @ self.rotations[k].T) for k in range(len(R) - 1)])
+        super().__init__(pts, **kwargs)
+
+    def _lengths(self) -> np.ndarray:
+        moves = np.linalg.norm(np.diff(self.points, axis=0), axis=1)
+        return np.maximum(moves, ROTATION_LENGTH * np.linalg.norm(self.theta, axis=1))
+
+    def orientation(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """R_d (3, 3), ω_d [rad/s] and ω̇_d [rad/s²] (world frame) at time t [s]."""
+        import pinocchio as pin
+
+        k, s, ds, dds = self.timing(t)
+        th = self.theta[k]
+        return pin.exp3(s * th) @ self.rotations[k], ds * th, dds * th

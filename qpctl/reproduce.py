@@ -202,7 +202,7 @@ def _sensor_projection(result: Any, every: int = 5) -> dict[str, float]:
         pairs = state.pairs
         if not len(pairs) or pairs.distance.min() >= ctrl.gains.d_influence:
             continue
-        terms = law_terms(state, ctrl.path(state.t), ctrl.gains, weighted=weighted)
+        terms = law_terms(state, ctrl.reference(state), ctrl.gains, weighted=weighted)
         factor = np.linalg.cholesky(ryu_weight(state)) if weighted else None
         Jb = weighted_pinv(state.J, factor, eps=ctrl.gains.pinv_eps).matrix
         r = int(np.argmin(pairs.distance))

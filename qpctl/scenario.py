@@ -21,7 +21,7 @@ import numpy as np
 from qpctl.errors import ConfigError
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.law import LawGains
-from qpctl.paths import WaypointPath
+from qpctl.paths import PosePath, WaypointPath
 from qpctl.robot.model import RobotModel, load_robot
 from qpctl.simulation.faults import PAYLOAD_RADIUS, Faults, with_payload
 from qpctl.solvers.base import DEFAULT_SOLVER
@@ -102,6 +102,13 @@ def _num_or_auto(v: Any) -> float | str:
         raise TypeError('a number or "auto"') from None
 
 
+def _pairs_of_names(v: Any) -> list[list[str]]:
+    if not isinstance(v, list) or not all(isinstance(p, list) and len(p) == 2 and all(isinstance(x, str) for x in p)
+                                          for p in v):
+        raise TypeError('a list of pairs of link names ([["a", "b"], ...])')
+    return v
+
+
 def _table(v: Any) -> dict[str, Any]:
     if not isinstance(v, dict):
         raise TypeError("a table")
@@ -153,10 +160,17 @@ SCHEMA: dict[str, Any] = {
         "durations": (_vec, None),
         "start_time": (_num, 0.0),
         "dwell": (_num, 0.0),
+        "orientations": (_points, None),
+        "start_orientation": (_vec, None),
+        "approach": (_points, None),
     },
     "obstacles": OBSTACLE_SCHEMA,  # array of tables
     "controller": {
         "kind": (_str, "paper"),
+        "task": (_str, "position"),
+        "task_mask": (_vec, None),
+        "approach_axis": (_vec, [0.0, 0.0, 1.0]),
+        "task_weights": (_vec, None),
         "solver": (_str, DEFAULT_SOLVER),
         "kp": (_num, 100.0),
         "kv": (_num, 20.0),
@@ -184,6 +198,9 @@ SCHEMA: dict[str, Any] = {
         "posture": (_vec, None),
         "damping": (_num, DEFAULT_DAMPING),
         "damping_gain": (_num, 10.0),
+        "self_collision": (_bool, True),
+        "self_d_safe": (_num, 0.02),
+        "self_collision_pairs": (_pairs_of_names, None),
         "fallback": (_str_list, ["closed-form", "safe-stop"]),
         "tick_budget_us": (_num, 0.0),
         "broadphase": (_str, "auto"),
@@ -385,6 +402,10 @@ class Scenario:
         # Validated on load (DESIGN.md §4), not when the run starts: obstacles, robot, q0, path.
         obstacles = self.build_obstacles()
         robot = self.build_robot()
+        w = self.data["controller"]["task_weights"]
+        if w is not None and (len(w) != robot.m or not all(np.isfinite(x) and x > 0 for x in w)):
+            raise self._err("controller.task_weights", f"needs {robot.m} positive numbers (one per task row: "
+                            f"{robot.m_position} position, {robot.m_orientation} orientation), got {w}")
         q0 = self.q0(robot)
         self._check_reach(robot, self.build_path(robot, q0))
         self._check_start_clear(robot, obstacles, q0)
@@ -485,10 +506,7 @@ class Scenario:
             else:
                 kw = {"gravity": r["gravity"]} if r["gravity"] is not None else {}
                 robot = load_robot(r["kind"], **kw)
-            if r["task_axes"] is not None:
-                robot = robot.with_task_axes(r["task_axes"])
-            else:
-                robot.check_task_axes()
+            robot = self._with_task(robot)
             limits = {k: r[k] for k in ("tau_max", "v_max", "tau_rate_max", "qdd_max") if r[k] is not None}
             if limits:
                 robot = robot.with_limits(**limits)
@@ -501,6 +519,72 @@ class Scenario:
         except ConfigError as exc:
             raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key or "robot") from None
         return robot
+
+    def _with_task(self, robot: RobotModel) -> RobotModel:
+        """The robot's task rows: robot.task_axes, and controller.task's orientation rows."""
+        r, c = self.data["robot"], self.data["controller"]
+        task, mask = c["task"], c["task_mask"]
+        if task not in ("position", "pose", "approach"):
+            raise ConfigError(f"must be position, pose or approach, got {task!r}", key="controller.task")
+        if mask is not None:
+            if task != "pose":
+                raise ConfigError('applies to controller.task = "pose" only', key="controller.task_mask")
+            if r["task_axes"] is not None:
+                raise ConfigError("replaces robot.task_axes in a pose task: give one of them", key="controller.task_mask")
+            if len(mask) != 6 or any(v not in (0.0, 1.0) for v in mask):
+                raise ConfigError(f"needs 6 entries of 0 or 1 (x, y, z, rx, ry, rz), got {mask}", key="controller.task_mask")
+            if not any(mask[:3]):
+                raise ConfigError("must keep at least one position axis (x, y or z)", key="controller.task_mask")
+        if r["task_axes"] is not None:
+            robot = robot.with_task_axes(r["task_axes"])
+        elif mask is not None:
+            robot = robot.with_task_axes([i for i in range(3) if mask[i]])
+        else:
+            robot.check_task_axes()
+        p = self.data["path"]
+        for key, kinds in (("orientations", ("pose",)), ("approach", ("approach",)),
+                           ("start_orientation", ("pose", "approach"))):
+            if p[key] is not None and task not in kinds:
+                raise ConfigError(f"applies to controller.task = {' or '.join(kinds)} only", key=f"path.{key}")
+        if task == "position":
+            return robot
+        axes = [i for i in range(3) if mask is None or mask[3 + i]]
+        return robot.with_orientation(task, axes=axes, approach_axis=c["approach_axis"])
+
+    def _rotations(self, robot: RobotModel, q0: np.ndarray, count: int) -> np.ndarray:
+        """The PosePath's rotations: the start (path.start_orientation, or the task frame's at q0), then
+        one per waypoint (path.orientations for a pose, path.approach for an approach; held if absent)."""
+        import pinocchio as pin
+
+        from qpctl.orientation import approach_rotations
+
+        def rotation(quat: list[float], key: str) -> np.ndarray:
+            qv = np.asarray(quat, float)
+            if qv.shape != (4,) or not np.all(np.isfinite(qv)) or np.linalg.norm(qv) < 1e-9:
+                raise self._err(key, f"needs quaternions (x, y, z, w) of 4 finite numbers, not all 0; got {quat}")
+            return pin.Quaternion(qv[3], qv[0], qv[1], qv[2]).normalized().matrix()
+
+        p = self.data["path"]
+        if p["start_orientation"] is not None:
+            R0 = rotation(p["start_orientation"], "path.start_orientation")
+        else:
+            data = robot.model.createData()
+            pin.framesForwardKinematics(robot.model, data, q0)
+            R0 = data.oMf[robot.ee_frame_id].rotation.copy()
+        given = p["orientations"] if robot.orientation == "pose" else p["approach"]
+        key = "path.orientations" if robot.orientation == "pose" else "path.approach"
+        if given is None:
+            return np.array([R0] * count)
+        if len(given) != count - 1:
+            raise self._err(key, f"needs one entry per waypoint ({count - 1}), got {len(given)}")
+        if robot.orientation == "pose":
+            return np.array([R0] + [rotation(qv, key) for qv in given])
+        if any(len(d) != 3 for d in given):
+            raise self._err(key, "needs approach directions of 3 numbers (world frame)")
+        try:
+            return approach_rotations(R0, robot.approach_axis, np.array(given))
+        except ConfigError as exc:
+            raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=key) from None
 
     def q0(self, robot: RobotModel) -> np.ndarray:
         q0 = self.data["robot"]["q0"]
@@ -529,11 +613,14 @@ class Scenario:
             pin.framesForwardKinematics(robot.model, data, q0)
             start = data.oMf[robot.ee_frame_id].translation[list(robot.task_axes)].copy()
         pts = [list(start)] + p["waypoints"]
-        if any(len(w) != robot.m for w in pts):
-            raise self._err("path.waypoints", f"each point needs {robot.m} coordinates for robot {robot.name}")
+        if any(len(w) != robot.m_position for w in pts):
+            raise self._err("path.waypoints", f"each point needs {robot.m_position} coordinates for robot {robot.name}")
+        timing = {"duration": p["duration"], "durations": p["durations"], "start_time": p["start_time"],
+                  "dwell": p["dwell"]}
         try:
-            return WaypointPath(pts, duration=p["duration"], durations=p["durations"], start_time=p["start_time"],
-                                dwell=p["dwell"])
+            if robot.m_orientation:
+                return PosePath(pts, self._rotations(robot, q0, len(pts)), **timing)
+            return WaypointPath(pts, **timing)
         except ConfigError as exc:
             raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key) from None
 

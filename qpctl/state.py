@@ -24,6 +24,18 @@ from qpctl.robot.model import RobotModel
 
 
 @dataclass
+class SelfPairState:
+    """The self-collision pairs at one tick (copies): distance [m], ḣ's row nᵀ(J_p − J_q) (k, n),
+    ḣ [m/s] and ḧ at q̈ = 0 [m/s²]."""
+
+    distance: np.ndarray
+    normal: np.ndarray
+    row: np.ndarray
+    hdot: np.ndarray
+    drift: np.ndarray
+
+
+@dataclass
 class TickState:
     """Quantities at (q, v, t); n joints, m task coordinates, L links, k pairs within the cutoff.
 
@@ -46,6 +58,8 @@ class TickState:
     pair_drift: np.ndarray  # (k, 3) J̇_p q̇ of the link witness points
     clearance: float  # least signed distance over the pairs (inf when none within the cutoff)
     timing: dict[str, float] = field(default_factory=dict)  # stage wall times [µs]
+    R: np.ndarray | None = None  # (3, 3) the task frame's rotation (world), where the task has orientation rows
+    self_pairs: SelfPairState | None = None  # where the controller keeps links apart
     _barrier_drift: np.ndarray | None = field(default=None, repr=False)  # (k,) set by the workspace
     _dynamics: Dynamics | None = field(default=None, repr=False)
     _jdot: np.ndarray | None = field(default=None, repr=False)
@@ -121,6 +135,7 @@ class Dynamics:
         self.obstacles = list(obstacles)
         self.cutoff = float(cutoff)
         self.broadphase = broadphase
+        self.self_pairs: tuple[tuple[int, int], ...] = ()  # capsule pairs whose distances the state includes
         self._workspace: Any = None
         self._jdot_data = robot.model.createData()
 
@@ -131,7 +146,7 @@ class Dynamics:
             from qpctl.tick import Workspace
 
             self._workspace = Workspace(self.robot, self.obstacles, None, None, self.cutoff,
-                                        broadphase=self.broadphase, barrier_drift=True)
+                                        broadphase=self.broadphase, barrier_drift=True, self_pairs=self.self_pairs)
         return self._workspace
 
     @property

@@ -25,15 +25,16 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
+from qpctl.errors import ConfigError
 from qpctl.geometry.distance import DistanceEngine, PairSet
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels import tick as K
 from qpctl.kernels.work import FIELDS, new_tick_work
 from qpctl.law import LawGains, LawTerms
-from qpctl.paths import Reference, WaypointPath
+from qpctl.paths import PosePath, Reference, WaypointPath
 from qpctl.qp import Problem
 from qpctl.robot.model import RobotModel
-from qpctl.state import TickState
+from qpctl.state import SelfPairState, TickState
 
 GRID_MIN_OBSTACLES = 32  # the broad-phase grid is used above this many static obstacles (broadphase=None)
 GRID_MAX_CELLS = 2_000_000
@@ -96,6 +97,8 @@ class QPSpec:
     joint_limits: tuple[np.ndarray, ...] | None  # q_min, q_max, v_max, k0, k1, kv, qdd_max
     barrier: tuple[int, float, float, bool] | None  # capacity, k0, k1, rigid drift
     row_names: list[str]
+    self_barrier: tuple[float, float, float] | None = None  # k0, k1, d_safe of the self-collision rows
+    task_weights: np.ndarray | None = None  # (m,) the task rows' weights (None: 1)
 
 
 class QPBuffers:
@@ -162,7 +165,7 @@ class Workspace:
 
     def __init__(self, robot: RobotModel, obstacles: Sequence[Obstacle], path: object, gains: LawGains | None,
                  cutoff: float, *, spec: QPSpec | None = None, broadphase: bool | None = None,
-                 barrier_drift: bool = False) -> None:
+                 barrier_drift: bool = False, self_pairs: Sequence[tuple[int, int]] = ()) -> None:
         model = robot.model
         self.robot, self.model = robot, model
         self.data = model.createData()
@@ -183,6 +186,27 @@ class Workspace:
         self.ee_local = np.array(frame.placement.translation, float)
         self.ee_support = _supports(model, self.ee_joint)
         self.axes = np.array(robot.task_axes, dtype=np.int64)
+        self.ee_rot = robot.ee_rotation
+        if robot.orientation == "pose":
+            self.ori_rows = np.array(robot.orientation_axes, dtype=np.int64)
+        elif robot.orientation == "approach":
+            self.ori_rows = np.array([3, 4], dtype=np.int64)
+        else:
+            self.ori_rows = np.zeros(0, dtype=np.int64)
+        self.ori_basis = robot.approach_basis()
+        self.ori_axis = np.asarray(robot.approach_axis, float).copy()
+        self.ee_R, self.ee_w = np.eye(3), np.zeros(6)
+        self.task_w = np.ones(m)
+        if spec is not None and spec.task_weights is not None:
+            if spec.task_weights.shape != (m,):
+                raise ConfigError(f"needs {m} weights (one per task row), got {spec.task_weights.size}",
+                                  key="controller.task_weights")
+            self.task_w = np.asarray(spec.task_weights, float).copy()
+        P = len(self_pairs)
+        self.sc_pairs = np.array(self_pairs, dtype=np.int64).reshape(P, 2)
+        self.sc_d, self.sc_n, self.sc_row = np.full(P, np.inf), np.zeros((P, 3)), np.zeros((P, n))
+        self.sc_hdot, self.sc_drift = np.zeros(P), np.zeros(P)
+        m_p = robot.m_position
         # scene
         kinds = {"sphere": K.KIND_SPHERE, "capsule": K.KIND_CAPSULE}
         self.ob_kind = np.array([kinds.get(o.shape, K.KIND_FCL) for o in self.obstacles], dtype=np.int64)
@@ -213,7 +237,14 @@ class Workspace:
             self.path_pts, self.path_t0, self.path_T = (np.ascontiguousarray(a, dtype=float)
                                                         for a in (path.points, path.starts, path.durations))
         else:  # None, or any callable t → Reference (evaluated in Python each tick)
-            self.path_pts, self.path_t0, self.path_T = np.zeros((2, m)), np.zeros(1), np.ones(1)
+            self.path_pts, self.path_t0, self.path_T = np.zeros((2, m_p)), np.zeros(1), np.ones(1)
+        if isinstance(path, PosePath):
+            self.rot_pts, self.rot_theta = np.ascontiguousarray(path.rotations), np.ascontiguousarray(path.theta)
+        else:
+            self.rot_pts, self.rot_theta = np.tile(np.eye(3), (2, 1, 1)), np.zeros((1, 3))
+            if len(self.ori_rows) and path is not None:
+                raise ConfigError("an orientation task needs a PosePath (a rotation at every point)",
+                                  key="path.orientations")
         # gains and settings
         fp, ip = self.fpar, self.ipar
         g = gains if gains is not None else LawGains()
@@ -230,7 +261,8 @@ class Workspace:
         self.tau_prev, self.t_prev = np.full(n, np.nan), np.full(1, np.nan)
         self.q_min, self.q_max, self.v_max = np.full(n, -np.inf), np.full(n, np.inf), np.full(n, np.inf)
         self.qdd_max = np.full(n, np.inf)
-        ip[K.IP_TORQUE_ROW0] = ip[K.IP_BARRIER_ROW0] = -1
+        ip[K.IP_TORQUE_ROW0] = ip[K.IP_BARRIER_ROW0] = ip[K.IP_SELF_ROW0] = -1
+        self.fpar[K.FP_SELF_CLEARANCE] = np.inf
         capacity = 0
         if spec is not None:
             capacity = self._settings(spec)
@@ -284,6 +316,10 @@ class Workspace:
             elif name == "obstacles":
                 ip[K.IP_BARRIER_ROW0] = row
                 capacity = count
+            elif name == "self_collision":
+                if count != len(self.sc_pairs):
+                    raise ValueError("the self-collision rows and the workspace's pairs differ")
+                ip[K.IP_SELF_ROW0] = row
             row += count
         ip[K.IP_N_IN] = row
         if spec.torque is not None:
@@ -295,6 +331,8 @@ class Workspace:
                                                                 for a in (q_min, q_max, v_max, qdd_max))
             fp[K.FP_JK0], fp[K.FP_JK1], fp[K.FP_JKV] = k0, k1, kv
             ip[K.IP_JOINT_LIMITS] = 1
+        if spec.self_barrier is not None:
+            fp[K.FP_SK0], fp[K.FP_SK1], fp[K.FP_SDS] = spec.self_barrier
         if spec.barrier is not None:
             cap, k0, k1, rigid = spec.barrier
             ip[K.IP_CAPACITY] = cap
@@ -423,7 +461,11 @@ class Workspace:
         return TickState(float(self.fpar[K.FP_T]), self.q.copy(), self.v.copy(), self.M.copy(), self.N.copy(),
                          self.x.copy(), self.xdot.copy(), self.J.copy(), self.drift.copy(), self.link_jac.copy(),
                          self.segments.copy(), pairs, self.pr_jac[:k].copy(), self.pr_drift[:k].copy(),
-                         float(self.fpar[K.FP_CLEARANCE]), _barrier_drift=bdrift)
+                         float(self.fpar[K.FP_CLEARANCE]), _barrier_drift=bdrift,
+                         R=self.ee_R.copy() if len(self.ori_rows) else None,
+                         self_pairs=SelfPairState(self.sc_d.copy(), self.sc_n.copy(), self.sc_row.copy(),
+                                                  self.sc_hdot.copy(), self.sc_drift.copy())
+                         if len(self.sc_pairs) else None)
 
     def reference(self) -> Reference:
         """x_d, ẋ_d, ẍ_d of the last tick (copies)."""
@@ -440,18 +482,22 @@ class WorldClearance:
     simulator records as the world's clearance (negative when penetrating). Closed form for spheres
     and capsules (:func:`qpctl.kernels.tick.min_distance`), python-fcl for the other shapes."""
 
-    def __init__(self, robot: RobotModel, obstacles: Sequence[Obstacle]) -> None:
-        self.ws = Workspace(robot, obstacles, None, None, math.inf)
+    def __init__(self, robot: RobotModel, obstacles: Sequence[Obstacle],
+                 self_pairs: Sequence[tuple[int, int]] = ()) -> None:
+        self.ws = Workspace(robot, obstacles, None, None, math.inf, self_pairs=self_pairs)
         others = [o for o in obstacles if o.shape not in ("sphere", "capsule")]
         self._fcl = DistanceEngine(self.ws.cap_radius, others, broadphase=False) if others else None
         self.any = bool(obstacles)
+        self.self_clearance = math.inf  # [m] between the self pairs' capsules, at the last call
 
     def __call__(self, q: np.ndarray, t: float) -> float:
-        if not self.any:
+        if not self.any and not len(self.ws.sc_pairs):
             return math.inf
         ws = self.ws
         pin.forwardKinematics(ws.model, ws.data, np.asarray(q, float))
         best = float(K.min_distance(ws.work, float(t)))
+        if len(ws.sc_pairs):
+            self.self_clearance = float(K.min_self_distance(ws.work))
         if self._fcl is not None:
             self._fcl.update(ws.segments, t)
             best = min(best, self._fcl.min_distance())

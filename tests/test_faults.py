@@ -385,3 +385,17 @@ def test_the_readmes_faults_example_is_a_valid_table():
     scen = Scenario.from_dict({**tomllib.loads((Path(__file__).resolve().parents[1] / "qpctl" / "scenarios"
                                                 / "paper.toml").read_text()), **raw})
     assert scen.faults() == Faults(**raw["faults"]) and scen.faults().active
+
+
+def test_an_orientation_task_with_self_collision_rows_is_recorded_alike_through_the_faulty_loop():
+    """panda_harvest (position + approach axis, self-collision rows): drives that saturate at inf switch
+    the faulty loop on and change nothing, so it records what the ideal loop does — x as the position
+    columns, the quaternions, the orientation error and the self clearance."""
+    runs = [simulate(Scenario.load("panda_harvest", ["sim.duration=0.3"] + extra), kind="qp").trajectory
+            for extra in ([], ["faults.torque_saturation=inf"])]
+    ideal, faulty = runs
+    assert ideal.tau_command is None and faulty.tau_command is not None
+    assert faulty.x.shape == (301, 3) and faulty.quat is not None and faulty.self_clearance is not None
+    for name in ("q", "tau", "clearance", "self_clearance", "quat", "quat_ref", "orientation_error_deg", "x_ref"):
+        np.testing.assert_array_equal(getattr(faulty, name), getattr(ideal, name))
+    np.testing.assert_allclose(faulty.x, ideal.x, rtol=0, atol=1e-14)

@@ -288,6 +288,21 @@ def _orthonormal(rng: np.random.Generator, n: int, m: int) -> np.ndarray:
 PINV_CASES = ["full", "below", "above", "far_below", "duplicate_row", "zero_row", "zero"]
 
 
+def _pinv_case(rng: np.random.Generator, case: str, m: int, n: int, eps: float) -> np.ndarray:
+    """An m × n matrix of the PINV_CASES kind ``case`` (see the test below)."""
+    s = np.sort(rng.uniform(0.5, 3.0, m))[::-1] * 10 ** rng.uniform(-2, 2)
+    if m > 1:
+        s[-1] = {"below": 0.99 * eps, "above": 1.01 * eps, "far_below": 1e-6}.get(case, s[-1] / s[0]) * s[0]
+    A = (_orthonormal(rng, m, m) * s) @ _orthonormal(rng, n, m).T
+    if case == "duplicate_row" and m > 1:
+        A[-1] = A[0] * rng.uniform(0.5, 2.0)
+    if case == "zero_row" and m > 1:
+        A[-1] = 0.0
+    if case == "zero":
+        A[:] = 0.0
+    return A
+
+
 @pytest.mark.parametrize("case", PINV_CASES)
 def test_pinv_t_equals_numpy_svd_damped_pseudo_inverse(case):
     """pinv_t against weighted_pinv (numpy's LAPACK SVD, same damping) for m = 1..6 rows, n = m..9
@@ -300,16 +315,7 @@ def test_pinv_t_equals_numpy_svd_damped_pseudo_inverse(case):
     for m in range(1, 7):
         for n in range(m, 10):
             for _ in range(3):
-                s = np.sort(rng.uniform(0.5, 3.0, m))[::-1] * 10 ** rng.uniform(-2, 2)
-                if m > 1:
-                    s[-1] = {"below": 0.99 * eps, "above": 1.01 * eps, "far_below": 1e-6}.get(case, s[-1] / s[0]) * s[0]
-                A = (_orthonormal(rng, m, m) * s) @ _orthonormal(rng, n, m).T
-                if case == "duplicate_row" and m > 1:
-                    A[-1] = A[0] * rng.uniform(0.5, 2.0)
-                if case == "zero_row" and m > 1:
-                    A[-1] = 0.0
-                if case == "zero":
-                    A[:] = 0.0
+                A = _pinv_case(rng, case, m, n, eps)
                 B = np.ascontiguousarray(A.T)
                 V, out = np.full((m, m), 5.0), np.full((n, m), 7.0)
                 singular, ratio = S.pinv_t(B, eps, V, out)
@@ -333,6 +339,41 @@ def test_pinv_t_equals_numpy_svd_damped_pseudo_inverse(case):
                     assert singular
                 checked += 1
     assert checked == 3 * sum(10 - m for m in range(1, 7))
+
+
+@pytest.mark.parametrize("case", PINV_CASES)
+def test_pinv_t_normal_equals_pinv_t(case):
+    """pinv_t_normal (the normal equations where the bound certainly says undamped) against pinv_t on
+    the same matrices as above: the same singular flag, the same inverse to 1e-9 relative (cond ≤
+    1/eps: the normal equations lose at most cond² · 1e-16); the fast path taken on the full-rank
+    cases with σ_min/σ_max ≥ m·eps, pinv_t's own result (B overwritten) near and below the threshold."""
+    rng = np.random.default_rng(SEED + 40 + PINV_CASES.index(case))
+    eps = 1e-3
+    fast = 0
+    for m in range(1, 7):
+        for n in range(m, 10):
+            for _ in range(3):
+                A = _pinv_case(rng, case, m, n, eps)
+                B1, B2 = np.ascontiguousarray(A.T), np.ascontiguousarray(A.T)
+                o1, o2 = np.full((n, m), 7.0), np.full((n, m), 7.0)
+                s1, _ = S.pinv_t(B1, eps, np.zeros((m, m)), o1)
+                s2, bound = S.pinv_t_normal(B2, eps, np.zeros((m, m)), o2)
+                assert s1 == s2, f"m={m} n={n}: singular {s2} != {s1}"
+                np.testing.assert_allclose(o2, o1, rtol=0, atol=1e-9 * max(np.abs(o1).max(), 1e-300))
+                G = A @ A.T  # the fast path's condition, from numpy
+                lam = np.linalg.eigvalsh(G)
+                took_fast = bool(lam[0] > 1e-12 * max(lam[-1], 1e-300)
+                                 and np.sqrt(1 / (np.trace(G) * np.trace(np.linalg.inv(G)))) >= eps)
+                fast += took_fast
+                if took_fast:  # the bound: a lower bound on σ_min/σ_max, at least eps; B kept
+                    sv = np.linalg.svd(A, compute_uv=False)
+                    assert eps <= bound <= sv[-1] / sv[0] * (1 + 1e-9) and np.array_equal(B2, A.T)
+    if case == "full":
+        assert fast == 3 * sum(10 - m for m in range(1, 7))
+    if case in ("below", "far_below"):
+        assert fast == 3 * 9  # m = 1 only (a single row is never singular unless zero)
+    if case == "zero":
+        assert fast == 0
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -1008,7 +1049,7 @@ def test_qp_assembly_equals_formulation(key):
     rng = np.random.default_rng(SEED + 60)
     ctrl = qp_controller(key)
     names = [c.name for c in ctrl.constraints]
-    assert names == ["torque_limits", "joint_limits", "obstacles"], names
+    assert names == ["torque_limits", "joint_limits", "obstacles", "self_collision"], names
     assert ("posture" in [t.name for t in ctrl.tasks]) == key.startswith("paper")
     form = ctrl.formulation()
     barrier_rows = form.barrier_rows

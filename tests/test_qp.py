@@ -29,7 +29,8 @@ def scenario(obstacles: list[dict], **overrides: object) -> Scenario:
         "path": {"waypoints": [[1.0, -1.5]], "duration": 1.5},
         "obstacles": obstacles,
         # the paper's cost alone (no damping of the self-motion): the exact reduction these tests check
-        "controller": {"kind": "qp", "v_ref": 0.5, "d_influence": 0.3, "d_safe": 0.05, "damping": 0.0},
+        "controller": {"kind": "qp", "v_ref": 0.5, "d_influence": 0.3, "d_safe": 0.05, "damping": 0.0,
+                       "self_collision": False},
         "sim": {"dt": 0.002, "duration": 1.6},
     }
     return Scenario.from_dict(raw, overrides=[f"{k}={v}" for k, v in overrides.items()])
@@ -323,7 +324,7 @@ def test_qp_config_defaults_match_scenario_schema():
 def test_qp_without_obstacles_or_limits_equals_paper_on_random_states():
     """Random states, no constraints at all and no damping task: QP == paper law (the pure reduction)."""
     scen = Scenario.from_dict({"robot": {"kind": "planar3"}, "path": {"waypoints": [[1.0, -1.5]], "duration": 2.0},
-                               "controller": {"kind": "qp", "damping": 0.0}})
+                               "controller": {"kind": "qp", "damping": 0.0, "self_collision": False}})
     qp: QPController = scen.build_controller("qp")
     paper: PaperController = scen.build_controller("paper")
     assert qp.constraints == []

@@ -506,7 +506,7 @@ DRIFTING_INTO_THE_ARM = {
                            [-1.1985889318640504, -1.2269898509944486]], "duration": 2.744890155922677},
     "obstacles": [{"shape": "sphere", "position": [-1.0197062132309942, -0.4771797095878284, 0.0],
                    "radius": 0.1141377817851334, "velocity": [0.29506753811185, 0.037349027167102644, 0.0]}],
-    "controller": {"kind": "qp", "solver": "quadprog", "damping": 0.0, "kp": 202.44698389719898, "kv": 33.63035195596057,
+    "controller": {"kind": "qp", "solver": "quadprog", "damping": 0.0, "self_collision": False, "kp": 202.44698389719898, "kv": 33.63035195596057,
                    "kn": 1.5424848428808846, "v_ref": 0.5087639820325691, "d_safe": 0.05402102257055946,
                    "d_influence": 0.44134817960398104, "barrier_k1": 20.0, "barrier_k0": 84.45230828951159,
                    "tick_budget_us": 5000.0},

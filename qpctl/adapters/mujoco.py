@@ -52,7 +52,7 @@ from qpctl.controllers.base import Controller
 from qpctl.errors import ConfigError, SimulationError
 from qpctl.geometry.obstacles import Obstacle, rotation_z_to
 from qpctl.robot.model import RobotModel
-from qpctl.simulation.simulator import Trajectory
+from qpctl.simulation.simulator import Trajectory, finish_trajectory, measured_self_pairs
 from qpctl.tick import WorldClearance
 
 try:
@@ -303,7 +303,7 @@ class MujocoSimulator:
                 bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, obs.name or f"obstacle{i}")
                 if bid >= 0 and model.body_mocapid[bid] >= 0:
                     self._mocap.append((int(model.body_mocapid[bid]), obs))
-        self._world = WorldClearance(self.robot, controller.obstacles)
+        self._world = WorldClearance(self.robot, controller.obstacles, measured_self_pairs(controller))
 
     def clearance(self, q: np.ndarray, t: float) -> float:
         """Exact least link–obstacle distance [m] at (q, t), as the built-in simulator measures it."""
@@ -339,6 +339,7 @@ class MujocoSimulator:
         rec = {k: np.zeros((steps, n)) for k in ("q", "v", "tau", "e_null")}
         rec.update({k: np.zeros((steps, m)) for k in ("x", "x_ref", "xd_ref", "xdd_ref")})
         t_arr, clear, tick_us = np.zeros(steps), np.zeros(steps), np.zeros(steps)
+        self_clear = np.full(steps, np.inf)
         singular = np.zeros(steps, bool)
         infos: list[dict[str, Any]] = []
         ctrl, data = self.controller, self.data
@@ -363,6 +364,7 @@ class MujocoSimulator:
             rec["x"][k], rec["x_ref"][k] = out.x, out.ref.x
             rec["xd_ref"][k], rec["xdd_ref"][k] = out.ref.xd, out.ref.xdd
             clear[k] = self.clearance(q, t)
+            self_clear[k] = self._world.self_clearance
             tick_us[k] = out.compute_us
             singular[k] = out.singular
             infos.append(out.info)
@@ -373,5 +375,8 @@ class MujocoSimulator:
                 self._move_obstacles(t + self.dt)
                 if self._diverged():
                     raise SimulationError(f"MuJoCo state diverged at t = {t + self.dt:.4f} s")
-        return Trajectory(t_arr, rec["q"], rec["v"], rec["tau"], rec["x"], rec["x_ref"], rec["xd_ref"],
+        traj = Trajectory(t_arr, rec["q"], rec["v"], rec["tau"], rec["x"], rec["x_ref"], rec["xd_ref"],
                           rec["xdd_ref"], clear, rec["e_null"], tick_us, singular, infos)
+        if len(self._world.ws.sc_pairs):
+            traj.self_clearance = self_clear
+        return finish_trajectory(traj, ctrl)

@@ -11,12 +11,16 @@
   approximation nᵀ(J̇_p q̇ − a_obs) of DESIGN.md §2 (``drift="rigid"``), which leaves out a term of
   order ρω² (ρ the distance from the link's joint, ω its angular rate) and so lets a fast-turning
   link settle a few millimetres inside d_s. A fixed number of rows: inactive rows have −inf bounds.
+* :class:`SelfCollisionBarrier` — the same rows between pairs of the arm's own link capsules
+  (:mod:`qpctl.geometry.self_collision` says which), both moving: ḣ = nᵀ(J_p − J_q)q̇ and the exact
+  drift of two rotating capsules (:func:`qpctl.kernels.tick.self_pairs`).
 """
 
 from __future__ import annotations
 
 import contextlib
 from abc import ABC, abstractmethod
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -185,3 +189,32 @@ class ObstacleBarrier(Constraint):
         C[:r] = rows
         lower[:r] = rhs
         return Inequality(C, lower, upper)
+
+
+class SelfCollisionBarrier(Constraint):
+    """ḧ + k₁ḣ + k₀(h − d_s) ≥ 0 for each of ``pairs`` (capsule indices) nearer than the controller's
+    influence distance, one row per pair; h the distance between the two capsules [m], d_s [m]."""
+
+    name = "self_collision"
+
+    def __init__(self, pairs: Sequence[tuple[int, int]], d_safe: float, *, k0: float = 400.0,
+                 k1: float = 40.0) -> None:
+        if not pairs:
+            raise ConfigError("needs at least one pair of links", key="controller.self_collision_pairs")
+        if not (np.isfinite(d_safe) and d_safe >= 0):
+            raise ConfigError(f"must be a distance >= 0, got {d_safe}", key="controller.self_d_safe")
+        self.pairs = tuple((int(i), int(j)) for i, j in pairs)
+        self.rows = len(self.pairs)
+        self.d_safe = float(d_safe)
+        self.k0 = _positive("controller.barrier_k0", k0)
+        self.k1 = _positive("controller.barrier_k1", k1)
+        self.cutoff = np.inf  # set by the controller: its influence distance
+
+    def compute(self, state: TickState, terms: LawTerms) -> Inequality:
+        sp = state.self_pairs
+        if sp is None or sp.distance.shape[0] != self.rows:
+            raise ValueError("this TickState was built without this constraint's self-collision pairs")
+        near = sp.distance < self.cutoff
+        C = np.where(near[:, None], sp.row, 0.0)
+        lower = np.where(near, -self.k1 * sp.hdot - self.k0 * (sp.distance - self.d_safe) - sp.drift, -np.inf)
+        return Inequality(C, lower, np.full(self.rows, np.inf))

@@ -35,7 +35,7 @@ from qpctl.errors import ConfigError, InvalidStateError
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels import tick as K
 from qpctl.law import LawGains
-from qpctl.paths import Reference, WaypointPath
+from qpctl.paths import PosePath, Reference, WaypointPath
 from qpctl.robot.model import RobotModel
 from qpctl.state import Dynamics, TickState, validate_state
 from qpctl.tick import RecordLayout, Workspace
@@ -169,14 +169,29 @@ class Controller(ABC):
         if any(o.v_ref is not None for o in self.obstacles):
             own = tuple(float("nan") if o.v_ref is None else float(o.v_ref) for o in self.obstacles)
             self.gains = dataclasses.replace(self.gains, obstacle_v_ref=own)
-        if path.dim != robot.m:
-            raise ConfigError(f"path points have {path.dim} coordinates but the robot's task has {robot.m}",
-                              key="path.waypoints")
+        if path.dim != robot.m_position:
+            raise ConfigError(f"path points have {path.dim} coordinates but the robot's task has "
+                              f"{robot.m_position}", key="path.waypoints")
+        if robot.m_orientation and not isinstance(path, PosePath):
+            raise ConfigError(f"the {robot.orientation} task needs a PosePath (a rotation at every point)",
+                              key="path.orientations")
         self.broadphase = broadphase
         self.dynamics = Dynamics(robot, self.obstacles, cutoff=self.cutoff, broadphase=broadphase)
         self.last: ControlOutput | None = None
         self._ws: Workspace | None = None
         self.warm = False  # warmup() has run
+
+    def reference(self, state: TickState) -> Reference:
+        """The task's reference at the state's time [s] (m rows): the path's point, then the
+        orientation rows (:mod:`qpctl.orientation`), which depend on the state's orientation."""
+        ref = self.path(state.t)
+        if not self.robot.m_orientation:
+            return ref
+        from qpctl.orientation import orientation_reference
+
+        assert isinstance(self.path, PosePath) and state.R is not None
+        rows = orientation_reference(self.robot, state.R, *self.path.orientation(state.t))  # the kernel's too
+        return Reference(*(np.concatenate([a, b]) for a, b in zip(ref, rows)))
 
     @property
     def cutoff(self) -> float:

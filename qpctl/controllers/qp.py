@@ -36,11 +36,18 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from qpctl.constraints.constraints import Constraint, JointLimit, ObstacleBarrier, TorqueLimit
+from qpctl.constraints.constraints import (
+    Constraint,
+    JointLimit,
+    ObstacleBarrier,
+    SelfCollisionBarrier,
+    TorqueLimit,
+)
 from qpctl.controllers.base import Controller, ControlOutput, RecordOutput, TickStatus, fast_state
 from qpctl.errors import ConfigError, InvalidStateError
 from qpctl.formulation import Formulation
 from qpctl.geometry.obstacles import Obstacle
+from qpctl.geometry.self_collision import named_pairs, self_collision_pairs
 from qpctl.kernels import tick as K
 from qpctl.law import LawGains, LawTerms, closed_form_acceleration, law_terms
 from qpctl.paths import WaypointPath
@@ -141,6 +148,10 @@ class QPConfig:
     posture / posture_weight: an optional PostureTask.
     damping [1], damping_gain [1/s]: the DampingTask's relative weight ρ and gain K_d (ρ = 0: none,
     the QP then reduces exactly to the paper law where no inequality is active).
+    task_weights: one per task row (> 0): how much more a row's slack costs (EndEffectorTask).
+    self_collision: keep the arm's own links ``self_d_safe`` [m] apart (a SelfCollisionBarrier on
+    the pairs :func:`qpctl.geometry.self_collision.self_collision_pairs` keeps, or on
+    ``self_collision_pairs``, pairs of link names), with the obstacle barrier's gains.
     """
 
     solver: str = DEFAULT_SOLVER
@@ -163,6 +174,10 @@ class QPConfig:
     posture_weight: float = 0.0
     damping: float = DEFAULT_DAMPING
     damping_gain: float = 10.0
+    task_weights: list[float] | None = None
+    self_collision: bool = True
+    self_d_safe: float = 0.02
+    self_collision_pairs: list[list[str]] | None = None
 
     def __post_init__(self) -> None:
         if isinstance(self.fallback, str) or not all(isinstance(x, str) for x in self.fallback):
@@ -227,8 +242,8 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
     if len(kinds) != 2 + kinds.count(PostureTask) + kinds.count(DampingTask):
         return None
     ckinds = [type(c) for c in constraints]
-    if any(ckinds.count(k) > 1 for k in ckinds) or not all(k in (TorqueLimit, JointLimit, ObstacleBarrier)
-                                                           for k in ckinds):
+    if any(ckinds.count(k) > 1 for k in ckinds) or not all(
+            k in (TorqueLimit, JointLimit, ObstacleBarrier, SelfCollisionBarrier) for k in ckinds):
         return None
     acc = next(t for t in tasks if isinstance(t, AccelerationTask))
     ee = next(t for t in tasks if isinstance(t, EndEffectorTask))
@@ -252,6 +267,8 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
                                                  joint.qdd_max),
         barrier=None if barrier is None else (barrier.rows, barrier.k0, barrier.k1, barrier.drift == "rigid"),
         row_names=[c.name for c in constraints for _ in range(c.rows)],
+        self_barrier=next(((c.k0, c.k1, c.d_safe) for c in constraints if isinstance(c, SelfCollisionBarrier)), None),
+        task_weights=ee.weights,
     )
 
 
@@ -279,7 +296,7 @@ class QPController(Controller):
         self._tick_start: float | None = None
         self._hard_first = self.relaxation == "on_failure"
         if tasks is None:
-            tasks = [AccelerationTask(), EndEffectorTask(cfg.slack_l1, cfg.slack_l2)]
+            tasks = [AccelerationTask(), EndEffectorTask(cfg.slack_l1, cfg.slack_l2, cfg.task_weights)]
             if cfg.posture_weight > 0:
                 tasks.append(PostureTask(cfg.posture if cfg.posture is not None else robot.q_home,
                                          cfg.posture_weight))
@@ -297,6 +314,16 @@ class QPController(Controller):
                 cap = cfg.max_pairs or len(robot.capsules) * min(len(self.obstacles), 4)
                 constraints.append(ObstacleBarrier(cap, self.gains.d_safe, k0=cfg.barrier_k0, k1=cfg.barrier_k1,
                                                    drift=cfg.barrier_drift))
+            if cfg.self_collision:
+                pairs = (named_pairs(robot, cfg.self_collision_pairs) if cfg.self_collision_pairs is not None
+                         else self_collision_pairs(robot, cfg.self_d_safe))
+                if pairs.pairs:
+                    constraints.append(SelfCollisionBarrier(pairs.pairs, cfg.self_d_safe, k0=cfg.barrier_k0,
+                                                            k1=cfg.barrier_k1))
+        selfc = next((c for c in constraints if isinstance(c, SelfCollisionBarrier)), None)
+        if selfc is not None:  # the Python path's states carry these pairs' distances
+            self.dynamics.self_pairs = selfc.pairs
+            selfc.cutoff = self.cutoff
         self.tasks: list[Task] = list(tasks)
         self.constraints: list[Constraint] = list(constraints)
         self._formulation: Formulation | None = None
@@ -371,8 +398,12 @@ class QPController(Controller):
 
     def _make_workspace(self) -> Workspace:
         spec = compiled_spec(self.tasks, self.constraints, self.n)
+        selfc = next((c for c in self.constraints if isinstance(c, SelfCollisionBarrier)), None)
+        if selfc is not None:
+            selfc.cutoff = self.cutoff
         return Workspace(self.robot, self.obstacles, self.path, self.gains, self.cutoff, spec=spec,
-                         broadphase=self.broadphase, barrier_drift=spec is None)
+                         broadphase=self.broadphase, barrier_drift=spec is None,
+                         self_pairs=selfc.pairs if selfc is not None else ())
 
     @property
     def last_problem(self) -> Problem | None:
@@ -781,7 +812,7 @@ class QPController(Controller):
         budget = self.config.tick_budget_us
         start = self._tick_start if self._tick_start is not None else t0
         deadline = start + budget * 1e-6 if budget > 0 else np.inf
-        ref = self.path(state.t)
+        ref = self.reference(state)
         terms = law_terms(state, ref, self.gains, weighted=True)
         form = self.formulation()
         hard_first = self.relaxation == "on_failure"

@@ -168,3 +168,55 @@ def pinv_t(B: np.ndarray, eps: float, V: np.ndarray, out: np.ndarray) -> tuple[b
             for j in range(m):
                 out[i, j] += bik * V[j, k]
     return singular, smin / smax
+
+
+@njit(cache=True)
+def pinv_t_normal(B: np.ndarray, eps: float, V: np.ndarray, out: np.ndarray) -> tuple[bool, float]:
+    """:func:`pinv_t`, by the normal equations where that is certainly undamped: A⁺ = B (BᵀB)⁻¹ by
+    Cholesky when the lower bound √(1/(tr G · tr G⁻¹)) ≤ σ_min/σ_max of G = BᵀB = A Aᵀ (tr G ≥ λ_max,
+    tr G⁻¹ ≥ 1/λ_min) is at least ``eps`` (then :func:`pinv_t` would not damp either); otherwise, and
+    where G is not positive definite, :func:`pinv_t` itself. The bound is loose by at most a factor
+    m, so the Jacobi SVD runs only within a factor m of the damping threshold. Returns (singular,
+    that lower bound) on the fast path, :func:`pinv_t`'s pair otherwise; B is kept on the fast path."""
+    n, m = B.shape
+    G = np.empty((m, m))
+    tr = 0.0
+    for p in range(m):
+        for q in range(p + 1):
+            s = 0.0
+            for i in range(n):
+                s += B[i, p] * B[i, q]
+            G[p, q] = G[q, p] = s
+        tr += G[p, p]
+    if not (tr > 0.0 and cholesky(G, V)):
+        return pinv_t(B, eps, V, out)
+    # tr G⁻¹ = ‖L⁻¹‖_F², column by column of L⁻¹ (forward substitution on the unit vectors)
+    col = np.empty(m)
+    tr_inv = 0.0
+    for j in range(m):
+        for i in range(m):
+            s = 1.0 if i == j else 0.0
+            for k in range(j, i):
+                s -= V[i, k] * col[k]
+            col[i] = s / V[i, i] if i >= j else 0.0
+            if i >= j:
+                tr_inv += col[i] * col[i]
+    bound = math.sqrt(1.0 / (tr * tr_inv))
+    if bound < eps:
+        return pinv_t(B, eps, V, out)
+    # out = B G⁻¹, row by row: G y = B[i, :]
+    y = np.empty(m)
+    for i in range(n):
+        for j in range(m):
+            s = B[i, j]
+            for k in range(j):
+                s -= V[j, k] * y[k]
+            y[j] = s / V[j, j]
+        for j in range(m - 1, -1, -1):
+            s = y[j]
+            for k in range(j + 1, m):
+                s -= V[k, j] * y[k]
+            y[j] = s / V[j, j]
+        for j in range(m):
+            out[i, j] = y[j]
+    return False, bound

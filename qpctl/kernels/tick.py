@@ -30,7 +30,15 @@ import numpy as np
 from numba import njit, types
 
 from qpctl.kernels.geometry import contact_frame, segment_params, sphere_bound
-from qpctl.kernels.small import add_trace_ridge, chol_solve, cholesky, pinv_t, solve_lower, solve_lower_t
+from qpctl.kernels.rotation import exp3, log3, matmul3, matmul3_bt
+from qpctl.kernels.small import (
+    add_trace_ridge,
+    chol_solve,
+    cholesky,
+    pinv_t_normal,
+    solve_lower,
+    solve_lower_t,
+)
 from qpctl.solvers.daqp_native import UPDATE_ALL, daqp_solve, update_ldp
 
 # The process's monotonic clock (time.perf_counter's) inside kernels: stage timings without a return
@@ -47,11 +55,12 @@ PAIR_OK, PAIR_FCL, PAIR_FAR = 0, 1, 2
 FP_KP, FP_KV, FP_KN, FP_VREF, FP_DI, FP_DS, FP_GDAMP, FP_PINV_EPS, FP_CUTOFF = range(9)
 FP_BK0, FP_BK1, FP_JK0, FP_JK1, FP_JKV, FP_SL1, FP_SL2, FP_WACC, FP_WPOST, FP_PKP, FP_PKD = range(9, 20)
 FP_GRID_H, FP_CLEARANCE, FP_T, FP_DAMP, FP_DAMP_KD = 20, 21, 22, 23, 24
-FP_SIZE = 25
+FP_SK0, FP_SK1, FP_SDS, FP_SELF_CLEARANCE = 25, 26, 27, 28
+FP_SIZE = 29
 # Int settings (TickWork.ipar)
 IP_JDOT_EN, IP_DRIFT_RIGID, IP_CAPACITY, IP_TORQUE_ROW0, IP_BARRIER_ROW0, IP_JOINT_LIMITS = range(6)
-IP_POSTURE, IP_N_IN, IP_BDRIFT, IP_DAMPING = range(6, 10)
-IP_SIZE = 10
+IP_POSTURE, IP_N_IN, IP_BDRIFT, IP_DAMPING, IP_SELF_ROW0 = range(6, 11)
+IP_SIZE = 11
 # Counters (TickWork.cnt)
 CNT_PAIRS, CNT_FCL, CNT_LOOKAHEAD, CNT_DROPPED = range(4)
 CNT_SIZE = 4
@@ -164,6 +173,10 @@ def rigid_terms(ws, v: np.ndarray) -> bool:  # type: ignore[no-untyped-def]
             J[r, k] = J3[ax, k]
             s += J3[ax, k] * v[k]
         xdot[r] = s
+    if ws.ori_rows.shape[0]:  # the frame's R, ω, α₀ for the orientation rows (orientation_reference)
+        _frame_rotation(ws)
+        for c in range(3):
+            ws.ee_w[c], ws.ee_w[3 + c] = vel[3 + c], acc[3 + c]
     # capsules
     cap_joint, cap_local, cap_support = ws.cap_joint, ws.cap_local, ws.cap_support
     segments, body_jac, body_vel = ws.segments, ws.body_jac, ws.body_vel
@@ -195,6 +208,84 @@ def rigid_terms(ws, v: np.ndarray) -> bool:  # type: ignore[no-untyped-def]
     return True
 
 
+@njit(cache=True)
+def _frame_rotation(ws) -> None:  # type: ignore[no-untyped-def]
+    """ws.ee_R = the task frame's world rotation (its joint's, times the frame's in the joint)."""
+    P, Rl, R = ws.oMi, ws.ee_rot, ws.ee_R
+    j = ws.ee_joint
+    for r in range(3):
+        for c in range(3):
+            R[r, c] = P[j, r] * Rl[0, c] + P[j, r + 3] * Rl[1, c] + P[j, r + 6] * Rl[2, c]
+
+
+@njit(cache=True)
+def _cross(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    out[0], out[1], out[2] = a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
+
+
+@njit(cache=True)
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@njit(cache=True)
+def _rotate(R: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    for r in range(3):
+        out[r] = R[r, 0] * b[0] + R[r, 1] * b[1] + R[r, 2] * b[2]
+
+
+@njit(cache=True)
+def orientation_reference(ws, k: int, s: float, ds: float, dds: float) -> None:  # type: ignore[no-untyped-def]
+    """The orientation rows (qpctl.orientation) on path segment k at s, ṡ [1/s], s̈ [1/s²]: R_d, ω_d,
+    ω̇_d of the PosePath, then each row's x, ẋ, J, J̇q̇ (from the frame's R, ω, α₀ of
+    :func:`rigid_terms`) and x_d, ẋ_d, ẍ_d."""
+    th = ws.rot_theta[k]
+    wd, ad, sv = np.empty(3), np.empty(3), np.empty(3)
+    for c in range(3):
+        wd[c] = ds * th[c]
+        ad[c] = dds * th[c]
+        sv[c] = s * th[c]
+    E, Rd = np.empty((3, 3)), np.empty((3, 3))
+    exp3(sv, E)
+    matmul3(E, ws.rot_pts[k], Rd)  # R_d = exp(s θ_k) R_k
+    R, Jt, support = ws.ee_R, ws.Jt, ws.ee_support
+    n, m_p = Jt.shape[0], ws.axes.shape[0]
+    w, a0 = ws.ee_w[:3], ws.ee_w[3:]
+    u, err = np.empty(3), np.empty(3)
+    if ws.ori_rows.shape[0] and ws.ori_rows[0] < 3:  # pose: world axes, x = 0, x_d = log(R_d Rᵀ)
+        matmul3_bt(Rd, R, E)
+        log3(E, err)
+        for i in range(ws.ori_rows.shape[0]):
+            r, c = m_p + i, ws.ori_rows[i]
+            ws.x[r], ws.xdot[r], ws.drift[r] = 0.0, w[c], a0[c]
+            for j in range(n):
+                ws.J[r, j] = Jt[j, 3 + c] * support[j]
+            ws.ref[0, r], ws.ref[1, r], ws.ref[2, r] = err[c], wd[c], ad[c]
+        return
+    # approach: y_k = v_k·z with z = R c, v_k = R_d b_k; J = (z × v_k)ᵀJ_ω, exact (qpctl.orientation)
+    z, v, zw, vd, zdot, t1 = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    _rotate(R, ws.ori_axis, z)
+    _cross(w, z, zdot)  # ż = ω × z
+    dw = np.empty(3)
+    for c in range(3):
+        dw[c] = w[c] - wd[c]
+    for i in range(ws.ori_rows.shape[0]):
+        r = m_p + i
+        _rotate(Rd, ws.ori_basis[ws.ori_rows[i] - 3], v)
+        _cross(z, v, zw)  # z × v_k
+        _cross(wd, v, vd)  # v̇_k = ω_d × v_k
+        ws.x[r] = _dot(v, z)
+        ws.xdot[r] = _dot(zw, w)
+        _cross(zdot, v, u)  # ż × v_k
+        _cross(z, vd, t1)  # z × v̇_k
+        ws.drift[r] = _dot(zw, a0) + _dot(u, dw) + _dot(t1, w)
+        for j in range(n):
+            ws.J[r, j] = (zw[0] * Jt[j, 3] + zw[1] * Jt[j, 4] + zw[2] * Jt[j, 5]) * support[j]
+        ws.ref[0, r] = 0.0
+        ws.ref[1, r] = _dot(zw, wd)
+        ws.ref[2, r] = _dot(t1, wd) + _dot(zw, ad)
+
+
 # ---------------------------------------------------------------------------------------------------
 # Scene and reference at t
 # ---------------------------------------------------------------------------------------------------
@@ -213,7 +304,8 @@ def obstacles_at(ws, t: float) -> None:  # type: ignore[no-untyped-def]
 
 @njit(cache=True)
 def reference(ws, t: float) -> None:  # type: ignore[no-untyped-def]
-    """x_d, ẋ_d, ẍ_d at t [s] into ws.ref: straight segments with quintic timing (WaypointPath)."""
+    """x_d, ẋ_d, ẍ_d at t [s] into ws.ref: straight segments with quintic timing (WaypointPath), and
+    the orientation rows' (PosePath, after :func:`rigid_terms`)."""
     t0, T_all = ws.path_t0, ws.path_T
     nseg = T_all.shape[0]
     k = 0
@@ -237,6 +329,8 @@ def reference(ws, t: float) -> None:  # type: ignore[no-untyped-def]
         ws.ref[0, r] = pts[k, r] + s * delta
         ws.ref[1, r] = (ds / T) * delta
         ws.ref[2, r] = (dds / T**2) * delta
+    if ws.ori_rows.shape[0]:
+        orientation_reference(ws, k, s, ds / T, dds / T**2)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -458,6 +552,122 @@ def finish_pairs(ws) -> int:  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
+def _body_point(ws, i: int, p: np.ndarray, vel: np.ndarray, acc: np.ndarray) -> None:  # type: ignore[no-untyped-def]
+    """Velocity and q̈ = 0 acceleration of the point p fixed to capsule i's body."""
+    bv, K, o = ws.body_vel[i], ws.acc_K[i], ws.acc_off[i]
+    vel[0] = bv[0] + bv[4] * p[2] - bv[5] * p[1]
+    vel[1] = bv[1] + bv[5] * p[0] - bv[3] * p[2]
+    vel[2] = bv[2] + bv[3] * p[1] - bv[4] * p[0]
+    for c in range(3):
+        acc[c] = o[c] + K[c, 0] * p[0] + K[c, 1] * p[1] + K[c, 2] * p[2]
+
+
+@njit(cache=True)
+def self_pairs(ws) -> None:  # type: ignore[no-untyped-def]
+    """Every self-collision pair's distance and normal, and, for those within the cutoff, ḣ's row and ḧ
+    at q̈ = 0 (the least distance into fpar[FP_SELF_CLEARANCE]).
+
+    As in :func:`barrier_drift`, with both capsules moving: p = a + τu on capsule i's axis, q = c + σs
+    on capsule j's, w = p − q, ρ = |w|, n = w/ρ, h = ρ − r_i − r_j; ḣ = nᵀ(v_p − v_q) (the body points'
+    velocities: n ⊥ u, s where τ, σ are free), ḧ = nᵀẅ + (|ẇ|² − (nᵀẇ)²)/ρ with ẇ = v_p − v_q + τ̇u − σ̇s
+    and nᵀẅ = nᵀ(a_p − a_q) + 2τ̇ nᵀu̇ − 2σ̇ nᵀṡ, u̇ = ω_i × u, ṡ = ω_j × s; τ̇, σ̇ from the closest-point
+    conditions wᵀu = wᵀs = 0. Where the axes are parallel or meet, the rigid part nᵀ(a_p − a_q) alone.
+    """
+    P = ws.sc_pairs.shape[0]
+    n = ws.v.shape[0]
+    cut = ws.fpar[FP_CUTOFF]
+    seg, cap_support = ws.segments, ws.cap_support
+    Jp, Jq = np.empty((3, n)), np.empty((3, n))
+    p, q, vp, vq, ap, aq = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    best = np.inf
+    for r in range(P):
+        i, j = ws.sc_pairs[r, 0], ws.sc_pairs[r, 1]
+        a, c = seg[i, 0], seg[j, 0]
+        ux, uy, uz = seg[i, 1, 0] - a[0], seg[i, 1, 1] - a[1], seg[i, 1, 2] - a[2]
+        sx, sy, sz = seg[j, 1, 0] - c[0], seg[j, 1, 1] - c[1], seg[j, 1, 2] - c[2]
+        uu = ux * ux + uy * uy + uz * uz
+        tau, sigma = segment_params(a[0], a[1], a[2], ux, uy, uz, uu, c[0], c[1], c[2], sx, sy, sz)
+        p[0], p[1], p[2] = a[0] + tau * ux, a[1] + tau * uy, a[2] + tau * uz
+        q[0], q[1], q[2] = c[0] + sigma * sx, c[1] + sigma * sy, c[2] + sigma * sz
+        wx, wy, wz = p[0] - q[0], p[1] - q[1], p[2] - q[2]
+        rho = math.sqrt(wx * wx + wy * wy + wz * wz)
+        d = rho - ws.cap_radius[i] - ws.cap_radius[j]
+        ws.sc_d[r] = d
+        best = min(best, d)
+        if rho > 1e-12:
+            nx, ny, nz = wx / rho, wy / rho, wz / rho
+        else:  # the axes meet: any direction normal to both (the distance is not differentiable here)
+            nx, ny, nz = uy * sz - uz * sy, uz * sx - ux * sz, ux * sy - uy * sx
+            nn = math.sqrt(nx * nx + ny * ny + nz * nz)
+            nx, ny, nz = (nx / nn, ny / nn, nz / nn) if nn > 1e-12 else (0.0, 0.0, 1.0)
+        ws.sc_n[r, 0], ws.sc_n[r, 1], ws.sc_n[r, 2] = nx, ny, nz
+        if not d < cut:  # beyond the influence distance: no row this tick (self_rows), nothing more
+            continue
+        _point_jacobian(ws, cap_support[i], p, Jp)
+        _point_jacobian(ws, cap_support[j], q, Jq)
+        hdot = 0.0
+        for k in range(n):
+            val = nx * (Jp[0, k] - Jq[0, k]) + ny * (Jp[1, k] - Jq[1, k]) + nz * (Jp[2, k] - Jq[2, k])
+            ws.sc_row[r, k] = val
+            hdot += val * ws.v[k]
+        ws.sc_hdot[r] = hdot
+        _body_point(ws, i, p, vp, ap)
+        _body_point(ws, j, q, vq, aq)
+        rigid = nx * (ap[0] - aq[0]) + ny * (ap[1] - aq[1]) + nz * (ap[2] - aq[2])
+        wi, wj = ws.body_vel[i], ws.body_vel[j]
+        udx, udy, udz = wi[4] * uz - wi[5] * uy, wi[5] * ux - wi[3] * uz, wi[3] * uy - wi[4] * ux  # ω_i × u
+        sdx, sdy, sdz = wj[4] * sz - wj[5] * sy, wj[5] * sx - wj[3] * sz, wj[3] * sy - wj[4] * sx  # ω_j × s
+        dvx, dvy, dvz = vp[0] - vq[0], vp[1] - vq[1], vp[2] - vq[2]
+        L2, S2 = uu, sx * sx + sy * sy + sz * sz
+        t_free = L2 > 1e-18 and 1e-9 < tau < 1.0 - 1e-9
+        s_free = S2 > 1e-18 and 1e-9 < sigma < 1.0 - 1e-9
+        e1 = -(dvx * ux + dvy * uy + dvz * uz + wx * udx + wy * udy + wz * udz)
+        e2 = -(dvx * sx + dvy * sy + dvz * sz + wx * sdx + wy * sdy + wz * sdz)
+        us = ux * sx + uy * sy + uz * sz
+        tau_dot = sigma_dot = 0.0
+        ok = rho > 1e-9
+        if t_free and s_free:
+            det = us * us - L2 * S2
+            if abs(det) <= 1e-9 * L2 * S2:
+                ok = False
+            else:
+                tau_dot, sigma_dot = (us * e2 - S2 * e1) / det, (L2 * e2 - us * e1) / det
+        elif t_free:
+            tau_dot = e1 / L2
+        elif s_free:
+            sigma_dot = -e2 / S2
+        if not ok:
+            ws.sc_drift[r] = rigid
+            continue
+        wdx = dvx + tau_dot * ux - sigma_dot * sx
+        wdy = dvy + tau_dot * uy - sigma_dot * sy
+        wdz = dvz + tau_dot * uz - sigma_dot * sz
+        nw = nx * wdx + ny * wdy + nz * wdz
+        ws.sc_drift[r] = (rigid + 2.0 * tau_dot * (nx * udx + ny * udy + nz * udz)
+                          - 2.0 * sigma_dot * (nx * sdx + ny * sdy + nz * sdz)
+                          + (wdx * wdx + wdy * wdy + wdz * wdz - nw * nw) / rho)
+    ws.fpar[FP_SELF_CLEARANCE] = best
+
+
+@njit(cache=True)
+def self_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no-untyped-def]
+    """ḧ + k₁ḣ + k₀(h − d_s) ≥ 0 for the self-collision pairs within the cutoff (the rest inactive:
+    zero rows, −∞ bounds), as the obstacle barrier's rows (:func:`barrier_rows`)."""
+    n = ws.v.shape[0]
+    k0, k1, ds, cut = ws.fpar[FP_SK0], ws.fpar[FP_SK1], ws.fpar[FP_SDS], ws.fpar[FP_CUTOFF]
+    for r in range(C.shape[0]):
+        d = ws.sc_d[r]
+        if d < cut:
+            for c in range(n):
+                C[r, c] = ws.sc_row[r, c]
+            lower[r] = -k1 * ws.sc_hdot[r] - k0 * (d - ds) - ws.sc_drift[r]
+        else:
+            for c in range(n):
+                C[r, c] = 0.0
+            lower[r] = -np.inf
+
+
+@njit(cache=True)
 def state(ws, q: np.ndarray, v: np.ndarray, t: float) -> int:  # type: ignore[no-untyped-def]
     """The tick's state after ``computeAllTerms(q, v)``: rigid terms, obstacles and reference at t,
     pairs. Returns −1 when the dynamics overflow, else the number of pairs python-fcl must query
@@ -467,6 +677,8 @@ def state(ws, q: np.ndarray, v: np.ndarray, t: float) -> int:  # type: ignore[no
     ws.fpar[FP_T] = t
     if not rigid_terms(ws, v):
         return -1
+    if ws.sc_pairs.shape[0]:
+        self_pairs(ws)
     obstacles_at(ws, t)
     reference(ws, t)
     nfcl = find_pairs(ws)
@@ -533,7 +745,7 @@ def _weighted_pinv(ws, L: np.ndarray, out: np.ndarray, mode: int) -> bool:  # ty
         solve_lower(L, Bt)  # J̃ᵀ = L⁻¹ Jᵀ
     elif mode == 2:
         chol_solve(L, Bt)  # J̃ᵀ = M⁻¹ Jᵀ
-    singular, _ratio = pinv_t(Bt, ws.fpar[FP_PINV_EPS], ws.Vm, out)
+    singular, _ratio = pinv_t_normal(Bt, ws.fpar[FP_PINV_EPS], ws.Vm, out)
     if mode == 1:
         solve_lower_t(L, out)  # L⁻ᵀ J̃⁺
     elif mode == 2:
@@ -755,9 +967,10 @@ def qp_build(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray,
     # J q̈ + s = a (EndEffectorTask)
     e0 = nv + n_in
     for r in range(m):
+        w = ws.task_w[r]
         for k in range(n):
-            rows[n_in + r, k] = ws.J[r, k]
-        bu[e0 + r] = bl[e0 + r] = ws.a[r]
+            rows[n_in + r, k] = w * ws.J[r, k]
+        bu[e0 + r] = bl[e0 + r] = w * ws.a[r]
     # −τ_max ≤ M q̈ + N ≤ τ_max and |M q̈ + N − τ_prev| ≤ τ̇_max dt (TorqueLimit)
     t0 = ws.ipar[IP_TORQUE_ROW0]
     if t0 >= 0:
@@ -774,6 +987,11 @@ def qp_build(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray,
     b0 = ws.ipar[IP_BARRIER_ROW0]
     if b0 >= 0:
         barrier_rows(ws, rows[b0:b0 + ws.ipar[IP_CAPACITY]], bl[nv + b0:nv + b0 + ws.ipar[IP_CAPACITY]])
+    # the same between the arm's own links (SelfCollisionBarrier)
+    s0 = ws.ipar[IP_SELF_ROW0]
+    if s0 >= 0:
+        P = ws.sc_pairs.shape[0]
+        self_rows(ws, rows[s0:s0 + P], bl[nv + s0:nv + s0 + P])
 
 
 @njit(cache=True)
@@ -1084,4 +1302,24 @@ def min_distance(ws, t: float) -> float:  # type: ignore[no-untyped-def]
             wy = ay + tl * uy - (c0y + to * sy)
             wz = az + tl * uz - (c0z + to * sz)
             best = min(best, math.sqrt(wx * wx + wy * wy + wz * wz) - ws.cap_radius[i] - ws.ob_radius[j])
+    return best
+
+
+@njit(cache=True)
+def min_self_distance(ws) -> float:  # type: ignore[no-untyped-def]
+    """The least distance [m] between the self-collision pairs' capsules, from the segments that
+    :func:`min_distance` left in ws (a simulator's self clearance)."""
+    seg = ws.segments
+    best = np.inf
+    for r in range(ws.sc_pairs.shape[0]):
+        i, j = ws.sc_pairs[r, 0], ws.sc_pairs[r, 1]
+        a, c = seg[i, 0], seg[j, 0]
+        ux, uy, uz = seg[i, 1, 0] - a[0], seg[i, 1, 1] - a[1], seg[i, 1, 2] - a[2]
+        sx, sy, sz = seg[j, 1, 0] - c[0], seg[j, 1, 1] - c[1], seg[j, 1, 2] - c[2]
+        tl, to = segment_params(a[0], a[1], a[2], ux, uy, uz, ux * ux + uy * uy + uz * uz, c[0], c[1], c[2],
+                                sx, sy, sz)
+        wx = a[0] + tl * ux - (c[0] + to * sx)
+        wy = a[1] + tl * uy - (c[1] + to * sy)
+        wz = a[2] + tl * uz - (c[2] + to * sz)
+        best = min(best, math.sqrt(wx * wx + wy * wy + wz * wz) - ws.cap_radius[i] - ws.cap_radius[j])
     return best

@@ -43,7 +43,12 @@ FIELDS = (
     "ee_joint",  # int: the task frame's parent joint
     "ee_local",  # (3,) task point in that joint's frame [m]
     "ee_support",  # (n,)
-    "axes",  # (m,) int: the world axes of the task
+    "axes",  # (m_p,) int: the world axes of the task's position rows
+    "ee_rot",  # (3, 3) the task frame's rotation in its parent joint's frame
+    "ori_rows",  # (m_o,) int: the orientation rows after the position rows, 0–2 a pose's world axis,
+    #              3–4 an approach's row k = 1, 2 (qpctl.orientation)
+    "ori_basis",  # (2, 3) b_1, b_2 ⟂ the approach axis, in the task frame
+    "ori_axis",  # (3,) the approach axis c in the task frame
     # -- scene, built once (O obstacles) -------------------------------------------------------------
     "ob_kind",  # (O,) int: KIND_SPHERE, KIND_CAPSULE or KIND_FCL (python-fcl's shapes)
     "ob_radius",  # (O,) [m]
@@ -61,7 +66,9 @@ FIELDS = (
     "grid_items",  # (entries,) int: static obstacles overlapping each cell
     "stamp",  # (O,) int: last link that saw obstacle j as a candidate (deduplicates grid hits)
     # -- path (WaypointPath: K segments with quintic timing) ----------------------------------------
-    "path_pts",  # (K + 1, m) [m]
+    "path_pts",  # (K + 1, m_p) [m]
+    "rot_pts",  # (K + 1, 3, 3) a PosePath's rotations (world frame; unused without orientation rows)
+    "rot_theta",  # (K, 3) its segments' rotation vectors log(R_{k+1} R_kᵀ) [rad]
     "path_t0",  # (K,) segment start times [s]
     "path_T",  # (K,) segment durations [s]
     # -- gains and settings --------------------------------------------------------------------------
@@ -85,10 +92,13 @@ FIELDS = (
     # -- per tick: rigid-body terms ------------------------------------------------------------------
     "M",  # (n, n) symmetric inertia [kg·m²]
     "N",  # (n,) [N·m]
-    "x",  # (m,) task point [m]
-    "xdot",  # (m,) [m/s]
+    "x",  # (m,) task point [m] (0 on orientation rows: coordinates centred at the current R)
+    "xdot",  # (m,) [m/s] (ω's components [rad/s] on orientation rows)
     "J",  # (m, n)
-    "drift",  # (m,) J̇q̇ [m/s²]
+    "drift",  # (m,) J̇q̇ [m/s²] ([rad/s²] on orientation rows)
+    "ee_R",  # (3, 3) the task frame's rotation in the world
+    "ee_w",  # (6,) its angular velocity ω [rad/s] and q̈ = 0 angular acceleration α₀ [rad/s²] (world)
+    "task_w",  # (m,) the task rows' weights in the QP (EndEffectorTask.weights; 1 by default)
     "Jdot",  # (m, n) J̇, filled by Python only when the law's J̇e_N term is on
     "segments",  # (L, 2, 3) capsule axes in the world [m]
     "body_jac",  # (L, 6, n) world Jacobians of the capsules' bodies
@@ -111,6 +121,13 @@ FIELDS = (
     "pr_bok",  # (KC,) int: 1 where pr_bdrift is in closed form, 0 where Python's look-ahead fills it
     "order",  # (KC,) int: pairs by distance, nearest first
     "cnt",  # (CNT_SIZE,) int counters, indexed by the CNT_* constants
+    # -- self-collision pairs (P capsule pairs, fixed at build) ----------------------------------------
+    "sc_pairs",  # (P, 2) int: capsule indices i < j
+    "sc_d",  # (P,) distance between the capsules [m]
+    "sc_n",  # (P, 3) unit normal from capsule j's axis to capsule i's
+    "sc_row",  # (P, n) nᵀ(J_p − J_q): ḣ = sc_row q̇
+    "sc_hdot",  # (P,) [m/s]
+    "sc_drift",  # (P,) ḧ at q̈ = 0 [m/s²]
     # -- per tick: law terms -------------------------------------------------------------------------
     "e",  # (m,) x_d − x [m]
     "edot",  # (m,) [m/s]

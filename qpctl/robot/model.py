@@ -71,6 +71,10 @@ class RobotModel:
         tau_rate_max: the drives' torque-rate limits [N·m/s] (inf where unlimited): between two
             commands dt apart, ``|τ_k − τ_{k−1}| ≤ tau_rate_max · dt``.
         qdd_max: joint acceleration limits [rad/s² or m/s²] (inf where unlimited), ``|q̈| ≤ qdd_max``.
+        orientation: the task frame's orientation rows after the position rows: ``"none"``;
+            ``"pose"`` — its rotation about the world axes ``orientation_axes`` (the log map of
+            R_d Rᵀ); ``"approach"`` — the direction of ``approach_axis`` (a unit vector in the task
+            frame) only, 2 rows, the roll about it left free (see :mod:`qpctl.orientation`).
     """
 
     name: str
@@ -86,6 +90,9 @@ class RobotModel:
     joint_names: list[str] = field(default_factory=list)
     tau_rate_max: np.ndarray | None = None
     qdd_max: np.ndarray | None = None
+    orientation: str = "none"
+    orientation_axes: tuple[int, ...] = ()
+    approach_axis: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if self.model.nq != self.model.nv:
@@ -97,6 +104,8 @@ class RobotModel:
         for name in ("tau_rate_max", "qdd_max"):
             if getattr(self, name) is None:
                 setattr(self, name, np.full(self.nv, np.inf))
+        if self.approach_axis is None:
+            self.approach_axis = np.array([0.0, 0.0, 1.0])
         for name in ("q_min", "q_max", "v_max", "tau_max", "q_home", "tau_rate_max", "qdd_max"):
             arr = np.asarray(getattr(self, name), dtype=float).reshape(-1)
             if arr.shape != (self.nv,):
@@ -110,8 +119,49 @@ class RobotModel:
 
     @property
     def m(self) -> int:
-        """Task dimension (2 planar, 3 spatial)."""
+        """Task rows: the position's (2 planar, 3 spatial), then the orientation's (0, 2 or 3)."""
+        return len(self.task_axes) + self.m_orientation
+
+    @property
+    def m_position(self) -> int:
+        """The task's position rows (the coordinates of a path's points)."""
         return len(self.task_axes)
+
+    @property
+    def m_orientation(self) -> int:
+        """The task's orientation rows: 0, ``len(orientation_axes)`` (pose) or 2 (approach)."""
+        return {"none": 0, "pose": len(self.orientation_axes), "approach": 2}[self.orientation]
+
+    @property
+    def ee_rotation(self) -> np.ndarray:
+        """The task frame's rotation in its parent joint's frame (3, 3)."""
+        return np.array(self.model.frames[self.ee_frame_id].placement.rotation, float)
+
+    def approach_basis(self) -> np.ndarray:
+        """(2, 3) two unit vectors of the task frame orthogonal to ``approach_axis`` and to each other:
+        the directions, rotating with the gripper, of the approach task's two rows."""
+        a = np.asarray(self.approach_axis, float)
+        seed = np.eye(3)[int(np.argmin(np.abs(a)))]
+        b1 = np.cross(a, seed)
+        b1 /= np.linalg.norm(b1)
+        return np.array([b1, np.cross(a, b1)])
+
+    def with_orientation(self, kind: str, *, axes: Sequence[int] = (0, 1, 2),
+                         approach_axis: Sequence[float] = (0.0, 0.0, 1.0)) -> RobotModel:
+        """A copy whose task adds the task frame's orientation (``kind`` "pose", "approach" or "none";
+        ``axes``: the world rotation axes a pose task holds; ``approach_axis``: the gripper's approach
+        direction in the task frame)."""
+        if kind not in ("none", "pose", "approach"):
+            raise ConfigError(f"must be position, pose or approach, got {kind!r}", key="controller.task")
+        axes = tuple(int(a) for a in axes)
+        axis = np.asarray(approach_axis, float).reshape(-1)
+        if axis.shape != (3,) or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) < 1e-9:
+            raise ConfigError(f"must be a non-zero 3-vector, got {list(approach_axis)}", key="controller.approach_axis")
+        if kind == "pose" and (len(set(axes)) != len(axes) or any(not 0 <= a <= 2 for a in axes)):
+            raise ConfigError(f"pose axes must be distinct among 0, 1, 2, got {list(axes)}", key="controller.task_mask")
+        return replace(self, orientation=kind, orientation_axes=axes if kind == "pose" else (),
+                       approach_axis=axis / np.linalg.norm(axis), capsules=list(self.capsules),
+                       joint_names=list(self.joint_names))
 
     def frame_id(self, name: str) -> int:
         """Pinocchio id of frame ``name``; :class:`UnknownFrameError` lists the frames that exist."""
@@ -164,10 +214,10 @@ class RobotModel:
                     qdd_max: Sequence[float] | float | None = None) -> RobotModel:
         """Return a copy with torque, speed, torque-rate and/or acceleration limits replaced (a scalar
         applies to every joint; inf: no limit)."""
-        out = RobotModel(self.name, self.model, self.ee_frame, self.task_axes, list(self.capsules),
-                         self.q_min.copy(), self.q_max.copy(), self.v_max.copy(), self.tau_max.copy(),
-                         self.q_home.copy(), list(self.joint_names), self.tau_rate_max.copy(),  # type: ignore[union-attr]
-                         self.qdd_max.copy())  # type: ignore[union-attr]
+        out = replace(self, capsules=list(self.capsules), q_min=self.q_min.copy(), q_max=self.q_max.copy(),
+                      v_max=self.v_max.copy(), tau_max=self.tau_max.copy(), q_home=self.q_home.copy(),
+                      joint_names=list(self.joint_names), tau_rate_max=self.tau_rate_max.copy(),  # type: ignore[union-attr]
+                      qdd_max=self.qdd_max.copy())  # type: ignore[union-attr]
         for name, val in (("tau_max", tau_max), ("v_max", v_max), ("tau_rate_max", tau_rate_max), ("qdd_max", qdd_max)):
             if val is not None:
                 arr = np.asarray(val, float)

@@ -40,6 +40,11 @@ def compute_metrics(traj: Trajectory, *, d_safe: float = 0.0) -> dict[str, Any]:
         "duration_s": float(traj.t[-1]),
         "ticks": int(traj.t.size),
     }
+    if traj.self_clearance is not None:  # between the arm's own links (qpctl.geometry.self_collision's pairs)
+        out["min_self_clearance"] = _finite_or_none(float(np.min(traj.self_clearance)))
+    if traj.orientation_error_deg is not None:  # an orientation task (pose: the whole rotation; approach: the axis)
+        out["max_orientation_error_deg"] = float(np.max(traj.orientation_error_deg))
+        out["final_orientation_error_deg"] = float(traj.orientation_error_deg[-1])
     qp = [i for i in traj.infos if "status" in i]
     if qp:
         out["qp_status_counts"] = dict(Counter(str(i["status"]) for i in qp))

@@ -63,11 +63,16 @@ class Trajectory:
     tick_us: np.ndarray
     singular: np.ndarray
     infos: list[dict[str, Any]] = field(default_factory=list, repr=False)
-    tau_command: np.ndarray | None = field(default=None, repr=False)  # (T, n) the controller's, with faults
+    # with an orientation task: the task frame's orientation and its reference, quaternions (x, y, z, w)
+    quat: np.ndarray | None = None
+    quat_ref: np.ndarray | None = None
+    orientation_error_deg: np.ndarray | None = None  # (T,) the angle between them (approach: the axis's)
+    self_clearance: np.ndarray | None = None  # (T,) least distance between the self-collision pairs [m]
+    tau_command: np.ndarray | None = None  # (T, n) the controller's command, with faults (tau: what acted)
 
     ARRAYS = ("t", "q", "v", "tau", "x", "x_ref", "xd_ref", "xdd_ref", "clearance", "e_null", "tick_us",
               "singular")
-    OPTIONAL = ("tau_command",)
+    OPTIONAL = ("quat", "quat_ref", "orientation_error_deg", "self_clearance", "tau_command")
 
     def save(self, path: str | Path) -> None:
         arrays = {k: getattr(self, k) for k in self.ARRAYS}
@@ -78,6 +83,49 @@ class Trajectory:
     def load(cls, path: str | Path) -> Trajectory:
         with np.load(path) as data:
             return cls(**{k: data[k] for k in cls.ARRAYS + cls.OPTIONAL if k in data.files})
+
+
+def measured_self_pairs(controller: Controller) -> tuple[tuple[int, int], ...]:
+    """The link pairs whose distance a simulator records as the self clearance: the controller's
+    self-collision pairs, or those a default SelfCollisionBarrier would keep (for every law)."""
+    from qpctl.constraints.constraints import SelfCollisionBarrier
+    from qpctl.geometry.self_collision import self_collision_pairs
+
+    for c in getattr(controller, "constraints", ()):
+        if isinstance(c, SelfCollisionBarrier):
+            return c.pairs
+    if len(controller.robot.capsules) < 3:
+        return ()
+    return self_collision_pairs(controller.robot, SELF_D_SAFE).pairs
+
+
+SELF_D_SAFE = 0.02  # [m] QPConfig.self_d_safe's default, for the pairs measured under other laws
+
+
+def finish_trajectory(traj: Trajectory, controller: Controller) -> Trajectory:
+    """The task's position columns only in x, x_ref, ẋ_ref, ẍ_ref (the orientation rows' coordinates are
+    centred at each tick's orientation: not a trajectory), and, with an orientation task, the frame's
+    orientation and its reference as quaternions and the angle between them, from the recorded q
+    and the path (after the run, outside the tick's timing)."""
+    robot = controller.robot
+    if not robot.m_orientation:
+        return traj
+    from qpctl.orientation import orientation_error_deg
+
+    m_p = robot.m_position
+    for name in ("x", "x_ref", "xd_ref", "xdd_ref"):
+        setattr(traj, name, np.ascontiguousarray(getattr(traj, name)[:, :m_p]))
+    model, data = robot.model, robot.model.createData()
+    T = traj.t.size
+    traj.quat, traj.quat_ref, traj.orientation_error_deg = np.zeros((T, 4)), np.zeros((T, 4)), np.zeros(T)
+    for k in range(T):
+        pin.framesForwardKinematics(model, data, traj.q[k])
+        R = data.oMf[robot.ee_frame_id].rotation
+        R_d = controller.path.orientation(float(traj.t[k]))[0]  # type: ignore[attr-defined]
+        traj.quat[k] = pin.Quaternion(R).coeffs()
+        traj.quat_ref[k] = pin.Quaternion(R_d).coeffs()
+        traj.orientation_error_deg[k] = orientation_error_deg(robot, R, R_d)
+    return traj
 
 
 class Simulator:
@@ -121,7 +169,7 @@ class Simulator:
                                   key="faults.obstacle_noise")
             truth = self.faults.world(truth, self.robot.task_axes)
         self.obstacles = truth
-        self._world = WorldClearance(self.robot, truth)
+        self._world = WorldClearance(self.robot, truth, measured_self_pairs(controller))
 
     def clearance(self, q: np.ndarray, t: float) -> float:
         """Exact least distance [m] between any link and any obstacle at (q, t)."""
@@ -139,6 +187,7 @@ class Simulator:
         rec = {k: np.zeros((steps, n)) for k in ("q", "v", "tau", "e_null")}
         rec.update({k: np.zeros((steps, m)) for k in ("x", "x_ref", "xd_ref", "xdd_ref")})
         t_arr, clear, tick_us = np.zeros(steps), np.zeros(steps), np.zeros(steps)
+        self_clear = np.full(steps, np.inf)
         singular = np.zeros(steps, bool)
         infos: list[dict[str, Any]] = []
         model, data = self.robot.model, self._data
@@ -168,6 +217,7 @@ class Simulator:
             rec["x"][k], rec["x_ref"][k] = out.x, out.ref.x
             rec["xd_ref"][k], rec["xdd_ref"][k] = out.ref.xd, out.ref.xdd
             clear[k] = self.clearance(q, t)
+            self_clear[k] = self._world.self_clearance
             tick_us[k] = out.compute_us
             singular[k] = out.singular
             infos.append(out.info)
@@ -175,8 +225,11 @@ class Simulator:
                 q, v = self.integrator(accel, q, v, self.dt)
                 if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v))):
                     raise SimulationError(f"state diverged at t = {t + self.dt:.4f} s")
-        return Trajectory(t_arr, rec["q"], rec["v"], rec["tau"], rec["x"], rec["x_ref"], rec["xd_ref"],
+        traj = Trajectory(t_arr, rec["q"], rec["v"], rec["tau"], rec["x"], rec["x_ref"], rec["xd_ref"],
                           rec["xdd_ref"], clear, rec["e_null"], tick_us, singular, infos)
+        if len(self._world.ws.sc_pairs):
+            traj.self_clearance = self_clear
+        return finish_trajectory(traj, ctrl)
 
     def _run_with_faults(self, q0: np.ndarray, v0: np.ndarray | None, faults: Faults) -> Trajectory:
         """:meth:`run` through the faults: the controller steps on the measured state, the drives turn
@@ -189,12 +242,13 @@ class Simulator:
         rec = {k: np.zeros((steps, n)) for k in ("q", "v", "tau", "tau_command", "e_null")}
         rec.update({k: np.zeros((steps, m)) for k in ("x", "x_ref", "xd_ref", "xdd_ref")})
         t_arr, clear, tick_us = np.zeros(steps), np.zeros(steps), np.zeros(steps)
+        self_clear = np.full(steps, np.inf)
         singular = np.zeros(steps, bool)
         infos: list[dict[str, Any]] = []
         before, after = faults.simulated_models(robot)
         models = {False: (before, before.createData()), True: (after, after.createData())}
         kin = robot.model.createData()  # the task point's true position (kinematics: no mass involved)
-        ee, axes = robot.ee_frame_id, list(robot.task_axes)
+        ee, axes, m_p = robot.ee_frame_id, list(robot.task_axes), robot.m_position
         ctrl = self.controller
         if ctrl.warm:
             ctrl.reset()
@@ -223,10 +277,12 @@ class Simulator:
             rec["q"][k], rec["v"][k], rec["tau"][k], rec["tau_command"][k] = q, v, tau, out.tau
             rec["e_null"][k] = out.e_null
             pin.framesForwardKinematics(robot.model, kin, q)
-            rec["x"][k] = kin.oMf[ee].translation[axes]
+            rec["x"][k] = out.x  # (an orientation task's rows: finish_trajectory keeps the position's only)
+            rec["x"][k, :m_p] = kin.oMf[ee].translation[axes]
             ref = out.ref
             rec["x_ref"][k], rec["xd_ref"][k], rec["xdd_ref"][k] = ref.x, ref.xd, ref.xdd
             clear[k] = self.clearance(q, t)
+            self_clear[k] = self._world.self_clearance
             tick_us[k] = out.compute_us
             singular[k] = out.singular
             infos.append(out.info)
@@ -236,5 +292,9 @@ class Simulator:
                 if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v))):
                     raise SimulationError(f"state diverged at t = {t + self.dt:.4f} s")
         self.fault_counts = {"missed_commands": state.missed, "saturated_ticks": state.saturated}
-        return Trajectory(t_arr, rec["q"], rec["v"], rec["tau"], rec["x"], rec["x_ref"], rec["xd_ref"],
-                          rec["xdd_ref"], clear, rec["e_null"], tick_us, singular, infos, rec["tau_command"])
+        traj = Trajectory(t_arr, rec["q"], rec["v"], rec["tau"], rec["x"], rec["x_ref"], rec["xd_ref"],
+                          rec["xdd_ref"], clear, rec["e_null"], tick_us, singular, infos,
+                          tau_command=rec["tau_command"])
+        if len(self._world.ws.sc_pairs):
+            traj.self_clearance = self_clear
+        return finish_trajectory(traj, ctrl)

@@ -51,20 +51,31 @@ class EndEffectorTask(Task):
     """J q̈ = a [m/s²] (a includes the PD feedback and −J̇q̇), with slack weights ℓ₁ and ℓ₂.
 
     ``slack_l1`` [(N·m)²/(m/s²)] must exceed the task's multiplier for the slack to vanish when the
-    problem is feasible; ``slack_l1 = slack_l2 = 0`` makes the rows hard.
+    problem is feasible; ``slack_l1 = slack_l2 = 0`` makes the rows hard. ``weights`` (one per task
+    row, > 0; default 1) scale the rows, so where the task cannot all be met (a constraint binds) a
+    row of weight w gives way as if its slack cost w times more: e.g. the position over the
+    orientation. Where the task can be met the weights change nothing.
     """
 
     name = "end_effector"
 
-    def __init__(self, slack_l1: float = 1e6, slack_l2: float = 1e2) -> None:
+    def __init__(self, slack_l1: float = 1e6, slack_l2: float = 1e2, weights: Sequence[float] | None = None) -> None:
         for key, val in (("slack_l1", slack_l1), ("slack_l2", slack_l2)):
             if not (np.isfinite(val) and val >= 0):
                 raise ConfigError(f"must be a number >= 0, got {val}", key=f"controller.{key}")
         self.slack_l1 = float(slack_l1)
         self.slack_l2 = float(slack_l2)
+        self.weights = None if weights is None else np.asarray(weights, float).reshape(-1)
+        if self.weights is not None and not (np.all(np.isfinite(self.weights)) and np.all(self.weights > 0)):
+            raise ConfigError(f"must be positive numbers, got {list(weights)}", key="controller.task_weights")
 
     def compute(self, state: TickState, terms: LawTerms) -> Equality:
-        return Equality(state.J, terms.a, self.slack_l1, self.slack_l2)
+        if self.weights is None:
+            return Equality(state.J, terms.a, self.slack_l1, self.slack_l2)
+        if self.weights.shape != terms.a.shape:
+            raise ConfigError(f"needs {terms.a.size} weights (one per task row), got {self.weights.size}",
+                              key="controller.task_weights")
+        return Equality(self.weights[:, None] * state.J, self.weights * terms.a, self.slack_l1, self.slack_l2)
 
 
 class PostureTask(Task):

@@ -121,9 +121,9 @@ def scene_for(spec: dict[str, Any], golden_dir: Path = HERE) -> dict[str, Any]:
 
 # Added after the recording (issue #16), switched off in a replay: the golden ticks hold the law as
 # it was. The drives' torque-rate and acceleration limits (on by default on the Panda), and the QP's
-# damping of the self-motion (on by default).
+# damping of the self-motion (on by default), and the self-collision barrier (on by default).
 LATER_LIMITS_OFF = {"tau_rate_max": float("inf"), "qdd_max": float("inf")}
-LATER_COSTS_OFF = {"damping": 0.0}
+LATER_COSTS_OFF = {"damping": 0.0, "self_collision": False}
 
 
 def build_controller(frozen: dict[str, Any], label: str) -> Any:

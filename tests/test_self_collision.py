@@ -1,0 +1,141 @@
+"""Self-collision barriers (issue 11): the arm's own link capsules kept apart by the QP.
+
+The closed-form distances of the tick are held against python-fcl; the barrier's ḣ row and its
+drift (ḧ at q̈ = 0, both capsules turning) against central differences of the distance along the
+motion; the barrier against a posture that folds the Panda into itself.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from qpctl import ConfigError, Scenario, Simulator, WaypointPath, panda
+from qpctl.controllers.qp import QPConfig, QPController
+from qpctl.geometry.self_collision import adjacent, fcl_self_distances, named_pairs, self_collision_pairs
+
+
+@pytest.fixture(scope="module")
+def robot():
+    return panda()
+
+
+@pytest.fixture(scope="module")
+def pairs(robot):
+    return self_collision_pairs(robot, 0.02)
+
+
+def _workspace(robot, pairs):
+    path = WaypointPath([[0.3, 0.0, 0.5], [0.4, 0.0, 0.4]], duration=1.0)
+    return QPController(robot, path, []).workspace(), path
+
+
+def test_pairs_leave_out_adjacent_and_always_close_links(robot, pairs):
+    """Every kept pair is non-adjacent and clear at home by python-fcl; every left-out pair has its
+    reason, and the adjacent ones are exactly the joint–parent pairs."""
+    L = len(robot.capsules)
+    assert len(pairs.pairs) + len(pairs.excluded) == L * (L - 1) // 2
+    home = fcl_self_distances(robot, robot.q_home, pairs.pairs)
+    assert np.all(home > 0.02)
+    for (i, j), why in pairs.excluded.items():
+        assert (why == "adjacent") == adjacent(robot, i, j)
+        if why == "within d_safe at home":
+            assert fcl_self_distances(robot, robot.q_home, [(i, j)])[0] < 0.02 + 1e-3
+    assert all(not adjacent(robot, i, j) for i, j in pairs.pairs)
+    assert len(pairs.pairs) >= 10  # the Panda: 13 of 21
+
+
+def test_named_pairs_and_bad_names(robot):
+    assert named_pairs(robot, [["panda_joint5", "panda_joint1"]]).pairs == ((0, 4),)
+    with pytest.raises(ConfigError) as info:
+        named_pairs(robot, [["panda_joint1", "nope"]])
+    assert info.value.key == "controller.self_collision_pairs"
+
+
+def test_distances_match_python_fcl(robot, pairs):
+    """The tick's closed-form capsule–capsule distances against python-fcl's, 30 random states."""
+    ws, _ = _workspace(robot, pairs)
+    assert tuple(map(tuple, ws.sc_pairs)) == pairs.pairs
+    rng = np.random.default_rng(7)
+    compared = 0
+    for _ in range(30):
+        q = rng.uniform(robot.q_min, robot.q_max)
+        assert ws.state(q, np.zeros(7), 0.0) == 0
+        ref = fcl_self_distances(robot, q, pairs.pairs)
+        apart = ref > 1e-4  # python-fcl reports overlap as no distance
+        np.testing.assert_allclose(ws.sc_d[apart], ref[apart], atol=1e-6)
+        compared += int(apart.sum())
+    assert compared > 300
+
+
+def test_barrier_rate_and_drift_are_the_distance_derivatives(robot, pairs):
+    """ḣ = row·q̇ and ḧ(q̈ = 0) = drift against central differences of the kernel's own distance along
+    q(s) = q + s q̇ (Pinocchio's integrate), at random moving states, for pairs within 0.3 m."""
+    ws, _ = _workspace(robot, pairs)
+    rng = np.random.default_rng(8)
+    h = 1e-6
+    checked = 0
+
+    def at(q, v, s):
+        ws.state(pin.integrate(robot.model, q, v * s), v, 0.0)
+        return ws.sc_d.copy(), ws.sc_hdot.copy()
+
+    for _ in range(25):
+        q, v = rng.uniform(robot.q_min + 0.2, robot.q_max - 0.2), rng.normal(size=7)
+        ws.state(q, v, 0.0)
+        d, row, hdot, drift = ws.sc_d.copy(), ws.sc_row.copy(), ws.sc_hdot.copy(), ws.sc_drift.copy()
+        near = (d > 1e-3) & (d < 0.3)  # rows and drifts are computed within the cutoff only
+        np.testing.assert_allclose(hdot[near], row[near] @ v, atol=1e-12)
+        (dp, hp), (dm, hm) = at(q, v, h), at(q, v, -h)
+        np.testing.assert_allclose(hdot[near], ((dp - dm) / (2 * h))[near], atol=1e-5)
+        fd = ((hp - hm) / (2 * h))[near]
+        assert np.all(np.abs(drift[near] - fd) <= 1e-4 * (1 + np.abs(fd))), (drift[near], fd)
+        checked += int(near.sum())
+    assert checked >= 20, checked
+
+
+# A Panda configuration where capsules of a kept pair (links 1 and 6) overlap, half-way to which from
+# home they are apart: a posture task pulling the arm there folds it into itself (checked below).
+Q_FOLD = np.array([0.226, -1.245, -2.549, -2.874, 1.433, 3.275, -1.984])
+
+
+def test_folding_posture_is_stopped_at_self_d_safe(robot, pairs):
+    """The end effector sent where Q_FOLD puts it and a posture task pulling toward Q_FOLD: without
+    the self-collision rows links 1 and 6 pass into each other (python-fcl), with them the least
+    distance stays ≥ self_d_safe − 1 mm on every tick, the task giving way."""
+    assert fcl_self_distances(robot, Q_FOLD, pairs.pairs).min() < -0.005
+    data = robot.model.createData()
+    x = []
+    for q in (robot.q_home, Q_FOLD):
+        pin.framesForwardKinematics(robot.model, data, q)
+        x.append(data.oMf[robot.ee_frame_id].translation.copy())
+    path = WaypointPath(x, duration=2.0)
+    result = {}
+    for on in (False, True):
+        ctrl = QPController(robot, path, [], config=QPConfig(self_collision=on, posture=list(Q_FOLD),
+                                                               posture_weight=50.0))
+        traj = Simulator(ctrl, dt=1e-3, duration=3.0).run(robot.q_home)
+        ref = np.array([fcl_self_distances(robot, traj.q[k], pairs.pairs).min() for k in range(0, len(traj.t), 10)])
+        result[on] = ref.min()
+        # the simulator's self clearance is the same distance (closed form against python-fcl)
+        np.testing.assert_allclose(traj.self_clearance[::10][ref > 1e-4], ref[ref > 1e-4], atol=1e-6)
+    assert result[False] < -0.01
+    assert result[True] >= 0.02 - 1e-3, result
+
+
+def test_scenario_keys_and_metric(tmp_path):
+    scen = Scenario.load("panda_canopy", ["sim.duration=0.1", 'controller.self_collision_pairs=[["panda_joint1", "panda_joint5"]]'])
+    ctrl = scen.build_controller("qp")
+    sc = [c for c in ctrl.constraints if c.name == "self_collision"]
+    assert len(sc) == 1 and sc[0].pairs == ((0, 4),)
+    off = Scenario.load("panda_canopy", ["controller.self_collision=false"]).build_controller("qp")
+    assert "self_collision" not in [c.name for c in off.constraints]
+    with pytest.raises(ConfigError) as info:
+        Scenario.load("panda_canopy", ['controller.self_collision_pairs=[["panda_joint1"]]'])
+    assert info.value.key == "controller.self_collision_pairs"
+    from qpctl.run import simulate
+
+    run = simulate(Scenario.load("panda_canopy", ["sim.duration=0.2"]), kind="qp")
+    assert run.metrics["min_self_clearance"] == pytest.approx(np.min(run.trajectory.self_clearance))
+    assert run.metrics["min_self_clearance"] > 0.02
