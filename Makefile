@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: all env demo test soak bench bench-quick harvest lint clean
+.PHONY: all env demo test soak robust bench bench-quick harvest lint clean
 
 all: test
 
@@ -26,6 +26,10 @@ test: $(STAMP)
 
 soak: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m pytest -q -m slow -p no:cacheprovider
+
+# Every fault kind at three levels, paper / hsu / qp on 22 seeded scenes (README: Faults and robustness).
+robust: $(STAMP)
+	MPLBACKEND=Agg $(PY) -m benchmarks.robustness --out results/robust
 
 bench: $(STAMP)
 	MPLBACKEND=Agg $(VENV)/bin/qpctl bench --out results/bench

@@ -21,7 +21,7 @@ from qpctl.linalg import PseudoInverse, weighted_pinv
 from qpctl.paths import Reference, WaypointPath
 from qpctl.robot import LinkCapsule, RobotModel, load_robot, panda, planar_arm
 from qpctl.scenario import Scenario, packaged_scenarios
-from qpctl.simulation import Simulator, Trajectory, compute_metrics
+from qpctl.simulation import Faults, Simulator, Trajectory, compute_metrics
 from qpctl.state import Dynamics, TickState
 
 __version__ = "0.1.0"
@@ -32,6 +32,7 @@ __all__ = [
     "Controller",
     "DistanceEngine",
     "Dynamics",
+    "Faults",
     "InfeasibleError",
     "InvalidStateError",
     "LawGains",

@@ -45,11 +45,24 @@ def link_segments(controller: Controller, q: np.ndarray) -> np.ndarray:
 
 def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None = None,
              simulator: str | None = None, progress: bool = False) -> RunResult:
-    """Build the scenario's controller and run it in the chosen simulator (built-in RK4 by default)."""
-    controller = scenario.build_controller(kind, solver)
+    """Build the scenario's controller and run it in the chosen simulator (built-in RK4 by default).
+
+    With ``[faults]`` on, the controller is built on its (perturbed) map of the obstacles and the
+    built-in simulator applies the faults (:mod:`qpctl.simulation.faults`); MuJoCo refuses them."""
+    faults = scenario.faults()
     sim_cfg = scenario.data["sim"]
     which = simulator or sim_cfg["simulator"]
+    if faults.active and which != "builtin":
+        from qpctl.errors import ConfigError
+
+        raise ConfigError(f"the {which} simulator does not apply faults ({', '.join(faults.kinds())}); "
+                          "use the built-in one", source=scenario.source, key="faults")
+    robot = scenario.build_robot()
+    truth = scenario.build_obstacles()
+    seen = faults.perceived(truth, robot.task_axes) if faults.active else None
+    controller = scenario.build_controller(kind, solver, robot=robot, obstacles=seen)
     q0 = scenario.q0(controller.robot)
+    fault_counts: dict[str, int] = {}
     if which == "mujoco":
         try:
             from qpctl.adapters.mujoco import MujocoSimulator
@@ -62,8 +75,11 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
         traj = MujocoSimulator(controller, dt=sim_cfg["dt"], duration=sim_cfg["duration"],
                                integrator=sim_cfg["integrator"], progress=progress).run(q0)
     elif which == "builtin":
-        traj = Simulator(controller, dt=sim_cfg["dt"], duration=sim_cfg["duration"],
-                         integrator=sim_cfg["integrator"], progress=progress).run(q0)
+        sim = Simulator(controller, dt=sim_cfg["dt"], duration=sim_cfg["duration"], integrator=sim_cfg["integrator"],
+                        progress=progress, faults=faults if faults.active else None,
+                        obstacles=truth if faults.active else None)
+        traj = sim.run(q0)
+        fault_counts = sim.fault_counts
     else:
         from qpctl.errors import ConfigError
 
@@ -76,7 +92,14 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
         "simulator": which,
         "gravity": controller.robot.model.gravity.linear.tolist(),
     }
-    metrics.update(compute_metrics(traj, d_safe=controller.gains.d_safe))
+    d_safe = float(scenario.data["controller"]["d_safe"])  # the run is judged by the scenario's d_safe
+    metrics.update(compute_metrics(traj, d_safe=d_safe))
+    margin = scenario.d_safe_margin(controller.robot)
+    if margin:
+        metrics["d_safe_margin"] = margin
+    if faults.active:
+        metrics["faults"] = {k: getattr(faults, k) for k in faults.kinds()} | {"seed": faults.seed}
+        metrics.update(fault_counts)
     return RunResult(scenario, controller, traj, metrics)
 
 

@@ -8,6 +8,7 @@ values raise :class:`~qpctl.errors.ConfigError` naming the file and the dotted k
 from __future__ import annotations
 
 import copy
+import dataclasses
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -22,6 +23,7 @@ from qpctl.geometry.obstacles import Obstacle
 from qpctl.law import LawGains
 from qpctl.paths import PosePath, WaypointPath
 from qpctl.robot.model import RobotModel, load_robot
+from qpctl.simulation.faults import PAYLOAD_RADIUS, Faults, with_payload
 from qpctl.solvers.base import DEFAULT_SOLVER
 from qpctl.tasks.tasks import DEFAULT_DAMPING
 
@@ -91,6 +93,15 @@ def _str_list(v: Any) -> list[str]:
     return v
 
 
+def _num_or_auto(v: Any) -> float | str:
+    if v == "auto":
+        return "auto"
+    try:
+        return _num(v)
+    except TypeError:
+        raise TypeError('a number or "auto"') from None
+
+
 def _pairs_of_names(v: Any) -> list[list[str]]:
     if not isinstance(v, list) or not all(isinstance(p, list) and len(p) == 2 and all(isinstance(x, str) for x in p)
                                           for p in v):
@@ -139,6 +150,8 @@ SCHEMA: dict[str, Any] = {
         "v_max": (_num_or_vec, None),
         "tau_rate_max": (_num_or_vec, None),
         "qdd_max": (_num_or_vec, None),
+        "payload_mass": (_num, 0.0),
+        "payload_radius": (_num, PAYLOAD_RADIUS),
     },
     "path": {
         "start": (_vec, None),
@@ -165,6 +178,7 @@ SCHEMA: dict[str, Any] = {
         "v_ref": (_num, 0.5),
         "d_influence": (_num, 0.3),
         "d_safe": (_num, 0.05),
+        "d_safe_margin": (_num_or_auto, 0.0),
         "g_damping": (_num, 0.05),
         "pinv_eps": (_num, 1e-3),
         "jdot_en": (_bool, False),
@@ -192,6 +206,9 @@ SCHEMA: dict[str, Any] = {
         "broadphase": (_str, "auto"),
         "solver_settings": (_table, {}),
     },
+    # every fault off; the keys, defaults and meanings are Faults' fields (qpctl.simulation.faults)
+    "faults": {f.name: ({"float": _num, "int": _int}.get(str(f.type), _num_or_vec), f.default)
+               for f in dataclasses.fields(Faults)},
     "sim": {
         "dt": (_num, 1e-3),
         "duration": (_num, 5.0),
@@ -376,6 +393,7 @@ class Scenario:
             raise self._err("sim.integrator", f"must be rk4 or euler, got {sim['integrator']!r}")
         if sim["simulator"] not in ("builtin", "mujoco"):
             raise self._err("sim.simulator", f"must be builtin or mujoco, got {sim['simulator']!r}")
+        faults = self.faults()
         try:
             self.gains()
         except ConfigError as exc:
@@ -391,6 +409,13 @@ class Scenario:
         q0 = self.q0(robot)
         self._check_reach(robot, self.build_path(robot, q0))
         self._check_start_clear(robot, obstacles, q0)
+        sat = faults.torque_saturation
+        if sat is not None and np.size(sat) not in (1, robot.nv):
+            raise self._err("faults.torque_saturation", f"needs one value or {robot.nv} (one per joint), got "
+                            f"{np.size(sat)}")
+        if faults.active and sim["simulator"] != "builtin":
+            raise self._err("faults", f"the {sim['simulator']} simulator does not apply faults ({', '.join(faults.kinds())}"
+                            "); use sim.simulator = \"builtin\"")
 
     def _check_controller(self) -> None:
         """The QP's keys, whichever controller the file names (``--controller qp`` may pick it later)."""
@@ -485,6 +510,12 @@ class Scenario:
             limits = {k: r[k] for k in ("tau_max", "v_max", "tau_rate_max", "qdd_max") if r[k] is not None}
             if limits:
                 robot = robot.with_limits(**limits)
+            if not (np.isfinite(r["payload_mass"]) and r["payload_mass"] >= 0):
+                raise ConfigError(f"must be a finite number >= 0 [kg], got {r['payload_mass']}", key="robot.payload_mass")
+            if not (np.isfinite(r["payload_radius"]) and r["payload_radius"] > 0):
+                raise ConfigError(f"must be a positive number [m], got {r['payload_radius']}", key="robot.payload_radius")
+            if r["payload_mass"]:  # known to the controller, and carried by the simulated robot too
+                robot = with_payload(robot, r["payload_mass"], r["payload_radius"])
         except ConfigError as exc:
             raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key or "robot") from None
         return robot
@@ -605,14 +636,40 @@ class Scenario:
                                   key=f"obstacles[{i}].{(exc.key or '').rsplit('.', 1)[-1]}") from None
         return out
 
-    def gains(self) -> LawGains:
+    def faults(self) -> Faults:
+        """The run's faults (``[faults]``, all off by default; :mod:`qpctl.simulation.faults`)."""
+        try:
+            return Faults.from_dict(self.data["faults"])
+        except ConfigError as exc:
+            raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key) from None
+
+    def d_safe_margin(self, robot: RobotModel | None = None) -> float:
+        """The margin [m] the controllers add to d_safe (``controller.d_safe_margin``; ``"auto"``: the one
+        :meth:`Faults.margin` derives from ``[faults]``'s noise levels, 0 without faults)."""
+        margin = self.data["controller"]["d_safe_margin"]
+        if margin != "auto":
+            if not (np.isfinite(margin) and margin >= 0):
+                raise self._err("controller.d_safe_margin", f'must be a number >= 0 [m] or "auto", got {margin}')
+            return float(margin)
+        faults = self.faults()
+        return faults.margin(robot if robot is not None else self.build_robot()) if faults.active else 0.0
+
+    def gains(self, robot: RobotModel | None = None) -> LawGains:
+        """The laws' gains, with d_safe raised by :meth:`d_safe_margin` (``controller.d_safe`` stays the
+        distance the run is judged by)."""
         c = self.data["controller"]
+        margin = self.d_safe_margin(robot)
+        if margin > 0 and not c["d_safe"] + margin < c["d_influence"]:
+            raise self._err("controller.d_safe_margin", f"d_safe {c['d_safe']} m + margin {margin:.4g} m must stay "
+                            f"below d_influence {c['d_influence']} m")
         return LawGains(kp=c["kp"], kv=c["kv"], kn=c["kn"], v_ref=c["v_ref"], d_influence=c["d_influence"],
-                        d_safe=c["d_safe"], g_damping=c["g_damping"], pinv_eps=c["pinv_eps"], jdot_en=c["jdot_en"])
+                        d_safe=c["d_safe"] + margin, g_damping=c["g_damping"], pinv_eps=c["pinv_eps"],
+                        jdot_en=c["jdot_en"])
 
     def build_controller(self, kind: str | None = None, solver: str | None = None,
-                         robot: RobotModel | None = None) -> Any:
-        """The scenario's controller (``kind``/``solver`` override the file)."""
+                         robot: RobotModel | None = None, obstacles: list[Obstacle] | None = None) -> Any:
+        """The scenario's controller (``kind``/``solver`` override the file; ``obstacles`` replaces the
+        scenario's in the controller's map, e.g. :meth:`Faults.perceived`)."""
         from qpctl.controllers.factory import make_controller
 
         robot = robot or self.build_robot()
@@ -627,5 +684,6 @@ class Scenario:
         bp = {"auto": None, "on": True, "off": False}.get(c["broadphase"], "bad")
         if bp == "bad":
             raise self._err("controller.broadphase", f"must be auto, on or off, got {c['broadphase']!r}")
-        return make_controller(c, robot, self.build_path(robot, q0), self.build_obstacles(), self.gains(),
+        scene = self.build_obstacles() if obstacles is None else obstacles
+        return make_controller(c, robot, self.build_path(robot, q0), scene, self.gains(robot),
                                broadphase=bp, source=self.source)  # type: ignore[arg-type]

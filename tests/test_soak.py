@@ -8,6 +8,15 @@ tick the QP itself solved, no obstacle-barrier row violated beyond the solver to
 accepts (SOLUTION_RTOL, relative to 1 + |bound|) — checked on every tick against the tick's own QP
 rows and, every 10th tick, against rows recomputed from a fresh state (its own Pinocchio data and
 python-fcl queries). It writes ``results/soak/summary.json`` (the README's "Reliability" numbers).
+
+``test_soak_with_faults`` (issue 12) runs as many QP ticks again on scenes from the same generators
+(a stream of their own) with random faults on (:func:`random_faults`: sensing noise and encoder
+steps, delays, lost commands, torque lag and saturation, mass errors, payloads, map noise and drift)
+and asserts the same, the applied torques within the limits too; it counts the collisions and
+explains each: whether the same scene collides without faults too, and whether the controller saw
+it coming (its own clearance, on its map and measured state, went below d_safe) or not (its view
+kept d_safe while the truth did not). It writes
+``results/soak/summary_faults.json``.
 """
 
 from __future__ import annotations
@@ -184,12 +193,14 @@ class Checker:
         self.budget = budget
         self.k = 0
         self.previous: tuple[np.ndarray, float] | None = None  # (τ, t) of the last tick
+        self.seen_clearance: list[float] = []  # the controller's own least distance, each tick
         ctrl.step = self.step
 
     def step(self, q: np.ndarray, v: np.ndarray, t: float) -> Any:
         out = self.inner(q, v, t)
         s, ctrl = self.stats, self.ctrl
         self.k += 1
+        self.seen_clearance.append(out.clearance)
         s["ticks"] += 1
         if not np.all(np.isfinite(out.tau)):
             s["nonfinite_torques"] += 1
@@ -272,13 +283,17 @@ def run_scene(raw: dict[str, Any], kind: str, stats: dict[str, Any], exceptions:
               diverged: list[str]) -> dict[str, Any] | None:
     """Run one scene; a run whose state diverges (the simulator's SimulationError, or the controller's
     InvalidStateError on an overflowing state) goes to ``diverged``; any other exception to
-    ``exceptions``."""
+    ``exceptions``. With a ``[faults]`` table the controller is built on its map of the obstacles and
+    the simulator applies the faults."""
     scen = Scenario.from_dict(raw, source=raw["name"])
+    faults = scen.faults()
     try:
-        ctrl = scen.build_controller(kind)
+        robot = scen.build_robot()
+        truth = scen.build_obstacles()
+        ctrl = scen.build_controller(kind, robot=robot, obstacles=faults.perceived(truth, robot.task_axes))
         ctrl.warmup()  # before the Checker: its two ticks are not the run's
-        Checker(ctrl, stats)
-        sim = Simulator(ctrl, dt=DT, duration=raw["sim"]["duration"])
+        checker = Checker(ctrl, stats)
+        sim = Simulator(ctrl, dt=DT, duration=raw["sim"]["duration"], faults=faults, obstacles=truth)
         traj = sim.run(scen.q0(ctrl.robot))
     except (SimulationError, InvalidStateError) as exc:  # the simulated state blew up (named errors)
         diverged.append(f"{raw['name']} ({kind}): {type(exc).__name__}: {exc}")
@@ -286,17 +301,30 @@ def run_scene(raw: dict[str, Any], kind: str, stats: dict[str, Any], exceptions:
     except Exception as exc:  # noqa: BLE001 — counted and reported: the soak's first claim is "none"
         exceptions.append(f"{raw['name']} ({kind}): {type(exc).__name__}: {exc}")
         return None
-    d_safe = ctrl.gains.d_safe
+    d_safe = float(raw["controller"].get("d_safe", 0.05))  # the scenario's: a margin does not move the goal
     fallback_ticks = sum("fallback" in i for i in traj.infos)
     config = getattr(ctrl, "config", None)  # the QP's (the closed forms have none)
-    return {"name": raw["name"], "solver": ctrl.solver, "chain": list(getattr(config, "fallback", [])),
-            "min_clearance": float(np.min(traj.clearance)),
-            "min_clearance_minus_d_safe": float(np.min(traj.clearance) - d_safe), "fallback_ticks": fallback_ticks,
-            "pairs_dropped_ticks": sum("pairs_dropped" in i for i in traj.infos),
-            "shapes": sorted({o.shape for o in ctrl.obstacles}),
-            "collided": bool(np.min(traj.clearance) < 0.0),
-            "rate_limited": bool(np.isfinite(ctrl.robot.tau_rate_max).any()),
-            "moving": any(o.moving for o in ctrl.obstacles)}
+    worst = int(np.argmin(traj.clearance))
+    out = {"name": raw["name"], "solver": ctrl.solver, "chain": list(getattr(config, "fallback", [])),
+           "min_clearance": float(np.min(traj.clearance)),
+           "min_clearance_minus_d_safe": float(np.min(traj.clearance) - d_safe), "fallback_ticks": fallback_ticks,
+           "pairs_dropped_ticks": sum("pairs_dropped" in i for i in traj.infos),
+           "shapes": sorted({o.shape for o in ctrl.obstacles}),
+           "collided": bool(np.min(traj.clearance) < 0.0),
+           "rate_limited": bool(np.isfinite(ctrl.robot.tau_rate_max).any()),
+           "moving": any(o.moving for o in ctrl.obstacles)}
+    if faults.active:
+        applied = np.abs(traj.tau) > ctrl.robot.tau_max + 1e-9
+        stats["applied_torque_limit_exceeded"] = stats.get("applied_torque_limit_exceeded", 0) + int(applied.any())
+        stats["applied_torque_nonfinite"] = stats.get("applied_torque_nonfinite", 0) + int(
+            not np.all(np.isfinite(traj.tau)))
+        seen = np.array(checker.seen_clearance)
+        out.update(faults=faults.kinds(), **sim.fault_counts,
+                   # the controller's own least distance (its map, its measured state) up to the true worst tick
+                   seen_min_clearance_to_worst=float(np.min(seen[: worst + 1])),
+                   seen_below_d_safe=bool(np.min(seen[: worst + 1]) < ctrl.gains.d_safe - 1e-3),
+                   d_safe_margin=float(ctrl.gains.d_safe - d_safe))
+    return out
 
 
 @pytest.mark.slow
@@ -381,5 +409,125 @@ def test_soak():
     assert qp["nonfinite_torques"] == 0 and closed["nonfinite_torques"] == 0
     assert qp["torque_limit_exceeded"] == 0
     assert qp["rate_limit_exceeded"] == 0
+    assert qp["barrier_violations"] == 0, qp["barrier_rel_violation_max"]
+    assert qp["independent_violations"] == 0, qp["independent_cases"][:5]
+
+
+def random_faults(rng: np.random.Generator, raw: dict[str, Any], k: int) -> dict[str, Any]:
+    """A ``[faults]`` table: each fault on with probability 0.4, at a level up to the robustness study's
+    highest (README, Faults and robustness); the payload arrives at a random time of the run."""
+    duration = raw["sim"]["duration"]
+    planar = raw["robot"]["kind"] == "planar3"
+    draws: dict[str, Any] = {
+        "q_noise": lambda: float(rng.uniform(0.0, 1e-3)),
+        "q_quantum": lambda: float(rng.choice([1e-4, 1e-3, 5e-3])),
+        "v_noise": lambda: float(rng.uniform(0.0, 5e-2)),
+        "delay_ticks": lambda: int(rng.integers(1, 6)),
+        "miss_rate": lambda: float(rng.uniform(0.0, 0.3)),
+        "torque_lag": lambda: float(rng.uniform(0.0, 0.02)),
+        # drives weaker than the limits the controller knows (the planar arm's: 500–1500 N·m; the Panda's URDF's)
+        "torque_saturation": lambda: float(rng.uniform(0.5, 1.0)) * (raw["robot"]["tau_max"] if planar else 87.0),
+        "mass_error": lambda: float(rng.uniform(0.0, 0.2)),
+        "payload_mass": lambda: float(rng.uniform(0.0, 2.0 if planar else 1.0)),
+        "obstacle_noise": lambda: float(rng.uniform(0.0, 0.03)),
+        "obstacle_velocity": lambda: float(rng.uniform(0.0, 0.05)),
+    }
+    table: dict[str, Any] = {key: draw() for key, draw in draws.items() if rng.uniform() < 0.4}
+    if "payload_mass" in table:
+        table["payload_time"] = float(rng.uniform(0.0, duration))
+    if not table:  # every scene has at least one fault
+        table["q_noise"] = 1e-4
+    table["seed"] = k
+    return table
+
+
+@pytest.mark.slow
+def test_soak_with_faults():
+    scene_rng = np.random.default_rng([SEED, 12])  # issue 12's scenes: a stream of their own
+    qp, closed = new_stats(), new_stats()
+    exceptions: list[str] = []
+    diverged: list[str] = []
+    qp_diverged: list[str] = []
+    rejected: Counter[str] = Counter()
+    runs: list[dict[str, Any]] = []
+    scenes = {"planar": 0, "panda": 0}
+    start = time.time()
+    k = closed_runs = 0
+    while qp["ticks"] < TARGET_QP_TICKS:
+        k += 1
+        which = "panda" if k % 4 == 0 else "planar"
+        raw = panda_scene(scene_rng, k) if which == "panda" else planar_scene(scene_rng, k)
+        raw["faults"] = random_faults(np.random.default_rng([SEED, 12, k]), raw, k)
+        try:
+            scen = Scenario.from_dict(raw, source=raw["name"])
+        except ConfigError as exc:
+            rejected[str(exc.key)] += 1
+            continue
+        robot = scen.build_robot()
+        start_clearance = Dynamics(robot, scen.build_obstacles()).compute(scen.q0(robot), np.zeros(robot.nv)).clearance
+        if start_clearance < raw["controller"]["d_safe"]:
+            rejected["start within d_safe"] += 1
+            continue
+        scenes[which] += 1
+        faulthandler.dump_traceback_later(SCENE_WATCHDOG_S, exit=True, file=sys.stderr)
+        try:
+            res = run_scene(raw, "qp", qp, exceptions, qp_diverged)
+            if res is not None and res["collided"]:  # the same scene without faults: does it collide anyway?
+                ideal = run_scene({key: val for key, val in raw.items() if key != "faults"}, "qp", new_stats(),
+                                  exceptions, qp_diverged)
+                res["collided_without_faults"] = ideal is not None and ideal["collided"]
+            if res is not None:
+                runs.append({**res, "robot": which})
+            if k % 4 == 0:
+                closed_runs += 2
+                for kind in ("paper", "hsu"):
+                    run_scene(raw, kind, closed, exceptions, diverged)
+        finally:
+            faulthandler.cancel_dump_traceback_later()
+    elapsed = time.time() - start
+    tick_us = np.array(qp.pop("tick_us"))
+    closed.pop("tick_us")
+    collided = [r for r in runs if r["collided"]]
+    kinds = sorted({f for r in runs for f in r["faults"]})
+    summary = {
+        "seed": [SEED, 12], "elapsed_s": round(elapsed, 1), "scenes": scenes,
+        "scenes_rejected_by_validation": dict(rejected), "unhandled_exceptions": exceptions,
+        "qp_runs_diverged": qp_diverged, "closed_form_runs_diverged": diverged,
+        "qp": {**{k: (dict(v) if isinstance(v, Counter) else v) for k, v in qp.items()},
+               "tick_us_median": float(np.median(tick_us)), "tick_us_p99": float(np.percentile(tick_us, 99))},
+        "closed_forms": {**{k: v for k, v in closed.items() if k in ("ticks", "nonfinite_torques", "singular_ticks")},
+                         "runs": closed_runs},
+        "commands_lost": sum(r.get("missed_commands", 0) for r in runs),
+        "saturated_ticks": sum(r.get("saturated_ticks", 0) for r in runs),
+        "clearance": {
+            "scenes": len(runs), "collided_scenes": len(collided),
+            # explained: did the controller's own view (its map, its measured state) go below d_safe first?
+            "collided_seen_below_d_safe": sum(r["seen_below_d_safe"] for r in collided),
+            "collided_unseen": sum(not r["seen_below_d_safe"] for r in collided),
+            "collided_without_faults_too": sum(r["collided_without_faults"] for r in collided),
+            "collided_with_fallback_ticks": sum(r["fallback_ticks"] > 0 for r in collided),
+            "collided_with_rate_limit": sum(r["rate_limited"] for r in collided),
+            "scenes_with_rate_limit": sum(r["rate_limited"] for r in runs),
+            "collided_with_map_error": sum(bool({"obstacle_noise", "obstacle_velocity"} & set(r["faults"]))
+                                           for r in collided),
+            "scenes_with_map_error": sum(bool({"obstacle_noise", "obstacle_velocity"} & set(r["faults"]))
+                                         for r in runs),
+            "by_fault": {f: {"scenes": sum(f in r["faults"] for r in runs),
+                             "collided": sum(f in r["faults"] for r in collided)} for f in kinds},
+            "below_d_safe_scenes": sum(r["min_clearance_minus_d_safe"] < -1e-3 for r in runs),
+            "collisions": collided,
+        },
+    }
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / "summary_faults.json").write_text(json.dumps(summary, indent=2, default=float) + "\n")
+    print(json.dumps({k: v for k, v in summary.items() if k != "clearance"} | {
+        "clearance": {k: v for k, v in summary["clearance"].items() if k != "collisions"}}, indent=2, default=float))
+    assert not exceptions, exceptions
+    assert not qp_diverged, qp_diverged
+    assert qp["ticks"] >= TARGET_QP_TICKS
+    assert qp["nonfinite_torques"] == 0 and closed["nonfinite_torques"] == 0
+    assert qp.get("applied_torque_nonfinite", 0) == 0
+    assert qp["torque_limit_exceeded"] == 0 and qp.get("applied_torque_limit_exceeded", 0) == 0
+    assert qp["rate_limit_exceeded"] == 0  # the commands; lost ones make the applied torque jump further
     assert qp["barrier_violations"] == 0, qp["barrier_rel_violation_max"]
     assert qp["independent_violations"] == 0, qp["independent_cases"][:5]

@@ -3,11 +3,16 @@ while RK4 (as in the paper) integrates q̇ = v, v̇ = ABA(q, v, τ) from Pinocch
 
 The world's clearance is measured over every link–obstacle pair (exact, not limited to the
 controller's influence distance; :class:`qpctl.tick.WorldClearance`), outside the controller's timing.
+
+With :class:`~qpctl.simulation.faults.Faults` the controller is fed what a real one would measure and
+its commands pass through imperfect drives, while the integration uses the true robot (mass errors,
+payload) and the clearance the true obstacles; the recorded q, q̇, task point x and clearance are the
+truth, ``tau`` the torque that acted and ``tau_command`` the controller's.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -17,6 +22,8 @@ import pinocchio as pin
 
 from qpctl.controllers.base import Controller
 from qpctl.errors import ConfigError, SimulationError
+from qpctl.geometry.obstacles import Obstacle
+from qpctl.simulation.faults import Faults, FaultState
 from qpctl.tick import WorldClearance
 
 INTEGRATORS = ("rk4", "euler")
@@ -61,10 +68,11 @@ class Trajectory:
     quat_ref: np.ndarray | None = None
     orientation_error_deg: np.ndarray | None = None  # (T,) the angle between them (approach: the axis's)
     self_clearance: np.ndarray | None = None  # (T,) least distance between the self-collision pairs [m]
+    tau_command: np.ndarray | None = None  # (T, n) the controller's command, with faults (tau: what acted)
 
     ARRAYS = ("t", "q", "v", "tau", "x", "x_ref", "xd_ref", "xdd_ref", "clearance", "e_null", "tick_us",
               "singular")
-    OPTIONAL = ("quat", "quat_ref", "orientation_error_deg", "self_clearance")
+    OPTIONAL = ("quat", "quat_ref", "orientation_error_deg", "self_clearance", "tau_command")
 
     def save(self, path: str | Path) -> None:
         arrays = {k: getattr(self, k) for k in self.ARRAYS}
@@ -129,10 +137,14 @@ class Simulator:
         duration: simulated time [s].
         integrator: ``"rk4"`` (default, the paper's) or ``"euler"`` (semi-implicit).
         progress: show a progress bar.
+        faults: what is not ideal (:class:`~qpctl.simulation.faults.Faults`; None or all off: nothing).
+        obstacles: the true obstacles, where the controller was built on another map of them
+            (``faults.perceived(obstacles, robot.task_axes)``); default: the controller's.
     """
 
     def __init__(self, controller: Controller, *, dt: float = 1e-3, duration: float = 5.0,
-                 integrator: str = "rk4", progress: bool = False) -> None:
+                 integrator: str = "rk4", progress: bool = False, faults: Faults | None = None,
+                 obstacles: Sequence[Obstacle] | None = None) -> None:
         if not (np.isfinite(dt) and dt > 0):
             raise ConfigError(f"must be a positive number of seconds, got {dt}", key="sim.dt")
         if not (np.isfinite(duration) and duration > 0):
@@ -147,13 +159,26 @@ class Simulator:
         self.integrator = rk4_step if integrator == "rk4" else euler_step
         self.progress = progress
         self._data = self.robot.model.createData()
-        self._world = WorldClearance(self.robot, controller.obstacles, measured_self_pairs(controller))
+        self.faults = faults if faults is not None and faults.active else None
+        self.fault_counts: dict[str, int] = {}  # after a run with faults: commands lost, saturated ticks
+        truth = list(controller.obstacles if obstacles is None else obstacles)
+        if self.faults is not None:
+            if self.faults.obstacle_noise and obstacles is None:
+                raise ConfigError("the simulator needs the true obstacles (Simulator(..., obstacles=...)) and a "
+                                  "controller built on faults.perceived(obstacles, robot.task_axes)",
+                                  key="faults.obstacle_noise")
+            truth = self.faults.world(truth, self.robot.task_axes)
+        self.obstacles = truth
+        self._world = WorldClearance(self.robot, truth, measured_self_pairs(controller))
 
     def clearance(self, q: np.ndarray, t: float) -> float:
         """Exact least distance [m] between any link and any obstacle at (q, t)."""
         return self._world(q, t)
 
     def run(self, q0: np.ndarray, v0: np.ndarray | None = None) -> Trajectory:
+        """Simulate from (q0 [rad], v0 [rad/s], default rest) at t = 0 for ``duration``."""
+        if self.faults is not None:
+            return self._run_with_faults(q0, v0, self.faults)
         n = self.robot.nv
         q = np.asarray(q0, float).copy()
         v = np.zeros(n) if v0 is None else np.asarray(v0, float).copy()
@@ -202,6 +227,74 @@ class Simulator:
                     raise SimulationError(f"state diverged at t = {t + self.dt:.4f} s")
         traj = Trajectory(t_arr, rec["q"], rec["v"], rec["tau"], rec["x"], rec["x_ref"], rec["xd_ref"],
                           rec["xdd_ref"], clear, rec["e_null"], tick_us, singular, infos)
+        if len(self._world.ws.sc_pairs):
+            traj.self_clearance = self_clear
+        return finish_trajectory(traj, ctrl)
+
+    def _run_with_faults(self, q0: np.ndarray, v0: np.ndarray | None, faults: Faults) -> Trajectory:
+        """:meth:`run` through the faults: the controller steps on the measured state, the drives turn
+        its command into the applied torque, RK4 integrates the true robot (the payload's model from
+        ``payload_time`` on); the record holds the truth (module docstring)."""
+        n, m, robot = self.robot.nv, self.robot.m, self.robot
+        q = np.asarray(q0, float).copy()
+        v = np.zeros(n) if v0 is None else np.asarray(v0, float).copy()
+        steps = round(self.duration / self.dt) + 1
+        rec = {k: np.zeros((steps, n)) for k in ("q", "v", "tau", "tau_command", "e_null")}
+        rec.update({k: np.zeros((steps, m)) for k in ("x", "x_ref", "xd_ref", "xdd_ref")})
+        t_arr, clear, tick_us = np.zeros(steps), np.zeros(steps), np.zeros(steps)
+        self_clear = np.full(steps, np.inf)
+        singular = np.zeros(steps, bool)
+        infos: list[dict[str, Any]] = []
+        before, after = faults.simulated_models(robot)
+        models = {False: (before, before.createData()), True: (after, after.createData())}
+        kin = robot.model.createData()  # the task point's true position (kinematics: no mass involved)
+        ee, axes, m_p = robot.ee_frame_id, list(robot.task_axes), robot.m_position
+        ctrl = self.controller
+        if ctrl.warm:
+            ctrl.reset()
+        else:
+            ctrl.warmup()
+        state = FaultState(faults, n, self.dt)
+        tau = np.zeros(n)
+        model, data = models[False]
+
+        def accel(qq: np.ndarray, vv: np.ndarray) -> np.ndarray:
+            return pin.aba(model, data, qq, vv, tau)
+
+        iterator: Any = range(steps)
+        if self.progress:
+            from tqdm import tqdm
+
+            iterator = tqdm(iterator, desc=f"simulate {ctrl.kind} (faults)", unit="tick", leave=False)
+        for k in iterator:
+            t = k * self.dt
+            qm, vm = state.measure(q, v)
+            out = ctrl.step(qm, vm, t)
+            if not np.all(np.isfinite(out.tau)):
+                raise SimulationError(f"controller {ctrl.kind} returned non-finite torque at t = {t:.4f} s")
+            tau = state.actuate(out.tau)
+            t_arr[k] = t
+            rec["q"][k], rec["v"][k], rec["tau"][k], rec["tau_command"][k] = q, v, tau, out.tau
+            rec["e_null"][k] = out.e_null
+            pin.framesForwardKinematics(robot.model, kin, q)
+            rec["x"][k] = out.x  # (an orientation task's rows: finish_trajectory keeps the position's only)
+            rec["x"][k, :m_p] = kin.oMf[ee].translation[axes]
+            ref = out.ref
+            rec["x_ref"][k], rec["xd_ref"][k], rec["xdd_ref"][k] = ref.x, ref.xd, ref.xdd
+            clear[k] = self.clearance(q, t)
+            self_clear[k] = self._world.self_clearance
+            tick_us[k] = out.compute_us
+            singular[k] = out.singular
+            infos.append(out.info)
+            if k + 1 < steps:
+                model, data = models[bool(faults.payload_mass) and t >= faults.payload_time]
+                q, v = self.integrator(accel, q, v, self.dt)
+                if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v))):
+                    raise SimulationError(f"state diverged at t = {t + self.dt:.4f} s")
+        self.fault_counts = {"missed_commands": state.missed, "saturated_ticks": state.saturated}
+        traj = Trajectory(t_arr, rec["q"], rec["v"], rec["tau"], rec["x"], rec["x_ref"], rec["xd_ref"],
+                          rec["xdd_ref"], clear, rec["e_null"], tick_us, singular, infos,
+                          tau_command=rec["tau_command"])
         if len(self._world.ws.sc_pairs):
             traj.self_clearance = self_clear
         return finish_trajectory(traj, ctrl)
