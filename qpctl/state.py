@@ -136,6 +136,7 @@ class Dynamics:
         self.cutoff = float(cutoff)
         self.broadphase = broadphase
         self.self_pairs: tuple[tuple[int, int], ...] = ()  # capsule pairs whose distances the state includes
+        self.self_cutoff = math.inf  # [m] and, nearer than this, their rows and drifts
         self._workspace: Any = None
         self._jdot_data = robot.model.createData()
 
@@ -146,7 +147,8 @@ class Dynamics:
             from qpctl.tick import Workspace
 
             self._workspace = Workspace(self.robot, self.obstacles, None, None, self.cutoff,
-                                        broadphase=self.broadphase, barrier_drift=True, self_pairs=self.self_pairs)
+                                        broadphase=self.broadphase, barrier_drift=True, self_pairs=self.self_pairs,
+                                        self_cutoff=self.self_cutoff)
         return self._workspace
 
     @property

@@ -165,7 +165,8 @@ class Workspace:
 
     def __init__(self, robot: RobotModel, obstacles: Sequence[Obstacle], path: object, gains: LawGains | None,
                  cutoff: float, *, spec: QPSpec | None = None, broadphase: bool | None = None,
-                 barrier_drift: bool = False, self_pairs: Sequence[tuple[int, int]] = ()) -> None:
+                 barrier_drift: bool = False, self_pairs: Sequence[tuple[int, int]] = (),
+                 self_cutoff: float = math.inf) -> None:
         model = robot.model
         self.robot, self.model = robot, model
         self.data = model.createData()
@@ -263,6 +264,7 @@ class Workspace:
         self.qdd_max = np.full(n, np.inf)
         ip[K.IP_TORQUE_ROW0] = ip[K.IP_BARRIER_ROW0] = ip[K.IP_SELF_ROW0] = -1
         self.fpar[K.FP_SELF_CLEARANCE] = np.inf
+        self.fpar[K.FP_SCUT] = self_cutoff  # self pairs farther apart have no row (SelfCollisionBarrier.cutoff)
         capacity = 0
         if spec is not None:
             capacity = self._settings(spec)

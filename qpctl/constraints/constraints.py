@@ -192,10 +192,14 @@ class ObstacleBarrier(Constraint):
 
 
 class SelfCollisionBarrier(Constraint):
-    """ḧ + k₁ḣ + k₀(h − d_s) ≥ 0 for each of ``pairs`` (capsule indices) nearer than the controller's
-    influence distance, one row per pair; h the distance between the two capsules [m], d_s [m]."""
+    """ḧ + k₁ḣ + k₀(h − d_s) ≥ 0 for each of ``pairs`` (capsule indices) nearer than ``cutoff`` [m],
+    one row per pair; h the distance between the two capsules [m], d_s [m]. The cutoff is the
+    controller's influence distance, at most d_s + REACH: a pair farther apart has no row (its rows
+    would bind only at approach speeds above k₀/k₁·REACH = 1 m/s with the default gains) and costs
+    the tick only its distance."""
 
     name = "self_collision"
+    REACH = 0.1  # [m] beyond d_s
 
     def __init__(self, pairs: Sequence[tuple[int, int]], d_safe: float, *, k0: float = 400.0,
                  k1: float = 40.0) -> None:

@@ -322,8 +322,8 @@ class QPController(Controller):
                                                             k1=cfg.barrier_k1))
         selfc = next((c for c in constraints if isinstance(c, SelfCollisionBarrier)), None)
         if selfc is not None:  # the Python path's states carry these pairs' distances
-            self.dynamics.self_pairs = selfc.pairs
-            selfc.cutoff = self.cutoff
+            selfc.cutoff = min(self.cutoff, selfc.d_safe + selfc.REACH)
+            self.dynamics.self_pairs, self.dynamics.self_cutoff = selfc.pairs, selfc.cutoff
         self.tasks: list[Task] = list(tasks)
         self.constraints: list[Constraint] = list(constraints)
         self._formulation: Formulation | None = None
@@ -400,10 +400,11 @@ class QPController(Controller):
         spec = compiled_spec(self.tasks, self.constraints, self.n)
         selfc = next((c for c in self.constraints if isinstance(c, SelfCollisionBarrier)), None)
         if selfc is not None:
-            selfc.cutoff = self.cutoff
+            selfc.cutoff = min(self.cutoff, selfc.d_safe + selfc.REACH)
         return Workspace(self.robot, self.obstacles, self.path, self.gains, self.cutoff, spec=spec,
                          broadphase=self.broadphase, barrier_drift=spec is None,
-                         self_pairs=selfc.pairs if selfc is not None else ())
+                         self_pairs=selfc.pairs if selfc is not None else (),
+                         self_cutoff=selfc.cutoff if selfc is not None else math.inf)
 
     @property
     def last_problem(self) -> Problem | None:

@@ -55,8 +55,8 @@ PAIR_OK, PAIR_FCL, PAIR_FAR = 0, 1, 2
 FP_KP, FP_KV, FP_KN, FP_VREF, FP_DI, FP_DS, FP_GDAMP, FP_PINV_EPS, FP_CUTOFF = range(9)
 FP_BK0, FP_BK1, FP_JK0, FP_JK1, FP_JKV, FP_SL1, FP_SL2, FP_WACC, FP_WPOST, FP_PKP, FP_PKD = range(9, 20)
 FP_GRID_H, FP_CLEARANCE, FP_T, FP_DAMP, FP_DAMP_KD = 20, 21, 22, 23, 24
-FP_SK0, FP_SK1, FP_SDS, FP_SELF_CLEARANCE = 25, 26, 27, 28
-FP_SIZE = 29
+FP_SK0, FP_SK1, FP_SDS, FP_SELF_CLEARANCE, FP_SCUT = 25, 26, 27, 28, 29
+FP_SIZE = 30
 # Int settings (TickWork.ipar)
 IP_JDOT_EN, IP_DRIFT_RIGID, IP_CAPACITY, IP_TORQUE_ROW0, IP_BARRIER_ROW0, IP_JOINT_LIMITS = range(6)
 IP_POSTURE, IP_N_IN, IP_BDRIFT, IP_DAMPING, IP_SELF_ROW0 = range(6, 11)
@@ -565,7 +565,8 @@ def _body_point(ws, i: int, p: np.ndarray, vel: np.ndarray, acc: np.ndarray) -> 
 @njit(cache=True)
 def self_pairs(ws) -> None:  # type: ignore[no-untyped-def]
     """Every self-collision pair's distance and normal, and, for those within the cutoff, ḣ's row and ḧ
-    at q̈ = 0 (the least distance into fpar[FP_SELF_CLEARANCE]).
+    at q̈ = 0 (the least distance into fpar[FP_SELF_CLEARANCE]). A pair whose bounding spheres are
+    already beyond the cutoff gets their gap, a lower bound ≥ the cutoff, as its distance.
 
     As in :func:`barrier_drift`, with both capsules moving: p = a + τu on capsule i's axis, q = c + σs
     on capsule j's, w = p − q, ρ = |w|, n = w/ρ, h = ρ − r_i − r_j; ḣ = nᵀ(v_p − v_q) (the body points'
@@ -575,7 +576,7 @@ def self_pairs(ws) -> None:  # type: ignore[no-untyped-def]
     """
     P = ws.sc_pairs.shape[0]
     n = ws.v.shape[0]
-    cut = ws.fpar[FP_CUTOFF]
+    cut = ws.fpar[FP_SCUT]
     seg, cap_support = ws.segments, ws.cap_support
     Jp, Jq = np.empty((3, n)), np.empty((3, n))
     p, q, vp, vq, ap, aq = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
@@ -586,6 +587,14 @@ def self_pairs(ws) -> None:  # type: ignore[no-untyped-def]
         ux, uy, uz = seg[i, 1, 0] - a[0], seg[i, 1, 1] - a[1], seg[i, 1, 2] - a[2]
         sx, sy, sz = seg[j, 1, 0] - c[0], seg[j, 1, 1] - c[1], seg[j, 1, 2] - c[2]
         uu = ux * ux + uy * uy + uz * uz
+        # bounding spheres first: a pair surely beyond the cutoff keeps that lower bound as its distance
+        mx, my, mz = a[0] + 0.5 * ux - c[0] - 0.5 * sx, a[1] + 0.5 * uy - c[1] - 0.5 * sy, a[2] + 0.5 * uz - c[2] - 0.5 * sz
+        bound = (math.sqrt(mx * mx + my * my + mz * mz) - 0.5 * math.sqrt(uu) - 0.5 * math.sqrt(sx * sx + sy * sy + sz * sz)
+                 - ws.cap_radius[i] - ws.cap_radius[j])
+        if bound >= cut:
+            ws.sc_d[r] = bound
+            best = min(best, bound)
+            continue
         tau, sigma = segment_params(a[0], a[1], a[2], ux, uy, uz, uu, c[0], c[1], c[2], sx, sy, sz)
         p[0], p[1], p[2] = a[0] + tau * ux, a[1] + tau * uy, a[2] + tau * uz
         q[0], q[1], q[2] = c[0] + sigma * sx, c[1] + sigma * sy, c[2] + sigma * sz
@@ -651,10 +660,10 @@ def self_pairs(ws) -> None:  # type: ignore[no-untyped-def]
 
 @njit(cache=True)
 def self_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no-untyped-def]
-    """ḧ + k₁ḣ + k₀(h − d_s) ≥ 0 for the self-collision pairs within the cutoff (the rest inactive:
+    """ḧ + k₁ḣ + k₀(h − d_s) ≥ 0 for the self-collision pairs within their cutoff (the rest inactive:
     zero rows, −∞ bounds), as the obstacle barrier's rows (:func:`barrier_rows`)."""
     n = ws.v.shape[0]
-    k0, k1, ds, cut = ws.fpar[FP_SK0], ws.fpar[FP_SK1], ws.fpar[FP_SDS], ws.fpar[FP_CUTOFF]
+    k0, k1, ds, cut = ws.fpar[FP_SK0], ws.fpar[FP_SK1], ws.fpar[FP_SDS], ws.fpar[FP_SCUT]
     for r in range(C.shape[0]):
         d = ws.sc_d[r]
         if d < cut:
