@@ -566,7 +566,7 @@ def test_tick_budget_bounds_a_pathological_tick(solver):
                    task_relaxation="always")
     for _ in range(3):
         out = ctrl.step(Q0, V_RUSH, 0.1)
-        assert out.info["status"] in ("time_limit", "stalled", "primal_infeasible"), out.info
+        assert out.info["status"] in ("time_limit", "stalled", "primal_infeasible", "primal_infeasible_inaccurate"), out.info
         assert out.info["fallback"] in BUILT_IN_FALLBACKS
         assert out.compute_us < 50_000, out.compute_us
         assert np.all(np.abs(out.tau) <= 400.0)
