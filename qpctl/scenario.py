@@ -386,6 +386,12 @@ class Scenario:
                 raise self._err(f"sim.{key}", f"must be a positive number of seconds, got {sim[key]}")
         if sim["dt"] > sim["duration"]:
             raise self._err("sim.dt", f"step {sim['dt']} s exceeds the duration {sim['duration']} s")
+        from qpctl.simulation.simulator import check_ticks
+
+        try:
+            check_ticks(sim["duration"], sim["dt"])
+        except ConfigError as exc:
+            raise self._err("sim.duration", str(exc).split(": ", 1)[-1]) from None
         path = self.data["path"]
         if path["duration"] is None and path["durations"] is None:
             raise self._err("path.duration", "missing value (give duration or durations)")
@@ -438,6 +444,8 @@ class Scenario:
                 except UnknownSolverError as exc:
                     raise self._err("controller.fallback", f"{exc} (or {', '.join(BUILT_IN_FALLBACKS)})") from None
         r = self.data["robot"]
+        if r["gravity"] is not None and (len(r["gravity"]) != 3 or not np.all(np.isfinite(r["gravity"]))):
+            raise self._err("robot.gravity", f"needs 3 finite numbers [m/s²] (x, y, z), got {r['gravity']}")
         for key in ("tau_max", "v_max", "tau_rate_max", "qdd_max"):
             if r[key] is not None and not np.all(np.asarray(r[key], float) > 0):  # inf allowed, NaN not
                 raise self._err(f"robot.{key}", f"must be positive (inf: no limit), got {r[key]}")

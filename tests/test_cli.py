@@ -168,3 +168,34 @@ def test_unwritable_output_is_a_one_line_error(tmp_path, capsys):
     assert main(["simulate", "paper", "--out", str(out), "--set", "sim.duration=0.01", "--quiet"]) == 2
     _assert_one_line_error(capsys.readouterr().err, "blocker")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["blocker"]
+
+
+HOSTILE = ["0", "-1", "1e308", "nan", "inf", "-inf", "[]", "[0]", "[1,2]", "[[1,2,3]]", '"x"', '""', "true", "1.5",
+           "[1e9,1e9,1e9]", "[0,0,0,0]", "[[0,0],[0,0]]", '[["a","b"]]', "{}", "-0.0", "3"]
+
+
+def test_no_override_a_user_can_write_is_an_internal_error(tmp_path, capsys):
+    """Seeded random --set overrides of every scenario key with hostile values (wrong types, empty,
+    infinite, NaN, huge, wrong lengths) on three packaged scenarios: exit 0 or 2, never 3 (issue 12),
+    and a failure is one line. Includes the two this found: a 2-vector gravity and a 1e308 s run."""
+    import random
+
+    from qpctl.scenario import SCHEMA
+
+    keys = [f"{sec}.{k}" for sec, tab in SCHEMA.items() if isinstance(tab, dict) for k in tab]
+    rng = random.Random(12)
+    cases = [("paper", ["robot.gravity=[1,2]"]), ("panda_harvest", ["sim.duration=1e308"])]
+    cases += [(rng.choice(["paper", "panda_harvest", "panda_canopy"]),
+               [f"{rng.choice(keys)}={rng.choice(HOSTILE)}" for _ in range(rng.randint(1, 2))]) for _ in range(150)]
+    codes = {}
+    for scen, sets in cases:
+        args = ["simulate", scen, "--quiet", "--no-figures", "--out", str(tmp_path / "run"), "--set", "sim.duration=0.02"]
+        for s in sets:
+            args += ["--set", s]
+        code = main(args)
+        err = capsys.readouterr().err
+        assert code in (0, 2), (scen, sets, err)
+        if code == 2:
+            _assert_one_line_error(err)
+        codes[code] = codes.get(code, 0) + 1
+    assert codes.get(2, 0) > 100 and codes.get(0, 0) >= 3, codes  # most are refused, a few run

@@ -52,7 +52,7 @@ from qpctl.controllers.base import Controller
 from qpctl.errors import ConfigError, SimulationError
 from qpctl.geometry.obstacles import Obstacle, rotation_z_to
 from qpctl.robot.model import RobotModel
-from qpctl.simulation.simulator import Trajectory, finish_trajectory, measured_self_pairs
+from qpctl.simulation.simulator import Trajectory, check_ticks, finish_trajectory, measured_self_pairs
 from qpctl.tick import WorldClearance
 
 try:
@@ -278,6 +278,7 @@ class MujocoSimulator:
                  model: mujoco.MjModel | None = None, allow_extra_joints: bool = False) -> None:
         if not (np.isfinite(duration) and duration > 0):
             raise ConfigError(f"must be a positive number of seconds, got {duration}", key="sim.duration")
+        check_ticks(duration, dt)
         self.controller = controller
         self.robot = controller.robot
         self.dt = float(dt)

@@ -85,6 +85,20 @@ class Trajectory:
             return cls(**{k: data[k] for k in cls.ARRAYS + cls.OPTIONAL if k in data.files})
 
 
+MAX_TICKS = 5_000_000  # one run's recorded ticks (the trajectory is kept in memory: ~1 GB for the Panda)
+
+
+def check_ticks(duration: float, dt: float) -> None:
+    """:class:`ConfigError` (``sim.duration``) if a run of ``duration`` [s] at ``dt`` [s] would record
+    more than MAX_TICKS ticks."""
+    if not (np.isfinite(dt) and dt > 0):
+        return  # the step's own check reports it
+    ticks = duration / dt
+    if not ticks <= MAX_TICKS:
+        raise ConfigError(f"{duration} s at dt = {dt} s is {ticks:.3g} ticks; one run records at most "
+                          f"{MAX_TICKS:,} (split it, or raise sim.dt)", key="sim.duration")
+
+
 def measured_self_pairs(controller: Controller) -> tuple[tuple[int, int], ...]:
     """The link pairs whose distance a simulator records as the self clearance: the controller's
     self-collision pairs, or those a default SelfCollisionBarrier would keep (for every law)."""
@@ -149,6 +163,7 @@ class Simulator:
             raise ConfigError(f"must be a positive number of seconds, got {dt}", key="sim.dt")
         if not (np.isfinite(duration) and duration > 0):
             raise ConfigError(f"must be a positive number of seconds, got {duration}", key="sim.duration")
+        check_ticks(duration, dt)
         if integrator not in INTEGRATORS:
             raise ConfigError(f"unknown integrator {integrator!r}; one of {', '.join(INTEGRATORS)}",
                               key="sim.integrator")
