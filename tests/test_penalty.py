@@ -14,7 +14,10 @@ import numpy as np
 import pytest
 
 from benchmarks.scenes import planar_scene
+from qpctl.controllers.factory import make_controller
 from qpctl.qp import Problem, penalty_is_exact
+from qpctl.run import simulate
+from qpctl.scenario import Scenario
 from qpctl.simulation import Simulator
 from qpctl.solvers import make_solver
 from qpctl.tasks import AccelerationTask, EndEffectorTask
@@ -118,3 +121,53 @@ def test_osqp_hard_first_gives_the_relaxed_answer(path):
         np.testing.assert_allclose(out.tau, run.tau[k], rtol=0, atol=1e-6 * scale)
         refused += out.info.get("hard_status") == "penalty_inexact"
     assert refused >= 20, refused
+
+
+def test_daqp_native_hard_first_gives_the_relaxed_answer():
+    """DAQP's default tick (task_relaxation "auto") solves the task hard first, with no slack
+    variables, and keeps that answer only where DAQP's own multipliers say the relaxed QP's is the
+    same. On planar-3's states through the stretch where the task gives way, its torques agree with
+    the relaxed QP solved every tick (task_relaxation "always") to 1e-6 relative, and both kinds of
+    tick occur: hard answers kept, and relaxed ones (a hard answer refused, then the relaxed QP alone
+    while the slack stays non-zero)."""
+    scene = planar_scene(3)
+    run = Simulator(scene.controller("qp", "daqp"), dt=scene.dt, duration=1.5).run(scene.q0)
+    auto = scene.controller("qp", "daqp")
+    always = make_controller(dict(scene.controller_cfg, kind="qp", solver="daqp", task_relaxation="always"),
+                             scene.robot, scene.path, list(scene.obstacles), scene.gains)
+    assert auto._native_hard_first(auto.workspace()) and not always._native_hard_first(always.workspace())
+    kept = relaxed = refused = 0
+    for k in range(1300, 1500):
+        a = auto.step(run.q[k], run.v[k], float(run.t[k]))
+        b = always.step(run.q[k], run.v[k], float(run.t[k]))
+        assert a.status.name == b.status.name == "SOLVED", k
+        scale = max(float(np.abs(b.tau).max()), 1.0)
+        np.testing.assert_allclose(a.tau, b.tau, rtol=0, atol=1e-6 * scale, err_msg=str(k))
+        kept += not a.info.get("relaxed", False)
+        relaxed += a.info.get("relaxed", False)
+        refused += a.info.get("hard_status") == "penalty_inexact"
+    # a refusal switches the hard QP off until the slack is back to zero: one refusal per stretch
+    assert kept >= 20 and relaxed >= 20 and refused >= 1, (kept, relaxed, refused)
+
+
+def test_daqp_native_hard_first_at_a_singular_configuration():
+    """The planar arm starting outstretched (the x row of J ~1e-5): DAQP drops the nearly dependent
+    task row of the hard QP and reports it solved with the row missed by 0.2 m/s²; the hard-first
+    tick must see that (:func:`qpctl.kernels.tick.task_rows_hold`) and take the relaxed QP. Over the
+    whole run its torques equal those of the relaxed QP solved every tick."""
+    def scenario(relaxation: str) -> Scenario:
+        raw = {"name": "singular", "robot": {"kind": "planar3", "q0": [0.0, 0.0, 0.0]},
+               "path": {"waypoints": [[1.5, -1.5]], "duration": 1.2},
+               "controller": {"kind": "qp", "task_relaxation": relaxation}, "sim": {"dt": 0.002, "duration": 1.5}}
+        return Scenario.from_dict(raw)
+
+    run = simulate(scenario("always"))
+    auto, always = scenario("auto").build_controller(), scenario("always").build_controller()
+    traj, refused = run.trajectory, 0
+    for k in range(len(traj.t)):
+        a = auto.step(traj.q[k], traj.v[k], float(traj.t[k]))
+        b = always.step(traj.q[k], traj.v[k], float(traj.t[k]))
+        scale = max(float(np.abs(b.tau).max()), 1.0)
+        np.testing.assert_allclose(a.tau, b.tau, rtol=0, atol=1e-6 * scale, err_msg=str(k))
+        refused += a.info.get("hard_status") == "inaccurate"
+    assert refused >= 1

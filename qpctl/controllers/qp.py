@@ -114,8 +114,9 @@ class QPConfig:
     barrier gains; velocity_gain [1/s]: joint-speed barrier gain.
     slack_l1, slack_l2: task slack weights (ℓ₁ exact penalty, ℓ₂ regulariser).
     task_relaxation: "always" — solve with the task slack every tick; "on_failure" — solve with the
-    task hard first and with the slack only when that fails (infeasible); "auto" — "on_failure" for
-    osqp (ADMM converges slowly and its polishing fails with the ℓ₁ slack), "always" otherwise.
+    task hard first and with the slack only when that fails or its answer is not the relaxed QP's;
+    "auto" — "on_failure" for osqp (ADMM converges slowly and its polishing fails with the ℓ₁ slack),
+    the task hard first inside DAQP's compiled tick (a smaller QP, same answer), "always" otherwise.
     max_pairs: obstacle rows (0: 4 per link, at most links × obstacles).
     fallback: the failure policy — what produces the torque when the solver fails (infeasible,
     iteration or time limit, numerical error, non-finite data), tried in order:
@@ -295,6 +296,8 @@ class QPController(Controller):
         self._safe_stop_solver = DAQPSolver()  # the "safe-stop" fallback's small QP
         self._tick_start: float | None = None
         self._hard_first = self.relaxation == "on_failure"
+        self._try_hard = True  # the native hard-first path: try the hard QP this tick (_step_hard_first)
+        self._build_s = 0.0  # its set-up path's build time [s]
         if tasks is None:
             tasks = [AccelerationTask(), EndEffectorTask(cfg.slack_l1, cfg.slack_l2, cfg.task_weights)]
             if cfg.posture_weight > 0:
@@ -379,6 +382,7 @@ class QPController(Controller):
         self._safe_stop_solver.reset()
         for s in self._fallback_solvers.values():
             s.reset()
+        self._try_hard = True
 
     # -- the law ----------------------------------------------------------------------------------
     def formulation(self) -> Formulation:
@@ -390,7 +394,8 @@ class QPController(Controller):
 
     @property
     def relaxation(self) -> str:
-        """The task-relaxation strategy in force ("always" or "on_failure")."""
+        """The task-relaxation strategy of the Python paths ("always" or "on_failure"); under "auto"
+        DAQP's compiled tick takes the task hard first on its own (:meth:`_native_hard_first`)."""
         mode = self.config.task_relaxation
         if mode == "auto":
             return "on_failure" if self._solver.name == "osqp" else "always"
@@ -436,6 +441,8 @@ class QPController(Controller):
         q, v, t = fast_state(q, v, t, self.n)
         budget = self.config.tick_budget_us
         deadline = start + budget * 1e-6 if budget > 0 else math.inf
+        if budget <= 0 and self._native_hard_first(ws):
+            return self._step_hard_first(ws, q, v, t, start)
         hard_first = self._hard_first
         buf = ws.hard if hard_first else ws.relaxed
         solver = self._solver if hard_first else self._solver_soft
@@ -474,6 +481,112 @@ class QPController(Controller):
         out = QPOutput(ws.rec.copy(), ws.layout, extra, (end - start) * 1e6, stages, ok)
         self.last = out
         return out
+
+    def _native_hard_first(self, ws: Workspace) -> bool:
+        """Whether this tick solves the task hard first on DAQP's C API (task_relaxation "auto", the
+        compiled assembly, DAQP's native path for both layouts, a task with slack): the hard QP has no
+        slack variables (n instead of n + 2m), and its answer is used only where it is the relaxed
+        QP's too (:func:`qpctl.kernels.tick.penalty_exact` on DAQP's multipliers), so the torques are
+        those of the relaxed QP on every tick."""
+        if self.config.task_relaxation != "auto" or type(self._solver) is not DAQPSolver:
+            return False
+        if ws.hard is None or ws.relaxed is None or not ws.relaxed.relaxed:
+            return False
+        return self._solver.native(ws.hard) is not None and self._solver_soft.native(ws.relaxed) is not None
+
+    def _step_hard_first(self, ws: Workspace, q: np.ndarray, v: np.ndarray, t: float, start: float) -> QPOutput:
+        """:meth:`step` on the native hard-first path (:meth:`_native_hard_first`): one kernel call
+        when both DAQP workspaces are set up, else the same steps with the set-up in between. The
+        hard QP is skipped on the ticks after one where the task gave way (its slack non-zero)."""
+        nat_h, nat_r = self._solver.native(ws.hard), self._solver_soft.native(ws.relaxed)
+        assert ws.spec is not None and ws.hard is not None and ws.relaxed is not None
+        l1, try_hard = float(ws.spec.slack_l1), self._try_hard
+        if ws.fast and nat_h.ready and nat_r.ready:
+            t0 = time.perf_counter()
+            pin.computeAllTerms(ws.model, ws.data, q, v)
+            t1 = time.perf_counter()
+            code, hard = K.tick_qp_native_hard_first(ws.work, q, v, t, *nat_h.kernel_args, nat_h.lam,
+                                                     *nat_r.kernel_args, SOLUTION_RTOL, l1, try_hard)
+            if code == K.STATE_PYTHON:
+                ws.finish_state(q, v, t)
+                code, hard = K.qp_tick_native_hard_first(ws.work, *nat_h.kernel_args, nat_h.lam, *nat_r.kernel_args,
+                                                         SOLUTION_RTOL, l1, try_hard)
+            if code < 0:
+                self._bad_state(q, v, t)
+            stages = (t1 - t0, -1.0, -1.0, -1.0)
+        else:
+            self._state(q, v, t)
+            self._build_s = 0.0
+            t0 = time.perf_counter()
+            code, hard = self._hard_first_setup(ws, nat_h, nat_r, l1, try_hard)
+            total = time.perf_counter() - t0
+            stages = (ws.pin_s, ws.state_s, self._build_s, max(total - self._build_s, 1e-9))  # set-up in "solve"
+        if code == 1:
+            raise InvalidStateError(f"the inertia matrix is not positive definite at q={q.tolist()}")
+        if hard == 3 and nat_h.flag[0] < 0:
+            nat_h.free()  # a failed working set is not a warm start: cold the next time it is tried
+        used_hard = hard == 0
+        nat, solver = (nat_h, self._solver) if used_hard else (nat_r, self._solver_soft)
+        code, status, iters = self._native_outcome(code, nat, solver)
+        extra: dict[str, Any] = {"status": status, "iterations": iters, "solver": solver.name}
+        if not used_hard:
+            extra["relaxed"] = True
+            if hard > 0:
+                extra["hard_status"] = {4: "inaccurate", 7: "penalty_inexact"}.get(
+                    hard, DAQP_STATUS.get(int(nat_h.flag[0]), f"exitflag {int(nat_h.flag[0])}"))
+        buf = ws.hard if used_hard else ws.relaxed
+        self._last_problem = buf.problem
+        ok = code == 0
+        self._try_hard = used_hard or (ok and ws.rec[ws.layout.scalars + K.R_SLACK] <= 1e-12)
+        if not ok:
+            self._compiled_fallback(ws, buf, status, extra, math.inf, False)
+        end = time.perf_counter()
+        out = QPOutput(ws.rec.copy(), ws.layout, extra, (end - start) * 1e6, stages, ok)
+        self.last = out
+        return out
+
+    def _hard_first_setup(self, ws: Workspace, nat_h: Any, nat_r: Any, l1: float, try_hard: bool) -> tuple[int, int]:
+        """:func:`qpctl.kernels.tick.qp_tick_native_hard_first`'s steps with DAQP's workspaces set up
+        where they are not (the first ticks, and after a failure freed one); its (code, hard)."""
+        hard = -1
+        hb, rb = ws.hard, ws.relaxed
+        assert hb is not None and rb is not None
+        tb = time.perf_counter()
+        if try_hard:
+            code = K.qp_terms_and_build(ws.work, hb.H, hb.f, hb.rows, hb.bu, hb.bl)
+            self._build_s += time.perf_counter() - tb
+            if code:
+                return code, hard
+            flag = 1 if nat_h.ready else nat_h.setup()
+            if flag < 0 or K.native_solve(*nat_h.addresses, nat_h.flag) <= 0:
+                if flag < 0:
+                    nat_h.flag[0] = flag
+                hard = 3
+            elif not K.task_rows_hold(nat_h.x, hb.rows, hb.bu, hb.n_in, hb.n_eq, SOLUTION_RTOL):
+                hard = 4
+            elif not K.penalty_exact(nat_h.lam, hb.nv + hb.n_in, hb.n_eq, l1):
+                hard = 7
+            elif not K.qp_finish(ws.work, nat_h.x, hb.rows, hb.bu, hb.bl, SOLUTION_RTOL):
+                hard = 4
+            else:
+                ws.rec[ws.layout.scalars + K.R_ITERATIONS] = nat_h.flag[1]
+                # set the relaxed QP's workspace up too, so that the next ticks take one call
+                if not nat_r.ready and K.qp_rebuild(ws.work, rb.H, rb.f, rb.rows, rb.bu, rb.bl) == 0:
+                    nat_r.setup()
+                return 0, 0
+            tb = time.perf_counter()
+            code = K.qp_rebuild(ws.work, rb.H, rb.f, rb.rows, rb.bu, rb.bl)
+        else:
+            code = K.qp_terms_and_build(ws.work, rb.H, rb.f, rb.rows, rb.bu, rb.bl)
+        self._build_s += time.perf_counter() - tb
+        if code:
+            return code, hard
+        flag = 1 if nat_r.ready else nat_r.setup()
+        if flag < 0:
+            nat_r.flag[0], nat_r.flag[1] = flag, 0
+            return 3, hard
+        return K.native_solve_finish(ws.work, rb.rows, rb.bu, rb.bl, *nat_r.addresses, nat_r.flag, nat_r.x,
+                                     SOLUTION_RTOL), hard
 
     def _fast_native(self, ws: Workspace, solver: QPSolver, buf: QPBuffers) -> Any:
         """The native DAQP of ``buf`` when this tick can run as one kernel call (no tick budget; DAQP's
