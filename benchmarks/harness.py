@@ -43,6 +43,8 @@ from benchmarks.suites import (
     scaling,
 )
 from benchmarks.timing import BREAKDOWN, FLOOR, STAGES, TickTimes, breakdown, summary
+from qpctl.run import simulate
+from qpctl.scenario import Scenario
 from qpctl.solvers import available_solvers
 
 ROBOT_OF_FAMILY = {"spheres": "panda", "free": "panda", "canopy": "panda", "paper": "planar3", "planar": "planar3"}
@@ -70,6 +72,7 @@ class BenchConfig:
     max_ticks: int | None = None  # cut every run to this many ticks (None: the scene's duration)
     timing_stride: int = 1  # time every k-th recorded state in the same-tick suite
     scaling_counts: tuple[int, ...] = (10, 100, 1000)
+    harvest: bool = True  # issue 11's tick: panda_harvest's approach task and self rows against the position task
     states_from: str = TARGET_QP  # whose closed-loop states the same-tick suites replay
     progress: bool = True
 
@@ -264,6 +267,13 @@ def _targets(res: dict[str, Any]) -> list[dict[str, Any]]:
     add("scaling", f"{top_name} obstacles: {qp_name} median ≤ {t['scaling_over_first']:g}× the {first_name}-obstacle "
         "tick (Panda canopy tiled, grid broad phase)", t["scaling_over_first"], v, measured if v is not None else "",
         "×")
+    hv = res.get("harvest") or {}
+    v = hv.get("ratio")
+    add("harvest_over_position", f"Panda harvesting (`panda_harvest`): {qp_name} with the 5-row approach task and the "
+        f"self-collision rows ≤ {t['harvest_over_position']:g}× the same QP with the position task alone (same "
+        "states, interleaved)", t["harvest_over_position"], v,
+        f"{v:.2f}× ({hv['approach_us']:.1f} µs ÷ {hv['position_us']:.1f} µs, {hv['ticks']} states)"
+        if v is not None else "", "×")
     for key, label, name in (("qp_over_floor", TARGET_QP, qp_name), ("paper_over_floor", "paper", "paper law")):
         c = ctrl("spheres", label)
         v = c.get("ratio_to_floor") if c is not None else None
@@ -346,6 +356,19 @@ def run(cfg: BenchConfig, out: Path, *, command: str = "qpctl bench") -> dict[st
                 "pairs_median": float(np.nanmedian(sc[count]["paper"].pairs)), "controllers": block}
         tick_times["scaling"] = sc
 
+    # 4. the harvesting task's tick (issue 11): approach task + self rows against the position task
+    harvest_res: dict[str, Any] = {}
+    if cfg.harvest:
+        from benchmarks import harvest
+
+        for _ in _progress([0], "harvest tick", cfg.progress):
+            scen = harvest.scenario("approach")
+            if cfg.max_ticks:  # cut as every other run
+                sim = scen.data["sim"]
+                scen = Scenario.from_dict({**scen.data, "sim": {**sim, "duration": cfg.max_ticks * sim["dt"]}},
+                                          source=scen.source)
+            harvest_res = {"scenario": harvest.SCENARIO, **harvest.tick_cost(simulate(scen, kind="qp"))}
+
     res: dict[str, Any] = {
         "command": command,
         "out": str(out),
@@ -362,6 +385,7 @@ def run(cfg: BenchConfig, out: Path, *, command: str = "qpctl bench") -> dict[st
         "scene_groups": groups,
         "same_ticks": same,
         "scaling": scaling_res,
+        "harvest": harvest_res,
         "tsid_reference": {"tick_us": report.TSID_US, "credit": report.TSID_CREDIT},
     }
     res["targets"] = _targets(res)

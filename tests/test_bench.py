@@ -35,7 +35,8 @@ from qpctl.solvers import available_solvers
 TINY = BenchConfig(quick=True, planar_scenes=0, canopy_scenes=1, max_ticks=50, scaling_counts=(10, 20),
                    progress=False)
 TARGET_KEYS = {"spheres_qp_median", "spheres_qp_p99", "spheres_paper_median", "free_qp_median",
-               "canopy_over_spheres", "paper_arm_qp_median", "scaling", "qp_over_floor", "paper_over_floor"}
+               "canopy_over_spheres", "paper_arm_qp_median", "scaling", "qp_over_floor", "paper_over_floor",
+               "harvest_over_position"}
 
 
 @pytest.fixture(scope="module")
@@ -117,6 +118,9 @@ def test_targets_rows_follow_from_the_numbers(tiny: tuple[dict, dict, Path]) -> 
     assert rows["scaling"]["value"] == pytest.approx(
         sc["20"]["controllers"][qp]["wall"]["median"] / sc["10"]["controllers"][qp]["wall"]["median"])
     assert data["tsid_reference"]["tick_us"] == 16.0 and "issue #10" in data["tsid_reference"]["credit"]
+    hv = data["harvest"]  # panda_harvest cut to 50 ticks (51 states, t = 0 … 50 dt), timed on every other one
+    assert hv["ticks"] == 26 and rows["harvest_over_position"]["value"] == pytest.approx(
+        hv["approach_us"] / hv["position_us"])
 
 
 def _limit_key(key: str) -> str:
