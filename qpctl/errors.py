@@ -22,6 +22,7 @@ class ConfigError(QpctlError, ValueError):
     def __init__(self, message: str, *, source: str | None = None, key: str | None = None) -> None:
         self.source = source
         self.key = key
+        self.message = message  # without the source and key
         where = ""
         if source and key:
             where = f"{source}: {key}: "

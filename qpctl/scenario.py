@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from qpctl.barrier_design import BarrierDesign, auto_approach_speed, design_for
 from qpctl.errors import ConfigError
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.law import LawGains
@@ -186,6 +187,8 @@ SCHEMA: dict[str, Any] = {
         "joint_limits": (_bool, True),
         "barrier_k0": (_num, 400.0),
         "barrier_k1": (_num, 40.0),
+        "barrier_design": (_str, "manual"),
+        "approach_speed": (_num_or_auto, "auto"),
         "barrier_drift": (_str, "exact"),
         "joint_k0": (_num, 100.0),
         "joint_k1": (_num, 20.0),
@@ -403,7 +406,7 @@ class Scenario:
         try:
             self.gains()
         except ConfigError as exc:
-            raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key) from None
+            raise ConfigError(exc.message, source=self.source, key=exc.key) from None
         self._check_controller()
         # Validated on load (DESIGN.md §4), not when the run starts: obstacles, robot, q0, path.
         obstacles = self.build_obstacles()
@@ -662,11 +665,35 @@ class Scenario:
         faults = self.faults()
         return faults.margin(robot if robot is not None else self.build_robot()) if faults.active else 0.0
 
+    def barrier_design(self, robot: RobotModel | None = None) -> BarrierDesign | None:
+        """The barrier gains and influence distance derived from the robot's drives
+        (``controller.barrier_design = "drives"``, :mod:`qpctl.barrier_design`), or None ("manual": the
+        scenario's ``barrier_k0``, ``barrier_k1`` and ``d_influence`` as written)."""
+        c = self.data["controller"]
+        if c["barrier_design"] not in ("manual", "drives"):
+            raise self._err("controller.barrier_design", f'must be "manual" or "drives", got {c["barrier_design"]!r}')
+        if c["barrier_design"] == "manual":
+            return None
+        robot = robot if robot is not None else self.build_robot()
+        q0 = self.q0(robot)
+        v = c["approach_speed"]
+        if v == "auto":
+            v = auto_approach_speed(self.build_path(robot, q0), self.build_obstacles())
+        elif not (np.isfinite(v) and v > 0):
+            raise self._err("controller.approach_speed", f'must be a number > 0 [m/s] or "auto", got {v}')
+        try:
+            return design_for(robot, q0, float(v), c["d_safe"] + self.d_safe_margin(robot), self.data["sim"]["dt"])
+        except ConfigError as exc:
+            raise self._err(exc.key or "controller.barrier_design", exc.message) from None
+
     def gains(self, robot: RobotModel | None = None) -> LawGains:
         """The laws' gains, with d_safe raised by :meth:`d_safe_margin` (``controller.d_safe`` stays the
         distance the run is judged by)."""
-        c = self.data["controller"]
+        c = dict(self.data["controller"])
         margin = self.d_safe_margin(robot)
+        designed = self.barrier_design(robot)
+        if designed is not None:
+            c["d_influence"] = designed.d_influence
         if margin > 0 and not c["d_safe"] + margin < c["d_influence"]:
             raise self._err("controller.d_safe_margin", f"d_safe {c['d_safe']} m + margin {margin:.4g} m must stay "
                             f"below d_influence {c['d_influence']} m")
@@ -683,6 +710,9 @@ class Scenario:
         robot = robot or self.build_robot()
         q0 = self.q0(robot)
         c = dict(self.data["controller"])
+        designed = self.barrier_design(robot)
+        if designed is not None:
+            c["barrier_k0"], c["barrier_k1"], c["d_influence"] = designed.k0, designed.k1, designed.d_influence
         if kind is not None:
             c["kind"] = kind
         if solver is not None:

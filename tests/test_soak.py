@@ -531,3 +531,50 @@ def test_soak_with_faults():
     assert qp["rate_limit_exceeded"] == 0  # the commands; lost ones make the applied torque jump further
     assert qp["barrier_violations"] == 0, qp["barrier_rel_violation_max"]
     assert qp["independent_violations"] == 0, qp["independent_cases"][:5]
+
+
+@pytest.mark.slow
+def test_soak_barrier_design():
+    """Issue 16's "feasibility by design" on the soak's own scenes: every scene of the first 120 drawn
+    (the stream of test_soak) that has a torque-rate limit and a valid start, run with the scene's
+    hand-drawn barrier and with ``barrier_design = "drives"``. Written to
+    ``results/soak/summary_design.json`` (the README's "Reliability" numbers); the claims: no commanded
+    torque change beyond the limit in either mode, and the designed barrier holds d_safe − 1 mm on at
+    least as many scenes as the hand-drawn one."""
+    rng = np.random.default_rng(SEED)
+    rows: list[dict[str, Any]] = []
+    start = time.time()
+    for k in range(1, 121):
+        raw = panda_scene(rng, k) if k % 4 == 0 else planar_scene(rng, k)
+        try:
+            scen = Scenario.from_dict(raw, source=raw["name"])
+        except ConfigError:
+            continue
+        robot = scen.build_robot()
+        if not np.isfinite(robot.tau_rate_max).any():
+            continue
+        if Dynamics(robot, scen.build_obstacles()).compute(scen.q0(robot), np.zeros(robot.nv)).clearance < \
+                raw["controller"]["d_safe"]:
+            continue
+        row: dict[str, Any] = {"name": raw["name"], "d_safe": raw["controller"]["d_safe"]}
+        for mode in ("manual", "drives"):
+            scen = Scenario.from_dict({**raw, "controller": {**raw["controller"], "barrier_design": mode}},
+                                      source=raw["name"])
+            ctrl = scen.build_controller()
+            traj = Simulator(ctrl, dt=DT, duration=raw["sim"]["duration"]).run(scen.q0(ctrl.robot))
+            step = np.abs(np.diff(traj.tau, axis=0)).max(axis=0) / (np.diff(traj.t).min())
+            row[mode] = {"min_clearance_minus_d_safe": float(traj.clearance.min() - raw["controller"]["d_safe"]),
+                         "rms_tracking_error": float(np.sqrt(np.mean(np.sum((traj.x - traj.x_ref) ** 2, axis=1)))),
+                         "rate_over_limit": float(np.max(step / robot.tau_rate_max)),
+                         "fallback_ticks": sum("fallback" in i for i in traj.infos),
+                         "k0_k1_d_influence": [ctrl.config.barrier_k0, ctrl.config.barrier_k1, ctrl.gains.d_influence]}
+        rows.append(row)
+    held = {m: sum(r[m]["min_clearance_minus_d_safe"] >= -1e-3 for r in rows) for m in ("manual", "drives")}
+    collided = {m: sum(r[m]["min_clearance_minus_d_safe"] < -r["d_safe"] for r in rows) for m in ("manual", "drives")}
+    summary = {"scenes": len(rows), "held_d_safe": held, "wall_s": time.time() - start, "runs": rows,
+               "collided": collided}
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / "summary_design.json").write_text(json.dumps(summary, indent=2, default=float) + "\n")
+    assert len(rows) >= 15
+    assert all(r[m]["rate_over_limit"] <= 1 + 1e-6 for r in rows for m in ("manual", "drives"))
+    assert held["drives"] >= held["manual"], held
