@@ -313,7 +313,10 @@ class PybulletSimulator(SimulatorBase):
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
         states = pybullet.getJointStates(self.body, self.joint_ids, physicsClientId=self.client)
-        return np.array([s[0] for s in states]), np.array([s[1] for s in states])
+        q, v = np.array([s[0] for s in states]), np.array([s[1] for s in states])
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v))):
+            raise SimulationError("PyBullet state diverged (non-finite joint state)")
+        return q, v
 
     def apply(self, tau: np.ndarray) -> None:
         pybullet.setJointMotorControlArray(self.body, self.joint_ids, pybullet.TORQUE_CONTROL,
@@ -321,10 +324,7 @@ class PybulletSimulator(SimulatorBase):
 
     def step(self, t: float) -> None:
         pybullet.stepSimulation(physicsClientId=self.client)
-        self._move_obstacles(t + self.dt)
-        q, v = self.read()
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v))):
-            raise SimulationError(f"PyBullet state diverged at t = {t + self.dt:.4f} s")
+        self._move_obstacles(t + self.dt)  # (a diverged state is caught by the next read)
 
     def obstacle_positions(self) -> np.ndarray:
         """Where PyBullet holds the obstacles [m] (their bodies' base positions)."""
