@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: all env demo test soak robust bench bench-quick harvest lint clean
+.PHONY: all env demo test soak robust bench bench-quick harvest simulators lint clean
 
 all: test
 
@@ -40,6 +40,10 @@ bench-quick: $(STAMP)
 # The harvesting scenario under every law, approach and pose tasks: results/harvest/harvest.md (README, "Harvesting").
 harvest: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks.harvest --out results/harvest
+
+# Built-in / MuJoCo / PyBullet side by side: results/simulators/simulators.md (README, "Other simulators").
+simulators: $(STAMP)
+	MPLBACKEND=Agg $(PY) -m benchmarks.simulators --out results/simulators
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check qpctl baselines benchmarks tests

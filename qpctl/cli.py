@@ -30,6 +30,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
           f"max tracking error {m['max_tracking_error']:.3g} m, max |τ| {m['max_abs_torque']:.4g} N·m, "
           f"min clearance {m['min_clearance'] if m['min_clearance'] is None else round(m['min_clearance'], 4)} m, "
           f"collided {m['collided']}, tick median {m['tick_us_median']:.0f} µs -> {out}")
+    for note in m.get("simulator_notes", []):
+        print(f"  {m['simulator']}: {note}")
     return 0
 
 
@@ -71,7 +73,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("scenario", help="path to a .toml scenario or the name of a packaged one (e.g. paper)")
     s.add_argument("--controller", choices=["paper", "hsu", "qp"], help="override controller.kind")
     s.add_argument("--solver", help="override controller.solver (see `qpctl solvers`)")
-    s.add_argument("--sim", choices=["builtin", "mujoco"], help="override sim.simulator")
+    from qpctl.adapters import SIMULATORS
+
+    s.add_argument("--sim", choices=list(SIMULATORS), help="override sim.simulator")
     s.add_argument("--out", help="output folder (default results/<scenario>-<controller>)")
     s.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a scenario key by dotted path")
     s.add_argument("--no-figures", action="store_true", help="skip the PNG figures")

@@ -47,8 +47,11 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
              simulator: str | None = None, progress: bool = False) -> RunResult:
     """Build the scenario's controller and run it in the chosen simulator (built-in RK4 by default).
 
-    With ``[faults]`` on, the controller is built on its (perturbed) map of the obstacles and the
-    built-in simulator applies the faults (:mod:`qpctl.simulation.faults`); MuJoCo refuses them."""
+    ``simulator`` (or ``sim.simulator``) is a name in :data:`qpctl.adapters.SIMULATORS`: ``builtin``,
+    ``mujoco``, ``pybullet``. With ``[faults]`` on, the controller is built on its (perturbed) map of
+    the obstacles and the built-in simulator applies the faults (:mod:`qpctl.simulation.faults`); the
+    other simulators refuse them. What an adapter changed in or found about the user's model
+    (``sim.model``) is in ``metrics["simulator_notes"]``."""
     faults = scenario.faults()
     sim_cfg = scenario.data["sim"]
     which = simulator or sim_cfg["simulator"]
@@ -62,29 +65,23 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
     seen = faults.perceived(truth, robot.task_axes) if faults.active else None
     controller = scenario.build_controller(kind, solver, robot=robot, obstacles=seen)
     q0 = scenario.q0(controller.robot)
-    fault_counts: dict[str, int] = {}
-    if which == "mujoco":
-        try:
-            from qpctl.adapters.mujoco import MujocoSimulator
-        except ImportError as exc:  # the optional extra is not installed: the user's to fix, not a bug
-            from qpctl.errors import ConfigError
+    from qpctl.adapters import simulator_class
+    from qpctl.errors import ConfigError
 
-            raise ConfigError(f"MuJoCo is not installed ({exc}); pip install 'qpctl[mujoco]' (or mujoco)",
-                              source=scenario.source, key="sim.simulator") from None
-
-        traj = MujocoSimulator(controller, dt=sim_cfg["dt"], duration=sim_cfg["duration"],
-                               integrator=sim_cfg["integrator"], progress=progress).run(q0)
-    elif which == "builtin":
-        sim = Simulator(controller, dt=sim_cfg["dt"], duration=sim_cfg["duration"], integrator=sim_cfg["integrator"],
-                        progress=progress, faults=faults if faults.active else None,
-                        obstacles=truth if faults.active else None)
-        traj = sim.run(q0)
-        fault_counts = sim.fault_counts
-    else:
-        from qpctl.errors import ConfigError
-
-        raise ConfigError(f"unknown simulator {which!r}; one of builtin, mujoco", source=scenario.source,
-                          key="sim.simulator")
+    try:
+        cls = simulator_class(which)
+        if which == "builtin":
+            sim = Simulator.from_scenario(controller, scenario, progress=progress,
+                                          faults=faults if faults.active else None,
+                                          obstacles=truth if faults.active else None)
+        else:
+            sim = cls.from_scenario(controller, scenario, progress=progress)
+    except ConfigError as exc:  # name the scenario file beside the key
+        if exc.source is not None:
+            raise
+        raise ConfigError(str(exc).split(": ", 1)[-1] if exc.key else str(exc), source=scenario.source,
+                          key=exc.key) from None
+    traj = sim.run(q0)
     metrics: dict[str, Any] = {
         "scenario": scenario.name,
         "controller": controller.kind,
@@ -99,7 +96,10 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
         metrics["d_safe_margin"] = margin
     if faults.active:
         metrics["faults"] = {k: getattr(faults, k) for k in faults.kinds()} | {"seed": faults.seed}
-        metrics.update(fault_counts)
+        metrics.update(getattr(sim, "fault_counts", {}))
+    metrics.update(sim.counts)
+    if sim.notes:
+        metrics["simulator_notes"] = list(sim.notes)
     return RunResult(scenario, controller, traj, metrics)
 
 

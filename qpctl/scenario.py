@@ -218,6 +218,8 @@ SCHEMA: dict[str, Any] = {
         "integrator": (_str, "rk4"),
         "seed": (_int, 0),
         "simulator": (_str, "builtin"),
+        "model": (_str, ""),
+        "joint_names": (_str_list, None),
     },
 }
 
@@ -400,8 +402,14 @@ class Scenario:
             raise self._err("path.duration", "missing value (give duration or durations)")
         if sim["integrator"] not in ("rk4", "euler"):
             raise self._err("sim.integrator", f"must be rk4 or euler, got {sim['integrator']!r}")
-        if sim["simulator"] not in ("builtin", "mujoco"):
-            raise self._err("sim.simulator", f"must be builtin or mujoco, got {sim['simulator']!r}")
+        from qpctl.adapters import SIMULATORS
+
+        if sim["simulator"] not in SIMULATORS:
+            raise self._err("sim.simulator", f"must be one of {', '.join(SIMULATORS)}, got {sim['simulator']!r}")
+        if sim["model"] and not self.resolve(sim["model"]).is_file():
+            raise self._err("sim.model", f"file not found: {self.resolve(sim['model'])}")
+        if sim["joint_names"] is not None and not sim["model"]:
+            raise self._err("sim.joint_names", "names the joints of sim.model, which is not set")
         faults = self.faults()
         try:
             self.gains()
@@ -415,6 +423,10 @@ class Scenario:
         if w is not None and (len(w) != robot.m or not all(np.isfinite(x) and x > 0 for x in w)):
             raise self._err("controller.task_weights", f"needs {robot.m} positive numbers (one per task row: "
                             f"{robot.m_position} position, {robot.m_orientation} orientation), got {w}")
+        names = sim["joint_names"]
+        if names is not None and (len(names) != robot.nv or len(set(names)) != len(names)):
+            raise self._err("sim.joint_names", f"needs {robot.nv} distinct names (the simulator's names of "
+                            f"{', '.join(robot.joint_names)}, in that order), got {names}")
         q0 = self.q0(robot)
         self._check_reach(robot, self.build_path(robot, q0))
         self._check_start_clear(robot, obstacles, q0)

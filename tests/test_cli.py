@@ -199,3 +199,15 @@ def test_no_override_a_user_can_write_is_an_internal_error(tmp_path, capsys):
             _assert_one_line_error(err)
         codes[code] = codes.get(code, 0) + 1
     assert codes.get(2, 0) > 100 and codes.get(0, 0) >= 3, codes  # most are refused, a few run
+
+
+def test_simulate_under_pybullet_and_its_notes(tmp_path, capsys):
+    """``--sim pybullet`` runs and records the simulator; PyBullet's integrator is said not to be RK4."""
+    pytest.importorskip("pybullet")
+    out = tmp_path / "pb"
+    assert main(["simulate", "paper", "--sim", "pybullet", "--out", str(out), "--set", "sim.duration=0.05",
+                 "--quiet", "--no-figures"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["simulator"] == "pybullet"
+    assert any("semi-implicit Euler" in n for n in metrics["simulator_notes"])
+    assert "pybullet: PyBullet integrates with semi-implicit Euler" in capsys.readouterr().out

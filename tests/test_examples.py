@@ -16,6 +16,8 @@ EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 # script, simulated seconds, what its output must contain, whether it needs the QP controller
 CASES = [
     ("drive_mujoco_loop.py", 0.2, "tracking error", False),
+    ("drive_pybullet_loop.py", 0.2, "tracking error", False),
+    ("drive_my_mujoco_model.py", 0.3, "ctrl clamped on 0 ticks", False),
     ("swap_solver.py", 0.05, "swapped a live controller to osqp", True),
     ("posture_task.py", 0.1, "with PostureTask", True),
     ("moving_obstacle.py", 0.1, "min clearance", True),
@@ -28,8 +30,10 @@ def test_every_example_is_tested():
 
 @pytest.mark.parametrize(("script", "duration", "expected", "needs_qp"), CASES, ids=[c[0] for c in CASES])
 def test_example_runs(script, duration, expected, needs_qp):
-    if script == "drive_mujoco_loop.py":
+    if script in ("drive_mujoco_loop.py", "drive_my_mujoco_model.py"):
         pytest.importorskip("mujoco")
+    if script == "drive_pybullet_loop.py":
+        pytest.importorskip("pybullet")
     if needs_qp and importlib.util.find_spec("qpctl.controllers.qp") is None:
         pytest.skip("needs the QP controller")
     env = dict(os.environ, QPCTL_EXAMPLE_DURATION=str(duration), MPLBACKEND="Agg")

@@ -40,20 +40,23 @@ round-off — amplified by the closed loop — not by a method error (see ``test
 
 from __future__ import annotations
 
+import copy
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pinocchio as pin
 
 from qpctl.adapters.joint_map import JointMap
+from qpctl.adapters.model_check import DynamicsCheck, check_dynamics
 from qpctl.controllers.base import Controller
 from qpctl.errors import ConfigError, SimulationError
 from qpctl.geometry.obstacles import Obstacle, rotation_z_to
 from qpctl.robot.model import RobotModel
-from qpctl.simulation.simulator import Trajectory, check_ticks, finish_trajectory, measured_self_pairs
-from qpctl.tick import WorldClearance
+from qpctl.simulation.loop import SimulatorBase
+from qpctl.simulation.trajectory import Trajectory
 
 try:
     import mujoco
@@ -218,8 +221,10 @@ def full_inertia(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
 class MujocoJoints:
     """Where the model's joints live in a MuJoCo model: ``qpos``/``qvel``/``qfrc`` addresses.
 
-    Built from joint names (:class:`JointMap`), so the MJCF may order or name its other joints as it
-    likes; only hinge and slide joints can stand for the model's revolute/prismatic joints.
+    Built from joint names (:class:`JointMap`): ``joint_names`` are the MuJoCo model's names of the
+    controller's joints, in the controller's order (``robot.joint_names`` when the MJCF uses the same
+    names), so the MJCF may order or name its joints as it likes; only hinge and slide joints can
+    stand for the model's revolute/prismatic joints.
     """
 
     def __init__(self, mj_model: mujoco.MjModel, joint_names: Sequence[str], *, allow_extra: bool = False):
@@ -231,6 +236,8 @@ class MujocoJoints:
         if bad:
             raise ConfigError(f"MuJoCo joints {', '.join(bad)} are not hinge or slide joints",
                               key="joint_map")
+        self.jnt_ids = np.asarray(ids, int)
+        self.names = tuple(str(n) for n in joint_names)
         self.qpos_adr = np.asarray(mj_model.jnt_qposadr[ids], int)
         self.dof_adr = np.asarray(mj_model.jnt_dofadr[ids], int)
 
@@ -238,6 +245,17 @@ class MujocoJoints:
     def for_robot(cls, mj_model: mujoco.MjModel, robot: RobotModel, *,
                   allow_extra: bool = False) -> MujocoJoints:
         return cls(mj_model, robot.joint_names, allow_extra=allow_extra)
+
+    @classmethod
+    def by_order(cls, mj_model: mujoco.MjModel, n: int) -> MujocoJoints:
+        """The model's hinge and slide joints in their MJCF order, which must be exactly ``n``."""
+        scalar = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
+        names = [mj_model.joint(i).name for i in range(mj_model.njnt) if int(mj_model.jnt_type[i]) in scalar]
+        if len(names) != n or mj_model.njnt != n:
+            raise ConfigError(f"cannot match joints by order: the MuJoCo model has {mj_model.njnt} joints "
+                              f"({len(names)} hinge/slide: {', '.join(names)}), the robot {n}; name them "
+                              "with sim.joint_names", key="sim.joint_names")
+        return cls(mj_model, names)
 
     def read(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
         """(q [rad], v [rad/s]) in the model's joint order."""
@@ -256,7 +274,139 @@ class MujocoJoints:
         return matrix[np.ix_(self.dof_adr, self.dof_adr)]
 
 
-class MujocoSimulator:
+_KIND = {  # (gain type, bias type) → what the actuator is, as MJCF's shortcuts make it
+    ("FIXED", "NONE"): "motor",
+    ("FIXED", "AFFINE"): "servo",  # position (bias −kp q − kv q̇), velocity (−kv q̇), intvelocity
+}
+
+
+class MujocoActuation:
+    """How the controller's torque reaches the joints of a MuJoCo model.
+
+    * A joint driven by a **motor** actuator (gain type fixed, no bias, no activation dynamics,
+      ``<motor>`` in MJCF) gets its torque through ``ctrl``: ctrl = τ / (gain · gear), clamped to
+      ``ctrlrange`` (and the force to ``forcerange``) as MuJoCo would; the ticks at which that
+      changed the torque are counted (``ctrl_clamped_ticks``), never hidden.
+    * Any other actuator on one of the controller's joints (position/velocity servos, filters,
+      muscles) would fight the controller: its gains and bias are set to zero in this copy of the
+      model, and a note says so.
+    * Joints without a motor get their torque through ``qfrc_applied``.
+
+    Actuators on joints the controller does not drive (a gripper's) are left as they are.
+    """
+
+    def __init__(self, model: mujoco.MjModel, joints: MujocoJoints) -> None:
+        self.notes: list[str] = []
+        n = len(joints.dof_adr)
+        by_joint = {int(j): i for i, j in enumerate(joints.jnt_ids)}
+        motor_idx, motor_ids, scale = [], [], []
+        for a in range(model.nu):
+            name = model.actuator(a).name or f"actuator{a}"
+            trn = int(model.actuator_trntype[a])
+            if trn not in (int(mujoco.mjtTrn.mjTRN_JOINT), int(mujoco.mjtTrn.mjTRN_JOINTINPARENT)):
+                self.notes.append(f"actuator {name} (transmission {mujoco.mjtTrn(trn).name}) left as it is")
+                continue
+            jid = int(model.actuator_trnid[a, 0])
+            if jid not in by_joint:
+                continue  # not one of the controller's joints: left alone
+            i = by_joint[jid]
+            gain = mujoco.mjtGain(int(model.actuator_gaintype[a])).name.removeprefix("mjGAIN_")
+            bias = mujoco.mjtBias(int(model.actuator_biastype[a])).name.removeprefix("mjBIAS_")
+            dyn = int(model.actuator_dyntype[a])
+            kind = _KIND.get((gain, bias), "other") if dyn == int(mujoco.mjtDyn.mjDYN_NONE) else "other"
+            gear = float(model.actuator_gear[a, 0])
+            if kind == "motor" and i not in motor_idx and gear * model.actuator_gainprm[a, 0] != 0:
+                motor_idx.append(i)
+                motor_ids.append(a)
+                scale.append(gear * float(model.actuator_gainprm[a, 0]))
+                continue
+            what = {"servo": f"a servo: kp = {-model.actuator_biasprm[a, 1]:.4g}, kv = "
+                             f"{-model.actuator_biasprm[a, 2]:.4g}",
+                    "motor": "a second motor on the joint"}.get(kind, f"gain {gain}, bias {bias}, dynamics "
+                                                                    f"{mujoco.mjtDyn(dyn).name}")
+            model.actuator_gainprm[a, :] = 0.0
+            model.actuator_biasprm[a, :] = 0.0
+            self.notes.append(f"actuator {name} on joint {joints.names[i]} switched off ({what}): it would "
+                              "fight the torque controller")
+        self.motor_idx = np.asarray(motor_idx, int)
+        self.motor_ids = np.asarray(motor_ids, int)
+        self.scale = np.asarray(scale, float)
+        self.ctrl_lo = np.where(model.actuator_ctrllimited[self.motor_ids] > 0,
+                                model.actuator_ctrlrange[self.motor_ids, 0], -np.inf)
+        self.ctrl_hi = np.where(model.actuator_ctrllimited[self.motor_ids] > 0,
+                                model.actuator_ctrlrange[self.motor_ids, 1], np.inf)
+        gain = model.actuator_gainprm[self.motor_ids, 0]
+        f_lo = np.where(model.actuator_forcelimited[self.motor_ids] > 0,
+                        model.actuator_forcerange[self.motor_ids, 0], -np.inf)
+        f_hi = np.where(model.actuator_forcelimited[self.motor_ids] > 0,
+                        model.actuator_forcerange[self.motor_ids, 1], np.inf)
+        # the force range as a range of ctrl (force = gain · ctrl)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            a_lo, a_hi = f_lo / gain, f_hi / gain
+        self.ctrl_lo = np.maximum(self.ctrl_lo, np.where(gain > 0, a_lo, a_hi))
+        self.ctrl_hi = np.minimum(self.ctrl_hi, np.where(gain > 0, a_hi, a_lo))
+        self.free_idx = np.setdiff1d(np.arange(n), self.motor_idx)
+        self.free_dofs = joints.dof_adr[self.free_idx]
+        self.clamped_ticks = 0
+        self.clamped_joints: set[str] = set()
+        self._names = joints.names
+        if len(self.motor_ids):
+            self.notes.append("torque through the motor actuators' ctrl (gear and gain: "
+                              + ", ".join(f"{joints.names[i]} × {s:.4g}" for i, s in zip(self.motor_idx, self.scale))
+                              + ")")
+
+    def apply(self, data: mujoco.MjData, tau: np.ndarray) -> None:
+        """Hold ``tau`` [N·m] (controller's order): motors' ``ctrl``, the other joints' ``qfrc_applied``."""
+        if len(self.motor_ids):
+            ctrl = tau[self.motor_idx] / self.scale
+            held = np.clip(ctrl, self.ctrl_lo, self.ctrl_hi)
+            if np.any(held != ctrl):
+                self.clamped_ticks += 1
+                self.clamped_joints.update(self._names[i] for i in self.motor_idx[held != ctrl])
+            data.ctrl[self.motor_ids] = held
+        data.qfrc_applied[self.free_dofs] = tau[self.free_idx]
+
+    def reset(self) -> None:
+        self.clamped_ticks = 0
+        self.clamped_joints = set()
+
+
+def _add_obstacles(spec: Any, obstacles: Sequence[Obstacle], prefix: str) -> None:
+    """Contact-free geoms for ``obstacles`` in a user's model (MjSpec); moving ones on mocap bodies."""
+    types = {"sphere": mujoco.mjtGeom.mjGEOM_SPHERE, "box": mujoco.mjtGeom.mjGEOM_BOX,
+             "capsule": mujoco.mjtGeom.mjGEOM_CAPSULE, "cylinder": mujoco.mjtGeom.mjGEOM_CYLINDER}
+    for i, obs in enumerate(obstacles):
+        name = f"{prefix}{obs.name or f'obstacle{i}'}"
+        if obs.moving:
+            parent = spec.worldbody.add_body(name=name, mocap=True, pos=np.asarray(obs.position, float))
+            pos = np.zeros(3)
+        else:
+            parent, pos = spec.worldbody, np.asarray(obs.position, float)
+        if obs.shape == "sphere":
+            size, quat = [obs.radius, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]
+        elif obs.shape == "box":
+            size, quat = list(np.asarray(obs.size, float) / 2), [1.0, 0.0, 0.0, 0.0]
+        else:
+            size, quat = [obs.radius, obs.length / 2, 0.0], list(_quat(rotation_z_to(obs.axis)))
+        parent.add_geom(name=f"{name}_geom" if obs.moving else name, type=types[obs.shape], size=size,
+                        pos=pos, quat=quat, contype=0, conaffinity=0, group=1, rgba=[0.45, 0.6, 0.3, 0.6])
+
+
+def load_user_model(path: str | Path, obstacles: Sequence[Obstacle] = ()) -> mujoco.MjModel:
+    """Compile the user's MJCF (or URDF) at ``path`` with ``obstacles`` added as contact-free geoms
+    (bodies and geoms named ``qpctl_<obstacle name>``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"MuJoCo model not found: {path}", key="sim.model")
+    try:
+        spec = mujoco.MjSpec.from_file(str(path))
+        _add_obstacles(spec, obstacles, "qpctl_")
+        return spec.compile()
+    except ValueError as exc:
+        raise ConfigError(f"MuJoCo rejected {path}: {' '.join(str(exc).split())}", key="sim.model") from None
+
+
+class MujocoSimulator(SimulatorBase):
     """Runs a controller in MuJoCo and records the same :class:`Trajectory` as the built-in simulator.
 
     Args:
@@ -266,52 +416,115 @@ class MujocoSimulator:
         integrator: ``"rk4"`` (default, as the built-in simulator), ``"euler"`` (semi-implicit),
             ``"implicit"`` or ``"implicitfast"``.
         progress: show a tqdm progress bar.
-        joint_limits: enforce ``robot.q_min``/``q_max`` as MuJoCo limit constraints (generated model only).
-        model: your own ``mujoco.MjModel`` instead of the generated one; its joints are matched to
-            ``robot.joint_names`` by name, and its timestep and integrator are replaced by ``dt`` and
-            ``integrator``.
+        joint_limits: enforce joint limits as MuJoCo limit constraints (the generated model gets
+            ``robot.q_min``/``q_max``; a user's model keeps its own ranges); off, as in the built-in
+            simulator, by default.
+        model: your own model instead of the generated one: a path to an MJCF (or URDF) file — the
+            scene's obstacles are added to it as contact-free geoms — or a compiled ``mujoco.MjModel``
+            (copied; obstacles not added). Its timestep and integrator are replaced by ``dt`` and
+            ``integrator``, contacts are switched off, its actuators handled by
+            :class:`MujocoActuation`, its dynamics checked against the controller's
+            (:func:`~qpctl.adapters.model_check.check_dynamics`; see ``notes``).
+        joint_names: with ``model``, the model's names of the controller's joints, in the
+            controller's order (default: ``robot.joint_names``; if the model has none of those names,
+            its joints are taken in order, which must then pass the dynamics check).
         allow_extra_joints: with ``model``, leave joints the robot does not have undriven.
     """
 
+    name = "mujoco"
+
     def __init__(self, controller: Controller, *, dt: float = 1e-3, duration: float = 5.0,
                  integrator: str = "rk4", progress: bool = False, joint_limits: bool = False,
-                 model: mujoco.MjModel | None = None, allow_extra_joints: bool = False) -> None:
-        if not (np.isfinite(duration) and duration > 0):
-            raise ConfigError(f"must be a positive number of seconds, got {duration}", key="sim.duration")
-        check_ticks(duration, dt)
-        self.controller = controller
-        self.robot = controller.robot
-        self.dt = float(dt)
-        self.duration = float(duration)
-        self.progress = progress
+                 model: mujoco.MjModel | str | Path | None = None, joint_names: Sequence[str] | None = None,
+                 allow_extra_joints: bool = False) -> None:
+        super().__init__(controller, dt=dt, duration=duration, progress=progress)
+        if integrator not in INTEGRATORS:
+            raise ConfigError(f"unknown MuJoCo integrator {integrator!r}; one of {', '.join(INTEGRATORS)}",
+                              key="sim.integrator")
+        own = model is not None
+        prefix = ""
         if model is None:
-            model = build_model(self.robot, controller.obstacles, timestep=self.dt, integrator=integrator,
+            model = build_model(self.robot, self.obstacles, timestep=self.dt, integrator=integrator,
                                 joint_limits=joint_limits)
         else:
-            if integrator not in INTEGRATORS:
-                raise ConfigError(f"unknown MuJoCo integrator {integrator!r}; one of "
-                                  f"{', '.join(INTEGRATORS)}", key="sim.integrator")
-            if not (np.isfinite(dt) and dt > 0):
-                raise ConfigError(f"must be a positive number of seconds, got {dt}", key="sim.dt")
+            if isinstance(model, (str, Path)):
+                model = load_user_model(model, self.obstacles)
+                prefix = "qpctl_"
+            else:
+                model = copy.copy(model)
             model.opt.timestep = self.dt
             model.opt.integrator = getattr(mujoco.mjtIntegrator, f"mjINT_{INTEGRATORS[integrator].upper()}")
+            model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+            if not joint_limits:
+                model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_LIMIT)
         self.model = model
         self.data = mujoco.MjData(model)
-        self.joints = MujocoJoints.for_robot(model, self.robot, allow_extra=allow_extra_joints)
+        self.joints = self._match_joints(model, joint_names, allow_extra_joints) if own else \
+            MujocoJoints.for_robot(model, self.robot)
+        self.actuation = MujocoActuation(model, self.joints)
+        self.notes.extend(self.actuation.notes)
+        self.dynamics: DynamicsCheck | None = None
+        if own:
+            self._check_model(by_order=joint_names is None and self.joints.names != tuple(self.robot.joint_names))
         self._mocap = []
-        for i, obs in enumerate(controller.obstacles):
+        for i, obs in enumerate(self.obstacles):
             if obs.moving:
-                bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, obs.name or f"obstacle{i}")
+                bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, prefix + (obs.name or f"obstacle{i}"))
                 if bid >= 0 and model.body_mocapid[bid] >= 0:
-                    self._mocap.append((int(model.body_mocapid[bid]), obs))
-        self._world = WorldClearance(self.robot, controller.obstacles, measured_self_pairs(controller))
+                    self._mocap.append((i, int(model.body_mocapid[bid]), obs))
 
-    def clearance(self, q: np.ndarray, t: float) -> float:
-        """Exact least link–obstacle distance [m] at (q, t), as the built-in simulator measures it."""
-        return self._world(q, t)
+    @classmethod
+    def from_scenario(cls, controller: Controller, scenario: Any, *, progress: bool = False) -> MujocoSimulator:
+        """MuJoCo for the scenario's ``[sim]``: ``dt``, ``duration``, ``integrator``, and the user's
+        ``model`` (relative to the scenario file's folder) with its ``joint_names``."""
+        sim = scenario.data["sim"]
+        model = scenario.resolve(sim["model"]) if sim["model"] else None
+        return cls(controller, dt=sim["dt"], duration=sim["duration"], integrator=sim["integrator"],
+                   progress=progress, model=model, joint_names=sim["joint_names"])
+
+    def _match_joints(self, model: mujoco.MjModel, joint_names: Sequence[str] | None,
+                      allow_extra: bool) -> MujocoJoints:
+        n = self.robot.nv
+        if joint_names is not None:
+            if len(joint_names) != n:
+                raise ConfigError(f"needs {n} names (the model's names of {', '.join(self.robot.joint_names)}), "
+                                  f"got {len(joint_names)}", key="sim.joint_names")
+            return MujocoJoints(model, joint_names, allow_extra=allow_extra)
+        names = {model.joint(i).name for i in range(model.njnt)}
+        if any(name in names for name in self.robot.joint_names) or allow_extra:
+            return MujocoJoints.for_robot(model, self.robot, allow_extra=allow_extra)
+        joints = MujocoJoints.by_order(model, n)
+        self.notes.append("joints matched by order: " + ", ".join(
+            f"{a} → {b}" for a, b in zip(self.robot.joint_names, joints.names)))
+        return joints
+
+    def _check_model(self, by_order: bool) -> None:
+        """M(q) and bias forces against the controller's model; passive forces and gravity noted."""
+        model, joints = self.model, self.joints
+        data = mujoco.MjData(model)
+
+        def terms(q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            mujoco.mj_resetData(model, data)
+            joints.write_state(data, q, v)
+            mujoco.mj_forward(model, data)
+            return joints.select(full_inertia(model, data)), data.qfrc_bias[joints.dof_adr].copy()
+
+        self.dynamics = check_dynamics(self.robot, terms)
+        if by_order and not self.dynamics.same:
+            raise ConfigError("joints matched by order, but " + self.dynamics.sentence("the MuJoCo model")
+                              + "; name the joints with sim.joint_names (or fix the model)",
+                              key="sim.joint_names")
+        self.notes.append(self.dynamics.sentence("the MuJoCo model"))
+        dofs = joints.dof_adr
+        passive = {"damping": model.dof_damping[dofs], "frictionloss": model.dof_frictionloss[dofs],
+                   "stiffness": model.jnt_stiffness[joints.jnt_ids]}
+        for key, values in passive.items():
+            if np.any(values != 0):
+                self.notes.append(f"the MuJoCo model's joints have {key} {np.round(values, 6).tolist()}, which "
+                                  "the controller's model does not (MuJoCo applies it)")
 
     def _move_obstacles(self, t: float) -> None:
-        for mocap_id, obs in self._mocap:
+        for _, mocap_id, obs in self._mocap:
             self.data.mocap_pos[mocap_id] = obs.position_at(t)
 
     def _diverged(self) -> bool:
@@ -330,54 +543,35 @@ class MujocoSimulator:
         v0 = np.zeros(self.robot.nv) if v0 is None else np.asarray(v0, float)
         self.joints.write_state(self.data, q0, v0)
         self._move_obstacles(0.0)
+        self.actuation.reset()
         mujoco.mj_forward(self.model, self.data)
 
-    def run(self, q0: np.ndarray, v0: np.ndarray | None = None) -> Trajectory:
-        """Simulate from (q0 [rad], v0 [rad/s]) at t = 0 for ``duration``; one controller tick per step."""
-        self.reset(q0, v0)
-        n, m = self.robot.nv, self.robot.m
-        steps = round(self.duration / self.dt) + 1
-        rec = {k: np.zeros((steps, n)) for k in ("q", "v", "tau", "e_null")}
-        rec.update({k: np.zeros((steps, m)) for k in ("x", "x_ref", "xd_ref", "xdd_ref")})
-        t_arr, clear, tick_us = np.zeros(steps), np.zeros(steps), np.zeros(steps)
-        self_clear = np.full(steps, np.inf)
-        singular = np.zeros(steps, bool)
-        infos: list[dict[str, Any]] = []
-        ctrl, data = self.controller, self.data
-        if ctrl.warm:  # kernels loaded, workspace built, solver set up: not in the first tick
-            ctrl.reset()
-        else:
-            ctrl.warmup()  # (ends in reset())
-        iterator: Any = range(steps)
-        if self.progress:
-            from tqdm import tqdm
+    def read(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.joints.read(self.data)
 
-            iterator = tqdm(iterator, desc=f"mujoco {ctrl.kind}", unit="tick", leave=False)
-        for k in iterator:
-            t = k * self.dt
-            q, v = self.joints.read(data)
-            out = ctrl.step(q, v, t)
-            tau = out.tau
-            if not np.all(np.isfinite(tau)):
-                raise SimulationError(f"controller {ctrl.kind} returned non-finite torque at t = {t:.4f} s")
-            t_arr[k] = t
-            rec["q"][k], rec["v"][k], rec["tau"][k], rec["e_null"][k] = q, v, tau, out.e_null
-            rec["x"][k], rec["x_ref"][k] = out.x, out.ref.x
-            rec["xd_ref"][k], rec["xdd_ref"][k] = out.ref.xd, out.ref.xdd
-            clear[k] = self.clearance(q, t)
-            self_clear[k] = self._world.self_clearance
-            tick_us[k] = out.compute_us
-            singular[k] = out.singular
-            infos.append(out.info)
-            if k + 1 < steps:
-                self.joints.apply(data, tau)  # zero-order hold: qfrc_applied stays for all RK4 stages
-                data.time = t
-                mujoco.mj_step(self.model, data)
-                self._move_obstacles(t + self.dt)
-                if self._diverged():
-                    raise SimulationError(f"MuJoCo state diverged at t = {t + self.dt:.4f} s")
-        traj = Trajectory(t_arr, rec["q"], rec["v"], rec["tau"], rec["x"], rec["x_ref"], rec["xd_ref"],
-                          rec["xdd_ref"], clear, rec["e_null"], tick_us, singular, infos)
-        if len(self._world.ws.sc_pairs):
-            traj.self_clearance = self_clear
-        return finish_trajectory(traj, ctrl)
+    def apply(self, tau: np.ndarray) -> None:
+        self.actuation.apply(self.data, tau)  # zero-order hold: ctrl / qfrc_applied stay for all RK4 stages
+
+    def step(self, t: float) -> None:
+        self.data.time = t
+        mujoco.mj_step(self.model, self.data)
+        self._move_obstacles(t + self.dt)
+        if self._diverged():
+            raise SimulationError(f"MuJoCo state diverged at t = {t + self.dt:.4f} s")
+
+    def obstacle_positions(self) -> np.ndarray:
+        """Where MuJoCo holds the obstacles [m]: the mocap bodies' positions for the moving ones."""
+        out = np.array([o.position for o in self.obstacles], float).reshape(-1, 3)
+        for i, mocap_id, _ in self._mocap:
+            out[i] = self.data.mocap_pos[mocap_id]
+        return out
+
+    def run(self, q0: np.ndarray, v0: np.ndarray | None = None) -> Trajectory:
+        traj = super().run(q0, v0)
+        act = self.actuation
+        if len(act.motor_ids):
+            self.counts["ctrl_clamped_ticks"] = act.clamped_ticks
+            if act.clamped_ticks:
+                self.notes.append(f"ctrlrange/forcerange clamped the torque on {act.clamped_ticks} ticks "
+                                  f"(joints {', '.join(sorted(act.clamped_joints))}): tau records the command")
+        return traj

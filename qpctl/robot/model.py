@@ -93,6 +93,7 @@ class RobotModel:
     orientation: str = "none"
     orientation_axes: tuple[int, ...] = ()
     approach_axis: np.ndarray | None = None
+    urdf: Path | None = None  # the URDF it was read from (simulators that load URDFs use it), if any
 
     def __post_init__(self) -> None:
         if self.model.nq != self.model.nv:
@@ -269,6 +270,7 @@ class RobotModel:
             v_max=np.where(model.velocityLimit > 0, model.velocityLimit, np.inf)[:nv],
             tau_max=np.where(model.effortLimit > 0, model.effortLimit, np.inf)[:nv],
             q_home=np.asarray(q_home, float) if q_home is not None else pin.neutral(model),
+            urdf=path.resolve(),
         )
 
 

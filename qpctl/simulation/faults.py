@@ -231,7 +231,8 @@ def with_payload(robot: RobotModel, mass: float, radius: float = PAYLOAD_RADIUS)
     model = robot.model.copy()
     frame = model.frames[robot.ee_frame_id]
     model.inertias[frame.parentJoint] += frame.placement.act(pin.Inertia.FromSphere(mass, radius))
-    return dataclasses.replace(robot, model=model, capsules=list(robot.capsules), joint_names=list(robot.joint_names))
+    return dataclasses.replace(robot, model=model, capsules=list(robot.capsules), joint_names=list(robot.joint_names),
+                               urdf=None)  # the file lacks the payload: simulators generate from the model
 
 
 #: The keys of ``[faults]``, in order.

@@ -1,0 +1,111 @@
+"""What a run records: :class:`Trajectory` (DESIGN.md §4's arrays), and the helpers every simulator
+shares to fill it (the tick budget of a run, the self-collision pairs it measures, the orientation
+columns added after the run)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from qpctl.controllers.base import Controller
+from qpctl.errors import ConfigError
+
+
+@dataclass
+class Trajectory:
+    """Recorded arrays (DESIGN.md §4); T samples, n joints, m task coordinates."""
+
+    t: np.ndarray
+    q: np.ndarray
+    v: np.ndarray
+    tau: np.ndarray
+    x: np.ndarray
+    x_ref: np.ndarray
+    xd_ref: np.ndarray
+    xdd_ref: np.ndarray
+    clearance: np.ndarray
+    e_null: np.ndarray
+    tick_us: np.ndarray
+    singular: np.ndarray
+    infos: list[dict[str, Any]] = field(default_factory=list, repr=False)
+    # with an orientation task: the task frame's orientation and its reference, quaternions (x, y, z, w)
+    quat: np.ndarray | None = None
+    quat_ref: np.ndarray | None = None
+    orientation_error_deg: np.ndarray | None = None  # (T,) the angle between them (approach: the axis's)
+    self_clearance: np.ndarray | None = None  # (T,) least distance between the self-collision pairs [m]
+    tau_command: np.ndarray | None = None  # (T, n) the controller's command, with faults (tau: what acted)
+
+    ARRAYS = ("t", "q", "v", "tau", "x", "x_ref", "xd_ref", "xdd_ref", "clearance", "e_null", "tick_us",
+              "singular")
+    OPTIONAL = ("quat", "quat_ref", "orientation_error_deg", "self_clearance", "tau_command")
+
+    def save(self, path: str | Path) -> None:
+        arrays = {k: getattr(self, k) for k in self.ARRAYS}
+        arrays.update({k: getattr(self, k) for k in self.OPTIONAL if getattr(self, k) is not None})
+        np.savez_compressed(path, **arrays)
+
+    @classmethod
+    def load(cls, path: str | Path) -> Trajectory:
+        with np.load(path) as data:
+            return cls(**{k: data[k] for k in cls.ARRAYS + cls.OPTIONAL if k in data.files})
+
+
+MAX_TICKS = 5_000_000  # one run's recorded ticks (the trajectory is kept in memory: ~1 GB for the Panda)
+
+
+def check_ticks(duration: float, dt: float) -> None:
+    """:class:`ConfigError` (``sim.duration``) if a run of ``duration`` [s] at ``dt`` [s] would record
+    more than MAX_TICKS ticks."""
+    if not (np.isfinite(dt) and dt > 0):
+        return  # the step's own check reports it
+    ticks = duration / dt
+    if not ticks <= MAX_TICKS:
+        raise ConfigError(f"{duration} s at dt = {dt} s is {ticks:.3g} ticks; one run records at most "
+                          f"{MAX_TICKS:,} (split it, or raise sim.dt)", key="sim.duration")
+
+
+def measured_self_pairs(controller: Controller) -> tuple[tuple[int, int], ...]:
+    """The link pairs whose distance a simulator records as the self clearance: the controller's
+    self-collision pairs, or those a default SelfCollisionBarrier would keep (for every law)."""
+    from qpctl.constraints.constraints import SelfCollisionBarrier
+    from qpctl.geometry.self_collision import self_collision_pairs
+
+    for c in getattr(controller, "constraints", ()):
+        if isinstance(c, SelfCollisionBarrier):
+            return c.pairs
+    if len(controller.robot.capsules) < 3:
+        return ()
+    return self_collision_pairs(controller.robot, SELF_D_SAFE).pairs
+
+
+SELF_D_SAFE = 0.02  # [m] QPConfig.self_d_safe's default, for the pairs measured under other laws
+
+
+def finish_trajectory(traj: Trajectory, controller: Controller) -> Trajectory:
+    """The task's position columns only in x, x_ref, ẋ_ref, ẍ_ref (the orientation rows' coordinates are
+    centred at each tick's orientation: not a trajectory), and, with an orientation task, the frame's
+    orientation and its reference as quaternions and the angle between them, from the recorded q
+    and the path (after the run, outside the tick's timing)."""
+    robot = controller.robot
+    if not robot.m_orientation:
+        return traj
+    from qpctl.orientation import orientation_error_deg
+
+    m_p = robot.m_position
+    for name in ("x", "x_ref", "xd_ref", "xdd_ref"):
+        setattr(traj, name, np.ascontiguousarray(getattr(traj, name)[:, :m_p]))
+    model, data = robot.model, robot.model.createData()
+    T = traj.t.size
+    traj.quat, traj.quat_ref, traj.orientation_error_deg = np.zeros((T, 4)), np.zeros((T, 4)), np.zeros(T)
+    for k in range(T):
+        pin.framesForwardKinematics(model, data, traj.q[k])
+        R = data.oMf[robot.ee_frame_id].rotation
+        R_d = controller.path.orientation(float(traj.t[k]))[0]  # type: ignore[attr-defined]
+        traj.quat[k] = pin.Quaternion(R).coeffs()
+        traj.quat_ref[k] = pin.Quaternion(R_d).coeffs()
+        traj.orientation_error_deg[k] = orientation_error_deg(robot, R, R_d)
+    return traj
