@@ -211,3 +211,14 @@ def test_simulate_under_pybullet_and_its_notes(tmp_path, capsys):
     assert metrics["simulator"] == "pybullet"
     assert any("semi-implicit Euler" in n for n in metrics["simulator_notes"])
     assert "pybullet: PyBullet integrates with semi-implicit Euler" in capsys.readouterr().out
+
+
+def test_pybullet_import_prints_nothing():
+    """PyBullet's C module prints its build time to stdout on import; the adapter keeps it out of
+    ``qpctl simulate``'s output (a fresh interpreter, where the import really happens)."""
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", "import qpctl.adapters.pybullet; print('ok')"],
+                          capture_output=True, text=True, timeout=120, check=True)
+    assert proc.stdout == "ok\n", proc.stdout

@@ -53,8 +53,27 @@ from qpctl.geometry.obstacles import rotation_z_to
 from qpctl.robot.model import RobotModel
 from qpctl.simulation.loop import SimulatorBase
 
+
+def _import_quietly() -> Any:
+    """PyBullet, without the "pybullet build time: …" line its C module prints to stdout on import
+    (it would land in ``qpctl simulate``'s output and in a user's logs)."""
+    import os
+    import sys
+
+    sys.stdout.flush()
+    saved = os.dup(1)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), 1)
+            import pybullet as module
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+    return module
+
+
 try:
-    import pybullet
+    pybullet = _import_quietly()
 except ImportError as exc:  # pragma: no cover - exercised only without the extra
     raise ImportError("the PyBullet adapter needs PyBullet: pip install 'qpctl[pybullet]' (or pip install "
                       "pybullet)") from exc
