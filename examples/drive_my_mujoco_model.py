@@ -23,9 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from qpctl import Scenario, Simulator
+from qpctl import Scenario, Simulator, simulate
 from qpctl.adapters.mujoco import MujocoSimulator
-from qpctl.run import simulate
 
 HERE = Path(__file__).resolve().parent
 

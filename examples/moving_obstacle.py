@@ -16,9 +16,7 @@ import sys
 
 import numpy as np
 
-from baselines.paper import PaperController
-from qpctl import LawGains, Obstacle, Simulator, WaypointPath, planar_arm
-from qpctl.controllers.qp import QPController
+from qpctl import LawGains, Obstacle, PaperController, QPController, Simulator, WaypointPath, planar_arm
 
 
 def main(duration: float) -> dict[str, float]:

@@ -17,9 +17,7 @@ import sys
 import numpy as np
 import pinocchio as pin
 
-from qpctl import LawGains, Simulator, WaypointPath, panda
-from qpctl.controllers.qp import QPController
-from qpctl.tasks import PostureTask
+from qpctl import LawGains, PostureTask, QPController, Simulator, WaypointPath, panda
 
 
 def main(duration: float) -> dict[str, float]:

@@ -15,8 +15,7 @@ import sys
 
 import numpy as np
 
-from qpctl import Scenario, Simulator
-from qpctl.solvers import available_solvers
+from qpctl import Scenario, Simulator, available_solvers
 
 
 def main(duration: float) -> dict[str, float]:

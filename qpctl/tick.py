@@ -520,7 +520,7 @@ def warmup() -> dict[str, float]:
     global _WARM
     if _WARM is not None:
         return _WARM
-    from baselines import HsuController, PaperController
+    from qpctl.controllers.closed_form import HsuController, PaperController
     from qpctl.controllers.qp import SOLUTION_RTOL, QPConfig, QPController
     from qpctl.law import LawGains
     from qpctl.robot.model import planar_arm

@@ -18,7 +18,8 @@ import fcl
 import numpy as np
 import pytest
 
-from qpctl import DistanceEngine, Obstacle, PairSet
+from qpctl import Obstacle
+from qpctl.geometry import DistanceEngine, PairSet
 
 
 def closest_on_segment(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
@@ -96,7 +97,8 @@ def test_sphere_pairs_agree_with_python_fcl(rng):
 
 DEGENERATE = """
 import numpy as np
-from qpctl import DistanceEngine, Obstacle
+from qpctl import Obstacle
+from qpctl.geometry import DistanceEngine
 engine = DistanceEngine([0.05], [Obstacle("sphere", [{x}, 0.0, 0.0], radius=0.03)])
 engine.update(np.array([[[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]]), 0.0)
 d, n, p_link, p_obs = engine.pair(0, 0)

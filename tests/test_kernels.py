@@ -47,12 +47,13 @@ import pinocchio as pin
 import pytest
 
 from baselines import HsuController, PaperController
-from qpctl import LawGains, Obstacle, Scenario, WaypointPath, panda, planar_arm, weighted_pinv
+from qpctl import LawGains, Obstacle, Scenario, WaypointPath, panda, planar_arm
 from qpctl.controllers.qp import QPConfig, QPController
 from qpctl.kernels import geometry as G
 from qpctl.kernels import small as S
 from qpctl.kernels import tick as K
 from qpctl.law import law_terms
+from qpctl.linalg import weighted_pinv
 from qpctl.robot.model import RobotModel
 from qpctl.tasks import AccelerationTask, DampingTask, EndEffectorTask, PostureTask
 from qpctl.tick import GRID_MIN_OBSTACLES, Workspace, WorldClearance, bind_pinocchio

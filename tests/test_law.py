@@ -18,9 +18,10 @@ import numpy as np
 import pytest
 
 from baselines import HsuController, PaperController
-from qpctl import Dynamics, LawGains, Obstacle, Simulator, WaypointPath, law_terms, planar_arm
-from qpctl.law import closed_form_acceleration
+from qpctl import LawGains, Obstacle, Simulator, WaypointPath, planar_arm
+from qpctl.law import closed_form_acceleration, law_terms
 from qpctl.paths import Reference
+from qpctl.state import Dynamics
 
 
 def explicit_pinv(J: np.ndarray, W: np.ndarray) -> np.ndarray:

@@ -11,7 +11,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from qpctl import Dynamics, weighted_pinv
+from qpctl.linalg import weighted_pinv
+from qpctl.state import Dynamics
 
 TOL = 1e-9
 

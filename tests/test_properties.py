@@ -26,7 +26,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from baselines import HsuController, PaperController
-from qpctl import Dynamics, LawGains, Obstacle, WaypointPath, panda, planar_arm
+from qpctl import LawGains, Obstacle, WaypointPath, panda, planar_arm
 from qpctl.constraints import JointLimit, ObstacleBarrier
 from qpctl.controllers.qp import (
     BUILT_IN_FALLBACKS,
@@ -38,6 +38,7 @@ from qpctl.controllers.qp import (
     QPController,
 )
 from qpctl.solvers import available_solvers
+from qpctl.state import Dynamics
 
 _COMMON = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 settings.register_profile("ci", derandomize=True, database=None, print_blob=True, **_COMMON)

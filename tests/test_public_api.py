@@ -52,3 +52,37 @@ def test_baselines_share_the_controller_interface(planar):
         assert tau.shape == (3,) and np.all(np.isfinite(tau))
         with pytest.raises(qpctl.InvalidStateError):
             ctrl.torque(np.full(3, np.nan), np.zeros(3), 0.0)
+
+
+def test_the_front_door_holds_what_a_user_needs_and_no_internals():
+    """``from qpctl import …`` gives the controllers and their configs, tasks, constraints, Scenario,
+    simulate and the solver listing (issue 15); the tick's internals stay in their modules."""
+    import qpctl
+
+    front = set(qpctl.__all__)
+    assert {"QPController", "QPConfig", "PaperController", "HsuController", "LawGains", "EndEffectorTask",
+            "PostureTask", "ObstacleBarrier", "TorqueLimit", "Scenario", "simulate", "available_solvers"} <= front
+    assert not front & {"Dynamics", "TickState", "PairSet", "DistanceEngine", "LawTerms", "law_terms",
+                        "PseudoInverse", "weighted_pinv", "compute_metrics", "Workspace"}
+    assert len(front) <= 45
+    import baselines
+
+    assert baselines.PaperController is qpctl.PaperController and baselines.HsuController is qpctl.HsuController
+
+
+def test_the_library_does_not_import_its_applications():
+    """qpctl/ imports neither the baselines package (the laws live in qpctl.controllers.closed_form)
+    nor the paper reproduction: read from the source, every import statement."""
+    import ast
+    from pathlib import Path
+
+    import qpctl
+
+    root = Path(qpctl.__file__).parent
+    offenders = []
+    for path in root.rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else (
+                [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            offenders += [f"{path.relative_to(root)}: {n}" for n in names if n.split(".")[0] == "baselines"]
+    assert not offenders, offenders

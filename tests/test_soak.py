@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from qpctl import ConfigError, Dynamics, InvalidStateError, Scenario, SimulationError, panda, planar_arm
+from qpctl import ConfigError, InvalidStateError, Scenario, SimulationError, panda, planar_arm
 from qpctl.constraints import ObstacleBarrier
 from qpctl.controllers.qp import (
     BUILT_IN_FALLBACKS,
@@ -46,6 +46,7 @@ from qpctl.controllers.qp import (
 from qpctl.scenario import arm_reach
 from qpctl.simulation import Simulator
 from qpctl.solvers import available_solvers
+from qpctl.state import Dynamics
 
 SEED = 20240611
 TARGET_QP_TICKS = int(os.environ.get("QPCTL_SOAK_TICKS", "100000"))  # a shorter trial: QPCTL_SOAK_TICKS=5000

@@ -25,8 +25,9 @@ import numpy as np
 import pinocchio as pin
 import pytest
 
-from qpctl import Dynamics, InvalidStateError, Obstacle
+from qpctl import InvalidStateError, Obstacle
 from qpctl.robot.model import RobotModel
+from qpctl.state import Dynamics
 
 H_JAC = 1e-6
 H_ACC = 1e-4

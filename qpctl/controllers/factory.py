@@ -17,11 +17,11 @@ def make_controller(cfg: dict[str, Any], robot: RobotModel, path: WaypointPath, 
                     gains: LawGains, *, broadphase: bool | None = None, source: str = "") -> Controller:
     kind = cfg["kind"]
     if kind == "paper":
-        from baselines.paper import PaperController
+        from qpctl.controllers.closed_form import PaperController
 
         return PaperController(robot, path, obstacles, gains, broadphase=broadphase)
     if kind == "hsu":
-        from baselines.hsu import HsuController
+        from qpctl.controllers.closed_form import HsuController
 
         return HsuController(robot, path, obstacles, gains, broadphase=broadphase)
     if kind == "qp":

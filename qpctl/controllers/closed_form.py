@@ -1,0 +1,98 @@
+"""The closed-form laws: the paper's (``paper``: resolved-acceleration control, inertia-weighted
+pseudo-inverse) and Hsu–Hauser–Sastry's (``hsu``, the paper's "conventional unweighted algorithm").
+
+The paper's law, its equations (paper numbering; the OCR's ``J^1`` is read as J⁺):
+
+    a   = ẍ_d + K_v ė + K_p e − J̇ q̇                                           (7)
+    J⁺  = W⁻¹Jᵀ(J W⁻¹ Jᵀ)⁻¹,  W = MᵀM (Kazerounian–Nedungadi), damped by SVD     (5), (6)
+    e_N = (I − J_b⁺ J)(g − q̇),  J_b⁺ weighted by W_b = Σ J_iᵀ J_i (Ryu)          (12), (19)
+    q̈₀  = −M⁻¹N + K_N e_N                                                       (18), (19)
+    q̈   = J⁺(a [+ J̇ e_N]) + (I − J⁺J) q̈₀,   τ = M q̈ + N                       (19)
+
+The sign of the M⁻¹N term is the one that lowers torque: with q̈₀ = −M⁻¹N the null-space part of
+τ − N cancels the null-space part of the bias, so τ = M q̈ + N is the least-‖τ‖ choice in W's metric
+for the given task acceleration. The bracketed J̇ e_N term is ``LawGains.jdot_en``, off by default:
+it feeds e_N into the task and breaks eq. (11) without helping e_N decay (the argument and the
+measurement are in :mod:`qpctl.law` and the README's "Paper reproduction").
+
+:meth:`PaperController.step` runs the compiled tick (:func:`qpctl.kernels.tick.closed_form_tick`);
+:meth:`PaperController.control` is the same law written with numpy on a :class:`TickState`
+(:mod:`qpctl.law`), the reference the tests hold the compiled one against.
+
+Hsu–Hauser–Sastry's law is the same structure with the Moore–Penrose pseudo-inverse everywhere
+(W = W_b = I) and no torque term in the null space:
+
+    q̈ = J⁺ a + (I − J⁺J) K_N e_N,   e_N = (I − J⁺J)(g − q̇),   τ = M q̈ + N
+
+The top-level ``baselines`` package re-exports both under the paper's naming.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pinocchio as pin
+
+from qpctl.controllers.base import Controller, ControlOutput, RecordOutput, TickStatus, fast_state
+from qpctl.errors import InvalidStateError
+from qpctl.kernels import tick as K
+from qpctl.law import closed_form_acceleration, law_terms
+from qpctl.state import TickState
+from qpctl.tick import Workspace
+
+
+class PaperController(Controller):
+    """The paper's inertia-weighted law (eq. 19); ``weighted = False`` gives Hsu's law."""
+
+    kind = "paper"
+    weighted = True
+
+    def _make_workspace(self) -> Workspace:
+        return Workspace(self.robot, self.obstacles, self.path, self.gains, self.cutoff, broadphase=self.broadphase)
+
+    def step(self, q: np.ndarray, v: np.ndarray, t: float) -> ControlOutput:
+        """One compiled tick: state, law terms and the closed form; ``compute_us`` its wall time."""
+        start = time.perf_counter()
+        q, v, t = fast_state(q, v, t, self.n)
+        ws = self._ws if self._ws is not None else self.workspace()
+        if ws.fast:  # computeAllTerms, then one kernel call (stage times measured in it)
+            t0 = time.perf_counter()
+            pin.computeAllTerms(ws.model, ws.data, q, v)
+            t1 = time.perf_counter()
+            code = K.tick_closed_form(ws.work, q, v, t, self.weighted)
+            if code == K.STATE_PYTHON:
+                ws.finish_state(q, v, t)
+                t2 = time.perf_counter()
+                code = K.closed_form_tick(ws.work, self.weighted)
+                ws.rec[ws.layout.scalars + K.R_BUILD_US] = (time.perf_counter() - t2) * 1e6
+            stages = (t1 - t0, -1.0, -1.0, 0.0)
+        else:
+            self._state(q, v, t)
+            mid = time.perf_counter()
+            code = K.closed_form_tick(ws.work, self.weighted)
+            stages = (ws.pin_s, ws.state_s, time.perf_counter() - mid, 0.0)
+        if code < 0:
+            self._bad_state(q, v, t)
+        if code == 1:
+            raise InvalidStateError(f"the inertia matrix is not positive definite at q={q.tolist()}")
+        end = time.perf_counter()
+        out = RecordOutput(ws.rec.copy(), ws.layout, None, (end - start) * 1e6, stages)
+        self.last = out
+        return out
+
+    def control(self, state: TickState) -> ControlOutput:
+        ref = self.reference(state)
+        terms = law_terms(state, ref, self.gains, weighted=self.weighted)
+        qdd, singular = closed_form_acceleration(state, terms, self.gains, weighted=self.weighted)
+        tau = state.M @ qdd + state.N
+        return ControlOutput(tau=tau, qdd=qdd, ref=ref, x=state.x, e_null=terms.e_null,
+                             clearance=state.clearance, singular=singular,
+                             info={"g_norm": float(np.linalg.norm(terms.g))}, status=TickStatus.CLOSED_FORM)
+
+
+class HsuController(PaperController):
+    """Unweighted resolved-acceleration control with null-space velocity tracking (Hsu et al. 1989)."""
+
+    kind = "hsu"
+    weighted = False
