@@ -182,5 +182,4 @@ def check_fields(obj: Any, section: str) -> None:
         ok, what = RULES[rule]
         val = getattr(obj, f.name)
         if isinstance(val, bool) or not isinstance(val, (int, float)) or not ok(val):
-            unit = f" [{f.metadata['unit']}]" if f.metadata.get("unit") else ""
-            raise ConfigError(f"must be {what}{unit}, got {val!r}", key=f"{section}.{f.name}")
+            raise ConfigError(f"must be {what}, got {val!r}", key=f"{section}.{f.name}")
