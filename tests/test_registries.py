@@ -1,5 +1,6 @@
-"""Issue 15: adding an obstacle shape or a controller kind is one class plus one registry line, a
-scenario key is declared once (its dataclass field), and an unregistered name is a clear error."""
+"""Issue 15: adding an obstacle shape, a controller kind or a solver fast path is one class plus one
+registry line, a scenario key is declared once (its dataclass field), and an unregistered name is a
+clear error."""
 
 from __future__ import annotations
 
@@ -15,11 +16,12 @@ from qpctl.controllers.base import Controller, ControlOutput
 from qpctl.controllers.config import ControllerConfig
 from qpctl.controllers.factory import CONTROLLERS
 from qpctl.controllers.qp import QPConfig
-from qpctl.errors import ConfigError
+from qpctl.errors import ConfigError, UnknownSolverError
 from qpctl.geometry.shapes import SHAPES, Geom, Shape, register_shape
 from qpctl.law import LawGains
 from qpctl.run import simulate
 from qpctl.scenario import SCHEMA, Scenario
+from qpctl.solvers.base import FAST_PATH_SOLVERS, GenericSolver, make_solver
 from qpctl.state import TickState
 
 PLANAR = {"robot": {"kind": "planar3", "gravity": [0.0, -9.81, 0.0], "q0": [3.14159265358979, 1.5707963267949, 0.0]},
@@ -192,3 +194,33 @@ def test_a_broken_qp_setting_is_refused_at_construction_naming_the_key():
         QPConfig(barrier_k1=0.0)
     with pytest.raises(ConfigError, match=r"x\.toml: controller\.joint_k0: must be a positive number, got -3"):
         Scenario.from_dict(dict(PLANAR, controller={"joint_k0": -3.0}), source="x.toml")
+
+
+# -- a solver fast path --------------------------------------------------------------------------------
+class CountingQuadprog(GenericSolver):
+    """quadprog through the generic path, counting its solves: stands in for a new fast path."""
+
+    fast_path = True
+
+    def __init__(self, settings: dict[str, Any] | None = None) -> None:
+        super().__init__("quadprog", settings)
+        self.solves = 0
+
+    def solve(self, problem: Any) -> Any:
+        self.solves += 1
+        return super().solve(problem)
+
+
+def test_a_solver_fast_path_is_one_registry_line(monkeypatch):
+    pytest.importorskip("quadprog")
+    monkeypatch.setitem(FAST_PATH_SOLVERS, "quadprog", (f"{__name__}:CountingQuadprog", "counts its solves"))
+    scen = Scenario.from_dict(dict(PLANAR, controller={"kind": "qp", "solver": "quadprog"}))
+    ctrl = scen.build_controller()
+    assert isinstance(make_solver("quadprog"), CountingQuadprog)
+    assert type(make_solver("qpsolvers:quadprog")) is GenericSolver  # the generic path can still be forced
+    out = ctrl.step(scen.q0(ctrl.robot), np.zeros(3), 0.0)
+    solvers = (ctrl._solver, ctrl._solver_soft)  # the task hard, and with its slack
+    assert all(isinstance(s, CountingQuadprog) for s in solvers)
+    assert out.info["status"] == "solved" and sum(s.solves for s in solvers) == 1
+    with pytest.raises(UnknownSolverError, match="no-such-solver"):
+        make_solver("no-such-solver")
