@@ -27,78 +27,78 @@ REQUIRED: Any = object()  # a key without a default: the scenario must give it
 Checker = Callable[[Any], Any]  # returns the value read, or raises TypeError("what it must be")
 
 
-def _num(v: Any) -> float:
+def number(v: Any) -> float:
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise TypeError("a number")
     return float(v)
 
 
-def _int(v: Any) -> int:
+def integer(v: Any) -> int:
     if isinstance(v, bool) or not isinstance(v, int):
         raise TypeError("an integer")
     return v
 
 
-def _bool(v: Any) -> bool:
+def boolean(v: Any) -> bool:
     if not isinstance(v, bool):
         raise TypeError("true or false")
     return v
 
 
-def _str(v: Any) -> str:
+def string(v: Any) -> str:
     if not isinstance(v, str):
         raise TypeError("a string")
     return v
 
 
-def _vec(v: Any) -> list[float]:
+def numbers(v: Any) -> list[float]:
     if not isinstance(v, list) or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
         raise TypeError("a list of numbers")
     return [float(x) for x in v]
 
 
-def _num_or_vec(v: Any) -> float | list[float]:
+def number_or_list(v: Any) -> float | list[float]:
     try:
-        return _num(v)
+        return number(v)
     except TypeError:
         try:
-            return _vec(v)
+            return numbers(v)
         except TypeError:
             raise TypeError("a number or a list of numbers") from None
 
 
-def _points(v: Any) -> list[list[float]]:
+def points(v: Any) -> list[list[float]]:
     if not isinstance(v, list) or not v:
         raise TypeError("a non-empty list of points ([[x, y], ...])")
-    pts = [_vec(p) for p in v]
+    pts = [numbers(p) for p in v]
     if len({len(p) for p in pts}) != 1:
         raise TypeError("points of equal length")
     return pts
 
 
-def _str_list(v: Any) -> list[str]:
+def strings(v: Any) -> list[str]:
     if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
         raise TypeError("a list of strings")
     return v
 
 
-def _num_or_auto(v: Any) -> float | str:
+def number_or_auto(v: Any) -> float | str:
     if v == "auto":
         return "auto"
     try:
-        return _num(v)
+        return number(v)
     except TypeError:
         raise TypeError('a number or "auto"') from None
 
 
-def _pairs_of_names(v: Any) -> list[list[str]]:
+def name_pairs(v: Any) -> list[list[str]]:
     if not isinstance(v, list) or not all(isinstance(p, list) and len(p) == 2 and all(isinstance(x, str) for x in p)
                                           for p in v):
         raise TypeError('a list of pairs of link names ([["a", "b"], ...])')
     return v
 
 
-def _table(v: Any) -> dict[str, Any]:
+def table(v: Any) -> dict[str, Any]:
     if not isinstance(v, dict):
         raise TypeError("a table")
     return v
@@ -107,17 +107,18 @@ def _table(v: Any) -> dict[str, Any]:
 # A field's type annotation (as written, ``from __future__ import annotations``) → its checker.
 # ``X | None`` reads as X: None is the default of an optional key, never a value a TOML file gives.
 CHECKERS: dict[str, Checker] = {
-    "float": _num,
-    "int": _int,
-    "bool": _bool,
-    "str": _str,
-    "list[float]": _vec,
-    "list[str]": _str_list,
-    "list[list[str]]": _pairs_of_names,
-    "list[list[float]]": _points,
-    "float | list[float]": _num_or_vec,
-    "float | str": _num_or_auto,
-    "dict[str, Any]": _table,
+    "float": number,
+    "int": integer,
+    "bool": boolean,
+    "str": string,
+    "list[float]": numbers,
+    "list[str]": strings,
+    "list[list[str]]": name_pairs,
+    "list[list[float]]": points,
+    "float | list[float]": number_or_list,
+    "float | tuple[float, ...]": number_or_list,
+    "float | str": number_or_auto,
+    "dict[str, Any]": table,
 }
 
 # Rules on a value (metadata ``valid``): (predicate, what the value must be).
