@@ -125,6 +125,7 @@ CHECKERS: dict[str, Checker] = {
 RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "positive": (lambda v: math.isfinite(v) and v > 0, "a positive number"),
     "nonnegative": (lambda v: math.isfinite(v) and v >= 0, "a number >= 0"),
+    "seconds": (lambda v: math.isfinite(v) and v > 0, "a positive number of seconds"),
 }
 
 

@@ -22,22 +22,20 @@ from qpctl.barrier_design import BarrierDesign, auto_approach_speed, design_for
 from qpctl.config import (
     REQUIRED,
     Checker,
-    integer,
     number,
-    number_or_list,
     numbers,
-    points,
     schema_of,
     string,
-    strings,
 )
 from qpctl.controllers.config import controller_schema
 from qpctl.errors import ConfigError
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.law import LawGains
-from qpctl.paths import PosePath, WaypointPath
+from qpctl.paths import PathConfig, PosePath, WaypointPath
+from qpctl.robot.config import RobotConfig
 from qpctl.robot.model import RobotModel, load_robot
-from qpctl.simulation.faults import PAYLOAD_RADIUS, Faults, with_payload
+from qpctl.simulation.faults import Faults, with_payload
+from qpctl.simulation.loop import SimConfig
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -45,7 +43,7 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 # Schema: each leaf is a (checker, default) pair; a checker returns the value or raises TypeError.
-# [controller] and [faults] are generated from their dataclasses' fields (qpctl.config).
+# Every table but [[obstacles]] is generated from the fields of the dataclass that declares its keys.
 OBSTACLE_SCHEMA: dict[str, tuple[Checker, Any]] = {
     "shape": (string, REQUIRED),
     "position": (numbers, REQUIRED),
@@ -64,50 +62,17 @@ OBSTACLE_SCHEMA: dict[str, tuple[Checker, Any]] = {
 SCHEMA: dict[str, Any] = {
     "name": (string, "scenario"),
     "description": (string, ""),
-    "robot": {
-        "kind": (string, "planar3"),
-        "links": (integer, 3),
-        "length": (number, 1.0),
-        "mass": (number, 10.0),
-        "radius": (number, 0.05),
-        "gravity": (numbers, None),
-        "urdf": (string, ""),
-        "ee_frame": (string, ""),
-        "task_axes": (strings, None),
-        "q0": (numbers, None),
-        "tau_max": (number_or_list, None),
-        "v_max": (number_or_list, None),
-        "tau_rate_max": (number_or_list, None),
-        "qdd_max": (number_or_list, None),
-        "payload_mass": (number, 0.0),
-        "payload_radius": (number, PAYLOAD_RADIUS),
-    },
-    "path": {
-        "start": (numbers, None),
-        "waypoints": (points, REQUIRED),
-        "duration": (number, None),
-        "durations": (numbers, None),
-        "start_time": (number, 0.0),
-        "dwell": (number, 0.0),
-        "orientations": (points, None),
-        "start_orientation": (numbers, None),
-        "approach": (points, None),
-    },
+    # [robot], [path], [controller], [faults], [sim]: their dataclasses' fields (qpctl.config.schema_of)
+    "robot": schema_of(RobotConfig),
+    "path": schema_of(PathConfig),
     "obstacles": OBSTACLE_SCHEMA,  # array of tables
-    # the keys, defaults and checkers are LawGains', QPConfig's and ControllerConfig's fields
+    # LawGains', QPConfig's and ControllerConfig's fields (qpctl.controllers.config)
     "controller": controller_schema(),
-    # every fault off; the keys, defaults and meanings are Faults' fields (qpctl.simulation.faults)
+    # every fault off (qpctl.simulation.faults)
     "faults": schema_of(Faults),
-    "sim": {
-        "dt": (number, 1e-3),
-        "duration": (number, 5.0),
-        "integrator": (string, "rk4"),
-        "seed": (integer, 0),
-        "simulator": (string, "builtin"),
-        "model": (string, ""),
-        "joint_names": (strings, None),
-    },
+    "sim": schema_of(SimConfig),
 }
+
 
 def arm_reach(robot: RobotModel) -> tuple[np.ndarray, float] | None:
     """(centre [m], radius [m]) of a sphere that holds every position of the task point, or None.
@@ -269,9 +234,10 @@ class Scenario:
 
     def _check_values(self) -> None:
         sim = self.data["sim"]
-        for key in ("dt", "duration"):
-            if not (np.isfinite(sim[key]) and sim[key] > 0):
-                raise self._err(f"sim.{key}", f"must be a positive number of seconds, got {sim[key]}")
+        try:  # the rules of SimConfig's fields: dt and duration positive
+            SimConfig(**sim)
+        except ConfigError as exc:
+            raise self._err(exc.key or "sim", exc.message) from None
         if sim["dt"] > sim["duration"]:
             raise self._err("sim.dt", f"step {sim['dt']} s exceeds the duration {sim['duration']} s")
         from qpctl.simulation.simulator import check_ticks

@@ -156,13 +156,21 @@ def test_an_unregistered_controller_kind_is_an_error():
 
 
 # -- each [controller] key declared once ------------------------------------------------------------
-def test_every_controller_key_is_one_dataclass_field_and_its_default_is_the_fields():
-    classes = (ControllerConfig, LawGains, QPConfig)
-    fields = [f.name for c in classes for f in dataclasses.fields(c) if f.name != "obstacle_v_ref"]
-    assert len(fields) == len(set(fields)) and sorted(fields) == sorted(SCHEMA["controller"])
-    defaults = {**vars(ControllerConfig()), **vars(LawGains()), **vars(QPConfig())}
-    for key, (_, default) in SCHEMA["controller"].items():
-        assert default == defaults[key], key
+def test_every_key_is_one_dataclass_field_and_its_default_is_the_fields():
+    from qpctl.paths import PathConfig
+    from qpctl.robot.config import RobotConfig
+    from qpctl.simulation.faults import Faults
+    from qpctl.simulation.loop import SimConfig
+
+    tables = {"robot": (RobotConfig,), "path": (PathConfig,), "controller": (ControllerConfig, LawGains, QPConfig),
+              "faults": (Faults,), "sim": (SimConfig,)}
+    assert sorted(tables) == sorted(k for k, v in SCHEMA.items() if isinstance(v, dict) and k != "obstacles")
+    for table, classes in tables.items():
+        fields = [f for c in classes for f in dataclasses.fields(c) if f.name != "obstacle_v_ref"]
+        assert len(fields) == len({f.name for f in fields}) and sorted(f.name for f in fields) == sorted(SCHEMA[table])
+        for f in fields:
+            default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+            assert SCHEMA[table][f.name][1] == (REQUIRED if default is dataclasses.MISSING else default), f.name
 
 
 def test_a_new_key_is_one_field_with_its_rule():
