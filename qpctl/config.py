@@ -130,11 +130,13 @@ RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
 
 
 def setting(default: Any = REQUIRED, *, factory: Callable[[], Any] | None = None, check: Checker | None = None,
-        valid: str | None = None, unit: str = "") -> Any:
+            valid: str | None = None, choices: tuple[str, ...] = (), unit: str = "") -> Any:
     """A dataclass field that is a scenario key: its default (or ``factory``), and optionally the
     checker that reads its TOML value (when its type annotation does not say), a rule on its value
-    (a name in :data:`RULES`, enforced by :func:`check_fields`) and its unit (``"m"``, ``"1/s"``)."""
-    meta = {"check": check, "valid": valid, "unit": unit}
+    (a name in :data:`RULES`, or the ``choices`` of a string; enforced by :func:`check_fields`) and its
+    unit (``"m"``, ``"1/s"``). (ruff's RUF009 accepts it on immutable types only: for a list-typed
+    key with metadata, write ``dataclasses.field(default_factory=..., metadata=...)``.)"""
+    meta = {"check": check, "valid": valid, "choices": choices, "unit": unit}
     if factory is not None:
         return dataclasses.field(default_factory=factory, metadata=meta)
     if default is REQUIRED:
@@ -176,8 +178,13 @@ def schema_of(*classes: type, skip: Iterable[str] = ()) -> dict[str, tuple[Check
 
 
 def check_fields(obj: Any, section: str) -> None:
-    """Apply each field's ``valid`` rule; :class:`ConfigError` naming ``section.key`` for the first broken."""
+    """Apply each field's ``valid`` rule and ``choices``; :class:`ConfigError` naming ``section.key``
+    for the first broken."""
     for f in dataclasses.fields(obj):
+        choices = f.metadata.get("choices")
+        if choices and getattr(obj, f.name) not in choices:
+            names = f"{', '.join(choices[:-1])} or {choices[-1]}" if len(choices) > 1 else choices[0]
+            raise ConfigError(f"must be {names}, got {getattr(obj, f.name)!r}", key=f"{section}.{f.name}")
         rule = f.metadata.get("valid")
         if rule is None:
             continue

@@ -27,7 +27,7 @@ from qpctl.config import (
     schema_of,
     string,
 )
-from qpctl.controllers.config import controller_schema
+from qpctl.controllers.config import ControllerConfig, controller_schema
 from qpctl.errors import ConfigError
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.law import LawGains
@@ -234,8 +234,10 @@ class Scenario:
 
     def _check_values(self) -> None:
         sim = self.data["sim"]
-        try:  # the rules of SimConfig's fields: dt and duration positive
+        try:  # the rules of the [sim] and [controller] keys' fields (dt and duration > 0, integrator, task...)
             SimConfig(**sim)
+            c = self.data["controller"]
+            ControllerConfig(**{f.name: c[f.name] for f in dataclasses.fields(ControllerConfig)})
         except ConfigError as exc:
             raise self._err(exc.key or "sim", exc.message) from None
         if sim["dt"] > sim["duration"]:
@@ -249,8 +251,6 @@ class Scenario:
         path = self.data["path"]
         if path["duration"] is None and path["durations"] is None:
             raise self._err("path.duration", "missing value (give duration or durations)")
-        if sim["integrator"] not in ("rk4", "euler"):
-            raise self._err("sim.integrator", f"must be rk4 or euler, got {sim['integrator']!r}")
         from qpctl.adapters import SIMULATORS
 
         if sim["simulator"] not in SIMULATORS:
@@ -393,8 +393,6 @@ class Scenario:
         """The robot's task rows: robot.task_axes, and controller.task's orientation rows."""
         r, c = self.data["robot"], self.data["controller"]
         task, mask = c["task"], c["task_mask"]
-        if task not in ("position", "pose", "approach"):
-            raise ConfigError(f"must be position, pose or approach, got {task!r}", key="controller.task")
         if mask is not None:
             if task != "pose":
                 raise ConfigError('applies to controller.task = "pose" only', key="controller.task_mask")
@@ -575,9 +573,7 @@ class Scenario:
         if solver is not None:
             c["solver"] = solver
         controller_class(c["kind"], self.source)  # a ConfigError naming the registered kinds
-        bp = {"auto": None, "on": True, "off": False}.get(c["broadphase"], "bad")
-        if bp == "bad":
-            raise self._err("controller.broadphase", f"must be auto, on or off, got {c['broadphase']!r}")
+        bp = {"auto": None, "on": True, "off": False}[c["broadphase"]]  # ControllerConfig's choices
         scene = self.build_obstacles() if obstacles is None else obstacles
         return make_controller(c, robot, self.build_path(robot, q0), scene, self.gains(robot),
                                broadphase=bp, source=self.source)  # type: ignore[arg-type]

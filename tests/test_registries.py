@@ -232,3 +232,11 @@ def test_a_solver_fast_path_is_one_registry_line(monkeypatch):
     assert out.info["status"] == "solved" and sum(s.solves for s in solvers) == 1
     with pytest.raises(UnknownSolverError, match="no-such-solver"):
         make_solver("no-such-solver")
+
+
+def test_a_choice_is_checked_on_load_naming_the_key():
+    """ControllerConfig's and SimConfig's choices hold on load (broadphase used to wait for the build)."""
+    with pytest.raises(ConfigError, match=r"x\.toml: controller\.broadphase: must be auto, on or off, got 'x'"):
+        Scenario.from_dict(dict(PLANAR, controller={"broadphase": "x"}), source="x.toml")
+    with pytest.raises(ConfigError, match=r"x\.toml: sim\.integrator: must be rk4 or euler, got 'rk45'"):
+        Scenario.from_dict(dict(PLANAR, sim={"integrator": "rk45"}), source="x.toml")

@@ -13,7 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from qpctl.config import Checker, schema_of, setting
+from qpctl.config import Checker, check_fields, schema_of, setting
 
 
 @dataclass(frozen=True)
@@ -31,13 +31,16 @@ class ControllerConfig:
     """
 
     kind: str = "paper"
-    task: str = "position"
+    task: str = setting("position", choices=("position", "pose", "approach"))
     task_mask: list[float] | None = None
     approach_axis: list[float] = field(default_factory=lambda: [0.0, 0.0, 1.0])
     barrier_design: str = "manual"
     approach_speed: float | str = setting("auto", unit="m/s")
     d_safe_margin: float | str = setting(0.0, unit="m")
-    broadphase: str = "auto"
+    broadphase: str = setting("auto", choices=("auto", "on", "off"))
+
+    def __post_init__(self) -> None:
+        check_fields(self, "controller")
 
 
 def controller_schema() -> dict[str, tuple[Checker, Any]]:

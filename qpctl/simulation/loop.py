@@ -48,7 +48,7 @@ class SimConfig:
 
     dt: float = setting(1e-3, valid="seconds", unit="s")
     duration: float = setting(5.0, valid="seconds", unit="s")
-    integrator: str = "rk4"
+    integrator: str = setting("rk4", choices=("rk4", "euler"))
     seed: int = 0
     simulator: str = "builtin"
     model: str = ""
