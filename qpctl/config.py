@@ -20,6 +20,8 @@ import math
 from collections.abc import Callable, Iterable
 from typing import Any
 
+import numpy as np
+
 from qpctl.errors import ConfigError
 
 REQUIRED: Any = object()  # a key without a default: the scenario must give it
@@ -119,6 +121,7 @@ CHECKERS: dict[str, Checker] = {
     "float | tuple[float, ...]": number_or_list,
     "float | str": number_or_auto,
     "dict[str, Any]": table,
+    "np.ndarray": numbers,
 }
 
 # Rules on a value (metadata ``valid``): (predicate, what the value must be).
@@ -155,11 +158,14 @@ def _checker(f: dataclasses.Field[Any], owner: type) -> Checker:
 
 
 def _default(f: dataclasses.Field[Any]) -> Any:
+    """The field's default as TOML would give it (an array as a list)."""
     if f.default is not dataclasses.MISSING:
-        return f.default
-    if f.default_factory is not dataclasses.MISSING:
-        return f.default_factory()
-    return REQUIRED
+        value = f.default
+    elif f.default_factory is not dataclasses.MISSING:
+        value = f.default_factory()
+    else:
+        return REQUIRED
+    return value.tolist() if isinstance(value, np.ndarray) else value
 
 
 def schema_of(*classes: type, skip: Iterable[str] = ()) -> dict[str, tuple[Checker, Any]]:

@@ -22,8 +22,6 @@ from qpctl.barrier_design import BarrierDesign, auto_approach_speed, design_for
 from qpctl.config import (
     REQUIRED,
     Checker,
-    number,
-    numbers,
     schema_of,
     string,
 )
@@ -43,21 +41,9 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 # Schema: each leaf is a (checker, default) pair; a checker returns the value or raises TypeError.
-# Every table but [[obstacles]] is generated from the fields of the dataclass that declares its keys.
-OBSTACLE_SCHEMA: dict[str, tuple[Checker, Any]] = {
-    "shape": (string, REQUIRED),
-    "position": (numbers, REQUIRED),
-    "radius": (number, 0.0),
-    "size": (numbers, None),
-    "length": (number, 0.0),
-    "axis": (numbers, [0.0, 0.0, 1.0]),
-    "velocity": (numbers, [0.0, 0.0, 0.0]),
-    "amplitude": (numbers, [0.0, 0.0, 0.0]),
-    "frequency": (number, 0.0),
-    "name": (string, ""),
-    "area": (string, ""),
-    "v_ref": (number, None),
-}
+# Every table is generated from the fields of the dataclass that declares its keys (qpctl.config).
+# [[obstacles]]: Obstacle's fields, and the label the paper reproduction groups them by
+OBSTACLE_SCHEMA: dict[str, tuple[Checker, Any]] = {**schema_of(Obstacle), "area": (string, "")}
 
 SCHEMA: dict[str, Any] = {
     "name": (string, "scenario"),

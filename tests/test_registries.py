@@ -171,6 +171,11 @@ def test_every_key_is_one_dataclass_field_and_its_default_is_the_fields():
         for f in fields:
             default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
             assert SCHEMA[table][f.name][1] == (REQUIRED if default is dataclasses.MISSING else default), f.name
+    from qpctl.geometry.obstacles import Obstacle
+    from qpctl.scenario import OBSTACLE_SCHEMA
+
+    assert sorted(OBSTACLE_SCHEMA) == sorted([f.name for f in dataclasses.fields(Obstacle)] + ["area"])
+    assert OBSTACLE_SCHEMA["axis"][1] == Obstacle("sphere", np.zeros(3), radius=1.0).axis.tolist()
 
 
 def test_a_new_key_is_one_field_with_its_rule():
