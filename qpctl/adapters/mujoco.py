@@ -115,8 +115,8 @@ def _obstacle_geom(parent: ET.Element, obstacle: Obstacle, name: str, at_origin:
         attrs["pos"] = _fmt(obstacle.position)
     geom = obstacle.kind.mujoco_geom(obstacle)  # the shape's own (qpctl.geometry.shapes)
     attrs.update(type=geom.type, size=_fmt(geom.size))
-    if geom.quat is not None:
-        attrs["quat"] = _fmt(geom.quat)
+    if geom.rotation is not None:
+        attrs["quat"] = _fmt(_quat(geom.rotation))
     ET.SubElement(parent, "geom", attrs)
 
 
@@ -387,7 +387,7 @@ def _add_obstacles(spec: Any, obstacles: Sequence[Obstacle], prefix: str) -> Non
             parent, pos = spec.worldbody, np.asarray(obs.position, float)
         geom = obs.kind.mujoco_geom(obs)  # the shape's own (qpctl.geometry.shapes)
         size = [*geom.size, *[0.0] * (3 - len(geom.size))]
-        quat = list(geom.quat) if geom.quat is not None else [1.0, 0.0, 0.0, 0.0]
+        quat = list(_quat(geom.rotation)) if geom.rotation is not None else [1.0, 0.0, 0.0, 0.0]
         parent.add_geom(name=f"{name}_geom" if obs.moving else name, type=_geom_type(geom.type, obs.shape),
                         size=size, pos=pos, quat=quat, contype=0, conaffinity=0, group=1, rgba=[0.45, 0.6, 0.3, 0.6])
 

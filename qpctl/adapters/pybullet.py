@@ -299,8 +299,8 @@ class PybulletSimulator(SimulatorBase):
             else:
                 raise ConfigError(f"shape {obs.shape!r} (MuJoCo geom {geom.type!r}) has no PyBullet visual here "
                                   "(sphere, box, capsule, cylinder)", key="obstacles.shape")
-            quat = np.array([0.0, 0.0, 0.0, 1.0]) if geom.quat is None \
-                else np.array([*geom.quat[1:], geom.quat[0]])  # (x, y, z, w), PyBullet's order
+            quat = np.array([0.0, 0.0, 0.0, 1.0]) if geom.rotation is None \
+                else pin.Quaternion(geom.rotation).coeffs()  # (x, y, z, w), PyBullet's order
             body = pybullet.createMultiBody(baseMass=0.0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vs,
                                             basePosition=list(obs.position), baseOrientation=list(quat),
                                             physicsClientId=c)

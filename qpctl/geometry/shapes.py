@@ -25,22 +25,21 @@ from qpctl.errors import ConfigError
 if TYPE_CHECKING:
     from qpctl.geometry.obstacles import Obstacle
 
-IDENTITY = (1.0, 0.0, 0.0, 0.0)  # (w, x, y, z)
-
 
 class Geom(NamedTuple):
     """A MuJoCo geom: ``type`` (MJCF's name: "sphere", "box", ...), ``size`` (MJCF's meaning, 1–3
-    numbers [m]) and orientation ``quat`` (w, x, y, z; None: the body's own, left out of the MJCF)."""
+    numbers [m]) and orientation ``rotation`` (3×3, world frame; None: the body's own, left out of the
+    MJCF)."""
 
     type: str
     size: tuple[float, ...]
-    quat: tuple[float, float, float, float] | None = None
+    rotation: np.ndarray | None = None
 
 
-def _axis_quat(obs: Obstacle) -> tuple[float, float, float, float]:
-    from qpctl.geometry.obstacles import quaternion_z_to
+def _axis_rotation(obs: Obstacle) -> np.ndarray:
+    from qpctl.geometry.obstacles import rotation_z_to
 
-    return quaternion_z_to(*(float(c) for c in obs.axis))
+    return rotation_z_to(obs.axis)
 
 
 def _positive(value: float, what: str, key: str) -> None:
@@ -149,7 +148,7 @@ class Cylinder(Shape):
         return float(np.hypot(obs.radius, obs.length / 2))
 
     def mujoco_geom(self, obs: Obstacle) -> Geom:
-        return Geom(self.name, (obs.radius, obs.length / 2), _axis_quat(obs))
+        return Geom(self.name, (obs.radius, obs.length / 2), _axis_rotation(obs))
 
     def patch(self, obs: Obstacle, centre: np.ndarray, **style: Any) -> Any:
         import matplotlib.pyplot as plt
