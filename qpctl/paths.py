@@ -13,6 +13,7 @@ angular velocity ω_d = (ṡ/T_k) θ_k and acceleration ω̇_d = (s̈/T_k²) θ_
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -38,6 +39,28 @@ def quintic(tau: float) -> tuple[float, float, float]:
     return (t2 * tau * (10 - 15 * tau + 6 * t2), 30 * t2 * (1 - tau) ** 2, 60 * tau * (1 - tau) * (1 - 2 * tau))
 
 
+@dataclass(frozen=True, kw_only=True)
+class PathConfig:
+    """The ``[path]`` keys of a scenario (each declared here once; :func:`qpctl.config.schema_of`).
+
+    start [m]: the first point (None: the task point at q0); waypoints [m]: the points after it
+    (required). duration [s] (shared by segment length) or durations [s] (per segment): one of them.
+    start_time [s], dwell [s]: when the path starts, the pause at each waypoint.
+    orientations: a pose task's quaternions (x, y, z, w) at each waypoint; approach: an approach task's
+    world directions at each waypoint; start_orientation: the first (None: the task frame's at q0).
+    """
+
+    start: list[float] | None = None
+    waypoints: list[list[float]]
+    duration: float | None = None
+    durations: list[float] | None = None
+    start_time: float = 0.0
+    dwell: float = 0.0
+    orientations: list[list[float]] | None = None
+    start_orientation: list[float] | None = None
+    approach: list[list[float]] | None = None
+
+
 class WaypointPath:
     """Straight segments through ``points`` ((k+1, m) [m]), each with quintic timing.
 
@@ -50,7 +73,8 @@ class WaypointPath:
     """
 
     def __init__(self, points: Sequence[Sequence[float]] | np.ndarray, *, duration: float | None = None,
-                 durations: Sequence[float] | None = None, start_time: float = 0.0, dwell: float = 0.0):
+                 durations: Sequence[float] | None = None, start_time: float = PathConfig.start_time,
+                 dwell: float = PathConfig.dwell):
         pts = np.asarray(points, dtype=float)
         if pts.ndim != 2 or pts.shape[0] < 2 or not np.all(np.isfinite(pts)):
             raise ConfigError("needs a start point and at least one finite waypoint", key="path.waypoints")

@@ -48,14 +48,11 @@ def plot_torque_rates(ax: plt.Axes, traj: Trajectory, tau_rate_max: np.ndarray |
 
 
 def draw_obstacles(ax: plt.Axes, obstacles: Sequence[Obstacle], t: float = 0.0) -> None:
-    """Obstacles in the x–y plane at time t [s]: boxes as rectangles, the other shapes as circles."""
+    """Obstacles in the x–y plane at time t [s], each as its shape's patch (:mod:`qpctl.geometry.shapes`:
+    boxes as rectangles, spheres, capsules and cylinders as circles)."""
     for o in obstacles:
         c = o.position_at(t)
-        if o.shape == "box" and o.size is not None:
-            ax.add_patch(plt.Rectangle((c[0] - o.size[0] / 2, c[1] - o.size[1] / 2), o.size[0], o.size[1],
-                                       color="tab:red", alpha=0.4))
-        else:
-            ax.add_patch(plt.Circle((c[0], c[1]), o.radius, color="tab:red", alpha=0.4))
+        ax.add_patch(o.kind.patch(o, c, color="tab:red", alpha=0.4))
         if o.name:
             ax.annotate(o.name, (c[0], c[1]), ha="center", va="center", fontsize=8)
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
@@ -19,211 +19,45 @@ from typing import Any
 import numpy as np
 
 from qpctl.barrier_design import BarrierDesign, auto_approach_speed, design_for
+from qpctl.config import (
+    REQUIRED,
+    Checker,
+    schema_of,
+    string,
+)
+from qpctl.controllers.config import ControllerConfig, controller_schema
 from qpctl.errors import ConfigError
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.law import LawGains
-from qpctl.paths import PosePath, WaypointPath
+from qpctl.paths import PathConfig, PosePath, WaypointPath
+from qpctl.robot.config import RobotConfig
 from qpctl.robot.model import RobotModel, load_robot
-from qpctl.simulation.faults import PAYLOAD_RADIUS, Faults, with_payload
-from qpctl.solvers.base import DEFAULT_SOLVER
-from qpctl.tasks.tasks import DEFAULT_DAMPING
+from qpctl.simulation.faults import Faults, with_payload
+from qpctl.simulation.loop import SimConfig
 
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover
     import tomli as tomllib
 
-# ---------------------------------------------------------------------------------------------
 # Schema: each leaf is a (checker, default) pair; a checker returns the value or raises TypeError.
-# ---------------------------------------------------------------------------------------------
-REQUIRED = object()
-
-
-def _num(v: Any) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise TypeError("a number")
-    return float(v)
-
-
-def _int(v: Any) -> int:
-    if isinstance(v, bool) or not isinstance(v, int):
-        raise TypeError("an integer")
-    return v
-
-
-def _bool(v: Any) -> bool:
-    if not isinstance(v, bool):
-        raise TypeError("true or false")
-    return v
-
-
-def _str(v: Any) -> str:
-    if not isinstance(v, str):
-        raise TypeError("a string")
-    return v
-
-
-def _vec(v: Any) -> list[float]:
-    if not isinstance(v, list) or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v):
-        raise TypeError("a list of numbers")
-    return [float(x) for x in v]
-
-
-def _num_or_vec(v: Any) -> float | list[float]:
-    try:
-        return _num(v)
-    except TypeError:
-        try:
-            return _vec(v)
-        except TypeError:
-            raise TypeError("a number or a list of numbers") from None
-
-
-def _points(v: Any) -> list[list[float]]:
-    if not isinstance(v, list) or not v:
-        raise TypeError("a non-empty list of points ([[x, y], ...])")
-    pts = [_vec(p) for p in v]
-    if len({len(p) for p in pts}) != 1:
-        raise TypeError("points of equal length")
-    return pts
-
-
-def _str_list(v: Any) -> list[str]:
-    if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
-        raise TypeError("a list of strings")
-    return v
-
-
-def _num_or_auto(v: Any) -> float | str:
-    if v == "auto":
-        return "auto"
-    try:
-        return _num(v)
-    except TypeError:
-        raise TypeError('a number or "auto"') from None
-
-
-def _pairs_of_names(v: Any) -> list[list[str]]:
-    if not isinstance(v, list) or not all(isinstance(p, list) and len(p) == 2 and all(isinstance(x, str) for x in p)
-                                          for p in v):
-        raise TypeError('a list of pairs of link names ([["a", "b"], ...])')
-    return v
-
-
-def _table(v: Any) -> dict[str, Any]:
-    if not isinstance(v, dict):
-        raise TypeError("a table")
-    return v
-
-
-Checker = Callable[[Any], Any]
-
-OBSTACLE_SCHEMA: dict[str, tuple[Checker, Any]] = {
-    "shape": (_str, REQUIRED),
-    "position": (_vec, REQUIRED),
-    "radius": (_num, 0.0),
-    "size": (_vec, None),
-    "length": (_num, 0.0),
-    "axis": (_vec, [0.0, 0.0, 1.0]),
-    "velocity": (_vec, [0.0, 0.0, 0.0]),
-    "amplitude": (_vec, [0.0, 0.0, 0.0]),
-    "frequency": (_num, 0.0),
-    "name": (_str, ""),
-    "area": (_str, ""),
-    "v_ref": (_num, None),
-}
+# Every table is generated from the fields of the dataclass that declares its keys (qpctl.config).
+# [[obstacles]]: Obstacle's fields, and the label the paper reproduction groups them by
+OBSTACLE_SCHEMA: dict[str, tuple[Checker, Any]] = {**schema_of(Obstacle), "area": (string, "")}
 
 SCHEMA: dict[str, Any] = {
-    "name": (_str, "scenario"),
-    "description": (_str, ""),
-    "robot": {
-        "kind": (_str, "planar3"),
-        "links": (_int, 3),
-        "length": (_num, 1.0),
-        "mass": (_num, 10.0),
-        "radius": (_num, 0.05),
-        "gravity": (_vec, None),
-        "urdf": (_str, ""),
-        "ee_frame": (_str, ""),
-        "task_axes": (_str_list, None),
-        "q0": (_vec, None),
-        "tau_max": (_num_or_vec, None),
-        "v_max": (_num_or_vec, None),
-        "tau_rate_max": (_num_or_vec, None),
-        "qdd_max": (_num_or_vec, None),
-        "payload_mass": (_num, 0.0),
-        "payload_radius": (_num, PAYLOAD_RADIUS),
-    },
-    "path": {
-        "start": (_vec, None),
-        "waypoints": (_points, REQUIRED),
-        "duration": (_num, None),
-        "durations": (_vec, None),
-        "start_time": (_num, 0.0),
-        "dwell": (_num, 0.0),
-        "orientations": (_points, None),
-        "start_orientation": (_vec, None),
-        "approach": (_points, None),
-    },
+    "name": (string, "scenario"),
+    "description": (string, ""),
+    # [robot], [path], [controller], [faults], [sim]: their dataclasses' fields (qpctl.config.schema_of)
+    "robot": schema_of(RobotConfig),
+    "path": schema_of(PathConfig),
     "obstacles": OBSTACLE_SCHEMA,  # array of tables
-    "controller": {
-        "kind": (_str, "paper"),
-        "task": (_str, "position"),
-        "task_mask": (_vec, None),
-        "approach_axis": (_vec, [0.0, 0.0, 1.0]),
-        "task_weights": (_vec, None),
-        "solver": (_str, DEFAULT_SOLVER),
-        "kp": (_num, 100.0),
-        "kv": (_num, 20.0),
-        "kn": (_num, 10.0),
-        "v_ref": (_num, 0.5),
-        "d_influence": (_num, 0.3),
-        "d_safe": (_num, 0.05),
-        "d_safe_margin": (_num_or_auto, 0.0),
-        "g_damping": (_num, 0.05),
-        "pinv_eps": (_num, 1e-3),
-        "jdot_en": (_bool, False),
-        "torque_limits": (_bool, True),
-        "joint_limits": (_bool, True),
-        "barrier_k0": (_num, 400.0),
-        "barrier_k1": (_num, 40.0),
-        "barrier_design": (_str, "manual"),
-        "approach_speed": (_num_or_auto, "auto"),
-        "barrier_drift": (_str, "exact"),
-        "joint_k0": (_num, 100.0),
-        "joint_k1": (_num, 20.0),
-        "velocity_gain": (_num, 50.0),
-        "slack_l1": (_num, 1e6),
-        "slack_l2": (_num, 1e2),
-        "task_relaxation": (_str, "auto"),
-        "max_pairs": (_int, 0),
-        "posture_weight": (_num, 0.0),
-        "posture": (_vec, None),
-        "damping": (_num, DEFAULT_DAMPING),
-        "damping_gain": (_num, 10.0),
-        "self_collision": (_bool, True),
-        "self_d_safe": (_num, 0.02),
-        "self_collision_pairs": (_pairs_of_names, None),
-        "fallback": (_str_list, ["closed-form", "safe-stop"]),
-        "tick_budget_us": (_num, 0.0),
-        "broadphase": (_str, "auto"),
-        "solver_settings": (_table, {}),
-    },
-    # every fault off; the keys, defaults and meanings are Faults' fields (qpctl.simulation.faults)
-    "faults": {f.name: ({"float": _num, "int": _int}.get(str(f.type), _num_or_vec), f.default)
-               for f in dataclasses.fields(Faults)},
-    "sim": {
-        "dt": (_num, 1e-3),
-        "duration": (_num, 5.0),
-        "integrator": (_str, "rk4"),
-        "seed": (_int, 0),
-        "simulator": (_str, "builtin"),
-        "model": (_str, ""),
-        "joint_names": (_str_list, None),
-    },
+    # LawGains', QPConfig's and ControllerConfig's fields (qpctl.controllers.config)
+    "controller": controller_schema(),
+    # every fault off (qpctl.simulation.faults)
+    "faults": schema_of(Faults),
+    "sim": schema_of(SimConfig),
 }
-
-CONTROLLER_KINDS = ("paper", "hsu", "qp")
 
 
 def arm_reach(robot: RobotModel) -> tuple[np.ndarray, float] | None:
@@ -373,10 +207,10 @@ class Scenario:
         resolved from ``base_dir`` (default: the working folder)."""
         raw = apply_overrides(raw, overrides) if overrides else raw
         data = _validate_table(raw, SCHEMA, source, "")
-        kind = data["controller"]["kind"]
-        if kind not in CONTROLLER_KINDS:
-            raise ConfigError(f"unknown controller {kind!r}; one of {', '.join(CONTROLLER_KINDS)}", source=source,
-                              key="controller.kind")
+        from qpctl.controllers.factory import CONTROLLERS, unknown_kind
+
+        if data["controller"]["kind"] not in CONTROLLERS:
+            raise unknown_kind(data["controller"]["kind"], source)
         scen = cls(data, source, Path(base_dir) if base_dir is not None else None)
         scen._check_values()
         return scen
@@ -386,9 +220,12 @@ class Scenario:
 
     def _check_values(self) -> None:
         sim = self.data["sim"]
-        for key in ("dt", "duration"):
-            if not (np.isfinite(sim[key]) and sim[key] > 0):
-                raise self._err(f"sim.{key}", f"must be a positive number of seconds, got {sim[key]}")
+        try:  # the rules of the [sim] and [controller] keys' fields (dt and duration > 0, integrator, task...)
+            SimConfig(**sim)
+            c = self.data["controller"]
+            ControllerConfig(**{f.name: c[f.name] for f in dataclasses.fields(ControllerConfig)})
+        except ConfigError as exc:
+            raise self._err(exc.key or "sim", exc.message) from None
         if sim["dt"] > sim["duration"]:
             raise self._err("sim.dt", f"step {sim['dt']} s exceeds the duration {sim['duration']} s")
         from qpctl.simulation.simulator import check_ticks
@@ -400,8 +237,6 @@ class Scenario:
         path = self.data["path"]
         if path["duration"] is None and path["durations"] is None:
             raise self._err("path.duration", "missing value (give duration or durations)")
-        if sim["integrator"] not in ("rk4", "euler"):
-            raise self._err("sim.integrator", f"must be rk4 or euler, got {sim['integrator']!r}")
         from qpctl.adapters import SIMULATORS
 
         if sim["simulator"] not in SIMULATORS:
@@ -445,10 +280,7 @@ class Scenario:
         from qpctl.solvers import make_solver
 
         c = self.data["controller"]
-        for key in ("barrier_k0", "barrier_k1", "joint_k0", "joint_k1", "velocity_gain"):
-            if not (np.isfinite(c[key]) and c[key] > 0):
-                raise self._err(f"controller.{key}", f"must be a positive number, got {c[key]}")
-        try:
+        try:  # every QPConfig key's type and rule (qpctl.config.check_fields)
             QPConfig.from_dict(c)
         except ConfigError as exc:
             raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key) from None
@@ -547,8 +379,6 @@ class Scenario:
         """The robot's task rows: robot.task_axes, and controller.task's orientation rows."""
         r, c = self.data["robot"], self.data["controller"]
         task, mask = c["task"], c["task_mask"]
-        if task not in ("position", "pose", "approach"):
-            raise ConfigError(f"must be position, pose or approach, got {task!r}", key="controller.task")
         if mask is not None:
             if task != "pose":
                 raise ConfigError('applies to controller.task = "pose" only', key="controller.task_mask")
@@ -709,15 +539,14 @@ class Scenario:
         if margin > 0 and not c["d_safe"] + margin < c["d_influence"]:
             raise self._err("controller.d_safe_margin", f"d_safe {c['d_safe']} m + margin {margin:.4g} m must stay "
                             f"below d_influence {c['d_influence']} m")
-        return LawGains(kp=c["kp"], kv=c["kv"], kn=c["kn"], v_ref=c["v_ref"], d_influence=c["d_influence"],
-                        d_safe=c["d_safe"] + margin, g_damping=c["g_damping"], pinv_eps=c["pinv_eps"],
-                        jdot_en=c["jdot_en"])
+        c["d_safe"] += margin
+        return LawGains(**{f.name: c[f.name] for f in dataclasses.fields(LawGains) if f.name in c})
 
     def build_controller(self, kind: str | None = None, solver: str | None = None,
                          robot: RobotModel | None = None, obstacles: list[Obstacle] | None = None) -> Any:
         """The scenario's controller (``kind``/``solver`` override the file; ``obstacles`` replaces the
         scenario's in the controller's map, e.g. :meth:`Faults.perceived`)."""
-        from qpctl.controllers.factory import make_controller
+        from qpctl.controllers.factory import controller_class, make_controller
 
         robot = robot or self.build_robot()
         q0 = self.q0(robot)
@@ -729,11 +558,8 @@ class Scenario:
             c["kind"] = kind
         if solver is not None:
             c["solver"] = solver
-        if c["kind"] not in CONTROLLER_KINDS:
-            raise self._err("controller.kind", f"unknown controller {c['kind']!r}; one of {', '.join(CONTROLLER_KINDS)}")
-        bp = {"auto": None, "on": True, "off": False}.get(c["broadphase"], "bad")
-        if bp == "bad":
-            raise self._err("controller.broadphase", f"must be auto, on or off, got {c['broadphase']!r}")
+        controller_class(c["kind"], self.source)  # a ConfigError naming the registered kinds
+        bp = {"auto": None, "on": True, "off": False}[c["broadphase"]]  # ControllerConfig's choices
         scene = self.build_obstacles() if obstacles is None else obstacles
         return make_controller(c, robot, self.build_path(robot, q0), scene, self.gains(robot),
                                broadphase=bp, source=self.source)  # type: ignore[arg-type]

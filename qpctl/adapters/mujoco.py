@@ -53,7 +53,7 @@ from qpctl.adapters.joint_map import JointMap
 from qpctl.adapters.model_check import DynamicsCheck, check_dynamics
 from qpctl.controllers.base import Controller
 from qpctl.errors import ConfigError, SimulationError
-from qpctl.geometry.obstacles import Obstacle, rotation_z_to
+from qpctl.geometry.obstacles import Obstacle
 from qpctl.robot.model import RobotModel
 from qpctl.simulation.loop import SimulatorBase
 from qpctl.simulation.trajectory import Trajectory
@@ -113,14 +113,10 @@ def _obstacle_geom(parent: ET.Element, obstacle: Obstacle, name: str, at_origin:
     attrs = {"name": name, "contype": "0", "conaffinity": "0", "group": "1", "rgba": "0.45 0.6 0.3 0.6"}
     if not at_origin:
         attrs["pos"] = _fmt(obstacle.position)
-    if obstacle.shape == "sphere":
-        attrs.update(type="sphere", size=_fmt([obstacle.radius]))
-    elif obstacle.shape == "box":
-        assert obstacle.size is not None
-        attrs.update(type="box", size=_fmt(np.asarray(obstacle.size) / 2))
-    else:  # capsule / cylinder: axis along the obstacle's axis, size = (radius, half-length)
-        attrs.update(type=obstacle.shape, size=_fmt([obstacle.radius, obstacle.length / 2]),
-                     quat=_fmt(_quat(rotation_z_to(obstacle.axis))))
+    geom = obstacle.kind.mujoco_geom(obstacle)  # the shape's own (qpctl.geometry.shapes)
+    attrs.update(type=geom.type, size=_fmt(geom.size))
+    if geom.rotation is not None:
+        attrs["quat"] = _fmt(_quat(geom.rotation))
     ET.SubElement(parent, "geom", attrs)
 
 
@@ -371,10 +367,17 @@ class MujocoActuation:
         self.clamped_joints = set()
 
 
+def _geom_type(name: str, shape: str) -> Any:
+    """MuJoCo's geom type called ``name`` ("sphere", "box", ...); ConfigError for one it lacks."""
+    kind = getattr(mujoco.mjtGeom, f"mjGEOM_{name.upper()}", None)
+    if kind is None:
+        raise ConfigError(f"shape {shape!r} gives MuJoCo geom type {name!r}, which MuJoCo does not have",
+                          key="obstacles.shape")
+    return kind
+
+
 def _add_obstacles(spec: Any, obstacles: Sequence[Obstacle], prefix: str) -> None:
     """Contact-free geoms for ``obstacles`` in a user's model (MjSpec); moving ones on mocap bodies."""
-    types = {"sphere": mujoco.mjtGeom.mjGEOM_SPHERE, "box": mujoco.mjtGeom.mjGEOM_BOX,
-             "capsule": mujoco.mjtGeom.mjGEOM_CAPSULE, "cylinder": mujoco.mjtGeom.mjGEOM_CYLINDER}
     for i, obs in enumerate(obstacles):
         name = f"{prefix}{obs.name or f'obstacle{i}'}"
         if obs.moving:
@@ -382,14 +385,11 @@ def _add_obstacles(spec: Any, obstacles: Sequence[Obstacle], prefix: str) -> Non
             pos = np.zeros(3)
         else:
             parent, pos = spec.worldbody, np.asarray(obs.position, float)
-        if obs.shape == "sphere":
-            size, quat = [obs.radius, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]
-        elif obs.shape == "box":
-            size, quat = list(np.asarray(obs.size, float) / 2), [1.0, 0.0, 0.0, 0.0]
-        else:
-            size, quat = [obs.radius, obs.length / 2, 0.0], list(_quat(rotation_z_to(obs.axis)))
-        parent.add_geom(name=f"{name}_geom" if obs.moving else name, type=types[obs.shape], size=size,
-                        pos=pos, quat=quat, contype=0, conaffinity=0, group=1, rgba=[0.45, 0.6, 0.3, 0.6])
+        geom = obs.kind.mujoco_geom(obs)  # the shape's own (qpctl.geometry.shapes)
+        size = [*geom.size, *[0.0] * (3 - len(geom.size))]
+        quat = list(_quat(geom.rotation)) if geom.rotation is not None else [1.0, 0.0, 0.0, 0.0]
+        parent.add_geom(name=f"{name}_geom" if obs.moving else name, type=_geom_type(geom.type, obs.shape),
+                        size=size, pos=pos, quat=quat, contype=0, conaffinity=0, group=1, rgba=[0.45, 0.6, 0.3, 0.6])
 
 
 def load_user_model(path: str | Path, obstacles: Sequence[Obstacle] = ()) -> mujoco.MjModel:

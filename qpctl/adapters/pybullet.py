@@ -49,7 +49,6 @@ from qpctl.adapters.joint_map import JointMap
 from qpctl.adapters.model_check import DynamicsCheck, check_dynamics, random_states
 from qpctl.controllers.base import Controller
 from qpctl.errors import ConfigError, SimulationError
-from qpctl.geometry.obstacles import rotation_z_to
 from qpctl.robot.model import RobotModel
 from qpctl.simulation.loop import SimulatorBase
 
@@ -305,18 +304,22 @@ class PybulletSimulator(SimulatorBase):
         self._obstacle_bodies = []
         for obs in self.obstacles:
             rgba = [0.45, 0.6, 0.3, 0.6]
-            if obs.shape == "sphere":
-                vs = pybullet.createVisualShape(pybullet.GEOM_SPHERE, radius=obs.radius, rgbaColor=rgba,
+            geom = obs.kind.mujoco_geom(obs)  # the shape's MuJoCo geom, drawn with PyBullet's same primitive
+            if geom.type == "sphere":
+                vs = pybullet.createVisualShape(pybullet.GEOM_SPHERE, radius=geom.size[0], rgbaColor=rgba,
                                                 physicsClientId=c)
-            elif obs.shape == "box":
-                vs = pybullet.createVisualShape(pybullet.GEOM_BOX, halfExtents=list(np.asarray(obs.size) / 2),
-                                                rgbaColor=rgba, physicsClientId=c)
+            elif geom.type == "box":
+                vs = pybullet.createVisualShape(pybullet.GEOM_BOX, halfExtents=list(geom.size), rgbaColor=rgba,
+                                                physicsClientId=c)
+            elif geom.type in ("capsule", "cylinder"):
+                shape = pybullet.GEOM_CAPSULE if geom.type == "capsule" else pybullet.GEOM_CYLINDER
+                vs = pybullet.createVisualShape(shape, radius=geom.size[0], length=2 * geom.size[1], rgbaColor=rgba,
+                                                physicsClientId=c)
             else:
-                shape = pybullet.GEOM_CAPSULE if obs.shape == "capsule" else pybullet.GEOM_CYLINDER
-                vs = pybullet.createVisualShape(shape, radius=obs.radius, length=obs.length, rgbaColor=rgba,
-                                                physicsClientId=c)
-            quat = pin.Quaternion(rotation_z_to(obs.axis)).coeffs() if obs.shape in ("capsule", "cylinder") \
-                else np.array([0.0, 0.0, 0.0, 1.0])  # (x, y, z, w), PyBullet's order
+                raise ConfigError(f"shape {obs.shape!r} (MuJoCo geom {geom.type!r}) has no PyBullet visual here "
+                                  "(sphere, box, capsule, cylinder)", key="obstacles.shape")
+            quat = np.array([0.0, 0.0, 0.0, 1.0]) if geom.rotation is None \
+                else pin.Quaternion(geom.rotation).coeffs()  # (x, y, z, w), PyBullet's order
             body = pybullet.createMultiBody(baseMass=0.0, baseCollisionShapeIndex=-1, baseVisualShapeIndex=vs,
                                             basePosition=list(obs.position), baseOrientation=list(quat),
                                             physicsClientId=c)

@@ -183,6 +183,14 @@ class Controller(ABC):
         self._ws: Workspace | None = None
         self.warm = False  # warmup() has run
 
+    @classmethod
+    def from_config(cls, cfg: dict[str, Any], robot: RobotModel, path: WaypointPath,
+                    obstacles: Sequence[Obstacle], gains: LawGains, *, broadphase: bool | None = None
+                    ) -> Controller:
+        """Built from a scenario's validated ``[controller]`` table (:mod:`qpctl.controllers.factory`);
+        a kind with settings of its own beyond the law gains reads them from ``cfg``."""
+        return cls(robot, path, obstacles, gains, broadphase=broadphase)
+
     def reference(self, state: TickState) -> Reference:
         """The task's reference at the state's time [s] (m rows): the path's point, then the
         orientation rows (:mod:`qpctl.orientation`), which depend on the state's orientation."""

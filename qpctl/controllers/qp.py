@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
+from qpctl.config import check_fields, setting
 from qpctl.constraints.constraints import (
     Constraint,
     JointLimit,
@@ -159,22 +160,22 @@ class QPConfig:
     solver_settings: dict[str, Any] = field(default_factory=dict)
     torque_limits: bool = True
     joint_limits: bool = True
-    barrier_k0: float = 400.0
-    barrier_k1: float = 40.0
+    barrier_k0: float = setting(400.0, valid="positive", unit="1/s²")
+    barrier_k1: float = setting(40.0, valid="positive", unit="1/s")
     barrier_drift: str = "exact"
-    joint_k0: float = 100.0
-    joint_k1: float = 20.0
-    velocity_gain: float = 50.0
-    slack_l1: float = 1e6
-    slack_l2: float = 1e2
+    joint_k0: float = setting(100.0, valid="positive", unit="1/s²")
+    joint_k1: float = setting(20.0, valid="positive", unit="1/s")
+    velocity_gain: float = setting(50.0, valid="positive", unit="1/s")
+    slack_l1: float = setting(1e6, valid="nonnegative")
+    slack_l2: float = setting(1e2, valid="nonnegative")
     max_pairs: int = 0
     task_relaxation: str = "auto"
     fallback: list[str] = field(default_factory=lambda: [FALLBACK_CLOSED_FORM, FALLBACK_SAFE_STOP])
-    tick_budget_us: float = 0.0
+    tick_budget_us: float = setting(0.0, valid="nonnegative", unit="µs")
     posture: list[float] | None = None
-    posture_weight: float = 0.0
-    damping: float = DEFAULT_DAMPING
-    damping_gain: float = 10.0
+    posture_weight: float = setting(0.0, valid="nonnegative")
+    damping: float = setting(DEFAULT_DAMPING, valid="nonnegative")
+    damping_gain: float = setting(10.0, valid="nonnegative", unit="1/s")
     task_weights: list[float] | None = None
     self_collision: bool = True
     self_d_safe: float = 0.02
@@ -184,10 +185,7 @@ class QPConfig:
         if isinstance(self.fallback, str) or not all(isinstance(x, str) for x in self.fallback):
             raise ConfigError(f"must be a list of names, got {self.fallback!r}", key="controller.fallback")
         self.fallback = list(self.fallback)
-        for key in ("tick_budget_us", "slack_l1", "slack_l2", "posture_weight", "damping", "damping_gain"):
-            val = getattr(self, key)
-            if isinstance(val, bool) or not isinstance(val, (int, float)) or not (np.isfinite(val) and val >= 0):
-                raise ConfigError(f"must be a number >= 0, got {val!r}", key=f"controller.{key}")
+        check_fields(self, "controller")
         if isinstance(self.max_pairs, bool) or not isinstance(self.max_pairs, int) or self.max_pairs < 0:
             raise ConfigError(f"must be an integer >= 0, got {self.max_pairs!r}", key="controller.max_pairs")
 

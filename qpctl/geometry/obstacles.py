@@ -1,6 +1,6 @@
 """Obstacles: python-fcl shapes with a pose that may move in time.
 
-Shapes and sizes (all in metres):
+Shapes and sizes (all in metres) are the registered shapes of :mod:`qpctl.geometry.shapes`:
 
 * ``sphere``: ``radius``. In the planar scenarios a sphere centred in the plane is a circle.
 * ``box``: ``size`` = full extents (x, y, z).
@@ -24,8 +24,9 @@ import fcl
 import numpy as np
 
 from qpctl.errors import ConfigError
+from qpctl.geometry.shapes import SHAPES, Shape, shape_of
 
-SHAPES = ("sphere", "box", "capsule", "cylinder")
+__all__ = ["SHAPES", "Obstacle", "quaternion_z_to", "rotation_z_to"]
 
 
 def _vec3(value: Sequence[float] | np.ndarray, key: str) -> np.ndarray:
@@ -80,8 +81,7 @@ class Obstacle:
 
     def __post_init__(self) -> None:
         key = f"obstacles.{self.name}" if self.name else "obstacles"
-        if self.shape not in SHAPES:
-            raise ConfigError(f"unknown shape {self.shape!r}; one of {', '.join(SHAPES)}", key=f"{key}.shape")
+        kind = shape_of(self.shape, f"{key}.shape")
         self.position = _vec3(self.position, f"{key}.position")
         self.velocity = _vec3(self.velocity, f"{key}.velocity")
         self.amplitude = _vec3(self.amplitude, f"{key}.amplitude")
@@ -92,32 +92,21 @@ class Obstacle:
             raise ConfigError(f"must be a number >= 0, got {self.v_ref}", key=f"{key}.v_ref")
         if not (np.isfinite(self.frequency) and self.frequency >= 0):
             raise ConfigError(f"must be >= 0, got {self.frequency}", key=f"{key}.frequency")
-        if self.shape in ("sphere", "capsule", "cylinder") and not (np.isfinite(self.radius) and self.radius > 0):
-            raise ConfigError(f"radius must be positive, got {self.radius}", key=f"{key}.radius")
-        if self.shape in ("capsule", "cylinder") and not (np.isfinite(self.length) and self.length > 0):
-            raise ConfigError(f"length must be positive, got {self.length}", key=f"{key}.length")
-        if self.shape == "box":
-            if self.size is None:
-                raise ConfigError("a box needs size = [x, y, z]", key=f"{key}.size")
-            self.size = _vec3(self.size, f"{key}.size")
-            if np.any(self.size <= 0):
-                raise ConfigError(f"box size must be positive, got {self.size.tolist()}", key=f"{key}.size")
+        kind.check(self, key)
         self._rotation = rotation_z_to(self.axis)
 
     @property
     def moving(self) -> bool:
         return bool(np.any(self.velocity) or (np.any(self.amplitude) and self.frequency > 0))
 
+    @property
+    def kind(self) -> Shape:
+        """The registered shape this obstacle is (:mod:`qpctl.geometry.shapes`)."""
+        return shape_of(self.shape)
+
     def geometry(self) -> fcl.CollisionGeometry:
         """A new python-fcl geometry for this shape."""
-        if self.shape == "sphere":
-            return fcl.Sphere(self.radius)
-        if self.shape == "box":
-            assert self.size is not None
-            return fcl.Box(*self.size)
-        if self.shape == "capsule":
-            return fcl.Capsule(self.radius, self.length)
-        return fcl.Cylinder(self.radius, self.length)
+        return self.kind.geometry(self)
 
     def transform(self, t: float) -> fcl.Transform:
         return fcl.Transform(self._rotation, self.position_at(t))
@@ -139,9 +128,4 @@ class Obstacle:
 
     def bounding_radius(self) -> float:
         """Radius [m] of a sphere about the centre that contains the shape."""
-        if self.shape == "sphere":
-            return self.radius
-        if self.shape == "box":
-            assert self.size is not None
-            return float(np.linalg.norm(self.size) / 2)
-        return float(np.hypot(self.radius, self.length / 2) + (self.radius if self.shape == "capsule" else 0))
+        return self.kind.bounding_radius(self)

@@ -23,6 +23,7 @@ import numpy as np
 import pinocchio as pin
 
 from qpctl.errors import ConfigError, UnknownFrameError
+from qpctl.robot.config import RobotConfig
 
 # Where a URDF names a link and a joint alike (example-robot-data's Z1: "gripperStator"), Pinocchio
 # has several frames of that name; the task point is then the first of these kinds.
@@ -291,7 +292,8 @@ def default_capsules(model: pin.Model, radius: float) -> list[LinkCapsule]:
     return capsules
 
 
-def planar_arm(n: int = 3, *, length: float = 1.0, mass: float = 10.0, radius: float = 0.05,
+def planar_arm(n: int = RobotConfig.links, *, length: float = RobotConfig.length, mass: float = RobotConfig.mass,
+               radius: float = RobotConfig.radius,
                gravity: float | Sequence[float] = 9.81,
                tau_max: float | Sequence[float] = np.inf) -> RobotModel:
     """The paper's planar arm: ``n`` uniform thin rods in the vertical x–y plane, gravity along −y.

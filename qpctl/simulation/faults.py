@@ -52,10 +52,11 @@ import pinocchio as pin
 
 from qpctl.errors import ConfigError
 from qpctl.geometry.obstacles import Obstacle
+from qpctl.robot.config import RobotConfig
 from qpctl.robot.model import RobotModel
 
 #: Default radius [m] of the payload sphere (a fruit of 8 cm).
-PAYLOAD_RADIUS = 0.04
+PAYLOAD_RADIUS = RobotConfig.payload_radius
 
 def _stream(seed: int, name: str) -> np.random.Generator:
     """The random stream of one fault: seeded by ``seed`` and the fault's name (stable across runs)."""

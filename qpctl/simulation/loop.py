@@ -20,16 +20,42 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
 import pinocchio as pin
 
+from qpctl.config import check_fields, setting
 from qpctl.controllers.base import Controller
 from qpctl.errors import ConfigError, SimulationError
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.simulation.trajectory import Trajectory, check_ticks, finish_trajectory, measured_self_pairs
 from qpctl.tick import WorldClearance
+
+
+@dataclass(frozen=True, kw_only=True)
+class SimConfig:
+    """The ``[sim]`` keys of a scenario (each declared here once; :func:`qpctl.config.schema_of`).
+
+    dt [s], duration [s]: the control and integration step and the run's length (both > 0).
+    integrator: "rk4" or "euler" (semi-implicit), the built-in simulator's.
+    seed: recorded with the run (randomised scenes).
+    simulator: a name in :data:`qpctl.adapters.SIMULATORS` ("builtin", "mujoco", "pybullet").
+    model: the user's own model file for an adapter ("": generated from the robot).
+    joint_names: the model's names of the controller's joints, in its order (None: by name or order).
+    """
+
+    dt: float = setting(1e-3, valid="seconds", unit="s")
+    duration: float = setting(5.0, valid="seconds", unit="s")
+    integrator: str = setting("rk4", choices=("rk4", "euler"))
+    seed: int = 0
+    simulator: str = "builtin"
+    model: str = ""
+    joint_names: list[str] | None = None
+
+    def __post_init__(self) -> None:
+        check_fields(self, "sim")
 
 
 class SimulatorBase(ABC):

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import time
 import warnings
 from abc import ABC, abstractmethod
@@ -20,13 +21,16 @@ DEFAULT_SETTINGS: dict[str, dict[str, Any]] = {
     "clarabel": {"tol_gap_abs": 1e-9, "tol_gap_rel": 1e-9, "tol_feas": 1e-9},
 }
 
-# The solvers with a fast path of their own (qpctl/solvers/<name>_.py), first in listings; what it does.
-FAST_PATH_NOTES = {
-    "daqp": "fast path (called directly, warm-started working set, own time limit)",
-    "proxqp": "fast path (problem reused, warm-started primal-dual)",
-    "osqp": "fast path (fixed sparsity, updated, warm-started, polished)",
+# The registry of fast paths: one module each (qpctl/solvers/<name>_.py, imported when first made, and
+# only used when qpsolvers finds the backend installed), one line here — "module:Class", and what it
+# does (``qpctl solvers``). First in listings; every other qpsolvers backend takes the generic path.
+FAST_PATH_SOLVERS: dict[str, tuple[str, str]] = {
+    "daqp": ("qpctl.solvers.daqp_:DAQPSolver", "fast path (called directly, warm-started working set, own time limit)"),
+    "proxqp": ("qpctl.solvers.proxqp_:ProxQPSolver", "fast path (problem reused, warm-started primal-dual)"),
+    "osqp": ("qpctl.solvers.osqp_:OSQPSolver", "fast path (fixed sparsity, updated, warm-started, polished)"),
 }
-FAST_PATHS = tuple(FAST_PATH_NOTES)
+FAST_PATH_NOTES = {name: note for name, (_, note) in FAST_PATH_SOLVERS.items()}
+FAST_PATHS = tuple(FAST_PATH_SOLVERS)
 DEFAULT_SOLVER = "daqp"  # the fastest on this package's QPs (README, "Performance"), with its own time limit
 
 # The generic path's backends that take a wall-time limit [s], and the name of that setting.
@@ -156,16 +160,8 @@ def make_solver(name: str, settings: dict[str, Any] | None = None) -> QPSolver:
     base = name.split(":", 1)[1] if force_generic else name
     if base not in inst:
         raise UnknownSolverError(name, available_solvers())
-    if not force_generic and base == "proxqp":
-        from qpctl.solvers.proxqp_ import ProxQPSolver
-
-        return ProxQPSolver(settings)
-    if not force_generic and base == "daqp":
-        from qpctl.solvers.daqp_ import DAQPSolver
-
-        return DAQPSolver(settings)
-    if not force_generic and base == "osqp":
-        from qpctl.solvers.osqp_ import OSQPSolver
-
-        return OSQPSolver(settings)
+    if not force_generic and base in FAST_PATH_SOLVERS:
+        module, _, cls = FAST_PATH_SOLVERS[base][0].partition(":")
+        solver: QPSolver = getattr(importlib.import_module(module), cls)(settings)
+        return solver
     return GenericSolver(base, settings)

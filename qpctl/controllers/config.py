@@ -1,0 +1,51 @@
+"""The ``[controller]`` table: every key declared once, as a field of the dataclass that uses it.
+
+* :class:`~qpctl.law.LawGains` — the laws' gains and obstacle sensor (``kp`` … ``jdot_en``);
+* :class:`~qpctl.controllers.qp.QPConfig` — the QP's settings (``solver`` … ``self_collision_pairs``);
+* :class:`ControllerConfig` — the keys the scenario itself reads to build a controller (below).
+
+:func:`controller_schema` turns their fields into the table's schema (:func:`qpctl.config.schema_of`):
+a new key is one field with its docstring line, in the class that reads it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+from qpctl.config import Checker, check_fields, schema_of, setting
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """The ``[controller]`` keys read by the scenario (:class:`qpctl.scenario.Scenario`), not by a law.
+
+    kind: the controller (a name registered in :data:`qpctl.controllers.factory.CONTROLLERS`).
+    task: "position", "pose" or "approach"; task_mask: for a pose task, 6 entries of 0/1 (x, y, z, rx,
+    ry, rz) saying which rows are tracked; approach_axis: the tool axis an approach task points.
+    barrier_design: "manual" (barrier_k0, barrier_k1, d_influence as written) or "drives" (derived from
+    the robot's drive limits, :mod:`qpctl.barrier_design`); approach_speed [m/s] (or "auto"): the
+    approach speed that design assumes.
+    d_safe_margin [m] (or "auto": from the faults' noise levels): added to d_safe by the controllers.
+    broadphase: "auto", "on" or "off" — the distance engine's grid over static obstacles.
+    """
+
+    kind: str = "paper"
+    task: str = setting("position", choices=("position", "pose", "approach"))
+    task_mask: list[float] | None = None
+    approach_axis: list[float] = field(default_factory=lambda: [0.0, 0.0, 1.0])
+    barrier_design: str = "manual"
+    approach_speed: float | str = setting("auto", unit="m/s")
+    d_safe_margin: float | str = setting(0.0, unit="m")
+    broadphase: str = setting("auto", choices=("auto", "on", "off"))
+
+    def __post_init__(self) -> None:
+        check_fields(self, "controller")
+
+
+def controller_schema() -> dict[str, tuple[Checker, Any]]:
+    """``{key: (checker, default)}`` of the ``[controller]`` table, from the three classes' fields."""
+    from qpctl.controllers.qp import QPConfig
+    from qpctl.law import LawGains
+
+    return schema_of(ControllerConfig, LawGains, QPConfig, skip=("obstacle_v_ref",))
