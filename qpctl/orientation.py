@@ -117,7 +117,7 @@ def approach_rotations(R0: np.ndarray, axis: np.ndarray, directions: np.ndarray)
         d = d / nd
         z = out[-1] @ c
         w = np.cross(z, d)
-        s = np.linalg.norm(w)
+        s = float(np.linalg.norm(w))
         if s < 1e-12 and z @ d < 0:  # a half turn: about any axis orthogonal to z
             perp = np.cross(z, np.eye(3)[int(np.argmin(np.abs(z)))])
             w, s = np.pi * perp / np.linalg.norm(perp), 1.0

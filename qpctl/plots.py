@@ -123,26 +123,27 @@ def write_figures(out: Path, traj: Trajectory, segments: np.ndarray, obstacles: 
     extra = [traj.orientation_error_deg is not None, bool(np.isfinite(traj.clearance).any())
              or traj.self_clearance is not None]
     fig, axes = plt.subplots(1 + sum(extra), 1, figsize=(7, 3.5 + 2.5 * sum(extra)), sharex=True, squeeze=False)
-    axes = list(axes[:, 0])
-    plot_tracking(axes[0], traj, f"tracking error — {label}")
+    panels = list(axes[:, 0])
+    plot_tracking(panels[0], traj, f"tracking error — {label}")
     k = 1
     if extra[0]:  # the orientation task's angle (the approach axis's for an approach task)
-        axes[k].semilogy(traj.t, np.maximum(traj.orientation_error_deg, 1e-9))
-        axes[k].set_ylabel("orientation error [°]")
-        axes[k].grid(alpha=0.3, which="both")
+        assert traj.orientation_error_deg is not None
+        panels[k].semilogy(traj.t, np.maximum(traj.orientation_error_deg, 1e-9))
+        panels[k].set_ylabel("orientation error [°]")
+        panels[k].grid(alpha=0.3, which="both")
         k += 1
     if extra[1]:  # clearances to the obstacles and between the arm's own links
         if np.isfinite(traj.clearance).any():
-            axes[k].plot(traj.t, traj.clearance, label="to the obstacles")
+            panels[k].plot(traj.t, traj.clearance, label="to the obstacles")
         if traj.self_clearance is not None:
-            axes[k].plot(traj.t, traj.self_clearance, label="between the links")
-        axes[k].axhline(0.0, color="r", lw=0.8)
-        axes[k].set_ylabel("clearance [m]")
-        axes[k].legend(loc="upper right")
-        axes[k].grid(alpha=0.3)
-    for ax in axes[:-1]:
+            panels[k].plot(traj.t, traj.self_clearance, label="between the links")
+        panels[k].axhline(0.0, color="r", lw=0.8)
+        panels[k].set_ylabel("clearance [m]")
+        panels[k].legend(loc="upper right")
+        panels[k].grid(alpha=0.3)
+    for ax in panels[:-1]:
         ax.set_xlabel("")
-    axes[-1].set_xlabel("t [s]")
+    panels[-1].set_xlabel("t [s]")
     files.append(out / "tracking.png")
     fig.tight_layout()
     fig.savefig(files[-1], dpi=120)

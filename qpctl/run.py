@@ -19,6 +19,7 @@ import pinocchio as pin
 
 from qpctl.controllers.base import Controller
 from qpctl.scenario import Scenario
+from qpctl.simulation.loop import SimulatorBase
 from qpctl.simulation.metrics import compute_metrics
 from qpctl.simulation.simulator import Simulator, Trajectory
 
@@ -68,6 +69,7 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
     from qpctl.adapters import simulator_class
     from qpctl.errors import ConfigError
 
+    sim: SimulatorBase
     try:
         cls = simulator_class(which)
         if which == "builtin":

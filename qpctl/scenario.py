@@ -435,6 +435,7 @@ class Scenario:
         if any(len(d) != 3 for d in given):
             raise self._err(key, "needs approach directions of 3 numbers (world frame)")
         try:
+            assert robot.approach_axis is not None  # an approach task has its axis (RobotModel)
             return approach_rotations(R0, robot.approach_axis, np.array(given))
         except ConfigError as exc:
             raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=key) from None

@@ -443,21 +443,23 @@ class MujocoSimulator(SimulatorBase):
                               key="sim.integrator")
         own = model is not None
         prefix = ""
+        mj: mujoco.MjModel
         if model is None:
-            model = build_model(self.robot, self.obstacles, timestep=self.dt, integrator=integrator,
-                                joint_limits=joint_limits)
+            mj = build_model(self.robot, self.obstacles, timestep=self.dt, integrator=integrator,
+                             joint_limits=joint_limits)
         else:
             if isinstance(model, (str, Path)):
-                model = load_user_model(model, self.obstacles)
+                mj = load_user_model(model, self.obstacles)
                 prefix = "qpctl_"
             else:
-                model = copy.copy(model)
-            model.opt.timestep = self.dt
-            model.opt.integrator = getattr(mujoco.mjtIntegrator, f"mjINT_{INTEGRATORS[integrator].upper()}")
-            model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
+                mj = copy.copy(model)
+            mj.opt.timestep = self.dt
+            mj.opt.integrator = getattr(mujoco.mjtIntegrator, f"mjINT_{INTEGRATORS[integrator].upper()}")
+            mj.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_CONTACT)
             if not joint_limits:
-                model.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_LIMIT)
-        self.model = model
+                mj.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_LIMIT)
+        self.model: mujoco.MjModel = mj
+        model = mj
         self.data = mujoco.MjData(model)
         self.joints = self._match_joints(model, joint_names, allow_extra_joints) if own else \
             MujocoJoints.for_robot(model, self.robot)

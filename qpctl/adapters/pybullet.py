@@ -217,8 +217,8 @@ class PybulletSimulator(SimulatorBase):
             else:
                 names = list(robot.joint_names)
         self.joint_names = tuple(names)
-        self._declared_dynamics = {str(j.get("name")): j.find("dynamics").attrib
-                                   for j in ET.fromstring(text).iter("joint") if j.find("dynamics") is not None}
+        self._declared_dynamics = {str(j.get("name")): dyn.attrib for j in ET.fromstring(text).iter("joint")
+                                   if (dyn := j.find("dynamics")) is not None}
         self.client = pybullet.connect(pybullet.DIRECT)
         try:
             self._load(prepare_urdf(text, names, joint_limits=joint_limits), source)

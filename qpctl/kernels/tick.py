@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 import time
+from typing import Any
 
 import numpy as np
 from numba import njit, types
@@ -43,7 +44,7 @@ from qpctl.solvers.daqp_native import UPDATE_ALL, daqp_solve, update_ldp
 
 # The process's monotonic clock (time.perf_counter's) inside kernels: stage timings without a return
 # to Python. clock_gettime(clockid, struct timespec*) from the C library; the pointer as an integer.
-_clock_gettime = types.ExternalFunction("clock_gettime", types.intc(types.intc, types.intp))
+_clock_gettime: Any = types.ExternalFunction("clock_gettime", types.intc(types.intc, types.intp))
 _MONOTONIC = time.CLOCK_MONOTONIC
 
 # Obstacle kinds

@@ -56,8 +56,8 @@ class _Settings(C.Structure):
 SETTINGS = tuple(name for name, _ in _Settings._fields_)
 
 # The kernels' view of DAQP's C functions (pointers passed as integers: same registers on LP64 ABIs).
-update_ldp = types.ExternalFunction("daqp_update_ldp", types.intc(types.intc, types.intp, types.intp))
-daqp_solve = types.ExternalFunction("daqp_solve", types.void(types.intp, types.intp))
+update_ldp: Any = types.ExternalFunction("daqp_update_ldp", types.intc(types.intc, types.intp, types.intp))
+daqp_solve: Any = types.ExternalFunction("daqp_solve", types.void(types.intp, types.intp))
 
 _lib: Any = None
 _available: bool | None = None
@@ -114,7 +114,7 @@ class NativeDAQP:
         self.result = _Result(_ptr(self.x), _ptr(self.lam), 0.0, 0.0, 0, 0, 0, 0.0, 0.0)
         raw = (C.c_char * C.sizeof(_Result)).from_address(C.addressof(self.result))
         assert _Result.iter.offset == _Result.exitflag.offset + 4
-        self.flag = np.frombuffer(raw, np.int32, 2, _Result.exitflag.offset)  # [exit flag, iterations]
+        self.flag = np.frombuffer(raw, np.int32, 2, _Result.exitflag.offset)  # type: ignore[call-overload]  # [exit flag, iterations]
         self.addresses = (int(self.work.ctypes.data), C.addressof(self.problem), C.addressof(self.result))
         # what qpctl.kernels.tick.qp_tick_native takes after the workspace (and before the tolerance)
         self.kernel_args = (H, f, rows, bu, bl, *self.addresses, self.flag, self.x)
