@@ -99,6 +99,7 @@ class QPSpec:
     row_names: list[str]
     self_barrier: tuple[float, float, float] | None = None  # k0, k1, d_safe of the self-collision rows
     task_weights: np.ndarray | None = None  # (m,) the task rows' weights (None: 1)
+    row_kinds: list[str] | None = None  # one per row: its constraint's kind (Constraint.kind)
 
 
 class QPBuffers:
@@ -131,7 +132,7 @@ class QPBuffers:
         self.x = np.zeros(nv)
         self.problem = Problem(self.H, self.f, self.rows[n_in:], self.bu[nv + n_in :], self.rows[:n_in],
                                self.bl[nv : nv + n_in], self.bu[nv : nv + n_in], self.bl[:nv], self.bu[:nv], n,
-                               list(spec.row_names))
+                               list(spec.row_names), list(spec.row_kinds or ()))
 
 
 class RecordLayout:
