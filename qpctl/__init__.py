@@ -18,6 +18,7 @@ from qpctl.errors import (
 from qpctl.geometry import DistanceEngine, Obstacle, PairSet
 from qpctl.law import LawGains, LawTerms, law_terms
 from qpctl.linalg import PseudoInverse, weighted_pinv
+from qpctl.outcome import SolveOutcome, SolveStatus
 from qpctl.paths import Reference, WaypointPath
 from qpctl.robot import LinkCapsule, RobotModel, load_robot, panda, planar_arm
 from qpctl.scenario import Scenario, packaged_scenarios
@@ -47,6 +48,8 @@ __all__ = [
     "Scenario",
     "SimulationError",
     "Simulator",
+    "SolveOutcome",
+    "SolveStatus",
     "SolverError",
     "TickState",
     "TickStatus",
