@@ -702,7 +702,6 @@ class QPController(Controller):
         rare path, in Python); the torque it settles on goes into the workspace's record."""
         self._raise_if_strict(buf.problem, status, info)
         state = ws.snapshot()
-        state._dynamics = self.dynamics
         terms = ws.terms()
 
         def relaxed() -> Problem:
