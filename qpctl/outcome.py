@@ -24,6 +24,8 @@ from qpctl.qp import Problem, Solution
 if TYPE_CHECKING:
     from qpctl.solvers.base import QPSolver
 
+SOLUTION_RTOL = 1e-4  # a solution is accepted when every hard row holds to this, relative to 1 + |its bound|
+
 
 class SolveStatus(str, enum.Enum):
     """How a tick's QP solve ended (a ``str``, so it serialises as its value)."""
@@ -150,5 +152,3 @@ def checked_solve(solver: QPSolver, problem: Problem, deadline: float, *, check:
         return Solution(False, np.zeros(problem.n_var), "inaccurate", sol.iterations, sol.solve_us, solver.name)
     return sol
 
-
-SOLUTION_RTOL = 1e-4  # a solution is accepted when every hard row holds to this, relative to 1 + |its bound|
