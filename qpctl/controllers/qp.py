@@ -701,6 +701,7 @@ class QPController(Controller):
         """The solve failed: strict mode raises; else the fallback chain on snapshots of the tick (the
         rare path, in Python); the torque it settles on goes into the workspace's record."""
         self._raise_if_strict(buf.problem, status, info)
+        t0 = time.perf_counter()
         state = ws.snapshot()
         terms = ws.terms()
 
@@ -717,6 +718,7 @@ class QPController(Controller):
             self._last = sol
         ws.qdd[:], ws.tau[:] = qdd, tau
         K.write_record(ws.work, terms.singular)
+        info["fallback_us"] = (time.perf_counter() - t0) * 1e6  # the snapshot included
 
     def _torque_limit_constraint(self) -> TorqueLimit | None:
         return next((c for c in self.constraints if isinstance(c, TorqueLimit)), None)
