@@ -22,7 +22,10 @@ onto the same arrays) and a kernel checks the answer. With any other task or con
 is computed by the same kernels and the problem is stacked in Python by
 :class:`~qpctl.formulation.Formulation` (:meth:`QPController.control`), which is also the reference
 the tests hold the compiled assembly against. A failed solve takes the fallback chain in Python on
-either path.
+either path (:mod:`qpctl.fallbacks`: strategies registered by name, finding rows by their kind), or,
+with ``strict=True``, raises :class:`~qpctl.errors.InfeasibleError` / :class:`~qpctl.errors.SolverError`.
+Each tick reports the solver's word (``info["status"]``) and its :class:`~qpctl.outcome.SolveStatus`
+(``info["solve_status"]``).
 """
 
 from __future__ import annotations
