@@ -5,7 +5,8 @@ The front door (everything else is reachable by its module, and may change):
 * controllers, one interface ``tau = controller.torque(q, v, t)`` (``controller.step`` for the
   diagnostics): :class:`QPController` and its :class:`QPConfig`; the closed-form laws
   :class:`PaperController` (the paper's inertia-weighted law) and :class:`HsuController`
-  (Hsu–Hauser–Sastry's unweighted one), with :class:`LawGains`;
+  (Hsu–Hauser–Sastry's unweighted one), with :class:`LawGains`; a QP solve's outcome
+  (:class:`SolveStatus`, :class:`SolveOutcome`);
 * the QP's tasks and constraints, to compose a controller in code;
 * the world: robots (:func:`panda`, :func:`planar_arm`, :func:`load_robot`), :class:`Obstacle`,
   reference paths (:class:`WaypointPath`, :class:`PosePath`);
@@ -37,6 +38,7 @@ from qpctl.errors import (
 )
 from qpctl.geometry import Obstacle
 from qpctl.law import LawGains
+from qpctl.outcome import SolveOutcome, SolveStatus
 from qpctl.paths import PosePath, WaypointPath
 from qpctl.robot import RobotModel, load_robot, panda, planar_arm
 from qpctl.run import RunResult, simulate, write_outputs
@@ -50,7 +52,7 @@ __version__ = "0.1.0"
 __all__ = [  # noqa: RUF022 — grouped as the docstring, not sorted
     # controllers
     "Controller", "ControlOutput", "TickStatus", "QPController", "QPConfig", "PaperController",
-    "HsuController", "LawGains",
+    "HsuController", "LawGains", "SolveStatus", "SolveOutcome",
     # the QP's tasks and constraints
     "Task", "AccelerationTask", "EndEffectorTask", "PostureTask", "DampingTask",
     "Constraint", "TorqueLimit", "JointLimit", "ObstacleBarrier", "SelfCollisionBarrier",

@@ -62,14 +62,18 @@ class UnknownSolverError(QpctlError, ValueError):
 
 
 class SolverError(QpctlError, RuntimeError):
-    """The QP solver failed on a tick (numerical error, iteration limit, infeasibility).
+    """The QP solver failed on a tick (numerical error, iteration limit, infeasibility); raised by a
+    controller in strict mode (``QPController(..., strict=True)``) instead of falling back.
 
-    ``problem`` holds the stacked QP and ``status`` the solver's own word, for debugging.
+    ``problem`` holds the stacked QP (:class:`~qpctl.qp.Problem`), ``outcome`` the solve
+    (:class:`~qpctl.outcome.SolveOutcome`: status, iterations, solver, x) and ``status`` the
+    solver's own word, for debugging.
     """
 
-    def __init__(self, message: str, *, status: str = "error", problem: Any = None) -> None:
+    def __init__(self, message: str, *, status: str = "error", problem: Any = None, outcome: Any = None) -> None:
         self.status = status
         self.problem = problem
+        self.outcome = outcome
         super().__init__(message)
 
 

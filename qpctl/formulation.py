@@ -29,13 +29,14 @@ class Formulation:
         self.constraints = list(constraints)
         self.n_in = sum(c.rows for c in self.constraints)
         self.row_names = [c.name for c in self.constraints for _ in range(c.rows)]
+        self.row_kinds = [c.kind for c in self.constraints for _ in range(c.rows)]
         # (name, first row, end row) of each constraint with rows, for per-tick diagnostics
         ends = np.cumsum([c.rows for c in self.constraints]).tolist()
         self.row_ranges = [(c.name, e - c.rows, e) for c, e in zip(self.constraints, ends) if c.rows]
-        # the rows of C that are obstacle barriers
+        # the ObstacleBarrier's rows of C (what the tests look at; the fallbacks find every barrier's
+        # rows by kind: Problem.rows_of)
         self.barrier_rows = next((slice(lo, hi) for name, lo, hi in self.row_ranges
                                   if name == ObstacleBarrier.name), slice(0, 0))
-        self.barriers = [c for c in self.constraints if isinstance(c, ObstacleBarrier)]
         self._templates: dict[tuple[Any, ...], tuple[np.ndarray, ...]] = {}
         self._evaluated: tuple[TickState, LawTerms, Any] | None = None
 
@@ -53,6 +54,12 @@ class Formulation:
         result = (objectives, eqs, rows)
         self._evaluated = (state, terms, result)
         return result
+
+    def dropped(self, state: TickState, terms: LawTerms) -> int:
+        """What the constraints left out at this tick (:attr:`~qpctl.qp.Inequality.dropped`: pairs
+        beyond the obstacle barrier's capacity)."""
+        _, _, rows = self._evaluate(state, terms)
+        return sum(out.dropped for out in rows if isinstance(out, Inequality))
 
     def penalty_weights(self, state: TickState, terms: LawTerms) -> np.ndarray:
         """The ℓ₁ slack weight of each equality row at this tick (inf for a row that is hard
@@ -122,4 +129,4 @@ class Formulation:
             elif isinstance(out, Bounds):
                 np.maximum(lb[:n], out.lower, out=lb[:n])
                 np.minimum(ub[:n], out.upper, out=ub[:n])
-        return Problem(P, q, A, b, C, lo, hi, lb, ub, n, self.row_names)
+        return Problem(P, q, A, b, C, lo, hi, lb, ub, n, self.row_names, self.row_kinds)

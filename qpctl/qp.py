@@ -46,11 +46,13 @@ class Equality:
 
 @dataclass(frozen=True)
 class Inequality:
-    """l ≤ C q̈ ≤ u (rows with l = −inf and u = +inf are inactive placeholders)."""
+    """l ≤ C q̈ ≤ u (rows with l = −inf and u = +inf are inactive placeholders); ``dropped``: what
+    did not fit in the fixed rows this tick (e.g. pairs beyond an obstacle barrier's capacity)."""
 
     C: np.ndarray
     lower: np.ndarray
     upper: np.ndarray
+    dropped: int = 0
 
 
 @dataclass(frozen=True)
@@ -75,11 +77,40 @@ class Problem:
     lb: np.ndarray
     ub: np.ndarray
     n: int
-    row_names: list[str] = field(default_factory=list)  # one per row of C
+    row_names: list[str] = field(default_factory=list)  # one per row of C: the constraint's name
+    row_kinds: list[str] = field(default_factory=list)  # one per row of C: its kind (Constraint.kind)
 
     @property
     def n_var(self) -> int:
         return int(self.P.shape[0])
+
+    def rows_of(self, kind: str) -> np.ndarray:
+        """Indices of the rows of C whose kind is ``kind`` (e.g. ``"barrier"``), in order."""
+        return np.array([i for i, k in enumerate(self.row_kinds) if k == kind], dtype=np.intp)
+
+    def is_finite(self) -> bool:
+        """No NaN anywhere and no infinity outside the bounds (where ±inf means "no bound")."""
+        # one concatenation per family (this runs every tick: numpy calls, not elements, are the cost)
+        data = np.concatenate((self.P.ravel(), self.c, self.A.ravel(), self.b, self.C.ravel()))
+        bounds = np.concatenate((self.l, self.u, self.lb, self.ub))
+        return bool(np.isfinite(data).all()) and not bool(np.isnan(bounds).any())
+
+    def violation(self, x: np.ndarray) -> float:
+        """Largest violation at x of the hard rows on q̈ (l ≤ C x ≤ u and the bounds on q̈), each
+        relative to 1 + |its bound|. The equality rows and the slack variables' sign are left to the
+        solver: they shape the tracking, not what the constraints protect."""
+        n = self.n
+        Cx = self.C @ x
+        # every family at once (one pass of numpy calls, not one per family: this runs every tick)
+        lower, upper = np.concatenate((self.l, self.lb[:n])), np.concatenate((self.u, self.ub[:n]))
+        value = np.concatenate((Cx, x[:n]))
+        if np.max(np.maximum(lower - value, value - upper), initial=-np.inf) <= 0.0:
+            return 0.0  # every row holds (the common case; an infinite bound is never violated)
+        excess = np.concatenate((lower - value, value - upper))
+        bound = np.concatenate((lower, upper))
+        with np.errstate(invalid="ignore"):
+            r = excess / (1.0 + np.abs(bound))
+        return float(np.max(np.where(np.isfinite(bound), r, 0.0), initial=0.0))
 
     def residuals(self, x: np.ndarray) -> dict[str, float]:
         """Largest violation of each constraint family at x (0 when satisfied)."""

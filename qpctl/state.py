@@ -61,18 +61,18 @@ class TickState:
     R: np.ndarray | None = None  # (3, 3) the task frame's rotation (world), where the task has orientation rows
     self_pairs: SelfPairState | None = None  # where the controller keeps links apart
     _barrier_drift: np.ndarray | None = field(default=None, repr=False)  # (k,) set by the workspace
-    _dynamics: Dynamics | None = field(default=None, repr=False)
-    _jdot: np.ndarray | None = field(default=None, repr=False)
+    _jdot: np.ndarray | None = field(default=None, repr=False)  # (m, n) where the law needs J̇ (jdot_en)
 
     @property
     def n(self) -> int:
         return int(self.q.shape[0])
 
     def jdot(self) -> np.ndarray:
-        """J̇ (m, n), computed on first use only (the laws need it only when J̇ e_N is switched on)."""
+        """J̇ (m, n) of the task point: in the states of :meth:`Dynamics.compute`, and in a controller's
+        snapshots when its law uses J̇ e_N (``LawGains.jdot_en``). The state is data: it does not call
+        back into :class:`Dynamics` for it."""
         if self._jdot is None:
-            assert self._dynamics is not None
-            self._jdot = self._dynamics.task_jacobian_derivative(self.q, self.v)
+            raise ValueError("this TickState was built without J̇ (LawGains.jdot_en is off)")
         return self._jdot
 
     def barrier_drift(self) -> np.ndarray:
@@ -163,8 +163,8 @@ class Dynamics:
         if self.workspace.state(q, v, t) < 0:
             raise InvalidStateError(f"the dynamics overflow at this state: q={q.tolist()}, v={v.tolist()}")
         state = self.workspace.snapshot()
+        state._jdot = self.task_jacobian_derivative(q, v)
         state.timing["state_us"] = (time.perf_counter() - start) * 1e6
-        state._dynamics = self
         return state
 
     def task_jacobian_derivative(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:

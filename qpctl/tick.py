@@ -99,6 +99,7 @@ class QPSpec:
     row_names: list[str]
     self_barrier: tuple[float, float, float] | None = None  # k0, k1, d_safe of the self-collision rows
     task_weights: np.ndarray | None = None  # (m,) the task rows' weights (None: 1)
+    row_kinds: list[str] | None = None  # one per row: its constraint's kind (Constraint.kind)
 
 
 class QPBuffers:
@@ -131,7 +132,7 @@ class QPBuffers:
         self.x = np.zeros(nv)
         self.problem = Problem(self.H, self.f, self.rows[n_in:], self.bu[nv + n_in :], self.rows[:n_in],
                                self.bl[nv : nv + n_in], self.bu[nv : nv + n_in], self.bl[:nv], self.bu[:nv], n,
-                               list(spec.row_names))
+                               list(spec.row_names), list(spec.row_kinds or ()))
 
 
 class RecordLayout:
@@ -464,6 +465,7 @@ class Workspace:
                          self.x.copy(), self.xdot.copy(), self.J.copy(), self.drift.copy(), self.link_jac.copy(),
                          self.segments.copy(), pairs, self.pr_jac[:k].copy(), self.pr_drift[:k].copy(),
                          float(self.fpar[K.FP_CLEARANCE]), _barrier_drift=bdrift,
+                         _jdot=self.Jdot.copy() if self.ipar[K.IP_JDOT_EN] else None,  # Controller._state's
                          R=self.ee_R.copy() if len(self.ori_rows) else None,
                          self_pairs=SelfPairState(self.sc_d.copy(), self.sc_n.copy(), self.sc_row.copy(),
                                                   self.sc_hdot.copy(), self.sc_drift.copy())

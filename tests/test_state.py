@@ -266,3 +266,27 @@ def test_cutoff_limits_pairs_and_clearance(planar):
 def test_invalid_state_is_rejected(planar, q, v):
     with pytest.raises(InvalidStateError):
         Dynamics(planar).compute(np.array(q, float), np.array(v, float))
+
+
+def test_a_state_is_data_that_does_not_call_back(planar):
+    """A TickState holds no reference to Dynamics: J̇ is in it where the law uses it (Dynamics.compute,
+    a controller's snapshot under jdot_en), and asking for it elsewhere is an error, not a computation."""
+    import dataclasses
+
+    from qpctl import LawGains, WaypointPath
+    from qpctl.controllers.qp import QPController
+
+    q, v = np.array([np.pi, np.pi / 2, 0.0]), np.array([0.3, -0.2, 0.1])
+    state = Dynamics(planar).compute(q, v, 0.1)
+    assert "_dynamics" not in {f.name for f in dataclasses.fields(state)}
+    assert state.jdot().shape == (2, 3)
+    path = WaypointPath([[-1.0, -2.0], [1.0, -1.5]], duration=1.0)
+    for jdot_en in (False, True):
+        ctrl = QPController(planar, path, [], LawGains(jdot_en=jdot_en))
+        ctrl.step(q, v, 0.1)
+        snap = ctrl.workspace().snapshot()
+        if jdot_en:
+            np.testing.assert_allclose(snap.jdot(), state.jdot(), rtol=1e-12, atol=1e-12)
+        else:
+            with pytest.raises(ValueError, match="without J̇"):
+                snap.jdot()

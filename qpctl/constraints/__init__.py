@@ -1,6 +1,7 @@
 """Constraints of the QP controller: each returns rows (Inequality) or bounds (Bounds) on q̈."""
 
 from qpctl.constraints.constraints import (
+    BARRIER,
     Constraint,
     JointLimit,
     ObstacleBarrier,
@@ -8,4 +9,4 @@ from qpctl.constraints.constraints import (
     TorqueLimit,
 )
 
-__all__ = ["Constraint", "JointLimit", "ObstacleBarrier", "SelfCollisionBarrier", "TorqueLimit"]
+__all__ = ["BARRIER", "Constraint", "JointLimit", "ObstacleBarrier", "SelfCollisionBarrier", "TorqueLimit"]

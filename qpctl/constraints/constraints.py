@@ -36,10 +36,26 @@ def _positive(name: str, value: float) -> float:
     return float(value)
 
 
+# Row kinds (Constraint.kind): what the fallback chain looks rows up by in the tick's Problem
+# (Problem.rows_of), whatever class contributed them.
+BARRIER = "barrier"  # ḧ + k₁ḣ + k₀h ≥ 0 rows keeping links off obstacles: the safe stop keeps them,
+#                      the closed-form fallback must meet them
+TORQUE = "torque"
+JOINT_LIMITS = "joint_limits"
+SELF_COLLISION = "self_collision"
+
+
 class Constraint(ABC):
-    """A constraint returns a fixed number of rows (``rows``) or bounds on q̈ every tick."""
+    """A constraint returns a fixed number of rows (``rows``) or bounds on q̈ every tick, and keeps
+    nothing from one tick to the next that the controller reads back (what a tick leaves out, say
+    pairs beyond capacity, is in its output: :attr:`Inequality.dropped`).
+
+    ``kind`` names what its rows are (one of the kinds above, or the user's own word): a user's
+    barrier class sets ``kind = BARRIER`` and the safe stop keeps its rows like the obstacle
+    barrier's."""
 
     name: str = "constraint"
+    kind: str = "constraint"
     rows: int = 0  # rows of C it contributes (0 for Bounds)
 
     @abstractmethod
@@ -54,6 +70,7 @@ class TorqueLimit(Constraint):
     (after any fallback) and forgets it on reset."""
 
     name = "torque_limits"
+    kind = TORQUE
 
     def __init__(self, tau_max: np.ndarray, tau_rate_max: np.ndarray | float | None = None) -> None:
         tau_max = np.asarray(tau_max, float).reshape(-1)
@@ -104,6 +121,7 @@ class JointLimit(Constraint):
     """
 
     name = "joint_limits"
+    kind = JOINT_LIMITS
 
     def __init__(self, q_min: np.ndarray, q_max: np.ndarray, v_max: np.ndarray, *, k0: float = 100.0,
                  k1: float = 20.0, kv: float = 50.0, qdd_max: np.ndarray | float | None = None) -> None:
@@ -148,6 +166,7 @@ class ObstacleBarrier(Constraint):
     """
 
     name = "obstacles"
+    kind = BARRIER
 
     def __init__(self, capacity: int, d_safe: float, *, k0: float = 400.0, k1: float = 40.0,
                  drift: str = "exact") -> None:
@@ -160,7 +179,6 @@ class ObstacleBarrier(Constraint):
         self.d_safe = float(d_safe)
         self.k0 = _positive("controller.barrier_k0", k0)
         self.k1 = _positive("controller.barrier_k1", k1)
-        self.dropped = 0
         self._empty: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (C, lower, upper) of no pair
 
     def compute(self, state: TickState, terms: LawTerms) -> Inequality:
@@ -171,10 +189,8 @@ class ObstacleBarrier(Constraint):
         pairs = state.pairs
         k = len(pairs)
         if k == 0:
-            self.dropped = 0
             return Inequality(C, lower, upper)
         order = np.argsort(pairs.distance)[: self.rows]
-        self.dropped = max(k - self.rows, 0)
         nrm = pairs.normal[order]  # (r, 3)
         Jp = state.pair_jac[order]  # (r, 3, n)
         rows = np.einsum("ri,rin->rn", nrm, Jp)
@@ -188,7 +204,7 @@ class ObstacleBarrier(Constraint):
         r = order.size
         C[:r] = rows
         lower[:r] = rhs
-        return Inequality(C, lower, upper)
+        return Inequality(C, lower, upper, dropped=max(k - self.rows, 0))
 
 
 class SelfCollisionBarrier(Constraint):
@@ -199,6 +215,7 @@ class SelfCollisionBarrier(Constraint):
     the tick only its distance."""
 
     name = "self_collision"
+    kind = SELF_COLLISION  # not BARRIER: the fallbacks keep the obstacle rows only (as before kinds existed)
     REACH = 0.1  # [m] beyond d_s
 
     def __init__(self, pairs: Sequence[tuple[int, int]], d_safe: float, *, k0: float = 400.0,

@@ -268,7 +268,6 @@ class Controller(ABC):
         q, v, t = fast_state(q, v, t, self.n)
         ws = self._state(q, v, t)
         state = ws.snapshot()
-        state._dynamics = self.dynamics
         t_state = time.perf_counter()
         out = self.control(state)
         end = time.perf_counter()

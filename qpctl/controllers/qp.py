@@ -22,15 +22,19 @@ onto the same arrays) and a kernel checks the answer. With any other task or con
 is computed by the same kernels and the problem is stacked in Python by
 :class:`~qpctl.formulation.Formulation` (:meth:`QPController.control`), which is also the reference
 the tests hold the compiled assembly against. A failed solve takes the fallback chain in Python on
-either path.
+either path (:mod:`qpctl.fallbacks`: strategies registered by name, finding rows by their kind), or,
+with ``strict=True``, raises :class:`~qpctl.errors.InfeasibleError` / :class:`~qpctl.errors.SolverError`.
+Each tick reports the solver's word (``info["status"]``) and its :class:`~qpctl.outcome.SolveStatus`
+(``info["solve_status"]``).
 """
 
 from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -45,12 +49,25 @@ from qpctl.constraints.constraints import (
     TorqueLimit,
 )
 from qpctl.controllers.base import Controller, ControlOutput, RecordOutput, TickStatus, fast_state
-from qpctl.errors import ConfigError, InvalidStateError
+from qpctl.errors import ConfigError, InfeasibleError, InvalidStateError, SolverError
+from qpctl.fallbacks import (
+    BRAKE,
+    CLOSED_FORM,
+    FALLBACKS,
+    SAFE_STOP,
+    Attempt,
+    Fallback,
+    FallbackContext,
+    brake_acceleration,
+    make_fallback,
+    run_chain,
+)
 from qpctl.formulation import Formulation
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.geometry.self_collision import named_pairs, self_collision_pairs
 from qpctl.kernels import tick as K
-from qpctl.law import LawGains, LawTerms, closed_form_acceleration, law_terms
+from qpctl.law import LawGains, LawTerms, law_terms
+from qpctl.outcome import SOLUTION_RTOL, SolveOutcome, SolveStatus, checked_solve, solve_status
 from qpctl.paths import WaypointPath
 from qpctl.qp import Problem, Solution, penalty_is_exact
 from qpctl.robot.model import RobotModel
@@ -68,39 +85,10 @@ from qpctl.tasks.tasks import (
 )
 from qpctl.tick import QPBuffers, QPSpec, Workspace
 
-FALLBACK_CLOSED_FORM = "closed-form"
-FALLBACK_BRAKE = "brake"
-FALLBACK_SAFE_STOP = "safe-stop"
-BUILT_IN_FALLBACKS = (FALLBACK_CLOSED_FORM, FALLBACK_SAFE_STOP, FALLBACK_BRAKE)
-
-
-SOLUTION_RTOL = 1e-4  # a solution is accepted when every hard row holds to this, relative to 1 + |its bound|
-
-
-def _violation(problem: Problem, x: np.ndarray) -> float:
-    """Largest violation at x of the hard rows on q̈ (l ≤ C x ≤ u and the bounds on q̈), each relative to
-    1 + |its bound|. The task's equality and its slack variables' sign are left to the solver: they
-    shape the tracking, not what the constraints protect."""
-    n = problem.n
-    Cx = problem.C @ x
-    # every family at once (one pass of numpy calls, not one per family: this runs every tick)
-    lower, upper = np.concatenate((problem.l, problem.lb[:n])), np.concatenate((problem.u, problem.ub[:n]))
-    value = np.concatenate((Cx, x[:n]))
-    if np.max(np.maximum(lower - value, value - upper), initial=-np.inf) <= 0.0:
-        return 0.0  # every row holds (the common case; an infinite bound is never violated)
-    excess = np.concatenate((lower - value, value - upper))
-    bound = np.concatenate((lower, upper))
-    with np.errstate(invalid="ignore"):
-        r = excess / (1.0 + np.abs(bound))
-    return float(np.max(np.where(np.isfinite(bound), r, 0.0), initial=0.0))
-
-
-def _finite_problem(problem: Problem) -> bool:
-    """No NaN anywhere and no infinity outside the bounds (where ±inf means "no bound")."""
-    # One concatenation per family (this runs every tick: numpy calls, not elements, are the cost)
-    data = np.concatenate((problem.P.ravel(), problem.c, problem.A.ravel(), problem.b, problem.C.ravel()))
-    bounds = np.concatenate((problem.l, problem.u, problem.lb, problem.ub))
-    return bool(np.isfinite(data).all()) and not bool(np.isnan(bounds).any())
+FALLBACK_CLOSED_FORM = CLOSED_FORM  # the fallback chain's built-in strategies (qpctl.fallbacks)
+FALLBACK_BRAKE = BRAKE
+FALLBACK_SAFE_STOP = SAFE_STOP
+BUILT_IN_FALLBACKS = tuple(FALLBACKS)
 
 
 @dataclass
@@ -197,8 +185,9 @@ class QPConfig:
 
 class QPOutput(RecordOutput):
     """A compiled QP tick's output: the record, and the solver's word; ``info`` built on first access
-    (status, iterations, solver, stage timings [µs], slack norm, active rows, and the fallback's
-    entries when one produced the torque)."""
+    (status — the solver's word — and ``solve_status`` (:class:`~qpctl.outcome.SolveStatus`),
+    iterations, solver, stage timings [µs], slack norm, active rows, and the fallback's entries when
+    one produced the torque); :attr:`outcome` the solve as a typed record."""
 
     def __init__(self, rec: np.ndarray, layout: Any, extra: dict[str, Any], compute_us: float,
                  stages: tuple[float, float, float, float], solved: bool) -> None:
@@ -213,8 +202,17 @@ class QPOutput(RecordOutput):
     def iterations(self) -> int:
         return int(self._extra["iterations"]) if self._extra else 0
 
+    @property
+    def outcome(self) -> SolveOutcome:
+        """The tick's solve (the last attempt's word; x is not kept on the compiled path:
+        :attr:`QPController.last_outcome` has it)."""
+        info = self.info
+        return SolveOutcome(info["solve_status"], info["status"], int(info["iterations"]), info["solver"],
+                            float(info.get("solve_us", 0.0)))
+
     def _decode(self, info: dict[str, Any]) -> None:
         r, s = self._rec, self._layout.scalars
+        info["solve_status"] = solve_status(info["status"])
         if r[s + K.R_DROPPED]:
             info["pairs_dropped"] = int(r[s + K.R_DROPPED])
         if not self._solved:
@@ -266,6 +264,7 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
                                                  joint.qdd_max),
         barrier=None if barrier is None else (barrier.rows, barrier.k0, barrier.k1, barrier.drift == "rigid"),
         row_names=[c.name for c in constraints for _ in range(c.rows)],
+        row_kinds=[c.kind for c in constraints for _ in range(c.rows)],
         self_barrier=next(((c.k0, c.k1, c.d_safe) for c in constraints if isinstance(c, SelfCollisionBarrier)), None),
         task_weights=ee.weights,
     )
@@ -279,19 +278,20 @@ class QPController(Controller):
     def __init__(self, robot: RobotModel, path: WaypointPath, obstacles: Sequence[Obstacle] = (),
                  gains: LawGains | None = None, config: QPConfig | None = None, *,
                  tasks: Sequence[Task] | None = None, constraints: Sequence[Constraint] | None = None,
-                 broadphase: bool | None = None) -> None:
+                 broadphase: bool | None = None, strict: bool = False) -> None:
         super().__init__(robot, path, obstacles, gains, broadphase=broadphase)
         self.config = config or QPConfig()
+        # strict: a failed solve raises InfeasibleError / SolverError (with the problem and the
+        # outcome) instead of taking the fallback chain
+        self.strict = strict
         cfg = self.config
         self._solver = make_solver(cfg.solver, cfg.solver_settings)
         self._solver_soft = make_solver(cfg.solver, cfg.solver_settings)
         if cfg.task_relaxation not in ("auto", "always", "on_failure"):
             raise ConfigError(f"must be auto, always or on_failure, got {cfg.task_relaxation!r}",
                               key="controller.task_relaxation")
-        # Fallback solvers are built now: an unknown name fails here, not in the middle of a run.
-        self._fallback_solvers: dict[str, QPSolver] = {
-            name: make_solver(name) for name in cfg.fallback if name not in BUILT_IN_FALLBACKS}
-        self._safe_stop_solver = DAQPSolver()  # the "safe-stop" fallback's small QP
+        # The chain's strategies are built now: an unknown name fails here, not in the middle of a run.
+        self._fallbacks: dict[str, Fallback] = {name: make_fallback(name) for name in cfg.fallback}
         self._tick_start: float | None = None
         self._hard_first = self.relaxation == "on_failure"
         self._try_hard = True  # the native hard-first path: try the hard QP this tick (_step_hard_first)
@@ -377,9 +377,8 @@ class QPController(Controller):
             limit.forget()
         self._solver.reset()
         self._solver_soft.reset()
-        self._safe_stop_solver.reset()
-        for s in self._fallback_solvers.values():
-            s.reset()
+        for fb in self._fallbacks.values():
+            fb.reset()
         self._try_hard = True
 
     # -- the law ----------------------------------------------------------------------------------
@@ -424,6 +423,26 @@ class QPController(Controller):
             last = Solution(x is not None, x.copy() if x is not None else np.zeros(nv), status, iters, 0.0, name)
             self._last = last
         return last
+
+    @property
+    def last_outcome(self) -> SolveOutcome | None:
+        """The last tick's solve as a typed record (None before the first): status, the solver's
+        word, iterations, solver, x (read-only; None when the solve failed)."""
+        sol = self.last_solution
+        return None if sol is None else SolveOutcome.of(sol)
+
+    def _raise_if_strict(self, problem: Problem, word: str, info: dict[str, Any]) -> None:
+        """In strict mode, a failed solve raises instead of falling back: :class:`InfeasibleError`
+        when the hard rows cannot all hold, :class:`SolverError` for any other failure; both carry
+        the problem and the outcome (``err.problem``, ``err.outcome``)."""
+        if not self.strict:
+            return
+        sol = self.last_solution
+        outcome = SolveOutcome(solve_status(word), word, int(info.get("iterations", 0)), str(info.get("solver", "")),
+                               float(info.get("solve_us", 0.0)), None if sol is None else SolveOutcome.of(sol).x)
+        kind = InfeasibleError if outcome.status is SolveStatus.INFEASIBLE else SolverError
+        raise kind(f"the QP failed ({outcome.status.value}: {word}) with solver {outcome.solver}", status=word,
+                   problem=problem, outcome=outcome)
 
     # -- the compiled tick -------------------------------------------------------------------------
     def step(self, q: np.ndarray, v: np.ndarray, t: float) -> ControlOutput:
@@ -643,7 +662,7 @@ class QPController(Controller):
         if type(solver) is DAQPSolver:
             x, status, iters = solver.solve_buffers(buf.H, buf.f, buf.rows, buf.bu, buf.bl, buf.sense)
         else:
-            sol = self._attempt(solver, buf.problem, deadline, check=False)
+            sol = checked_solve(solver, buf.problem, deadline, check=False)
             x, status, iters = (sol.x if sol.found else None), sol.status, sol.iterations
         if (x is not None and check_penalty and np.isfinite(x).all()
                 and not penalty_is_exact(buf.problem, x, ws.spec.slack_l1)):  # type: ignore[union-attr]
@@ -680,103 +699,27 @@ class QPController(Controller):
 
     def _compiled_fallback(self, ws: Workspace, buf: QPBuffers, status: str, info: dict[str, Any],
                            deadline: float, hard_first: bool) -> None:
-        """The solve failed: the fallback chain on snapshots of the tick (the rare path, in Python);
-        the torque it settles on goes into the workspace's record."""
-        t5 = time.perf_counter()
+        """The solve failed: strict mode raises; else the fallback chain on snapshots of the tick (the
+        rare path, in Python); the torque it settles on goes into the workspace's record."""
+        self._raise_if_strict(buf.problem, status, info)
+        t0 = time.perf_counter()
         state = ws.snapshot()
-        state._dynamics = self.dynamics
         terms = ws.terms()
-        info["fallback_reason"] = status
 
         def relaxed() -> Problem:
-            if not buf.relaxed:
-                rb = ws.relaxed
-                assert rb is not None
-                K.qp_build(ws.work, rb.H, rb.f, rb.rows, rb.bu, rb.bl)
-                return rb.problem
-            return buf.problem
+            rb = ws.relaxed
+            assert rb is not None
+            K.qp_build(ws.work, rb.H, rb.f, rb.rows, rb.bu, rb.bl)
+            return rb.problem
 
-        qdd, fsol, problem = self._run_fallbacks(state, terms, buf.problem, relaxed, deadline, info)
-        tau, qdd = self._finish_fallback(state, terms, qdd, fsol, problem, info)
+        ctx = self._fallback_context(state, terms, buf.problem, deadline, None if buf.relaxed else relaxed)
+        tau, qdd, problem, sol = self._fall_back(ctx, None, status, info)
         self._last_problem = problem
-        if fsol is not None:
-            self._last = fsol
+        if sol is not None:
+            self._last = sol
         ws.qdd[:], ws.tau[:] = qdd, tau
         K.write_record(ws.work, terms.singular)
-        info["fallback_us"] = (time.perf_counter() - t5) * 1e6
-
-    def _attempt(self, solver: QPSolver, problem: Problem, deadline: float, *, check: bool = True) -> Solution:
-        """One solve within what is left of the tick budget; a backend's exception is a failed solve.
-        ``check``: refuse a non-finite x or one that violates a hard row (the compiled tick checks
-        the answer itself, in a kernel)."""
-        left_us = (deadline - time.perf_counter()) * 1e6
-        if left_us <= 0:
-            return Solution(False, np.zeros(problem.n_var), "time_limit", solver=solver.name)
-        solver.set_time_limit(left_us if math.isfinite(left_us) else None)
-        try:
-            sol = solver.solve(problem)
-        except ConfigError:  # bad solver settings: a configuration error, not a failed tick
-            raise
-        except Exception as exc:  # noqa: BLE001 — a backend's own error must not end the run
-            solver.reset()
-            return Solution(False, np.zeros(problem.n_var), f"error: {type(exc).__name__}", solver=solver.name)
-        if not check:
-            return sol
-        if sol.found and not np.isfinite(sol.x).all():
-            return Solution(False, np.zeros(problem.n_var), "nonfinite_solution", sol.iterations, sol.solve_us,
-                            solver.name)
-        if sol.found and _violation(problem, sol.x) > SOLUTION_RTOL:
-            # The solver's own test runs on its scaled problem: a row it scaled up (say nᵀJ_p ≈ 1e-5
-            # at a link's fixed base) can be violated by m/s² in our units while it reports "solved".
-            return Solution(False, np.zeros(problem.n_var), "inaccurate", sol.iterations, sol.solve_us, solver.name)
-        return sol
-
-    def _brake(self, state: TickState, terms: LawTerms) -> np.ndarray:
-        """q̈ = k_v (g − q̇) [rad/s²]: to rest, links near obstacles backing away along g."""
-        g = terms.g if np.all(np.isfinite(terms.g)) else np.zeros(self.n)
-        return self.gains.kv * (g - state.v)
-
-    SAFE_STOP_WEIGHT = 1e6  # barrier slack weight of the safe stop, relative to the mean diagonal of MᵀM
-
-    def _safe_stop(self, state: TickState, terms: LawTerms, problem: Problem) -> np.ndarray | None:
-        """The brake's q̈ corrected by a small QP that keeps the obstacle barriers as well as the torque
-        limits allow (None if even that fails):
-
-            min ½‖M(q̈ − q̈_brake)‖² + ½ρ‖t‖²  s.t.  C_obs q̈ + t ≥ l_obs, t ≥ 0,
-                                                 M q̈ + N in the torque window (±τ_max, the rate limit),
-                                                 joint-limit bounds on q̈,
-
-        with ρ = SAFE_STOP_WEIGHT · tr(MᵀM)/n: where the barriers cannot all hold (the tick's QP was
-        infeasible) it decelerates the approach as hard as the torque limits allow, which the brake's
-        fixed direction, scaled into the limits, does not."""
-        n = self.n
-        form = self.formulation()
-        qb = self._brake(state, terms)
-        H = state.M.T @ state.M
-        rows = form.barrier_rows
-        C_obs, l_obs = problem.C[rows, :n], problem.l[rows]
-        k = l_obs.size  # every barrier row, the inactive ones (l = −inf) too: a fixed shape, warm-started
-        nv = n + k
-        P = np.zeros((nv, nv))
-        P[:n, :n] = H
-        P[n:, n:] = self.SAFE_STOP_WEIGHT * max(float(np.trace(H)) / n, 1e-12) * np.eye(k)
-        window = self._torque_window(state.t)
-        torque = window is not None
-        C = np.zeros((k + (n if torque else 0), nv))
-        C[:k, :n], C[:k, n:] = C_obs, np.eye(k)
-        lower, upper = [l_obs], [np.full(k, np.inf)]
-        if window is not None:
-            C[k:, :n] = state.M
-            lower.append(window[0] - state.N)
-            upper.append(window[1] - state.N)
-        lb = np.concatenate([problem.lb[:n], np.zeros(k)])  # the joint-limit bounds; t ≥ 0
-        ub = np.concatenate([problem.ub[:n], np.full(k, np.inf)])
-        safe = Problem(P, np.concatenate([-H @ qb, np.zeros(k)]), np.zeros((0, nv)), np.zeros(0), C,
-                       np.concatenate(lower), np.concatenate(upper), lb, ub, n)
-        if not _finite_problem(safe):
-            return None
-        sol = self._safe_stop_solver.solve(safe)
-        return sol.x[:n] if sol.found else None
+        info["fallback_us"] = (time.perf_counter() - t0) * 1e6  # the snapshot included
 
     def _torque_limit_constraint(self) -> TorqueLimit | None:
         return next((c for c in self.constraints if isinstance(c, TorqueLimit)), None)
@@ -801,78 +744,37 @@ class QPController(Controller):
         scale = float(np.clip(np.min(np.concatenate([hi, lo, [1.0]])), 0.0, 1.0))
         return qdd * scale
 
-    def _closed_form_is_safe(self, state: TickState, qdd: np.ndarray, problem: Problem) -> str:
-        """"" when the paper law's q̈ may be used, else why not (the chain then goes on)."""
-        if not np.isfinite(qdd).all():
-            return "nonfinite"
-        if state.clearance < self.gains.d_safe:
-            return "within_d_safe"
-        rows = self.formulation().barrier_rows
-        lo = problem.l[rows]
-        lhs = problem.C[rows, : self.n] @ qdd
-        with np.errstate(invalid="ignore"):
-            if np.any(lhs < lo - 1e-6 * (1.0 + np.abs(lo))):
-                return "barrier_violated"
-        return ""
+    def _fallback_context(self, state: TickState, terms: LawTerms, problem: Problem, deadline: float,
+                          build_relaxed: Any) -> FallbackContext:
+        """What the chain's strategies read: ``build_relaxed()`` gives the tick's QP with the task
+        slack when ``problem`` has none (None: it has)."""
+        return FallbackContext(state, terms, self.gains, problem, self._torque_window(state.t), deadline,
+                               build_relaxed)
 
-    def _fallback(self, name: str, state: TickState, terms: LawTerms, problem: Problem, *,
-                  deadline: float = np.inf) -> tuple[np.ndarray | None, Solution | None, str]:
-        """Try one entry of the fallback chain: (q̈ or None if it failed, its solution if a solver, what was
-        used or why it failed). ``problem`` is the tick's QP with the task slack."""
-        if name == FALLBACK_BRAKE:
-            return self._brake(state, terms), None, FALLBACK_BRAKE
-        if name == FALLBACK_SAFE_STOP:
-            qdd = self._safe_stop(state, terms, problem)
-            return (qdd, None, FALLBACK_SAFE_STOP) if qdd is not None else (None, None, "infeasible")
-        if name == FALLBACK_CLOSED_FORM:
-            try:
-                qdd, _ = closed_form_acceleration(state, terms, self.gains, weighted=True)
-            except (np.linalg.LinAlgError, ValueError, FloatingPointError):
-                qdd = np.full(self.n, np.nan)
-            why = self._closed_form_is_safe(state, qdd, problem)
-            if why:  # on down the chain (the brake when it ends)
-                return None, None, why
-            return qdd, None, FALLBACK_CLOSED_FORM
-        if not _finite_problem(problem):
-            return None, None, "nonfinite_problem"
-        sol = self._attempt(self._fallback_solvers[name], problem, deadline)
-        return (sol.x[: self.n], sol, name) if sol.found else (None, sol, sol.status)
+    def _fall_back(self, ctx: FallbackContext, sol: Solution | None, word: str,
+                   info: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, Problem, Solution | None]:
+        """The fallback chain (:func:`qpctl.fallbacks.run_chain`, the QP having failed with ``word``)
+        and its q̈ made safe to command (:meth:`_finish_fallback`); returns (τ, q̈, the problem of the
+        solution used, the solution: a fallback solver's, else ``sol``)."""
+        t0 = time.perf_counter()
+        info["fallback_reason"] = word
+        att = run_chain([self._fallbacks[name] for name in self.config.fallback], ctx, info)
+        problem = att.problem if att.solution is not None and att.problem is not None else ctx.problem
+        tau, qdd = self._finish_fallback(ctx, att, problem, info)
+        info["fallback_us"] = (time.perf_counter() - t0) * 1e6
+        return tau, qdd, problem, att.solution if att.solution is not None else sol
 
-    def _run_fallbacks(self, state: TickState, terms: LawTerms, problem: Problem, relaxed: Callable[[], Problem],
-                       deadline: float, info: dict[str, Any]) -> tuple[np.ndarray, Solution | None, Problem]:
-        """Walk the fallback chain (the QP has failed); returns q̈, the solution used (if a solver's) and
-        the problem it solved. ``relaxed()`` gives the tick's QP with the task slack (built on demand)."""
-        tried: list[str] = []
-        relaxed_problem: Problem | None = None
-        for name in self.config.fallback:
-            if name in BUILT_IN_FALLBACKS:
-                qdd, fsol, used = self._fallback(name, state, terms, problem, deadline=deadline)
-            else:
-                if relaxed_problem is None:  # fallback solvers get the task slack, so only hard rows can conflict
-                    relaxed_problem = relaxed()
-                qdd, fsol, used = self._fallback(name, state, terms, relaxed_problem, deadline=deadline)
-            if qdd is None:
-                tried.append(f"{name}:{used}")
-                if used == "time_limit":
-                    info["budget_exhausted"] = True
-                continue
-            info["fallback"] = used
-            if tried:
-                info["fallback_tried"] = tried
-            return qdd, fsol, (relaxed_problem if fsol is not None and relaxed_problem is not None else problem)
-        info["fallback"] = FALLBACK_BRAKE
-        if tried:
-            info["fallback_tried"] = tried
-        return self._brake(state, terms), None, problem
-
-    def _finish_fallback(self, state: TickState, terms: LawTerms, qdd: np.ndarray, fsol: Solution | None,
-                         problem: Problem, info: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    def _finish_fallback(self, ctx: FallbackContext, att: Attempt, problem: Problem,
+                         info: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
         """A fallback's q̈ within the joint-limit bounds (the QP's bounds on q̈, where finite) and, unless a
         solver produced it, scaled into the torque limits; τ = M q̈ + N, never non-finite, clipped to
         ±τ_max. Returns (τ, q̈)."""
-        n = self.n
+        n, state = self.n, ctx.state
+        assert att.qdd is not None
         lb, ub = problem.lb[:n], problem.ub[:n]
-        qdd = np.minimum(np.maximum(qdd, np.where(np.isfinite(lb), lb, qdd)), np.where(np.isfinite(ub), ub, qdd))
+        qdd = np.minimum(np.maximum(att.qdd, np.where(np.isfinite(lb), lb, att.qdd)),
+                         np.where(np.isfinite(ub), ub, att.qdd))
+        fsol = att.solution
         if fsol is None:
             qdd = self._scale_to_torque_limits(state, qdd)
         tau = state.M @ qdd + state.N
@@ -880,7 +782,7 @@ class QPController(Controller):
             info["nonfinite_replaced"] = True
             info["fallback"] = FALLBACK_BRAKE
             fsol = None
-            qdd = self._brake(state, terms)
+            qdd = brake_acceleration(ctx)
             tau = state.M @ qdd + state.N
             if not np.isfinite(tau).all():
                 tau = np.where(np.isfinite(tau), tau, 0.0)
@@ -917,70 +819,82 @@ class QPController(Controller):
         info["active_rows"] = sorted({name for name, lo, hi in self.formulation().row_ranges if act[lo:hi].any()})
 
     def control(self, state: TickState) -> ControlOutput:
-        """The tick on the Python path: the problem stacked by :class:`Formulation` from the tasks and
-        constraints (any, custom ones included), solved, checked, the fallback chain if it fails."""
-        n = self.n
+        """The tick on the Python path (any tasks and constraints, custom ones included): build the QP
+        from the tasks and constraints (:class:`Formulation`), solve it, check the answer, τ = M q̈ + N;
+        when the solve fails, the fallback chain — or, in strict mode, :class:`SolverError`."""
         t0 = time.perf_counter()
-        budget = self.config.tick_budget_us
-        start = self._tick_start if self._tick_start is not None else t0
-        deadline = start + budget * 1e-6 if budget > 0 else np.inf
+        deadline = self._deadline(t0)
         ref = self.reference(state)
         terms = law_terms(state, ref, self.gains, weighted=True)
-        form = self.formulation()
-        hard_first = self.relaxation == "on_failure"
-        problem = form.build(state, terms, relax=not hard_first)
-        finite = _finite_problem(problem)
-        t1 = time.perf_counter()
-        primary = self._solver if hard_first else self._solver_soft
-        if finite:
-            sol = self._attempt(primary, problem, deadline)
-            if hard_first and sol.found:  # used only if the relaxed QP would give the same answer
-                l1 = form.penalty_weights(state, terms)
-                if np.isfinite(l1).any() and not penalty_is_exact(problem, sol.x, l1):
-                    sol = Solution(False, np.zeros(problem.n_var), "penalty_inexact", sol.iterations, sol.solve_us,
-                                   sol.solver)
-        else:  # non-finite data (e.g. a degenerate distance query): no solver can be trusted with it
-            sol = Solution(False, np.zeros(problem.n_var), "nonfinite_problem", solver=primary.name)
-        t2 = time.perf_counter()
-        build_us, solve_us = (t1 - t0) * 1e6, (t2 - t1) * 1e6
-        info: dict[str, Any] = {"status": sol.status, "iterations": sol.iterations, "solver": sol.solver}
-        if hard_first and not sol.found and finite:  # the task conflicts with the hard rows: let it give way
-            problem = form.build(state, terms, relax=True)
-            t3 = time.perf_counter()
-            sol = self._attempt(self._solver_soft, problem, deadline)
-            t4 = time.perf_counter()
-            build_us += (t3 - t2) * 1e6
-            solve_us += (t4 - t3) * 1e6
-            info.update(relaxed=True, hard_status=info["status"], status=sol.status,
-                        iterations=info["iterations"] + sol.iterations)
-        if sol.status == "time_limit":
-            info["budget_exhausted"] = True
+        problem, sol, info = self._build_and_solve(state, terms, deadline, t0)
         if sol.found:
-            qdd = sol.x[:n]
+            qdd = sol.x[: self.n]
             tau, qdd = self._clip_torque(state, state.M @ qdd + state.N, qdd, info)
             self._solution_info(problem, sol.x, info)
         else:
-            info["fallback_reason"] = sol.status
-            t5 = time.perf_counter()
-            is_relaxed = not hard_first or bool(info.get("relaxed"))
-            relaxed_now = problem
-
-            def relaxed() -> Problem:
-                return relaxed_now if is_relaxed else form.build(state, terms, relax=True)
-
-            qdd, fsol, problem = self._run_fallbacks(state, terms, problem, relaxed, deadline, info)
-            if fsol is not None:
-                sol = fsol
-            tau, qdd = self._finish_fallback(state, terms, qdd, fsol, problem, info)
-            info["fallback_us"] = (time.perf_counter() - t5) * 1e6
-        info["build_us"], info["solve_us"] = build_us, solve_us
-        for con in form.barriers:
-            if con.dropped:
-                info["pairs_dropped"] = con.dropped
+            self._last_problem, self._last = problem, sol
+            self._raise_if_strict(problem, sol.status, info)
+            hard = self.relaxation == "on_failure" and not info.get("relaxed")  # the chain's solvers get the slack
+            ctx = self._fallback_context(state, terms, problem, deadline,
+                                         partial(self.formulation().build, state, terms, relax=True) if hard else None)
+            tau, qdd, problem, sol = self._fall_back(ctx, sol, sol.status, info)
+        dropped = self.formulation().dropped(state, terms)
+        if dropped:
+            info["pairs_dropped"] = dropped
         self._last_problem, self._last = problem, sol
+        self._remember(state.t, tau)
+        return ControlOutput(tau=tau, qdd=qdd, ref=ref, x=state.x, e_null=terms.e_null, clearance=state.clearance,
+                             singular=terms.singular, info=info,
+                             status=TickStatus.FALLBACK if "fallback" in info else TickStatus.SOLVED)
+
+    def _remember(self, t: float, tau: np.ndarray) -> None:
+        """The torque [N·m] commanded at t [s]: the next tick's rate limit is about it."""
         limit = self._torque_limit_constraint()
-        if limit is not None:  # the rate limit of the next tick is about this torque
-            limit.remember(tau, state.t)
-        return ControlOutput(tau=tau, qdd=qdd, ref=ref, x=state.x, e_null=terms.e_null,
-                             clearance=state.clearance, singular=terms.singular, info=info,
-                             status=TickStatus.SOLVED if sol.found and "fallback" not in info else TickStatus.FALLBACK)
+        if limit is not None:
+            limit.remember(tau, t)
+
+    def _deadline(self, now: float) -> float:
+        """When the tick budget ends (``time.perf_counter`` time; inf without a budget), counted from
+        the start of :meth:`step` (or ``now`` when :meth:`control` is called directly)."""
+        budget = self.config.tick_budget_us
+        start = self._tick_start if self._tick_start is not None else now
+        return start + budget * 1e-6 if budget > 0 else math.inf
+
+    def _build_and_solve(self, state: TickState, terms: LawTerms, deadline: float,
+                         t0: float) -> tuple[Problem, Solution, dict[str, Any]]:
+        """The tick's QP built and solved, the answer checked (:meth:`_solve_checked`). Under
+        task_relaxation "on_failure" the task is hard first (its answer used only where the relaxed
+        QP's is the same), relaxed when that fails. Returns (problem, solution, info: status words,
+        iterations, solver, build and solve times [µs] from ``t0``)."""
+        form = self.formulation()
+        hard_first = self.relaxation == "on_failure"
+        problem = form.build(state, terms, relax=not hard_first)
+        t1 = time.perf_counter()
+        l1 = form.penalty_weights(state, terms) if hard_first else None
+        sol = self._solve_checked(self._solver if hard_first else self._solver_soft, problem, deadline, l1)
+        t2 = time.perf_counter()
+        info: dict[str, Any] = {"status": sol.status, "iterations": sol.iterations, "solver": sol.solver,
+                                "build_us": (t1 - t0) * 1e6, "solve_us": (t2 - t1) * 1e6}
+        if hard_first and not sol.found and sol.status != "nonfinite_problem":  # let the task give way
+            problem = form.build(state, terms, relax=True)
+            t3 = time.perf_counter()
+            sol = self._solve_checked(self._solver_soft, problem, deadline)
+            info.update(relaxed=True, hard_status=info["status"], status=sol.status,
+                        iterations=info["iterations"] + sol.iterations, build_us=info["build_us"] + (t3 - t2) * 1e6,
+                        solve_us=info["solve_us"] + (time.perf_counter() - t3) * 1e6)
+        if sol.status == "time_limit":
+            info["budget_exhausted"] = True
+        info["solve_status"] = solve_status(sol.status)
+        return problem, sol, info
+
+    def _solve_checked(self, solver: QPSolver, problem: Problem, deadline: float,
+                       l1: np.ndarray | None = None) -> Solution:
+        """One solve (:func:`qpctl.outcome.checked_solve`) of a finite problem ("nonfinite_problem"
+        otherwise: no solver can be trusted with NaN data, e.g. a degenerate distance query); with the
+        task's ℓ₁ weights ``l1`` (the task hard), an answer is kept only if the relaxed QP's is the same."""
+        if not problem.is_finite():
+            return Solution(False, np.zeros(problem.n_var), "nonfinite_problem", solver=solver.name)
+        sol = checked_solve(solver, problem, deadline)
+        if sol.found and l1 is not None and np.isfinite(l1).any() and not penalty_is_exact(problem, sol.x, l1):
+            return Solution(False, np.zeros(problem.n_var), "penalty_inexact", sol.iterations, sol.solve_us, sol.solver)
+        return sol
