@@ -275,21 +275,22 @@ class Scenario:
 
     def _check_controller(self) -> None:
         """The QP's keys, whichever controller the file names (``--controller qp`` may pick it later)."""
-        from qpctl.controllers.qp import BUILT_IN_FALLBACKS, QPConfig
+        from qpctl.controllers.qp import QPConfig
         from qpctl.errors import UnknownSolverError
+        from qpctl.fallbacks import FALLBACKS
         from qpctl.solvers import make_solver
 
         c = self.data["controller"]
         try:  # every QPConfig key's type and rule (qpctl.config.check_fields)
             QPConfig.from_dict(c)
         except ConfigError as exc:
-            raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key) from None
+            raise ConfigError(exc.message, source=self.source, key=exc.key) from None
         for name in c["fallback"]:
-            if name not in BUILT_IN_FALLBACKS:
+            if name not in FALLBACKS:  # the strategies registered now (qpctl.fallbacks.register_fallback)
                 try:
                     make_solver(name)
                 except UnknownSolverError as exc:
-                    raise self._err("controller.fallback", f"{exc} (or {', '.join(BUILT_IN_FALLBACKS)})") from None
+                    raise self._err("controller.fallback", f"{exc} (or {', '.join(FALLBACKS)})") from None
         r = self.data["robot"]
         if r["gravity"] is not None and (len(r["gravity"]) != 3 or not np.all(np.isfinite(r["gravity"]))):
             raise self._err("robot.gravity", f"needs 3 finite numbers [m/s²] (x, y, z), got {r['gravity']}")

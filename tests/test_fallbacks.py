@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from qpctl import LawGains, Obstacle, WaypointPath, planar_arm
+from qpctl import ConfigError, LawGains, Obstacle, Scenario, WaypointPath, planar_arm
 from qpctl.constraints import BARRIER, Constraint, ObstacleBarrier
 from qpctl.constraints.constraints import TorqueLimit
 from qpctl.controllers.qp import FALLBACK_SAFE_STOP, QPConfig, QPController
@@ -87,8 +87,14 @@ def test_a_registered_strategy_is_used_by_name(failing_solver):
         assert out.info["fallback"] == "hold" and out.info["fallback_reason"] == "max_iter"
         state = ctrl.dynamics.compute(Q0, np.zeros(3), 0.1)
         np.testing.assert_allclose(out.tau, state.N, rtol=1e-9)  # q̈ = 0: gravity compensation
+        raw = Scenario.load("paper").data  # and a scenario file may name it
+        scen = Scenario.from_dict({**raw, "controller": {**raw["controller"], "fallback": ["hold", "brake"]}},
+                                  source="t")
+        assert scen.build_controller("qp").config.fallback == ["hold", "brake"]
     finally:
         FALLBACKS.pop("hold")
+    with pytest.raises(ConfigError, match="hold"):
+        Scenario.from_dict({**raw, "controller": {**raw["controller"], "fallback": ["hold"]}}, source="t")
 
 
 def test_constraints_keep_no_tick_state():

@@ -117,7 +117,7 @@ class QPConfig:
       chain (status ``within_d_safe`` or ``barrier_violated``);
     * ``"safe-stop"`` — the brake below corrected by a small QP (DAQP, tens of µs) that keeps the
       barrier rows as well as the torque limits allow: where they cannot all hold it decelerates the
-      approach as hard as the limits allow (``QPController._safe_stop``);
+      approach as hard as the limits allow (:class:`qpctl.fallbacks.SafeStop`);
     * ``"brake"`` — q̈ = k_v (g − q̇): come to rest, except that links within d_influence back away
       along the obstacle sensor's reference velocity g (g = 0 when no obstacle is near), k_v the
       task's velocity gain [1/s].
