@@ -49,7 +49,10 @@ class Formulation:
         eqs: list[Equality] = []
         for task in self.tasks:
             out = task.compute(state, terms)
-            (objectives if isinstance(out, Objective) else eqs).append(out)
+            if isinstance(out, Objective):
+                objectives.append(out)
+            else:
+                eqs.append(out)
         rows = [con.compute(state, terms) for con in self.constraints]
         result = (objectives, eqs, rows)
         self._evaluated = (state, terms, result)

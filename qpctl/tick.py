@@ -94,7 +94,7 @@ class QPSpec:
     damping: tuple[float, float] | None  # (relative weight ρ, gain K_d)
     rows: list[tuple[str, int]]  # (constraint name, its row count), in the constraints' order
     torque: Any  # the TorqueLimit (its limits, and the last commanded torque the workspace shares), or None
-    joint_limits: tuple[np.ndarray, ...] | None  # q_min, q_max, v_max, k0, k1, kv, qdd_max
+    joint_limits: tuple[Any, ...] | None  # q_min, q_max, v_max (arrays), k0, k1, kv (floats), qdd_max
     barrier: tuple[int, float, float, bool] | None  # capacity, k0, k1, rigid drift
     row_names: list[str]
     self_barrier: tuple[float, float, float] | None = None  # k0, k1, d_safe of the self-collision rows
@@ -337,9 +337,9 @@ class Workspace:
         if spec.self_barrier is not None:
             fp[K.FP_SK0], fp[K.FP_SK1], fp[K.FP_SDS] = spec.self_barrier
         if spec.barrier is not None:
-            cap, k0, k1, rigid = spec.barrier
+            cap, bk0, bk1, rigid = spec.barrier
             ip[K.IP_CAPACITY] = cap
-            fp[K.FP_BK0], fp[K.FP_BK1] = k0, k1
+            fp[K.FP_BK0], fp[K.FP_BK1] = bk0, bk1
             ip[K.IP_DRIFT_RIGID] = int(rigid)
             ip[K.IP_BDRIFT] = int(not rigid or ip[K.IP_BDRIFT])
         return capacity

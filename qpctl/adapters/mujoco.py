@@ -471,9 +471,9 @@ class MujocoSimulator(SimulatorBase):
         self._mocap = []
         for i, obs in enumerate(self.obstacles):
             if obs.moving:
-                bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, prefix + (obs.name or f"obstacle{i}"))
-                if bid >= 0 and model.body_mocapid[bid] >= 0:
-                    self._mocap.append((i, int(model.body_mocapid[bid]), obs))
+                bid = mujoco.mj_name2id(mj, mujoco.mjtObj.mjOBJ_BODY, prefix + (obs.name or f"obstacle{i}"))
+                if bid >= 0 and mj.body_mocapid[bid] >= 0:
+                    self._mocap.append((i, int(mj.body_mocapid[bid]), obs))
 
     @classmethod
     def from_scenario(cls, controller: Controller, scenario: Any, *, progress: bool = False) -> MujocoSimulator:

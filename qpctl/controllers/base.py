@@ -73,7 +73,8 @@ class RecordOutput(ControlOutput):
     def __init__(self, rec: np.ndarray, layout: RecordLayout, info: dict[str, Any] | None = None,
                  compute_us: float = 0.0, stages: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)) -> None:
         # no dataclass __init__: the fields are properties reading the record
-        self._rec, self._layout, self._extra, self._info = rec, layout, info, None
+        self._rec, self._layout, self._extra = rec, layout, info
+        self._info: dict[str, Any] | None = None
         self._stages = stages  # [s]: Pinocchio, the state kernel, the law (and QP rows), the solve;
         # negative: read from the record, where the kernel measured it [µs]
         self.compute_us = compute_us
@@ -83,21 +84,21 @@ class RecordOutput(ControlOutput):
     x = property(lambda self: self._rec[self._layout.x])  # type: ignore[assignment]
     e_null = property(lambda self: self._rec[self._layout.e_null])  # type: ignore[assignment]
 
-    @property  # type: ignore[override]
-    def ref(self) -> Reference:
+    @property
+    def ref(self) -> Reference:  # type: ignore[override]
         lay = self._layout
         return Reference(self._rec[lay.x_ref], self._rec[lay.xd_ref], self._rec[lay.xdd_ref])
 
-    @property  # type: ignore[override]
-    def clearance(self) -> float:
+    @property
+    def clearance(self) -> float:  # type: ignore[override]
         return float(self._rec[self._layout.scalars + K.R_CLEARANCE])
 
-    @property  # type: ignore[override]
-    def singular(self) -> bool:
+    @property
+    def singular(self) -> bool:  # type: ignore[override]
         return bool(self._rec[self._layout.scalars + K.R_SINGULAR])
 
-    @property  # type: ignore[override]
-    def status(self) -> TickStatus:
+    @property
+    def status(self) -> TickStatus:  # type: ignore[override]
         return TickStatus.CLOSED_FORM
 
     @property
@@ -109,8 +110,7 @@ class RecordOutput(ControlOutput):
         """The record's scalar ``index`` (one of :mod:`qpctl.kernels.tick`'s R_* constants)."""
         return float(self._rec[self._layout.scalars + index])
 
-    @property  # type: ignore[override]
-    def info(self) -> dict[str, Any]:
+    def _get_info(self) -> dict[str, Any]:
         """Per-tick diagnostics (stage timings [µs], pairs, and the law's own), built on first access."""
         if self._info is None:
             pin_s, state_s, build_s, solve_s = self._stages
@@ -129,12 +129,13 @@ class RecordOutput(ControlOutput):
             self._info = info
         return self._info
 
+    def _set_info(self, value: dict[str, Any]) -> None:
+        self._info = value
+
+    info = property(_get_info, _set_info)  # type: ignore[assignment]
+
     def _decode(self, info: dict[str, Any]) -> None:
         """Add the law's own entries from the record (none for the closed forms)."""
-
-    @info.setter
-    def info(self, value: dict[str, Any]) -> None:
-        self._info = value
 
 
 def fast_state(q: Any, v: Any, t: Any, n: int) -> tuple[np.ndarray, np.ndarray, float]:

@@ -35,7 +35,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import partial
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pinocchio as pin
@@ -194,8 +194,8 @@ class QPOutput(RecordOutput):
         super().__init__(rec, layout, extra, compute_us, stages)
         self._solved = solved
 
-    @property  # type: ignore[override]
-    def status(self) -> TickStatus:
+    @property
+    def status(self) -> TickStatus:  # type: ignore[override]
         return TickStatus.SOLVED if self._solved else TickStatus.FALLBACK
 
     @property
@@ -462,6 +462,7 @@ class QPController(Controller):
             return self._step_hard_first(ws, q, v, t, start)
         hard_first = self._hard_first
         buf = ws.hard if hard_first else ws.relaxed
+        assert buf is not None  # the compiled path's layouts (workspace() built them)
         solver = self._solver if hard_first else self._solver_soft
         nat = self._fast_native(ws, solver, buf) if budget <= 0 and not hard_first else None
         if nat is not None:  # computeAllTerms, then the whole tick in one kernel call
@@ -484,6 +485,7 @@ class QPController(Controller):
             raise InvalidStateError(f"the inertia matrix is not positive definite at q={q.tolist()}")
         extra: dict[str, Any] = {"status": status, "iterations": iters, "solver": solver.name}
         if hard_first and code == 3:  # the task conflicts with the hard rows: let it give way
+            assert ws.relaxed is not None
             buf = ws.relaxed
             code, status2, iters2 = self._solve_layout(self._solver_soft, buf, deadline, terms_done=True)
             extra.update(relaxed=True, hard_status=status, status=status2, iterations=iters + iters2)
@@ -509,14 +511,17 @@ class QPController(Controller):
             return False
         if ws.hard is None or ws.relaxed is None or not ws.relaxed.relaxed:
             return False
-        return self._solver.native(ws.hard) is not None and self._solver_soft.native(ws.relaxed) is not None
+        hard, soft = cast(DAQPSolver, self._solver), cast(DAQPSolver, self._solver_soft)
+        return hard.native(ws.hard) is not None and soft.native(ws.relaxed) is not None
 
     def _step_hard_first(self, ws: Workspace, q: np.ndarray, v: np.ndarray, t: float, start: float) -> QPOutput:
         """:meth:`step` on the native hard-first path (:meth:`_native_hard_first`): one kernel call
         when both DAQP workspaces are set up, else the same steps with the set-up in between. The
         hard QP is skipped on the ticks after one where the task gave way (its slack non-zero)."""
-        nat_h, nat_r = self._solver.native(ws.hard), self._solver_soft.native(ws.relaxed)
         assert ws.spec is not None and ws.hard is not None and ws.relaxed is not None
+        nat_h = cast(DAQPSolver, self._solver).native(ws.hard)
+        nat_r = cast(DAQPSolver, self._solver_soft).native(ws.relaxed)
+        assert nat_h is not None and nat_r is not None  # _native_hard_first said so
         l1, try_hard = float(ws.spec.slack_l1), self._try_hard
         if ws.fast and nat_h.ready and nat_r.ready:
             t0 = time.perf_counter()
@@ -826,18 +831,19 @@ class QPController(Controller):
         deadline = self._deadline(t0)
         ref = self.reference(state)
         terms = law_terms(state, ref, self.gains, weighted=True)
-        problem, sol, info = self._build_and_solve(state, terms, deadline, t0)
-        if sol.found:
-            qdd = sol.x[: self.n]
+        problem, solved, info = self._build_and_solve(state, terms, deadline, t0)
+        sol: Solution | None = solved
+        if solved.found:
+            qdd = solved.x[: self.n]
             tau, qdd = self._clip_torque(state, state.M @ qdd + state.N, qdd, info)
-            self._solution_info(problem, sol.x, info)
+            self._solution_info(problem, solved.x, info)
         else:
-            self._last_problem, self._last = problem, sol
-            self._raise_if_strict(problem, sol.status, info)
+            self._last_problem, self._last = problem, solved
+            self._raise_if_strict(problem, solved.status, info)
             hard = self.relaxation == "on_failure" and not info.get("relaxed")  # the chain's solvers get the slack
             ctx = self._fallback_context(state, terms, problem, deadline,
                                          partial(self.formulation().build, state, terms, relax=True) if hard else None)
-            tau, qdd, problem, sol = self._fall_back(ctx, sol, sol.status, info)
+            tau, qdd, problem, sol = self._fall_back(ctx, solved, solved.status, info)
         dropped = self.formulation().dropped(state, terms)
         if dropped:
             info["pairs_dropped"] = dropped

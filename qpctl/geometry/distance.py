@@ -103,7 +103,8 @@ class DistanceEngine:
             more than 16 obstacles.
     """
 
-    def __init__(self, radii: Sequence[float], obstacles: Sequence[Obstacle], broadphase: bool | None = None):
+    def __init__(self, radii: Sequence[float] | np.ndarray, obstacles: Sequence[Obstacle],
+                 broadphase: bool | None = None):
         self.radii = np.asarray(radii, float)
         self.obstacles = list(obstacles)
         self.broadphase = len(self.obstacles) > 16 if broadphase is None else bool(broadphase)

@@ -19,9 +19,9 @@ from numba.experimental import structref
 
 
 @structref.register
-class TickWorkType(types.StructRef):
+class TickWorkType(types.StructRef):  # type: ignore[name-defined]  # numba is untyped
     def preprocess_fields(self, fields: tuple[tuple[str, types.Type], ...]) -> tuple[tuple[str, types.Type], ...]:
-        return tuple((name, types.unliteral(typ)) for name, typ in fields)
+        return tuple((name, types.unliteral(typ)) for name, typ in fields)  # type: ignore[attr-defined]
 
 
 class TickWork(structref.StructRefProxy):

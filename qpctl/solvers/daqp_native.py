@@ -53,7 +53,7 @@ class _Settings(C.Structure):
                 ("time_limit", C.c_double)]
 
 
-SETTINGS = tuple(name for name, _ in _Settings._fields_)
+SETTINGS = tuple(str(f[0]) for f in _Settings._fields_)
 
 # The kernels' view of DAQP's C functions (pointers passed as integers: same registers on LP64 ABIs).
 update_ldp: Any = types.ExternalFunction("daqp_update_ldp", types.intc(types.intc, types.intp, types.intp))
@@ -139,6 +139,7 @@ class NativeDAQP:
         return flag
 
     def _settings_struct(self) -> _Settings:
+        assert _settings_offset is not None  # found when the native path was checked (available())
         address = int(self.work[_settings_offset : _settings_offset + 8].view(np.uint64)[0])
         return _Settings.from_address(address)
 

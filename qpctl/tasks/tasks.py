@@ -67,7 +67,7 @@ class EndEffectorTask(Task):
         self.slack_l2 = float(slack_l2)
         self.weights = None if weights is None else np.asarray(weights, float).reshape(-1)
         if self.weights is not None and not (np.all(np.isfinite(self.weights)) and np.all(self.weights > 0)):
-            raise ConfigError(f"must be positive numbers, got {list(weights)}", key="controller.task_weights")
+            raise ConfigError(f"must be positive numbers, got {self.weights.tolist()}", key="controller.task_weights")
 
     def compute(self, state: TickState, terms: LawTerms) -> Equality:
         if self.weights is None:
