@@ -46,7 +46,7 @@ class LocalBackend:
             for i, args in enumerate(items):
                 try:
                     value = fn(*args)
-                except Exception as exc:  # a failed item; the others go on
+                except Exception as exc:  # noqa: BLE001 — a failed item; the others go on
                     yield Outcome(i, error=exc)
                 else:
                     yield Outcome(i, value)

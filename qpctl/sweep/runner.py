@@ -77,7 +77,7 @@ def execute_run(params: RunParams) -> dict[str, Any]:
         tick = np.asarray(traj.tick_us, float)
         row.update(tick_us_p50=float(np.percentile(tick, 50)), tick_us_p90=float(np.percentile(tick, 90)),
                    tick_us_p99=float(np.percentile(tick, 99)), tick_us_max=float(np.max(tick)))
-    except Exception as exc:  # the run failed: recorded with its message, the sweep goes on
+    except Exception as exc:  # noqa: BLE001 — the run failed: recorded with its message, the sweep goes on
         row.update(status="failed", error=f"{type(exc).__name__}: " + " ".join(str(exc).split()))
     row.update(wall_s=time.perf_counter() - t0, worker=f"{socket.gethostname()}:{os.getpid()}",
                finished_at=time.time())

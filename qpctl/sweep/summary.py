@@ -77,10 +77,10 @@ def markdown(summary: list[dict[str, Any]], *, title: str, failures: list[dict[s
     lines = [f"# Sweep {title}", "", head, "|" + "---|" * len(COLUMNS)]
     for s in summary:
         lines.append("| " + " | ".join(_cell(k, s[k]) for k in COLUMNS) + " |")
-    lines += ["", "Success: the task point ends within 1 cm of its reference and no link touched an obstacle. "
-              "Clearance: each run's least signed distance between the arm and an obstacle. Tick times: the "
-              "median over the runs of each run's p50 and p99, and the largest tick; wall-clock, measured with "
-              "the runs spread over parallel workers (indicative only)."]
+    lines += ["", ("Success: the task point ends within 1 cm of its reference and no link touched an obstacle. "
+                   "Clearance: each run's least signed distance between the arm and an obstacle. Tick times: the "
+                   "median over the runs of each run's p50 and p99, and the largest tick; wall-clock, measured "
+                   "with the runs spread over parallel workers (indicative only).")]
     if failures:
         lines += ["", "## Failed runs", "", "| run | family | scene | law | error |", "|---|---|---|---|---|"]
         for r in failures[:50]:
