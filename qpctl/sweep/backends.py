@@ -3,8 +3,8 @@
 * :class:`LocalBackend` — ``jobs`` worker processes (``concurrent.futures.ProcessPoolExecutor``),
   at most two items per worker in flight; with ``jobs <= 1`` the items run one after another in this
   process (what a benchmark that times ticks wants: a quiet process, no pickling). A worker that dies
-  (killed, out of memory) breaks the pool: a new pool takes over, the items that were in flight are
-  tried once more, and an item in flight at two deaths is reported failed.
+  (killed, out of memory) breaks the pool: a new pool takes over and runs the items that were in
+  flight again, one at a time; the one whose worker dies again, alone, is reported failed.
 * :class:`RayBackend` — one Ray task per item (``num_cpus=1``), at most two per CPU in flight;
   ``address`` is ``auto``, ``ray://host:port`` or None (``ray.init()`` starts a local instance with
   ``num_cpus`` CPUs). Ray retries a task whose worker died once, then reports it failed.
@@ -26,7 +26,7 @@ BACKENDS = ("local", "ray")
 
 
 class WorkerDied(RuntimeError):
-    """A worker process died while running the item (twice, for the local backend)."""
+    """A worker process died while running the item (for the local backend: twice, the second time alone)."""
 
 
 def _call(fn: Callable[..., Any], args: tuple[Any, ...]) -> Any:
@@ -55,39 +55,38 @@ class LocalBackend:
 
     def _pool(self, fn: Callable[..., Any], items: Sequence[tuple[Any, ...]]) -> Iterator[Outcome]:
         todo = deque(range(len(items)))
-        deaths = [0] * len(items)
+        suspects: deque[int] = deque()  # in flight when a worker died: each is tried again, alone
         window = 2 * self.workers
-        while todo:
+        while todo or suspects:
             pool = ProcessPoolExecutor(max_workers=self.workers)
             running: dict[Future[Any], int] = {}
+            alone = -1  # the suspect running by itself: if the pool breaks now, it is the one that kills
             broken = False
             try:
-                while (todo or running) and not broken:
-                    while todo and len(running) < window:
-                        i = todo.popleft()
-                        running[pool.submit(_call, fn, items[i])] = i
+                while (todo or suspects or running) and not broken:
+                    if suspects:
+                        if not running:
+                            alone = suspects.popleft()
+                            running[pool.submit(_call, fn, items[alone])] = alone
+                    else:
+                        while todo and len(running) < window:
+                            i = todo.popleft()
+                            running[pool.submit(_call, fn, items[i])] = i
                     done, _ = wait(running, return_when=FIRST_COMPLETED)
                     for fut in done:
                         i = running.pop(fut)
                         exc = fut.exception()
                         if isinstance(exc, BrokenProcessPool):
                             broken = True
-                            deaths[i] += 1
-                            if deaths[i] >= 2:
+                            if i == alone:
                                 yield Outcome(i, error=WorkerDied(f"the worker process died running it ({exc})"))
                             else:
-                                todo.appendleft(i)
+                                suspects.append(i)
                         elif exc is not None:
                             yield Outcome(i, error=exc)
                         else:
                             yield Outcome(i, fut.result())
-                if broken:  # every item still in flight went down with the pool: try each again
-                    for fut, i in running.items():
-                        deaths[i] += 1
-                        if deaths[i] >= 2:
-                            yield Outcome(i, error=WorkerDied("the worker process died running it"))
-                        else:
-                            todo.appendleft(i)
+                suspects.extend(running.values())  # a broken pool took them down too
             finally:
                 pool.shutdown(wait=not broken, cancel_futures=True)
 
@@ -110,12 +109,10 @@ class RayBackend:
         if not ray.is_initialized():
             kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False,
                                       "configure_logging": False}
-            if address is None:
+            if address is None:  # a new local instance, never a cluster that happens to run on this machine
                 kwargs["num_cpus"] = num_cpus or os.cpu_count() or 1
-                # the workers import qpctl as this process does (an installed or editable package)
-                kwargs["runtime_env"] = {"env_vars": {"RAY_DEDUP_LOGS": "0"}}
             try:
-                ray.init(address=address, **kwargs)
+                ray.init(address=address or "local", **kwargs)
             except (ConnectionError, ValueError, RuntimeError) as exc:
                 raise ConfigError(f"cannot reach a Ray cluster at {address!r}: {exc}", key="--address") from None
             self._started = True
@@ -138,8 +135,7 @@ class RayBackend:
                 try:
                     value = ray.get(ref)
                 except ray.exceptions.RayTaskError as exc:  # the call raised: its own exception
-                    cause = exc.as_instanceof_cause()
-                    yield Outcome(i, error=getattr(cause, "cause", None) or cause)
+                    yield Outcome(i, error=getattr(exc, "cause", None) or exc)
                 except ray.exceptions.RayError as exc:  # the worker died (after Ray's retry)
                     yield Outcome(i, error=WorkerDied(f"the Ray worker died running it ({type(exc).__name__})"))
                 else:

@@ -72,6 +72,8 @@ class RunStore:
         """Create the folder for ``spec``, or check that it holds the same sweep."""
         assert self.spec is not None
         self.runs_dir.mkdir(parents=True, exist_ok=True)
+        for stale in self.runs_dir.glob(".*.tmp"):  # a row being written when a sweep was killed
+            stale.unlink(missing_ok=True)
         kept = self.root / "spec.toml"
         if kept.exists():
             if kept.read_text() != self.spec.text:
