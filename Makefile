@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: all env demo test soak robust bench bench-quick harvest lint clean
+.PHONY: all env demo test soak robust bench bench-quick harvest sweep-small sweep-1k sweep-throughput lint clean
 
 all: test
 
@@ -40,6 +40,17 @@ bench-quick: $(STAMP)
 # The harvesting scenario under every law, approach and pose tasks: results/harvest/harvest.md (README, "Harvesting").
 harvest: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks.harvest --out results/harvest
+
+# Sweeps (README: Sweeps). The packaged canopy_small (40 runs) and canopy_1k (1,000 runs) specs; rerunning
+# a target resumes the sweep in its folder. sweep-throughput makes the README's runs/min table.
+sweep-small: $(STAMP)
+	MPLBACKEND=Agg $(VENV)/bin/qpctl sweep canopy_small --out results/sweep-canopy_small
+
+sweep-1k: $(STAMP)
+	MPLBACKEND=Agg $(VENV)/bin/qpctl sweep canopy_1k --jobs 2 --out results/sweep-canopy_1k
+
+sweep-throughput: $(STAMP)
+	MPLBACKEND=Agg $(PY) -m benchmarks.sweep_throughput --out results/sweep-throughput
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check qpctl baselines benchmarks tests

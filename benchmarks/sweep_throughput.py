@@ -1,0 +1,122 @@
+"""Sweep throughput (``make sweep-throughput``): runs/min of the sweep engine, 1 and 2 local workers and Ray.
+
+    python -m benchmarks.sweep_throughput [--spec canopy_1k] [--runs 100] [--out results/sweep-throughput]
+
+The first ``--runs`` runs of ``--spec`` (default: 100 runs of ``canopy_1k``, 1.5 s Panda canopy runs,
+every law) are swept three times into fresh folders: local backend with 1 worker, with 2 workers, and
+a local Ray instance with 2 CPUs. Each wall time includes starting the workers (the Ray instance's
+``ray.init`` is timed apart and also shown included). Writes ``throughput.json`` and
+``throughput.md`` (the README's "Sweeps" table and its 10⁵-run projection) into ``--out``.
+Timings are measurements of this machine at this load (the load average is recorded), never asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from benchmarks import report
+from qpctl.sweep.driver import run_sweep
+from qpctl.sweep.spec import SweepSpec
+from qpctl.sweep.store import read_dataset
+
+PROJECTION_RUNS = 100_000
+PROJECTION_NODES = ((1, 2), (10, 16), (100, 16))  # (nodes, cores each)
+
+
+def _measure(spec: SweepSpec, runs: int, backend: str, jobs: int) -> dict[str, Any]:
+    folder = Path(tempfile.mkdtemp(prefix=f"throughput-{backend}{jobs}-"))
+    try:
+        init_s = 0.0
+        if backend == "ray":
+            import ray
+
+            t0 = time.perf_counter()
+            ray.init(address="local", num_cpus=jobs, include_dashboard=False, log_to_driver=False,
+                     configure_logging=False)
+            init_s = time.perf_counter() - t0
+        load = report.load_average()
+        try:
+            rep = run_sweep(spec, folder, backend=backend, jobs=jobs, progress=False, limit=runs)
+        finally:
+            if backend == "ray":
+                import ray
+
+                ray.shutdown()
+        rows = read_dataset(folder).to_pylist()
+        busy = sum(r["wall_s"] for r in rows)  # seconds inside the runs themselves, summed over workers
+        return {"backend": backend, "workers": jobs, "runs": rep.ran, "failed": rep.failed, "wall_s": rep.wall_s,
+                "init_s": init_s, "runs_per_min": 60.0 * rep.ran / rep.wall_s,
+                "runs_per_min_with_init": 60.0 * rep.ran / (rep.wall_s + init_s),
+                "run_s_mean": busy / len(rows), "worker_s_per_run": jobs * rep.wall_s / rep.ran,
+                "load_average_start": load, "load_average_end": report.load_average()}
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def markdown(res: dict[str, Any]) -> str:
+    m = {(r["backend"], r["workers"]): r for r in res["measurements"]}
+    one, two, ray = m.get(("local", 1)), m.get(("local", 2)), m.get(("ray", 2))
+    lines = [(f"Measured by `{res['command']}`: the first {res['runs']} runs of `{res['spec']}` "
+             f"({res['machine']['cpu']}, {res['machine']['cores']} cores; load average at start "
+             f"{res['load_average_start']})."), "",
+             ("| backend | workers | runs | wall [s] | runs/min | worker-seconds per run | mean run [s] | "
+             "load average at start |"), "|---|---|---|---|---|---|---|---|"]
+    for r in res["measurements"]:
+        wall = f"{r['wall_s']:.1f}" + (f" (+ {r['init_s']:.1f} ray.init)" if r["init_s"] else "")
+        lines.append(f"| {r['backend']} | {r['workers']} | {r['runs']} | {wall} | {r['runs_per_min']:.0f} | "
+                     f"{r['worker_s_per_run']:.2f} | {r['run_s_mean']:.2f} | {r['load_average_start']} |")
+    lines.append("")
+    if one and two:
+        lines.append(f"- 2 local workers ÷ 1: **{two['runs_per_min'] / one['runs_per_min']:.2f}×** the runs/min.")
+    if two and ray:
+        per_run = (ray["wall_s"] - two["wall_s"]) / ray["runs"]
+        lines.append(f"- Ray (2 CPUs, local instance) against 2 local workers: {ray['runs_per_min']:.0f} vs "
+                     f"{two['runs_per_min']:.0f} runs/min, {1e3 * per_run:+.0f} ms per run "
+                     f"(wall difference ÷ runs), plus {ray['init_s']:.1f} s once for `ray.init`.")
+    if two:
+        cost = two["worker_s_per_run"]
+        proj = ", ".join(f"{n} node{'s' if n > 1 else ''} × {c} cores: "
+                         f"{PROJECTION_RUNS * cost / (n * c) / 3600:.2f} h" for n, c in PROJECTION_NODES)
+        lines.append(f"- Projection to {PROJECTION_RUNS:,} such runs, at the measured {cost:.2f} worker-seconds "
+                     f"per run (2 local workers) and one worker per core: {proj} (plus each node's worker "
+                     "start-up, seconds, and the driver's one Parquet write per run, a few ms).")
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.sweep_throughput", description=__doc__.splitlines()[0])
+    p.add_argument("--spec", default="canopy_1k")
+    p.add_argument("--runs", type=int, default=100)
+    p.add_argument("--out", default="results/sweep-throughput")
+    p.add_argument("--backends", default="local1,local2,ray2", help="comma-separated: local1, local2, ray2")
+    args = p.parse_args(argv)
+    spec = SweepSpec.load(args.spec)
+    res: dict[str, Any] = {"command": "python -m benchmarks.sweep_throughput " + " ".join(
+        sys.argv[1:] if argv is None else argv), "spec": spec.name, "runs": args.runs, "machine": report.machine(),
+        "load_average_start": report.load_average(), "measurements": []}
+    for b in args.backends.split(","):
+        backend, jobs = b.rstrip("0123456789"), int(b[len(b.rstrip("0123456789")):] or 1)
+        print(f"measuring {backend} with {jobs} worker(s) …", file=sys.stderr)
+        res["measurements"].append(_measure(spec, args.runs, backend, jobs))
+    res["load_average_end"] = report.load_average()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "throughput.json").write_text(json.dumps(res, indent=2) + "\n")
+    text = markdown(res)
+    (out / "throughput.md").write_text(text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    os.environ.setdefault("MPLBACKEND", "Agg")
+    sys.exit(main())
