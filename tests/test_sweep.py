@@ -126,6 +126,7 @@ def test_random_draws_are_seeded_and_shared_by_the_laws():
     ('controllers = ["pid"]\n[[families]]\nkind = "canopy"', "controllers"),
     ('repetitions = 0\n[[families]]\nkind = "canopy"', "repetitions"),
     ('[[families]]\nkind = "scenario"', "families[0].scenario"),
+    ('[[families]]\nkind = "planar"\nduration = 0.5', "families[0].duration"),
     ("seed = 1", "families"),
 ])
 def test_bad_spec_names_the_key(tmp_path, text, key):

@@ -267,6 +267,8 @@ class SweepSpec:
             if duration is not None and (isinstance(duration, bool) or not isinstance(duration, (int, float))
                                          or not (math.isfinite(duration) and duration > 0)):
                 raise err(f"{key}.duration", f"must be a positive number of seconds, got {duration!r}")
+            if duration is not None and kind != "scenario" and duration <= 0.5:
+                raise err(f"{key}.duration", f"must exceed 0.5 s (the reach takes duration − 0.5 s), got {duration!r}")
             fname = f.get("name", scenario if kind == "scenario" else kind)
             if not isinstance(fname, str) or fname in names:
                 raise err(f"{key}.name", f"must be a unique text, got {fname!r}")

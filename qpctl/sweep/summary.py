@@ -142,7 +142,8 @@ def _plots(rows: list[dict[str, Any]], swept: list[str], out: Path) -> list[Path
         ax.set_ylabel("share of runs")
         ax.set_title(fam)
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
+        if ax.get_lines():
+            ax.legend(fontsize=8)
     fig.tight_layout()
     path = out / "clearance_cdf.png"
     fig.savefig(path, dpi=110)
