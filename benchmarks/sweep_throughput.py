@@ -53,10 +53,11 @@ def _measure(spec: SweepSpec, runs: int, backend: str, jobs: int) -> dict[str, A
                 ray.shutdown()
         rows = read_dataset(folder).to_pylist()
         busy = sum(r["wall_s"] for r in rows)  # seconds inside the runs themselves, summed over workers
+        cpu = sum(r["cpu_s"] for r in rows)  # CPU seconds inside the runs: what a run costs on a core of its own
         return {"backend": backend, "workers": jobs, "runs": rep.ran, "failed": rep.failed, "wall_s": rep.wall_s,
                 "init_s": init_s, "runs_per_min": 60.0 * rep.ran / rep.wall_s,
                 "runs_per_min_with_init": 60.0 * rep.ran / (rep.wall_s + init_s),
-                "run_s_mean": busy / len(rows), "worker_s_per_run": jobs * rep.wall_s / rep.ran,
+                "run_s_mean": busy / len(rows), "cpu_s_mean": cpu / len(rows), "worker_s_per_run": jobs * rep.wall_s / rep.ran,
                 "load_average_start": load, "load_average_end": report.load_average()}
     finally:
         shutil.rmtree(folder, ignore_errors=True)
@@ -66,30 +67,39 @@ def markdown(res: dict[str, Any]) -> str:
     m = {(r["backend"], r["workers"]): r for r in res["measurements"]}
     one, two, ray = m.get(("local", 1)), m.get(("local", 2)), m.get(("ray", 2))
     lines = [(f"Measured by `{res['command']}`: the first {res['runs']} runs of `{res['spec']}` "
-             f"({res['machine']['cpu']}, {res['machine']['cores']} cores; load average at start "
-             f"{res['load_average_start']})."), "",
-             ("| backend | workers | runs | wall [s] | runs/min | worker-seconds per run | mean run [s] | "
-             "load average at start |"), "|---|---|---|---|---|---|---|---|"]
+              f"({res['machine']['cpu']}, {res['machine']['cores']} cores; load average (1, 5, 15 min) at start "
+              f"{res['load_average_start']}, at end {res['load_average_end']})."), "",
+             ("| backend | workers | runs | wall [s] | runs/min | worker-seconds per run | mean run, wall [s] | "
+              "mean run, CPU [s] | load average at start |"), "|---|---|---|---|---|---|---|---|---|"]
     for r in res["measurements"]:
         wall = f"{r['wall_s']:.1f}" + (f" (+ {r['init_s']:.1f} ray.init)" if r["init_s"] else "")
         lines.append(f"| {r['backend']} | {r['workers']} | {r['runs']} | {wall} | {r['runs_per_min']:.0f} | "
-                     f"{r['worker_s_per_run']:.2f} | {r['run_s_mean']:.2f} | {r['load_average_start']} |")
-    lines.append("")
+                     f"{r['worker_s_per_run']:.2f} | {r['run_s_mean']:.2f} | {r['cpu_s_mean']:.2f} | "
+                     f"{r['load_average_start']} |")
+    lines += ["", ("Worker-seconds per run: workers × wall ÷ runs (what a run costs a worker, start-up and "
+                   "waiting included). Mean run: inside the run function, wall-clock and CPU time."), ""]
     if one and two:
         lines.append(f"- 2 local workers ÷ 1: **{two['runs_per_min'] / one['runs_per_min']:.2f}×** the runs/min.")
     if two and ray:
-        per_run = (ray["wall_s"] - two["wall_s"]) / ray["runs"]
-        lines.append(f"- Ray (2 CPUs, local instance) against 2 local workers: {ray['runs_per_min']:.0f} vs "
-                     f"{two['runs_per_min']:.0f} runs/min, {1e3 * per_run:+.0f} ms per run "
-                     f"(wall difference ÷ runs), plus {ray['init_s']:.1f} s once for `ray.init`.")
+        per_run = (ray["wall_s"] - two["wall_s"]) * ray["workers"] / ray["runs"]
+        lines.append(f"- Ray (a local instance with 2 CPUs) against 2 local workers: {ray['runs_per_min']:.0f} "
+                     f"against {two['runs_per_min']:.0f} runs/min, {1e3 * per_run:+.0f} ms of worker time per run "
+                     f"(wall difference × 2 ÷ runs), plus {ray['init_s']:.1f} s once for `ray.init`.")
     if two:
+        cpu = two["cpu_s_mean"]
         cost = two["worker_s_per_run"]
         proj = ", ".join(f"{n} node{'s' if n > 1 else ''} × {c} cores: "
-                         f"{PROJECTION_RUNS * cost / (n * c) / 3600:.2f} h" for n, c in PROJECTION_NODES)
-        lines.append(f"- Projection to {PROJECTION_RUNS:,} such runs, at the measured {cost:.2f} worker-seconds "
-                     f"per run (2 local workers) and one worker per core: {proj} (plus each node's worker "
-                     "start-up, seconds, and the driver's one Parquet write per run, a few ms).")
+                         f"{_hours(PROJECTION_RUNS * cpu / (n * c))}–{_hours(PROJECTION_RUNS * cost / (n * c))}"
+                         for n, c in PROJECTION_NODES)
+        lines.append(f"- Projection to {PROJECTION_RUNS:,} such runs, one worker per core, from {cpu:.2f} s "
+                     f"(a run's CPU time: cores of its own) to {cost:.2f} s (the measured worker-seconds per run "
+                     f"of 2 local workers) per run: {proj}; plus each node's worker start-up (seconds) and the "
+                     "driver's Parquet write per run (a few ms, on the driver, overlapping the runs).")
     return "\n".join(lines) + "\n"
+
+
+def _hours(seconds: float) -> str:
+    return f"{seconds / 3600:.1f} h" if seconds >= 3600 else f"{seconds / 60:.0f} min"
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -32,7 +32,7 @@ METRIC_COLUMNS: dict[str, str] = {
 #: Wall-clock columns: the only ones that differ between two runs of the same parameters.
 TIMING_COLUMNS: dict[str, str] = {
     "tick_us_p50": "float64", "tick_us_p90": "float64", "tick_us_p99": "float64", "tick_us_max": "float64",
-    "wall_s": "float64", "worker": "string", "finished_at": "float64",
+    "wall_s": "float64", "cpu_s": "float64", "worker": "string", "finished_at": "float64",
 }
 
 
@@ -64,7 +64,7 @@ def execute_run(params: RunParams) -> dict[str, Any]:
     """Simulate one run and return its row (never raises for the run's own errors)."""
     from qpctl.run import simulate
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     row: dict[str, Any] = {"status": "ok", "error": ""}
     try:
         scen = build_scenario(params)
@@ -79,6 +79,6 @@ def execute_run(params: RunParams) -> dict[str, Any]:
                    tick_us_p99=float(np.percentile(tick, 99)), tick_us_max=float(np.max(tick)))
     except Exception as exc:  # noqa: BLE001 — the run failed: recorded with its message, the sweep goes on
         row.update(status="failed", error=f"{type(exc).__name__}: " + " ".join(str(exc).split()))
-    row.update(wall_s=time.perf_counter() - t0, worker=f"{socket.gethostname()}:{os.getpid()}",
+    row.update(wall_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0, worker=f"{socket.gethostname()}:{os.getpid()}",
                finished_at=time.time())
     return row
