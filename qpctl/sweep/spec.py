@@ -276,6 +276,7 @@ class SweepSpec:
             families.append(Family(kind, fname, count, fseed, obstacles,
                                    None if duration is None else float(duration), scenario))
         description = get("description", str, "")
+        text = text or json.dumps(raw, sort_keys=True, indent=1, default=str)  # a spec built in code
         spec = cls(name, source, text, description, seed, reps, tuple(controllers), tuple(solvers),
                    tuple(sorted(fixed.items())), tuple((k, tuple(v)) for k, v in grid.items()),
                    tuple((k, (float(v[0]), float(v[1]))) for k, v in rnd.items()), tuple(families))
