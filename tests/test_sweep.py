@@ -208,6 +208,27 @@ def test_failed_runs_are_recorded_and_the_sweep_goes_on(tmp_path):
     assert (again.ran, again.skipped) == (0, 4)
 
 
+def test_a_finished_sweep_is_compacted_and_read_once(tmp_path):
+    import pyarrow.parquet as pq
+
+    spec = tmp_path / "c.toml"
+    spec.write_text('controllers = ["hsu"]\n[set]\n"sim.duration" = 0.1\n[[families]]\nkind = "planar"\ncount = 3\n')
+    first = run_sweep(spec, tmp_path / "out", jobs=1, progress=False, limit=2)
+    runs = tmp_path / "out" / "runs"
+    assert first.ran == 2 and len(list(runs.glob("*.parquet"))) == 2  # not finished: one file per run
+    run_sweep(spec, tmp_path / "out", jobs=1, progress=False)
+    files = list(runs.glob("*.parquet"))
+    assert [p.name[:5] for p in files] == ["part-"]  # finished: one part file
+    table = read_dataset(tmp_path / "out")
+    assert table.num_rows == 3
+    # a compaction killed before it removed the one-row files: each row is still read once
+    row = table.slice(0, 1)
+    pq.write_table(row, runs / f"{row.column('run_id')[0].as_py()}.parquet")
+    again = read_dataset(tmp_path / "out")
+    assert again.num_rows == 3 and again.column("run_id").to_pylist() == table.column("run_id").to_pylist()
+    assert run_sweep(spec, tmp_path / "out", jobs=1, progress=False).ran == 0
+
+
 def test_a_folder_holds_one_sweep(spec_file, tmp_path):
     other = tmp_path / "other.toml"
     other.write_text(SPEC.replace("seed = 3", "seed = 4"))
@@ -247,6 +268,7 @@ def test_sigkill_then_rerun_equals_an_uninterrupted_sweep(spec_file, reference, 
     assert proc.returncode == 0, proc.stderr
     assert f"{written} already done" in proc.stdout
     resumed = read_dataset(out)
+    assert [p.name[:5] for p in (out / "runs").glob("*.parquet")] == ["part-"]  # finished: compacted
     assert resumed.num_rows == TOTAL and resumed.column("status").to_pylist() == ["ok"] * TOTAL
     assert_same_results(resumed, reference)  # same results, run for run
     assert set(resumed.column("worker").to_pylist()) != set(reference.column("worker").to_pylist())

@@ -47,9 +47,8 @@ def run_sweep(spec: SweepSpec | str | Path, out: str | Path, *, backend: str = "
     store = RunStore(out, spec)
     store.open(len(runs))
     done = store.done_ids()
-    todo = [p for p in runs if p.run_id not in done]
-    if limit is not None:
-        todo = todo[: max(limit, 0)]
+    pending = [p for p in runs if p.run_id not in done]
+    todo = pending if limit is None else pending[: max(limit, 0)]
     t0 = time.perf_counter()
     engine = make_backend(backend, jobs=jobs, address=address) if todo else None
     failed = 0
@@ -70,6 +69,7 @@ def run_sweep(spec: SweepSpec | str | Path, out: str | Path, *, backend: str = "
     finally:
         if engine is not None:
             engine.close()
-    return SweepReport(out, len(runs), len(runs) - len([p for p in runs if p.run_id not in done]),
-                       len(todo), failed, time.perf_counter() - t0,
+    if len(todo) == len(pending):
+        store.compact()  # every run is done: its one-row files (10^5 of them, maybe) become one part file
+    return SweepReport(out, len(runs), len(runs) - len(pending), len(todo), failed, time.perf_counter() - t0,
                        engine.name if engine else backend, engine.workers if engine else 0)

@@ -3,19 +3,24 @@
     DIR/spec.toml              the spec as given (a folder holds one sweep: another spec is refused)
     DIR/sweep.json             the sweep's name, run count and swept keys
     DIR/runs/<run_id>.parquet  one row per finished run, written to a temporary name and renamed
+    DIR/runs/part-<hash>.parquet  the rows of a finished sweep, compacted (:meth:`RunStore.compact`)
 
 A run's file appears whole or not at all, so a sweep killed at any moment (Ctrl-C, SIGKILL) keeps
 every run that had finished and loses only those in flight; the next sweep into DIR skips the runs
-whose files exist (failed runs included: they are finished, with their error text).
+already written (failed runs included: they are finished, with their error text). When a sweep has
+no run left to do, its one-row files are merged into one part file.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import tempfile
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from qpctl.errors import ConfigError
 from qpctl.sweep.runner import METRIC_COLUMNS, TIMING_COLUMNS, scene_name
@@ -87,11 +92,39 @@ class RunStore:
         _atomic_write(self.root / "sweep.json", (json.dumps(meta, indent=2) + "\n").encode())
 
     def done_ids(self) -> set[str]:
-        """Ids of the runs whose row is written."""
-        if not self.runs_dir.is_dir():
-            return set()
-        return {p.name[:-8] for p in self.runs_dir.iterdir() if p.name.endswith(".parquet")
-                and not p.name.startswith(".")}
+        """Ids of the runs whose row is written (one file each, or in a compacted part)."""
+        singles, parts = _files(self.runs_dir)
+        ids = {p.name[:-8] for p in singles}
+        if parts:
+            import pyarrow.parquet as pq
+
+            for part in parts:
+                ids.update(pq.read_table(part, columns=["run_id"]).column("run_id").to_pylist())
+        return ids
+
+    def compact(self) -> Path | None:
+        """Merge the one-row files into one ``part-<hash>.parquet`` (then remove them): a sweep of 10⁵
+        runs is then a few files, not 10⁵. Safe to kill at any point: a row is in its own file or in a
+        part until the part is in place; a row found in both is read once."""
+        import pyarrow.parquet as pq
+
+        singles, _ = _files(self.runs_dir)
+        if len(singles) < 2:
+            return None
+        table = pq.ParquetDataset([str(p) for p in singles]).read().sort_by("run_id")
+        ids = table.column("run_id").to_pylist()
+        name = "part-" + hashlib.sha256("".join(ids).encode()).hexdigest()[:16] + ".parquet"
+        fd, tmp = tempfile.mkstemp(prefix=".", suffix=".tmp", dir=self.runs_dir)
+        os.close(fd)
+        try:
+            pq.write_table(table, tmp)
+            os.replace(tmp, self.runs_dir / name)
+        finally:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+        for p in singles:
+            p.unlink(missing_ok=True)
+        return self.runs_dir / name
 
     def row(self, params: RunParams, result: dict[str, Any]) -> dict[str, Any]:
         """The full row of a run: its identity, swept values, status, metrics and timings."""
@@ -133,14 +166,33 @@ class RunStore:
 
 def read_dataset(root: str | Path) -> Any:
     """The rows of the sweep folder ``root`` as one ``pyarrow.Table`` (sorted by run id)."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
     import pyarrow.dataset as ds
 
     runs = Path(root) / "runs"
-    files = sorted(str(p) for p in runs.glob("*.parquet")) if runs.is_dir() else []
-    if not files:
+    singles, parts = _files(runs)
+    if not singles and not parts:
         raise ConfigError(f"no finished runs in {runs}", key="--summarize")
-    table = ds.dataset(files, format="parquet").to_table()
-    return table.sort_by("run_id")
+    tables = [ds.dataset([str(p) for p in parts], format="parquet").to_table()] if parts else []
+    seen = set(tables[0].column("run_id").to_pylist()) if tables else set()
+    rest = [str(p) for p in singles if p.name[:-8] not in seen]  # a compaction killed before its clean-up
+    if rest:
+        tables.append(ds.dataset(rest, format="parquet").to_table())
+    table = pa.concat_tables(tables) if len(tables) > 1 else tables[0]
+    if len(parts) > 1:  # parts of compactions killed before their clean-up may share rows
+        _, first = np.unique(np.asarray(table.column("run_id").to_pylist(), dtype=object), return_index=True)
+        table = table.take(pa.array(np.sort(first)))
+    return table.take(pc.sort_indices(table, sort_keys=[("run_id", "ascending")]))
+
+
+def _files(runs: Path) -> tuple[list[Path], list[Path]]:
+    """(one-row files ``<run_id>.parquet``, compacted ``part-*.parquet``) in ``runs``, sorted."""
+    if not runs.is_dir():
+        return [], []
+    files = sorted(p for p in runs.iterdir() if p.name.endswith(".parquet") and not p.name.startswith("."))
+    parts = [p for p in files if p.name.startswith("part-")]
+    return [p for p in files if not p.name.startswith("part-")], parts
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
