@@ -44,6 +44,7 @@ def _measure(spec: SweepSpec, runs: int, backend: str, jobs: int) -> dict[str, A
                      configure_logging=False)
             init_s = time.perf_counter() - t0
         load = report.load_average()
+        busy0 = _busy_cpu_s()
         try:
             rep = run_sweep(spec, folder, backend=backend, jobs=jobs, progress=False, limit=runs)
         finally:
@@ -51,16 +52,46 @@ def _measure(spec: SweepSpec, runs: int, backend: str, jobs: int) -> dict[str, A
                 import ray
 
                 ray.shutdown()
+        busy = _busy_cpu_s() - busy0 if busy0 is not None else None
         rows = read_dataset(folder).to_pylist()
-        busy = sum(r["wall_s"] for r in rows)  # seconds inside the runs themselves, summed over workers
+        inside = sum(r["wall_s"] for r in rows)  # seconds inside the runs themselves, summed over workers
         cpu = sum(r["cpu_s"] for r in rows)  # CPU seconds inside the runs: what a run costs on a core of its own
-        return {"backend": backend, "workers": jobs, "runs": rep.ran, "failed": rep.failed, "wall_s": rep.wall_s,
+        # cores kept busy by everything else on the machine meanwhile (other users; our driver, pickling, Ray)
+        others = (busy - cpu) / rep.wall_s if busy is not None else None
+        write_ms = _write_ms(spec, rows)
+        return {"backend": backend, "workers": jobs, "driver_write_ms": write_ms, "runs": rep.ran, "failed": rep.failed, "wall_s": rep.wall_s,
                 "init_s": init_s, "runs_per_min": 60.0 * rep.ran / rep.wall_s,
                 "runs_per_min_with_init": 60.0 * rep.ran / (rep.wall_s + init_s),
-                "run_s_mean": busy / len(rows), "cpu_s_mean": cpu / len(rows), "worker_s_per_run": jobs * rep.wall_s / rep.ran,
+                "run_s_mean": inside / len(rows), "cpu_s_mean": cpu / len(rows), "other_cores": others, "worker_s_per_run": jobs * rep.wall_s / rep.ran,
                 "load_average_start": load, "load_average_end": report.load_average()}
     finally:
         shutil.rmtree(folder, ignore_errors=True)
+
+
+def _write_ms(spec: SweepSpec, rows: list[dict[str, Any]]) -> float:
+    """The driver's cost of storing one finished run [ms]: ``rows`` written again into a fresh store."""
+    from qpctl.sweep.store import RunStore
+
+    folder = Path(tempfile.mkdtemp(prefix="throughput-write-"))
+    try:
+        store = RunStore(folder, spec)
+        store.open(len(rows))
+        t0 = time.perf_counter()
+        for r in rows:
+            store.write(r)
+        return 1e3 * (time.perf_counter() - t0) / len(rows)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def _busy_cpu_s() -> float | None:
+    """CPU seconds the whole machine has spent busy (not idle, not waiting) since boot (/proc/stat)."""
+    try:
+        fields = [float(x) for x in Path("/proc/stat").read_text().splitlines()[0].split()[1:]]
+    except (OSError, ValueError, IndexError):
+        return None
+    idle = fields[3] + (fields[4] if len(fields) > 4 else 0.0)
+    return (sum(fields[:8]) - idle) / os.sysconf("SC_CLK_TCK")
 
 
 def markdown(res: dict[str, Any]) -> str:
@@ -70,14 +101,18 @@ def markdown(res: dict[str, Any]) -> str:
               f"({res['machine']['cpu']}, {res['machine']['cores']} cores; load average (1, 5, 15 min) at start "
               f"{res['load_average_start']}, at end {res['load_average_end']})."), "",
              ("| backend | workers | runs | wall [s] | runs/min | worker-seconds per run | mean run, wall [s] | "
-              "mean run, CPU [s] | load average at start |"), "|---|---|---|---|---|---|---|---|---|"]
+              "mean run, CPU [s] | other cores busy | load average at start |"),
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in res["measurements"]:
         wall = f"{r['wall_s']:.1f}" + (f" (+ {r['init_s']:.1f} ray.init)" if r["init_s"] else "")
         lines.append(f"| {r['backend']} | {r['workers']} | {r['runs']} | {wall} | {r['runs_per_min']:.0f} | "
                      f"{r['worker_s_per_run']:.2f} | {r['run_s_mean']:.2f} | {r['cpu_s_mean']:.2f} | "
+                     f"{'–' if r['other_cores'] is None else format(r['other_cores'], '.2f')} | "
                      f"{r['load_average_start']} |")
     lines += ["", ("Worker-seconds per run: workers × wall ÷ runs (what a run costs a worker, start-up and "
-                   "waiting included). Mean run: inside the run function, wall-clock and CPU time."), ""]
+                   "waiting included). Mean run: inside the run function, wall-clock and CPU time. Other cores "
+                   "busy: the machine's busy CPU time during the sweep (/proc/stat) less the runs' own, ÷ wall — "
+                   "other users' processes, and the driver, worker start-up and Ray's own processes."), ""]
     if one and two:
         lines.append(f"- 2 local workers ÷ 1: **{two['runs_per_min'] / one['runs_per_min']:.2f}×** the runs/min.")
     if two and ray:
@@ -86,20 +121,27 @@ def markdown(res: dict[str, Any]) -> str:
                      f"against {two['runs_per_min']:.0f} runs/min, {1e3 * per_run:+.0f} ms of worker time per run "
                      f"(wall difference × 2 ÷ runs), plus {ray['init_s']:.1f} s once for `ray.init`.")
     if two:
+        write_s = two["driver_write_ms"] / 1e3
         cpu = two["cpu_s_mean"]
         cost = two["worker_s_per_run"]
         proj = ", ".join(f"{n} node{'s' if n > 1 else ''} × {c} cores: "
                          f"{_hours(PROJECTION_RUNS * cpu / (n * c))}–{_hours(PROJECTION_RUNS * cost / (n * c))}"
                          for n, c in PROJECTION_NODES)
+        cap = 1.0 / write_s
         lines.append(f"- Projection to {PROJECTION_RUNS:,} such runs, one worker per core, from {cpu:.2f} s "
                      f"(a run's CPU time: cores of its own) to {cost:.2f} s (the measured worker-seconds per run "
-                     f"of 2 local workers) per run: {proj}; plus each node's worker start-up (seconds) and the "
-                     "driver's Parquet write per run (a few ms, on the driver, overlapping the runs).")
+                     f"of 2 local workers) per run: {proj}; plus each node's worker start-up (seconds). The "
+                     f"driver stores each finished run itself ({1e3 * write_s:.1f} ms per row, measured), which "
+                     f"caps one sweep at about {cap:.0f} runs/s: {PROJECTION_RUNS:,} runs take at least "
+                     f"{_hours(PROJECTION_RUNS * write_s)} of driver time, so past about "
+                     f"{cap * cpu:.0f} cores (runs of {cpu:.2f} s) the driver, not the cluster, sets the pace.")
     return "\n".join(lines) + "\n"
 
 
 def _hours(seconds: float) -> str:
-    return f"{seconds / 3600:.1f} h" if seconds >= 3600 else f"{seconds / 60:.0f} min"
+    if seconds >= 3600:
+        return f"{seconds / 3600:.1f} h"
+    return f"{seconds / 60:.0f} min" if seconds >= 120 else f"{seconds:.0f} s"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
