@@ -50,7 +50,7 @@ sweep-1k: $(STAMP)
 	MPLBACKEND=Agg $(VENV)/bin/qpctl sweep canopy_1k --jobs 2 --out results/sweep-canopy_1k
 
 sweep-throughput: $(STAMP)
-	MPLBACKEND=Agg $(PY) -m benchmarks.sweep_throughput --out results/sweep-throughput
+	MPLBACKEND=Agg $(PY) -m benchmarks.sweep_throughput --wait-quiet 600 --out results/sweep-throughput
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check qpctl baselines benchmarks tests

@@ -32,6 +32,21 @@ PROJECTION_RUNS = 100_000
 PROJECTION_NODES = ((1, 2), (10, 16), (100, 16))  # (nodes, cores each)
 
 
+def wait_quiet(max_wait: float, *, threshold: float = 0.15, sample: float = 5.0) -> float | None:
+    """Wait (at most ``max_wait`` seconds) until the machine's busy cores over ``sample`` seconds fall below
+    ``threshold``; return the last sample (None without /proc/stat)."""
+    deadline = time.monotonic() + max_wait
+    while True:
+        b0 = _busy_cpu_s()
+        time.sleep(sample)
+        b1 = _busy_cpu_s()
+        if b0 is None or b1 is None:
+            return None
+        cores = (b1 - b0) / sample
+        if cores < threshold or time.monotonic() > deadline:
+            return cores
+
+
 def _measure(spec: SweepSpec, runs: int, backend: str, jobs: int) -> dict[str, Any]:
     folder = Path(tempfile.mkdtemp(prefix=f"throughput-{backend}{jobs}-"))
     try:
@@ -150,6 +165,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--runs", type=int, default=100)
     p.add_argument("--out", default="results/sweep-throughput")
     p.add_argument("--backends", default="local1,local2,ray2", help="comma-separated: local1, local2, ray2")
+    p.add_argument("--wait-quiet", type=float, default=0.0, metavar="SECONDS",
+                   help="before each measurement wait up to this long for the machine to be idle (busy < 0.15 cores)")
     args = p.parse_args(argv)
     spec = SweepSpec.load(args.spec)
     res: dict[str, Any] = {"command": "python -m benchmarks.sweep_throughput " + " ".join(
@@ -157,8 +174,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         "load_average_start": report.load_average(), "measurements": []}
     for b in args.backends.split(","):
         backend, jobs = b.rstrip("0123456789"), int(b[len(b.rstrip("0123456789")):] or 1)
+        idle = wait_quiet(args.wait_quiet) if args.wait_quiet > 0 else None
         print(f"measuring {backend} with {jobs} worker(s) …", file=sys.stderr)
-        res["measurements"].append(_measure(spec, args.runs, backend, jobs))
+        res["measurements"].append(_measure(spec, args.runs, backend, jobs) | {"busy_cores_before": idle})
     res["load_average_end"] = report.load_average()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
