@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: all env demo test soak robust bench bench-quick harvest simulators lint clean
+.PHONY: all env demo test soak robust bench bench-quick harvest simulators sweep-small sweep-1k sweep-throughput lint clean
 
 all: test
 
@@ -44,6 +44,17 @@ harvest: $(STAMP)
 # Built-in / MuJoCo / PyBullet side by side: results/simulators/simulators.md (README, "Other simulators").
 simulators: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks.simulators --out results/simulators
+
+# Sweeps (README: Sweeps). The packaged canopy_small (40 runs) and canopy_1k (1,000 runs) specs; rerunning
+# a target resumes the sweep in its folder. sweep-throughput makes the README's runs/min table.
+sweep-small: $(STAMP)
+	MPLBACKEND=Agg $(VENV)/bin/qpctl sweep canopy_small --out results/sweep-canopy_small
+
+sweep-1k: $(STAMP)
+	MPLBACKEND=Agg $(VENV)/bin/qpctl sweep canopy_1k --jobs 2 --out results/sweep-canopy_1k
+
+sweep-throughput: $(STAMP)
+	MPLBACKEND=Agg $(PY) -m benchmarks.sweep_throughput --wait-quiet 600 --out results/sweep-throughput
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check qpctl baselines benchmarks tests

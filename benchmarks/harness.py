@@ -46,6 +46,8 @@ from benchmarks.timing import BREAKDOWN, FLOOR, STAGES, TickTimes, breakdown, su
 from qpctl.run import simulate
 from qpctl.scenario import Scenario
 from qpctl.solvers import available_solvers
+from qpctl.sweep.backends import LocalBackend
+from qpctl.sweep.engine import map_ordered
 
 ROBOT_OF_FAMILY = {"spheres": "panda", "free": "panda", "canopy": "panda", "paper": "planar3", "planar": "planar3"}
 #: The scene groups, in report order; the first four are issue #10's target scenes.
@@ -54,6 +56,11 @@ GROUP_TITLES = {"spheres": "Panda + 10 spheres", "free": "Panda, no obstacles", 
 TARGET_GROUPS = ("spheres", "free", "canopy", "paper")
 TARGET_QP = report.TARGET_QP  # the QP the targets are about: qp-daqp (the default solver)
 ORCHARD_SEED = 0  # seed of the obstacles tiled around the canopy in the scaling suite
+#: Processes of the closed-loop suite (the sweep engine's local backend). 1: the runs go one after
+#: another in this process, as before the engine: their tick times are reported (quality table), and
+#: parallel runs would share the cores with them; the same-tick suites after it need the states in
+#: this process anyway.
+CLOSED_LOOP_JOBS = 1
 
 
 @dataclass(frozen=True)
@@ -129,6 +136,10 @@ def covers(cfg: BenchConfig, solvers: list[str], loop_solvers: list[str]) -> str
             f"on {stride} of each scene's `{cfg.states_from}` run. Scaling: "
             + (f"{', '.join(map(str, cfg.scaling_counts))} obstacles." if cfg.scaling_counts and cfg.canopy_scenes
                else "not run."))
+
+
+def _closed_loop(scene: BenchScene, spec: ControllerSpec, max_ticks: int | None) -> ClosedLoop:
+    return closed_loop(scene, spec, max_ticks=max_ticks)
 
 
 def _progress(items: list[Any], desc: str, on: bool) -> Any:
@@ -298,11 +309,10 @@ def run(cfg: BenchConfig, out: Path, *, command: str = "qpctl bench") -> dict[st
     all_scenes = scenes(cfg)
     families = {s.name: s.family for s in all_scenes}
 
-    # 1. closed loop
-    runs: list[ClosedLoop] = []
-    jobs = [(s, spec) for s in all_scenes for spec in loop_specs]
-    for scene, spec in _progress(jobs, "closed loop", cfg.progress):
-        runs.append(closed_loop(scene, spec, max_ticks=cfg.max_ticks))
+    # 1. closed loop, through the sweep engine, in this process (CLOSED_LOOP_JOBS)
+    jobs = [(s, spec, cfg.max_ticks) for s in all_scenes for spec in loop_specs]
+    runs: list[ClosedLoop] = map_ordered(_closed_loop, jobs, LocalBackend(CLOSED_LOOP_JOBS),
+                                         progress=cfg.progress, desc="closed loop")
 
     # 2. same ticks, per scene (the floor included), aggregated per scene group and per robot
     per_group: dict[str, dict[str, list[TickTimes]]] = {}

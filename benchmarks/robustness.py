@@ -9,7 +9,7 @@ of 10 branches and leaves, 2.5 s) from :mod:`benchmarks.scenes`; every run in th
 simulator at 1 ms, the QP with daqp (the default solver). Faults of scene i are seeded
 ``FAULT_SEED + i``: the three controllers meet the same realisation.
 
-Phases, each spread over ``--jobs`` processes with a progress bar:
+Phases, each spread over ``--jobs`` processes by the sweep engine with a progress bar:
 
 1. every controller on every scene without faults (the baseline, and each scene's peak torques,
    from which the torque-saturation levels are taken);
@@ -31,12 +31,14 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from qpctl.sweep.backends import LocalBackend
+from qpctl.sweep.engine import map_ordered
 
 FAULT_SEED = 1200
 D_SAFE_TOLERANCE = 1e-3  # [m] a run "keeps d_safe" when its least clearance ≥ d_safe − this
@@ -184,21 +186,8 @@ def run_one(run: Run) -> dict[str, Any]:
 
 
 def run_all(runs: Sequence[Run], jobs: int, desc: str) -> list[dict[str, Any]]:
-    from tqdm import tqdm
-
-    out: list[dict[str, Any]] = []
-    with tqdm(total=len(runs), desc=desc, unit="run") as bar:
-        if jobs <= 1:
-            for r in runs:
-                out.append(run_one(r))
-                bar.update()
-        else:
-            with ProcessPoolExecutor(max_workers=jobs) as pool:
-                for fut in as_completed([pool.submit(run_one, r) for r in runs]):
-                    out.append(fut.result())
-                    bar.update()
-    order = {r.label: i for i, r in enumerate(runs)}
-    return sorted(out, key=lambda rec: order[rec["run"]])
+    """Every run, ``jobs`` at a time through the sweep engine (local processes), in the runs' order."""
+    return map_ordered(run_one, [(r,) for r in runs], LocalBackend(jobs), desc=desc)
 
 
 # -- the study ---------------------------------------------------------------------------------------

@@ -1,4 +1,4 @@
-"""The ``qpctl`` command line: ``simulate``, ``bench``, ``solvers``, ``warmup``.
+"""The ``qpctl`` command line: ``simulate``, ``bench``, ``sweep``, ``solvers``, ``warmup``.
 
 Any :class:`~qpctl.errors.QpctlError` (or an ``OSError`` reading or writing files) becomes one line on
 stderr and exit status 2; any other exception (a bug) one line and exit status 3, with the traceback
@@ -32,6 +32,37 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
           f"collided {m['collided']}, tick median {m['tick_us_median']:.0f} µs -> {out}")
     for note in m.get("simulator_notes", []):
         print(f"  {m['simulator']}: {note}")
+    return 0
+
+
+def _cmd_sweep(args: argparse.Namespace) -> int:
+    from qpctl.errors import ConfigError
+
+    if args.summarize:
+        from qpctl.sweep.summary import summarize
+
+        if args.spec:
+            raise ConfigError("give either SPEC or --summarize DIR, not both", key="--summarize")
+        written = summarize(args.summarize)
+        print(f"summary of {args.summarize}: " + ", ".join(str(p) for p in written))
+        return 0
+    if not args.spec:
+        raise ConfigError("give a sweep spec (a .toml file or a packaged name such as canopy_small), "
+                          "or --summarize DIR", key="SPEC")
+    if args.jobs is not None and args.jobs < 1:
+        raise ConfigError(f"must be >= 1, got {args.jobs}", key="--jobs")
+    from qpctl.sweep.driver import run_sweep
+    from qpctl.sweep.spec import SweepSpec
+    from qpctl.sweep.summary import summarize
+
+    spec = SweepSpec.load(args.spec)
+    out = Path(args.out) if args.out else Path("results") / f"sweep-{spec.name}"
+    report = run_sweep(spec, out, backend=args.backend, jobs=args.jobs, address=args.address,
+                       progress=not args.quiet, limit=args.limit)
+    print(report.line())
+    if not args.no_summary:
+        written = summarize(out)
+        print(f"summary: {', '.join(str(p) for p in written)}")
     return 0
 
 
@@ -85,6 +116,17 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--quick", action="store_true", help="a run of under two minutes")
     b.add_argument("--out", default="results/bench", help="output folder")
     b.set_defaults(func=_cmd_bench)
+    sw = sub.add_parser("sweep", help="run a sweep spec (local processes or Ray) into a Parquet dataset, resumable")
+    sw.add_argument("spec", nargs="?", help="path to a sweep .toml or the name of a packaged one (e.g. canopy_small)")
+    sw.add_argument("--backend", choices=["local", "ray"], default="local", help="local processes (default) or Ray")
+    sw.add_argument("--address", help="Ray cluster: auto or ray://host:port (default: start a local instance)")
+    sw.add_argument("--jobs", type=int, help="local worker processes, or a local Ray instance's CPUs (default: cores)")
+    sw.add_argument("--out", help="sweep folder (default results/sweep-<name>); rerunning into it resumes")
+    sw.add_argument("--limit", type=int, help="run at most this many of the runs not yet done")
+    sw.add_argument("--summarize", metavar="DIR", help="only write DIR's tables and plots (summary.md, .csv, PNGs)")
+    sw.add_argument("--no-summary", action="store_true", help="skip the tables and plots after the sweep")
+    sw.add_argument("--quiet", action="store_true", help="no progress bar")
+    sw.set_defaults(func=_cmd_sweep)
     v = sub.add_parser("solvers", help="list the installed QP solvers and their fast paths")
     v.set_defaults(func=_cmd_solvers)
     w = sub.add_parser("warmup", help="compile the per-tick kernels into numba's on-disk cache")

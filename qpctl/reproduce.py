@@ -18,7 +18,7 @@ and writes ``report.md`` (the metrics of DESIGN.md §4 per law, the v_ref sweep,
 measurement, the largest torque-rate events and their causes, and a verdict on each claim with the
 numbers behind it) and the figures ``fig_torques.png`` (Figs. 1–2), ``fig_configurations.png``
 (Fig. 3) and ``fig_vref.png`` (Fig. 4). The runs are independent and spread over ``--jobs``
-processes; a progress bar counts them.
+processes by the sweep engine (:func:`qpctl.sweep.engine.map_ordered`); a progress bar counts them.
 """
 
 from __future__ import annotations
@@ -31,7 +31,6 @@ import os
 import sys
 import time
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -281,33 +280,18 @@ def _figures(spec: RunSpec, which: str) -> bool:
 
 def run_all(scenario: str | Path, overrides: Sequence[str], specs: Sequence[RunSpec], out: Path, *,
             jobs: int, progress: bool = True, run_figures: str = "all") -> list[RunSummary]:
-    """All runs, ``jobs`` at a time, with a progress bar over the runs.
+    """All runs, ``jobs`` at a time through the sweep engine (:mod:`qpctl.sweep.engine`, local
+    processes; one job runs them in this process), with a progress bar over the runs.
 
     ``run_figures``: which runs also write their own PNGs (``all``, ``main`` — the scenario as it
     is, one run per law — or ``none``); trajectory.npz and metrics.json are always written.
     """
-    from tqdm import tqdm
+    from qpctl.sweep.backends import LocalBackend
+    from qpctl.sweep.engine import map_ordered
 
-    results: list[RunSummary] = []
-    bar = tqdm(total=len(specs), desc="paper reproduction", unit="run", disable=not progress)
-    try:
-        if jobs <= 1:
-            for spec in specs:
-                bar.set_postfix_str(spec.name)
-                results.append(run_one(scenario, overrides, spec, out, _figures(spec, run_figures)))
-                bar.update()
-        else:
-            with ProcessPoolExecutor(max_workers=jobs) as pool:
-                futures = {pool.submit(run_one, scenario, overrides, spec, out, _figures(spec, run_figures)): spec
-                           for spec in specs}
-                for fut in as_completed(futures):
-                    bar.set_postfix_str(futures[fut].name)
-                    results.append(fut.result())
-                    bar.update()
-    finally:
-        bar.close()
-    order = {s.name: i for i, s in enumerate(specs)}
-    return sorted(results, key=lambda r: order[r.spec.name])
+    items = [(scenario, overrides, spec, out, _figures(spec, run_figures)) for spec in specs]
+    return map_ordered(run_one, items, LocalBackend(jobs), progress=progress, desc="paper reproduction",
+                       label=lambda i: specs[i].name)
 
 
 # -- the report -----------------------------------------------------------------------------------

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 PACKAGES = ["qpctl", "baselines", "qpctl.robot", "qpctl.geometry", "qpctl.simulation", "qpctl.controllers",
-            "qpctl.adapters", "qpctl.solvers", "qpctl.tasks", "qpctl.constraints"]
+            "qpctl.adapters", "qpctl.solvers", "qpctl.tasks", "qpctl.constraints", "qpctl.sweep"]
 
 
 @pytest.mark.parametrize("package", PACKAGES)

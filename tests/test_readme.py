@@ -46,3 +46,13 @@ def test_every_scenario_key_is_documented():
         elif f"`{section}`" not in text:
             missing.append(section)
     assert not missing, missing
+
+
+def test_every_sweep_spec_key_is_documented():
+    from qpctl.sweep.spec import FAMILY_KEYS, TOP_KEYS
+
+    section = README.split("## Sweeps", 1)[1]
+    missing = [k for k in TOP_KEYS if f"`{k}`" not in section and f"`[{k}]`" not in section
+               and f"`[[{k}]]`" not in section]
+    missing += [f"families[].{k}" for k in FAMILY_KEYS if f"`families[].{k}`" not in section]
+    assert not missing, missing
