@@ -102,7 +102,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
     s = sub.add_parser("simulate", help="run a scenario and write trajectory.npz, metrics.json, figures")
     s.add_argument("scenario", help="path to a .toml scenario or the name of a packaged one (e.g. paper)")
-    s.add_argument("--controller", choices=["paper", "hsu", "qp"], help="override controller.kind")
+    from qpctl.controllers.factory import controller_kinds
+
+    s.add_argument("--controller", choices=controller_kinds(), help="override controller.kind")
     s.add_argument("--solver", help="override controller.solver (see `qpctl solvers`)")
     from qpctl.adapters import SIMULATORS
 

@@ -21,8 +21,9 @@ from typing import Any
 
 import numpy as np
 
+from qpctl.controllers.factory import controller_kinds
 from qpctl.errors import ConfigError
-from qpctl.scenario import CONTROLLER_KINDS, apply_overrides
+from qpctl.scenario import apply_overrides
 from qpctl.sweep.families import FAMILY_KINDS
 
 if sys.version_info >= (3, 11):
@@ -193,8 +194,8 @@ class SweepSpec:
             raise err("repetitions", f"must be >= 1, got {reps}")
         controllers = get("controllers", list, ["paper", "hsu", "qp"])
         for c in controllers:
-            if c not in CONTROLLER_KINDS:
-                raise err("controllers", f"unknown controller {c!r}; one of {', '.join(CONTROLLER_KINDS)}")
+            if c not in controller_kinds():  # the registered kinds (qpctl.controllers.factory)
+                raise err("controllers", f"unknown controller {c!r}; one of {', '.join(controller_kinds())}")
         if not controllers:
             raise err("controllers", "needs at least one controller")
         solvers = get("solvers", list, ["daqp"])
