@@ -19,7 +19,7 @@ env: $(STAMP)
 
 # The paper reproduction: tables and figures into results/paper and README-ready Markdown.
 demo: $(STAMP)
-	MPLBACKEND=Agg $(PY) -m qpctl.reproduce --out results/paper
+	MPLBACKEND=Agg $(PY) -m reproduction --out results/paper
 
 test: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m pytest -q -x -p no:cacheprovider
@@ -57,7 +57,8 @@ sweep-throughput: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks.sweep_throughput --wait-quiet 600 --out results/sweep-throughput
 
 lint: $(STAMP)
-	$(VENV)/bin/ruff check qpctl baselines benchmarks tests
+	$(VENV)/bin/ruff check qpctl baselines benchmarks reproduction tests examples
+	$(VENV)/bin/mypy qpctl
 
 clean:
 	rm -rf $(VENV) results build *.egg-info

@@ -27,9 +27,10 @@ from typing import Any
 import numpy as np
 
 from qpctl import Scenario
+from qpctl.bench.suites import HARVEST_SCENARIO, harvest_tick_cost
 from qpctl.run import simulate
 
-SCENARIO = "panda_harvest"
+SCENARIO = HARVEST_SCENARIO
 LAWS = ("paper", "hsu", "qp")
 TARGET_MM, TARGET_DEG, LINE_MM = 5.0, 3.0, 10.0  # issue 11: at the grasp; the approach line
 _RUNS: dict[str, Any] = {}
@@ -108,27 +109,6 @@ def measure(run: Any, scen: Scenario) -> dict[str, Any]:
     return out
 
 
-def tick_cost(run: Any, stride: int = 2) -> dict[str, float]:
-    """The approach task with self-collision rows against the position task without them: both QP
-    controllers stepped on the same recorded states of ``run`` (every ``stride``-th tick, in order,
-    alternating which goes first), medians of their own compute times [µs] and the ratio."""
-    raw = Scenario.load(SCENARIO).data
-    position = {**raw, "path": {k: v for k, v in raw["path"].items() if k != "approach"},
-                "controller": {**raw["controller"], "task": "position", "self_collision": False}}
-    ctrl_a = Scenario.load(SCENARIO).build_controller("qp")
-    ctrl_p = Scenario.from_dict(position, source="position task").build_controller("qp")
-    traj = run.trajectory
-    times: dict[str, list[float]] = {"approach": [], "position": []}
-    for c in (ctrl_a, ctrl_p):
-        c.warmup()
-    for i, k in enumerate(range(0, len(traj.t), stride)):
-        pair = [("approach", ctrl_a), ("position", ctrl_p)]
-        for name, c in pair if i % 2 == 0 else pair[::-1]:
-            times[name].append(c.step(traj.q[k], traj.v[k], float(traj.t[k])).compute_us)
-    a, p = float(np.median(times["approach"])), float(np.median(times["position"]))
-    return {"approach_us": a, "position_us": p, "ratio": a / p, "ticks": len(times["approach"])}
-
-
 def table(results: dict[str, dict[str, Any]]) -> str:
     head = ("| task (redundancy) | law | fruit 1, 2, 3 at the grasp: position [mm] / axis angle [°] | off the approach "
             "line [mm] | min clearance [m] | min self clearance [m] | max \\|τ\\|, \\|q̇\\|, \\|τ̇\\| / limit | joint limits | "
@@ -194,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
         scen = scenario(task)
         _RUNS[f"{task}/{law}"] = run = simulate(scen, kind=law)
         results[f"{task}/{law}"] = measure(run, scen)
-    cost = tick_cost(_RUNS["approach/qp"])
+    cost = harvest_tick_cost(_RUNS["approach/qp"])
     md = table(results) + (
         f"\nThe tick of the QP with the 5-row approach task and the self-collision rows, against the same QP with the "
         f"position task alone, on the same {cost['ticks']} recorded states (interleaved): median "

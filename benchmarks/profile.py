@@ -2,7 +2,7 @@
 
     python -m benchmarks.profile [--solver daqp] [--seed 100] [--top 25]
 
-Replays the states of a closed-loop run of the canopy scene (``benchmarks.scenes.canopy_scene``) and
+Replays the states of a closed-loop run of the canopy scene (``qpctl.bench.scenes.canopy_scene``) and
 prints (1) the median wall time of each part of a tick, measured by making the calls the compiled
 tick makes (``computeAllTerms``, then each kernel of ``qpctl.kernels.tick`` and the solve), one at a
 time and in tick order, on every state; (2) cProfile's functions with the most cumulative time
@@ -21,7 +21,7 @@ from collections.abc import Callable
 import numpy as np
 import pinocchio as pin
 
-from benchmarks.scenes import canopy_scene
+from qpctl.bench.scenes import canopy_scene
 from qpctl.kernels import tick as K
 from qpctl.simulation import Simulator
 from qpctl.solvers import make_solver

@@ -5,7 +5,7 @@
 
 Scenes: the packaged ``paper`` and ``panda_canopy`` scenarios, ``planar_scene(seed)`` (the paper's
 arm past 2–4 random discs, 3 s) and ``canopy_scene(seed)`` (the Panda reaching into a random canopy
-of 10 branches and leaves, 2.5 s) from :mod:`benchmarks.scenes`; every run in the built-in
+of 10 branches and leaves, 2.5 s) from :mod:`qpctl.bench.scenes`; every run in the built-in
 simulator at 1 ms, the QP with daqp (the default solver). Faults of scene i are seeded
 ``FAULT_SEED + i``: the three controllers meet the same realisation.
 
@@ -115,7 +115,7 @@ def scene_names(planar: int, canopy: int) -> list[str]:
 
 
 def get_scene(name: str) -> Any:
-    from benchmarks.scenes import canopy_scene, planar_scene, scenario_scene
+    from qpctl.bench.scenes import canopy_scene, planar_scene, scenario_scene
 
     if name not in _SCENES:
         if name in ("paper", "panda_canopy"):

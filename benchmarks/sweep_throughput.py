@@ -23,7 +23,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from benchmarks import report
+from qpctl.bench import report
 from qpctl.sweep.driver import run_sweep
 from qpctl.sweep.spec import SweepSpec
 from qpctl.sweep.store import read_dataset

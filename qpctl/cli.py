@@ -75,7 +75,7 @@ def _cmd_solvers(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from benchmarks.harness import main as bench_main
+    from qpctl.bench.harness import main as bench_main
 
     return int(bench_main(quick=args.quick, out=Path(args.out)) or 0)
 

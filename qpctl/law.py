@@ -12,7 +12,7 @@ e = x_d − x, ė = ẋ_d − ẋ.
     q̈₀   = −M⁻¹N + K_N e_N  (paper, W = MᵀM)     q̈₀ = K_N e_N  (Hsu, W = W_b = I)     (18), (19)
     q̈    = J_W⁺ a + (I − J_W⁺ J) q̈₀,   τ = M q̈ + N                             (7), (19)
 
-Why these choices (measured by ``python -m qpctl.reproduce``; README "Paper reproduction"):
+Why these choices (measured by ``python -m reproduction``; README "Paper reproduction"):
 
 * **Eq. (11) holds exactly.** J J_W⁺ = I and J(I − J_W⁺J) = 0, so J q̈ = a and, with ẍ = J q̈ + J̇ q̇,
   ë + K_v ė + K_p e = 0 whatever q̈₀ is: e → 0 exponentially for any Hurwitz s² + k_v s + k_p.

@@ -72,7 +72,7 @@ class WaypointPath:
         dwell: pause at each intermediate waypoint [s].
     """
 
-    def __init__(self, points: Sequence[Sequence[float]] | np.ndarray, *, duration: float | None = None,
+    def __init__(self, points: Sequence[Sequence[float] | np.ndarray] | np.ndarray, *, duration: float | None = None,
                  durations: Sequence[float] | None = None, start_time: float = PathConfig.start_time,
                  dwell: float = PathConfig.dwell):
         pts = np.asarray(points, dtype=float)

@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from benchmarks import report
-from benchmarks.harness import BenchConfig, run
-from benchmarks.scenes import canopy_scene, free_scene, orchard_scene, spheres_scene
-from benchmarks.timing import (
+from qpctl.bench import report
+from qpctl.bench.harness import BenchConfig, run
+from qpctl.bench.scenes import canopy_scene, free_scene, orchard_scene, spheres_scene
+from qpctl.bench.timing import (
     BREAKDOWN,
     FLOOR,
     STAGES,

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmarks.scenes import planar_scene
+from qpctl.bench.scenes import planar_scene
 from qpctl.controllers.factory import make_controller
 from qpctl.qp import Problem, penalty_is_exact
 from qpctl.run import simulate

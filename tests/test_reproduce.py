@@ -1,4 +1,4 @@
-"""The paper reproduction's machinery (qpctl.reproduce) end to end, on a shortened scenario.
+"""The paper reproduction's machinery (reproduction.reproduce) end to end, on a shortened scenario.
 
 The full reproduction (5 s runs, `make demo`) takes minutes; here every run lasts 0.3 s, which is
 enough to check that each run writes its standard outputs, that report.md has the tables of
@@ -14,9 +14,9 @@ import re
 
 import pytest
 
-from qpctl import reproduce
-from qpctl.reproduce import LAWS, VREF_LETTERS, VREF_SWEEP, RunSpec, build_scenario, plan
 from qpctl.scenario import Scenario
+from reproduction import reproduce
+from reproduction.reproduce import LAWS, VREF_LETTERS, VREF_SWEEP, RunSpec, build_scenario, plan
 
 SHORT = ["sim.duration=0.3"]
 

@@ -1,9 +1,9 @@
 """Scene families of a sweep: each turns (family, scene index) into a raw scenario dict.
 
 * ``canopy`` — the Franka Panda reaching a random fruit in a seeded canopy of branch capsules and
-  leaf spheres (:func:`benchmarks.scenes.canopy_scene`);
+  leaf spheres (:func:`qpctl.bench.scenes.canopy_scene`);
 * ``planar`` — the paper's 3-link arm reaching a random point past 2–4 random discs
-  (:func:`benchmarks.scenes.planar_scene`);
+  (:func:`qpctl.bench.scenes.planar_scene`);
 * ``scenario`` — a packaged scenario by name (``paper``, ``panda_canopy``, …) or a TOML file.
 
 A random scene is built in code from its seed, then written as the scenario dict that TOML would
@@ -42,7 +42,7 @@ def _obstacle_dict(o: Any) -> dict[str, Any]:
 
 
 def _scene_dict(scene: Any, robot_kind: str) -> dict[str, Any]:
-    """A benchmark scene (:class:`benchmarks.scenes.BenchScene`) as a raw scenario dict."""
+    """A benchmark scene (:class:`qpctl.bench.scenes.BenchScene`) as a raw scenario dict."""
     g = scene.gains
     path = scene.path
     controller: dict[str, Any] = {"kind": "paper", "kp": g.kp, "kv": g.kv, "kn": g.kn, "v_ref": g.v_ref,
@@ -66,12 +66,12 @@ def scene_dict(kind: str, *, seed: int, obstacles: int = 10, duration: float | N
                scenario: str = "") -> tuple[str, dict[str, Any], Path | None]:
     """(scene name, raw scenario dict, base folder for relative paths) of one scene of a family."""
     if kind == "canopy":
-        from benchmarks.scenes import canopy_scene
+        from qpctl.bench.scenes import canopy_scene
 
         scene = canopy_scene(seed, obstacles=obstacles, **({} if duration is None else {"duration": duration}))
         return scene.name, _scene_dict(scene, "panda"), None
     if kind == "planar":
-        from benchmarks.scenes import planar_scene
+        from qpctl.bench.scenes import planar_scene
 
         scene = planar_scene(seed, **({} if duration is None else {"duration": duration}))
         return scene.name, _scene_dict(scene, "planar3"), None

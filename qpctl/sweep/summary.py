@@ -90,6 +90,13 @@ def markdown(summary: list[dict[str, Any]], *, title: str, failures: list[dict[s
     return "\n".join(lines) + "\n"
 
 
+
+def _bin_centre(edges: np.ndarray, v: float) -> float:
+    """The centre of the bin of ``edges`` that holds v."""
+    k = int(np.searchsorted(edges, v, side="right"))
+    return float(np.mean([edges[max(k - 1, 0)], edges[min(k, len(edges) - 1)]]))
+
+
 def _plots(rows: list[dict[str, Any]], swept: list[str], out: Path) -> list[Path]:
     import matplotlib
 
@@ -99,15 +106,14 @@ def _plots(rows: list[dict[str, Any]], swept: list[str], out: Path) -> list[Path
     written = []
     laws = sorted({_law(r) for r in rows})
     for key in swept:
-        vals = [r.get(key) for r in rows]
-        if not vals or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in vals):
+        raw = [r.get(key) for r in rows]
+        if not raw or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in raw):
             continue
+        vals = [float(v) for v in raw if v is not None]
         distinct = sorted(set(vals))
         if len(distinct) > 8:  # a random key: 8 bins of equal counts
             edges = np.unique(np.quantile(vals, np.linspace(0, 1, 9)))
-            centre = {v: float(np.mean([edges[max(np.searchsorted(edges, v, side="right") - 1, 0)],
-                                        edges[min(np.searchsorted(edges, v, side="right"), len(edges) - 1)]]))
-                      for v in distinct}
+            centre = {v: _bin_centre(edges, v) for v in distinct}
         else:
             centre = {v: float(v) for v in distinct}
         fig, ax = plt.subplots(figsize=(6, 4))

@@ -100,7 +100,7 @@ def scene_for(spec: dict[str, Any], golden_dir: Path = HERE) -> dict[str, Any]:
     if spec["source"] == "bench":
         import dataclasses
 
-        from benchmarks import scenes
+        from qpctl.bench import scenes
 
         bench = getattr(scenes, spec["builder"])(spec["seed"], **spec.get("kwargs", {}))
         path = bench.path
@@ -136,7 +136,7 @@ def build_controller(frozen: dict[str, Any], label: str) -> Any:
         data = {**frozen["data"], "robot": {**frozen["data"]["robot"], **LATER_LIMITS_OFF},
                 "controller": {**frozen["data"]["controller"], **LATER_COSTS_OFF}}
         return Scenario.from_dict(data, source=frozen["source"]).build_controller(kind, solver)
-    if frozen["type"] == "bench":  # as benchmarks.scenes.BenchScene.controller() builds it
+    if frozen["type"] == "bench":  # as qpctl.bench.scenes.BenchScene.controller() builds it
         from qpctl import LawGains, Obstacle, WaypointPath
         from qpctl.controllers.factory import make_controller
         from qpctl.robot.model import load_robot

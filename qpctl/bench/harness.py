@@ -15,7 +15,7 @@ planar paper arm (the paper's scenario); ``planar`` — N seeded random planar s
 
 Then issue #10's targets, each with what was measured and met / missed. Writes ``results.json``
 (machine, load, seeds, every number), ``results.md`` (the tables) and PNG plots to the output
-folder; :func:`benchmarks.report.performance_section` turns ``results.json`` into the README's
+folder; :func:`qpctl.bench.report.performance_section` turns ``results.json`` into the README's
 "Performance" section. Timings are never asserted anywhere: they are measurements of this machine.
 """
 
@@ -31,18 +31,20 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks import report
-from benchmarks.scenes import BenchScene, canopy_scene, free_scene, paper_scene, planar_scene, spheres_scene
-from benchmarks.suites import (
+from qpctl.bench import report
+from qpctl.bench.scenes import BenchScene, canopy_scene, free_scene, paper_scene, planar_scene, spheres_scene
+from qpctl.bench.suites import (
+    HARVEST_SCENARIO,
     REACH_TOLERANCE,
     ClosedLoop,
     ControllerSpec,
     closed_loop,
     controller_specs,
+    harvest_tick_cost,
     same_ticks,
     scaling,
 )
-from benchmarks.timing import BREAKDOWN, FLOOR, STAGES, TickTimes, breakdown, summary
+from qpctl.bench.timing import BREAKDOWN, FLOOR, STAGES, TickTimes, breakdown, summary
 from qpctl.run import simulate
 from qpctl.scenario import Scenario
 from qpctl.solvers import available_solvers
@@ -235,7 +237,8 @@ def _targets(res: dict[str, Any]) -> list[dict[str, Any]]:
     def add(key: str, target: str, limit: float, value: float | None, measured: str, unit: str) -> None:
         ok = value is not None and bool(np.isfinite(value))
         rows.append({"key": key, "target": target, "limit": limit, "unit": unit, "value": value if ok else None,
-                     "measured": measured if ok else "not measured", "met": bool(value <= limit) if ok else None})
+                     "measured": measured if ok else "not measured",
+                     "met": bool(value <= limit) if value is not None and ok else None})
 
     def us(group: str, label: str, stat: str = "median") -> float | None:
         c = ctrl(group, label)
@@ -369,15 +372,13 @@ def run(cfg: BenchConfig, out: Path, *, command: str = "qpctl bench") -> dict[st
     # 4. the harvesting task's tick (issue 11): approach task + self rows against the position task
     harvest_res: dict[str, Any] = {}
     if cfg.harvest:
-        from benchmarks import harvest
-
         for _ in _progress([0], "harvest tick", cfg.progress):
-            scen = harvest.scenario("approach")
+            scen = Scenario.load(HARVEST_SCENARIO)
             if cfg.max_ticks:  # cut as every other run
                 sim = scen.data["sim"]
                 scen = Scenario.from_dict({**scen.data, "sim": {**sim, "duration": cfg.max_ticks * sim["dt"]}},
                                           source=scen.source)
-            harvest_res = {"scenario": harvest.SCENARIO, **harvest.tick_cost(simulate(scen, kind="qp"))}
+            harvest_res = {"scenario": HARVEST_SCENARIO, **harvest_tick_cost(simulate(scen, kind="qp"))}
 
     res: dict[str, Any] = {
         "command": command,

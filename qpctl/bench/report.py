@@ -1,9 +1,9 @@
 """What a benchmark run writes: the machine block, ``results.md`` (Markdown tables) and the plots.
 
-``results.json`` is the dictionary built by :func:`benchmarks.harness.run`; this module formats it.
+``results.json`` is the dictionary built by :func:`qpctl.bench.harness.run`; this module formats it.
 :func:`performance_section` is the README's "## Performance" section, from a ``results.json``:
 
-    python -m benchmarks.report results/bench/results.json [--demo-wall-s SECONDS]
+    python -m qpctl.bench.report results/bench/results.json [--demo-wall-s SECONDS]
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ PACKAGES = ("numpy", "numba", "pin", "python-fcl", "qpsolvers", "proxsuite", "os
 
 #: Targets of issue #10 (wall-clock tick times [µs] on the same recorded ticks, controllers interleaved;
 #: checked for the default QP, daqp, and the paper law): the limit of each, see
-#: :func:`benchmarks.harness._targets`.
+#: :func:`qpctl.bench.harness._targets`.
 TARGETS = {
     "spheres_qp_median_us": 30.0,  # Panda + 10 spheres, QP median
     "spheres_qp_p99_us": 80.0,  # Panda + 10 spheres, QP p99
@@ -60,7 +60,7 @@ def machine() -> dict[str, Any]:
         try:
             versions[name] = importlib.metadata.version(name)
         except importlib.metadata.PackageNotFoundError:
-            versions[name] = None
+            versions[name] = None  # type: ignore[assignment]  # not installed: null in results.json
     return {
         "cpu": cpu_model(),
         "cores": os.cpu_count(),
@@ -78,7 +78,7 @@ def load_average() -> list[float] | None:
 
 
 # -- Markdown -------------------------------------------------------------------------------------
-#: Per-tick breakdown columns (benchmarks.timing.BREAKDOWN), repeated here so that formatting a
+#: Per-tick breakdown columns (qpctl.bench.timing.BREAKDOWN), repeated here so that formatting a
 #: results.json needs no import of the library.
 BREAKDOWN = (("pinocchio_us", "Pinocchio"), ("state_kernel_us", "state kernel"), ("law_rows_us", "law + rows"),
              ("solve_us", "solve"), ("other_us", "other"))
@@ -391,7 +391,7 @@ def write_plots(res: dict[str, Any], times: dict[str, Any], out: Path) -> list[P
     return written
 
 
-if __name__ == "__main__":  # python -m benchmarks.report results/bench/results.json [--demo-wall-s S]
+if __name__ == "__main__":  # python -m qpctl.bench.report results/bench/results.json [--demo-wall-s S]
     import argparse
     import json
 

@@ -1,6 +1,6 @@
 """The paper reproduction: run the paper scenario for every law, sweep v_ref, judge the three claims.
 
-    python -m qpctl.reproduce --out results/paper          (what ``make demo`` runs)
+    python -m reproduction --out results/paper          (what ``make demo`` runs)
 
 Runs, each into its own sub-folder of ``--out`` with the standard outputs of ``qpctl simulate``
 (``trajectory.npz``, ``metrics.json``, figures):
@@ -574,7 +574,7 @@ def make_figures(t: Tables, scenario: str | Path, overrides: Sequence[str], out:
 
 # -- command line ---------------------------------------------------------------------------------
 def main(argv: Sequence[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m qpctl.reproduce", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m reproduction", description=__doc__.splitlines()[0])
     p.add_argument("--out", default="results/paper", help="output folder (default results/paper)")
     p.add_argument("--scenario", default="paper", help="scenario file or packaged name (default paper)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
@@ -588,7 +588,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     out = Path(args.out)
-    command = "python -m qpctl.reproduce " + " ".join(sys.argv[1:] if argv is None else argv)
+    command = "python -m reproduction " + " ".join(sys.argv[1:] if argv is None else argv)
     try:
         base = Scenario.load(args.scenario, args.set)
         notes = []
@@ -621,7 +621,7 @@ def main(argv: Sequence[str] | None = None) -> int:
               "metrics": r.metrics} for r in runs],
             indent=2) + "\n")
     except QpctlError as exc:
-        print(f"qpctl.reproduce: error: {exc}", file=sys.stderr)
+        print(f"reproduction: error: {exc}", file=sys.stderr)
         return 2
     print(f"{len(runs)} runs in {time.perf_counter() - t0:.0f} s -> {out / 'report.md'}")
     for v in verdicts(tables):

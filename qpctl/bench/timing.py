@@ -118,7 +118,8 @@ class TickTimes:
     def concatenate(parts: Iterable[TickTimes]) -> TickTimes:
         parts = list(parts)
         stages = {s: np.concatenate([p.stages[s] for p in parts]) for s in STAGES}
-        return TickTimes(*(np.concatenate([getattr(p, f) for p in parts]) for f in ("wall", "cpu")), stages,
+        wall, cpu = (np.concatenate([getattr(p, f) for p in parts]) for f in ("wall", "cpu"))
+        return TickTimes(wall, cpu, stages,
                          *(np.concatenate([getattr(p, f) for p in parts])
                            for f in ("pairs", "iterations", "faults", "cold")))
 

@@ -4,7 +4,7 @@
   success (reached the target, no collision), tracking error, peak torque and torque rate, least
   clearance, compute time per tick by stage.
 * :func:`same_ticks` — every controller, and the floor (``pin.computeAllTerms`` alone), timed on the
-  states of one closed-loop run (:mod:`benchmarks.timing`).
+  states of one closed-loop run (:mod:`qpctl.bench.timing`).
 * :func:`scaling` — the canopy scene tiled to more obstacles (the uniform-grid broad phase on), timed
   on the same states.
 """
@@ -17,8 +17,8 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.scenes import BenchScene, orchard_scene
-from benchmarks.timing import (
+from qpctl.bench.scenes import BenchScene, orchard_scene
+from qpctl.bench.timing import (
     FLOOR,
     STAGES,
     PinocchioFloor,
@@ -28,6 +28,7 @@ from benchmarks.timing import (
     time_on_states,
 )
 from qpctl.errors import QpctlError
+from qpctl.scenario import Scenario
 from qpctl.simulation.metrics import compute_metrics
 from qpctl.simulation.simulator import Simulator
 
@@ -131,3 +132,28 @@ def scaling(scene: BenchScene, counts: Sequence[int], specs: Sequence[Controller
     for (count, label) in controllers:
         out[count][label] = flat[f"{count}|{label}"]
     return out
+
+
+#: The harvesting scenario whose tick :func:`harvest_tick_cost` measures.
+HARVEST_SCENARIO = "panda_harvest"
+
+
+def harvest_tick_cost(run: Any, stride: int = 2) -> dict[str, float]:
+    """``panda_harvest``'s approach task with self-collision rows against the position task without
+    them (issue 11's tick target; ``make harvest`` and ``qpctl bench``): both QP controllers stepped on the same recorded states of ``run`` (every ``stride``-th tick, in order,
+    alternating which goes first), medians of their own compute times [µs] and the ratio."""
+    raw = Scenario.load(HARVEST_SCENARIO).data
+    position = {**raw, "path": {k: v for k, v in raw["path"].items() if k != "approach"},
+                "controller": {**raw["controller"], "task": "position", "self_collision": False}}
+    ctrl_a = Scenario.load(HARVEST_SCENARIO).build_controller("qp")
+    ctrl_p = Scenario.from_dict(position, source="position task").build_controller("qp")
+    traj = run.trajectory
+    times: dict[str, list[float]] = {"approach": [], "position": []}
+    for c in (ctrl_a, ctrl_p):
+        c.warmup()
+    for i, k in enumerate(range(0, len(traj.t), stride)):
+        pair = [("approach", ctrl_a), ("position", ctrl_p)]
+        for name, c in pair if i % 2 == 0 else pair[::-1]:
+            times[name].append(c.step(traj.q[k], traj.v[k], float(traj.t[k])).compute_us)
+    a, p = float(np.median(times["approach"])), float(np.median(times["position"]))
+    return {"approach_us": a, "position_us": p, "ratio": a / p, "ticks": len(times["approach"])}
