@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml
 
 env: $(STAMP)
 
-# The paper reproduction: tables and figures into results/paper and README-ready Markdown.
+# The paper reproduction: tables and figures into results/paper and Markdown for docs/paper.md.
 demo: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m reproduction --out results/paper
 
@@ -27,7 +27,7 @@ test: $(STAMP)
 soak: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m pytest -q -m slow -p no:cacheprovider
 
-# Every fault kind at three levels, paper / hsu / qp on 22 seeded scenes (README: Faults and robustness).
+# Every fault kind at three levels, paper / hsu / qp on 22 seeded scenes (docs/reliability.md, "Faults and robustness").
 robust: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks.robustness --out results/robust
 
@@ -37,16 +37,16 @@ bench: $(STAMP)
 bench-quick: $(STAMP)
 	MPLBACKEND=Agg $(VENV)/bin/qpctl bench --quick --out results/bench-quick
 
-# The harvesting scenario under every law, approach and pose tasks: results/harvest/harvest.md (README, "Harvesting").
+# The harvesting scenario under every law, approach and pose tasks: results/harvest/harvest.md (docs/harvesting.md).
 harvest: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks.harvest --out results/harvest
 
-# Built-in / MuJoCo / PyBullet side by side: results/simulators/simulators.md (README, "Other simulators").
+# Built-in / MuJoCo / PyBullet side by side: results/simulators/simulators.md (docs/simulators.md, "Other simulators").
 simulators: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks.simulators --out results/simulators
 
-# Sweeps (README: Sweeps). The packaged canopy_small (40 runs) and canopy_1k (1,000 runs) specs; rerunning
-# a target resumes the sweep in its folder. sweep-throughput makes the README's runs/min table.
+# Sweeps (docs/sweeps.md). The packaged canopy_small (40 runs) and canopy_1k (1,000 runs) specs; rerunning
+# a target resumes the sweep in its folder. sweep-throughput makes the runs/min table of docs/sweeps.md.
 sweep-small: $(STAMP)
 	MPLBACKEND=Agg $(VENV)/bin/qpctl sweep canopy_small --out results/sweep-canopy_small
 

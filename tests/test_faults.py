@@ -379,7 +379,7 @@ def test_faults_refused_by_mujoco_and_reported_on_the_command_line(tmp_path):
 
 
 def test_the_readmes_faults_example_is_a_valid_table():
-    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    readme = (Path(__file__).resolve().parents[1] / "docs" / "reliability.md").read_text()  # Faults and robustness
     block = next(b for b in re.findall(r"```toml\n(.*?)```", readme, flags=re.DOTALL) if b.startswith("[faults]"))
     raw = tomllib.loads(block)
     scen = Scenario.from_dict({**tomllib.loads((Path(__file__).resolve().parents[1] / "qpctl" / "scenarios"
