@@ -5,7 +5,7 @@
 Runs ``panda_harvest`` (the Panda, three fruits each with its own approach direction, a canopy) with
 ``paper``, ``hsu`` and ``qp`` on two tasks: the scenario's own ``approach`` task (position and the
 approach axis, 5 rows: 2 degrees of redundancy left) and a ``pose`` task (the whole orientation
-along the same rotations, 6 rows: 1 left). Writes ``harvest.md`` (the README's table),
+along the same rotations, 6 rows: 1 left). Writes ``harvest.md`` (the table of docs/harvesting.md),
 ``harvest.json`` and ``harvest.png`` (the approach-axis angle and the clearances over time).
 
 Measured per run, from ``trajectory.npz``'s arrays, at each fruit: the largest position error [mm]

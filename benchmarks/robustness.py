@@ -20,7 +20,7 @@ Phases, each spread over ``--jobs`` processes by the sweep engine with a progres
    than :data:`D_SAFE_TOLERANCE`), ``qp`` with the margins of :data:`MARGINS` [m] in increasing order
    until one restores d_safe on every scene (the smallest that does is reported).
 
-Writes ``results.json`` (every run) and ``robust.md`` (the README's tables) to ``--out``.
+Writes ``results.json`` (every run) and ``robust.md`` (the tables of docs/reliability.md) to ``--out``.
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ simulator: the largest |Δq| [rad] and |Δx| [m] over the run against the built-
 the built-in run with the simulator's own integrator, the closed-loop outcome (min clearance [m],
 max and rms tracking error [m], collided), and the simulator's own cost per tick [µs]: read the
 state, apply a torque, step — timed by replaying the run's recorded torques open-loop, so the
-controller's time is not in it. Writes ``simulators.md`` (the README's table) and ``simulators.json``.
+controller's time is not in it. Writes ``simulators.md`` (the table of docs/simulators.md) and ``simulators.json``.
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ The first ``--runs`` runs of ``--spec`` (default: 100 runs of ``canopy_1k``, 1.5
 every law) are swept three times into fresh folders: local backend with 1 worker, with 2 workers, and
 a local Ray instance with 2 CPUs. Each wall time includes starting the workers (the Ray instance's
 ``ray.init`` is timed apart and also shown included). Writes ``throughput.json`` and
-``throughput.md`` (the README's "Sweeps" table and its 10⁵-run projection) into ``--out``.
+``throughput.md`` (the throughput table of docs/sweeps.md and its 10⁵-run projection) into ``--out``.
 Timings are measurements of this machine at this load (the load average is recorded), never asserted.
 """
 

@@ -171,3 +171,23 @@ def test_daqp_native_hard_first_at_a_singular_configuration():
         np.testing.assert_allclose(a.tau, b.tau, rtol=0, atol=1e-6 * scale, err_msg=str(k))
         refused += a.info.get("hard_status") == "inaccurate"
     assert refused >= 1
+
+
+def test_hard_first_path_follows_a_swapped_solver():
+    """The hard-first path is looked up once per workspace; swapping the solver (set_solver) or the
+    constraints (a new workspace) looks it up again: ticks after set_solver("proxqp") are proxqp's,
+    and after swapping back DAQP's hard QP is used again."""
+    scene = planar_scene(3)
+    ctrl = scene.controller("qp", "daqp")
+    q, v = scene.q0, np.zeros(3)
+    assert ctrl.step(q, v, 0.01).info["solver"] == "daqp" and ctrl._hf is not None
+    ctrl.set_solver("proxqp")
+    assert ctrl.step(q, v, 0.02).info["solver"] == "proxqp"
+    ctrl.set_solver("daqp")
+    out = ctrl.step(q, v, 0.03)
+    assert out.info["solver"] == "daqp" and not out.info.get("relaxed") and ctrl._hf is not None
+    old = ctrl.workspace()
+    ctrl.remove_constraint("self_collision")  # a new workspace: looked up again
+    out = ctrl.step(q, v, 0.04)
+    assert ctrl.workspace() is not old and ctrl._hf_ws is ctrl.workspace() and ctrl._hf is not None
+    assert out.info["solver"] == "daqp" and not out.info.get("relaxed")

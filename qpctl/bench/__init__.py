@@ -6,7 +6,7 @@ with ``qpctl sweep``.
 * :mod:`qpctl.bench.timing` — tick times on recorded states, the floor (``pin.computeAllTerms``);
 * :mod:`qpctl.bench.suites` — closed loop, same ticks, scaling;
 * :mod:`qpctl.bench.harness` — a whole run (``qpctl bench [--quick]``) into ``results.json``;
-* :mod:`qpctl.bench.report` — its Markdown and plots, and the README's Performance section.
+* :mod:`qpctl.bench.report` — its Markdown and plots, and the Performance page (docs/performance.md).
 
 The studies built on them (harvesting, robustness, latency, profiles, simulators, sweep throughput)
 are applications in the top-level ``benchmarks/`` folder.

@@ -15,7 +15,7 @@ planar paper arm (the paper's scenario); ``planar`` — N seeded random planar s
 
 Then issue #10's targets, each with what was measured and met / missed. Writes ``results.json``
 (machine, load, seeds, every number), ``results.md`` (the tables) and PNG plots to the output
-folder; :func:`qpctl.bench.report.performance_section` turns ``results.json`` into the README's
+folder; :func:`qpctl.bench.report.performance_section` turns ``results.json`` into docs/performance.md's
 "Performance" section. Timings are never asserted anywhere: they are measurements of this machine.
 """
 

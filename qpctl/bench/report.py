@@ -1,7 +1,7 @@
 """What a benchmark run writes: the machine block, ``results.md`` (Markdown tables) and the plots.
 
 ``results.json`` is the dictionary built by :func:`qpctl.bench.harness.run`; this module formats it.
-:func:`performance_section` is the README's "## Performance" section, from a ``results.json``:
+:func:`performance_section` is docs/performance.md's "## Performance" section, from a ``results.json``:
 
     python -m qpctl.bench.report results/bench/results.json [--demo-wall-s SECONDS]
 """
@@ -261,7 +261,7 @@ def markdown(res: dict[str, Any]) -> str:
 
 
 def performance_section(res: dict[str, Any], *, demo_wall_s: float | None = None) -> str:
-    """The README's "## Performance" section (without its heading) from a ``results.json``: how it was
+    """docs/performance.md's "## Performance" section (without its heading) from a ``results.json``: how it was
     measured (command, machine, load, wall times), the per-stage table of the four target scenes, the
     targets, the scaling table, and the plots. ``demo_wall_s``: ``make demo``'s wall time, if known."""
     cfg = res["config"]
@@ -395,7 +395,7 @@ if __name__ == "__main__":  # python -m qpctl.bench.report results/bench/results
     import argparse
     import json
 
-    ap = argparse.ArgumentParser(description="the README's Performance section from a results.json")
+    ap = argparse.ArgumentParser(description="docs/performance.md's Performance section from a results.json")
     ap.add_argument("results")
     ap.add_argument("--demo-wall-s", type=float, default=None, help="`make demo`'s wall time [s], if known")
     args = ap.parse_args()

@@ -295,6 +295,8 @@ class QPController(Controller):
         self._tick_start: float | None = None
         self._hard_first = self.relaxation == "on_failure"
         self._try_hard = True  # the native hard-first path: try the hard QP this tick (_step_hard_first)
+        self._hf_ws: Workspace | None = None  # the workspace _hf was found for (_hard_first_args)
+        self._hf: tuple[Any, Any, tuple[Any, ...], float] | None = None
         self._build_s = 0.0  # its set-up path's build time [s]
         if tasks is None:
             tasks = [AccelerationTask(), EndEffectorTask(cfg.slack_l1, cfg.slack_l2, cfg.task_weights)]
@@ -369,6 +371,7 @@ class QPController(Controller):
         self._solver_soft = make_solver(name, settings)
         self.config.solver = name
         self._hard_first = self.relaxation == "on_failure"
+        self._hf_ws = self._hf = None  # the native hard-first path is looked up again
 
     def reset(self) -> None:
         super().reset()
@@ -458,8 +461,10 @@ class QPController(Controller):
         q, v, t = fast_state(q, v, t, self.n)
         budget = self.config.tick_budget_us
         deadline = start + budget * 1e-6 if budget > 0 else math.inf
-        if budget <= 0 and self._native_hard_first(ws):
-            return self._step_hard_first(ws, q, v, t, start)
+        if budget <= 0:
+            hf = self._hf if self._hf_ws is ws else self._hard_first_args(ws)
+            if hf is not None:
+                return self._step_hard_first(ws, hf, q, v, t, start)
         hard_first = self._hard_first
         buf = ws.hard if hard_first else ws.relaxed
         assert buf is not None  # the compiled path's layouts (workspace() built them)
@@ -514,25 +519,36 @@ class QPController(Controller):
         hard, soft = cast(DAQPSolver, self._solver), cast(DAQPSolver, self._solver_soft)
         return hard.native(ws.hard) is not None and soft.native(ws.relaxed) is not None
 
-    def _step_hard_first(self, ws: Workspace, q: np.ndarray, v: np.ndarray, t: float, start: float) -> QPOutput:
+    def _hard_first_args(self, ws: Workspace) -> tuple[Any, Any, tuple[Any, ...], float] | None:
+        """(the hard and relaxed QPs' native DAQP, the kernel's arguments after the state, ℓ₁) for this
+        workspace when :meth:`_native_hard_first` holds, else None; kept until the workspace changes
+        (the per-tick path reads it instead of looking the solvers up again)."""
+        hf = None
+        if self._native_hard_first(ws):
+            assert ws.spec is not None and ws.hard is not None and ws.relaxed is not None
+            nat_h = cast(DAQPSolver, self._solver).native(ws.hard)
+            nat_r = cast(DAQPSolver, self._solver_soft).native(ws.relaxed)
+            assert nat_h is not None and nat_r is not None
+            l1 = float(ws.spec.slack_l1)
+            hf = (nat_h, nat_r, (*nat_h.kernel_args, nat_h.lam, *nat_r.kernel_args, SOLUTION_RTOL, l1), l1)
+        self._hf_ws, self._hf = ws, hf
+        return hf
+
+    def _step_hard_first(self, ws: Workspace, hf: tuple[Any, Any, tuple[Any, ...], float], q: np.ndarray,
+                         v: np.ndarray, t: float, start: float) -> QPOutput:
         """:meth:`step` on the native hard-first path (:meth:`_native_hard_first`): one kernel call
         when both DAQP workspaces are set up, else the same steps with the set-up in between. The
         hard QP is skipped on the ticks after one where the task gave way (its slack non-zero)."""
-        assert ws.spec is not None and ws.hard is not None and ws.relaxed is not None
-        nat_h = cast(DAQPSolver, self._solver).native(ws.hard)
-        nat_r = cast(DAQPSolver, self._solver_soft).native(ws.relaxed)
-        assert nat_h is not None and nat_r is not None  # _native_hard_first said so
-        l1, try_hard = float(ws.spec.slack_l1), self._try_hard
+        nat_h, nat_r, args, l1 = hf
+        try_hard = self._try_hard
         if ws.fast and nat_h.ready and nat_r.ready:
             t0 = time.perf_counter()
             pin.computeAllTerms(ws.model, ws.data, q, v)
             t1 = time.perf_counter()
-            code, hard = K.tick_qp_native_hard_first(ws.work, q, v, t, *nat_h.kernel_args, nat_h.lam,
-                                                     *nat_r.kernel_args, SOLUTION_RTOL, l1, try_hard)
+            code, hard = K.tick_qp_native_hard_first(ws.work, q, v, t, *args, try_hard)
             if code == K.STATE_PYTHON:
                 ws.finish_state(q, v, t)
-                code, hard = K.qp_tick_native_hard_first(ws.work, *nat_h.kernel_args, nat_h.lam, *nat_r.kernel_args,
-                                                         SOLUTION_RTOL, l1, try_hard)
+                code, hard = K.qp_tick_native_hard_first(ws.work, *args, try_hard)
             if code < 0:
                 self._bad_state(q, v, t)
             stages = (t1 - t0, -1.0, -1.0, -1.0)
@@ -557,6 +573,7 @@ class QPController(Controller):
                 extra["hard_status"] = {4: "inaccurate", 7: "penalty_inexact"}.get(
                     hard, DAQP_STATUS.get(int(nat_h.flag[0]), f"exitflag {int(nat_h.flag[0])}"))
         buf = ws.hard if used_hard else ws.relaxed
+        assert buf is not None  # both layouts exist on this path (_native_hard_first)
         self._last_problem = buf.problem
         ok = code == 0
         self._try_hard = used_hard or (ok and ws.rec[ws.layout.scalars + K.R_SLACK] <= 1e-12)
