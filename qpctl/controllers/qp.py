@@ -703,16 +703,19 @@ class QPController(Controller):
         return (0 if x is not None else 3), status, iters
 
     def _native_outcome(self, code: int, nat: Any, solver: QPSolver) -> tuple[int, str, int]:
-        """(code, status, iterations) of a native DAQP tick (see :meth:`_solve_layout`); a failed solve
-        frees DAQP's workspace, so the next tick starts cold rather than from a failed working set."""
+        """(code, status, iterations) of a native DAQP tick (see :meth:`_solve_layout`); a failed or
+        rejected solve frees DAQP's workspace, so the next tick starts cold rather than from a failed
+        working set (warm-started from one, DAQP was seen to report "solved" with the rows broken on
+        every later tick of an infeasible stretch, where a cold start reports it infeasible)."""
         iters = int(nat.flag[1])
         if code == 0:
             self._last = (nat.x, "solved", iters, solver.name)
             return 0, "solved", iters
         if code in (1, 2):
             status = "nonfinite_problem"
-        elif code == 4:
+        elif code == 4:  # DAQP said solved, the answer breaks a hard row: its working set is no warm start
             status = "inaccurate" if np.isfinite(nat.x).all() else "nonfinite_solution"
+            nat.free()
         else:
             status = DAQP_STATUS.get(int(nat.flag[0]), f"exitflag {int(nat.flag[0])}")
             nat.free()
