@@ -150,9 +150,15 @@ def design(v: float, a: float, j: float, d_safe: float, dt: float) -> BarrierDes
     if not (math.isfinite(omega) and omega > 0):
         raise ConfigError("barrier_design = \"drives\" needs finite torque or torque-rate limits with room above "
                           "gravity (robot.tau_max, robot.tau_rate_max)", key="controller.barrier_design")
-    lead = v * a / j if math.isfinite(a) and math.isfinite(j) else 0.0
-    return BarrierDesign(omega * omega, 2 * omega, d_safe + 2 * v / omega + lead + v * dt, omega, v, a, j,
+    return BarrierDesign(omega * omega, 2 * omega, _influence(v, a, j, omega, d_safe, dt), omega, v, a, j,
                          "deceleration" if w_a <= w_j else "jerk")
+
+
+def _influence(v: float, a: float, j: float, omega: float, d_safe: float, dt: float) -> float:
+    """The influence distance [m] for approach speed v at ω: d_safe, the entry without a jump (2v/ω),
+    the lead for a link entering while accelerating (v·a/j, none without both limits), one period."""
+    lead = v * a / j if math.isfinite(a) and math.isfinite(j) else 0.0
+    return d_safe + 2 * v / omega + lead + v * dt
 
 
 def design_for(robot: Any, q0: np.ndarray, v: float, d_safe: float, dt: float, *,
@@ -165,8 +171,7 @@ def design_for(robot: Any, q0: np.ndarray, v: float, d_safe: float, dt: float, *
     designs = [design(vv, a, j, d_safe, dt) for vv, a, j in means]
     worst = min(designs, key=lambda d: d.omega)
     w = worst.omega
-    d_inf = max(d_safe + 2 * vv / w + (vv * a / j if math.isfinite(a) and math.isfinite(j) else 0.0) + vv * dt
-                for vv, a, j in means)
+    d_inf = max(_influence(vv, a, j, w, d_safe, dt) for vv, a, j in means)
     return BarrierDesign(w * w, 2 * w, d_inf, w, worst.approach_speed, worst.deceleration, worst.jerk,
                          worst.limited_by)
 

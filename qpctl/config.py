@@ -192,9 +192,9 @@ def check_fields(obj: Any, section: str) -> None:
             names = f"{', '.join(choices[:-1])} or {choices[-1]}" if len(choices) > 1 else choices[0]
             raise ConfigError(f"must be {names}, got {getattr(obj, f.name)!r}", key=f"{section}.{f.name}")
         rule = f.metadata.get("valid")
-        if rule is None:
+        val = getattr(obj, f.name)
+        if rule is None or val == "auto":  # a number-or-"auto" key: the rule is on the number
             continue
         ok, what = RULES[rule]
-        val = getattr(obj, f.name)
         if isinstance(val, bool) or not isinstance(val, (int, float)) or not ok(val):
             raise ConfigError(f"must be {what}, got {val!r}", key=f"{section}.{f.name}")

@@ -501,21 +501,18 @@ class Scenario:
     def d_safe_margin(self, robot: RobotModel | None = None) -> float:
         """The margin [m] the controllers add to d_safe (``controller.d_safe_margin``; ``"auto"``: the one
         :meth:`Faults.margin` derives from ``[faults]``'s noise levels, 0 without faults)."""
-        margin = self.data["controller"]["d_safe_margin"]
+        margin = self.data["controller"]["d_safe_margin"]  # ≥ 0 or "auto" (ControllerConfig's rule)
         if margin != "auto":
-            if not (np.isfinite(margin) and margin >= 0):
-                raise self._err("controller.d_safe_margin", f'must be a number >= 0 [m] or "auto", got {margin}')
             return float(margin)
         faults = self.faults()
         return faults.margin(robot if robot is not None else self.build_robot()) if faults.active else 0.0
 
-    def barrier_design(self, robot: RobotModel | None = None) -> BarrierDesign | None:
+    def barrier_design(self, robot: RobotModel | None = None, *, margin: float | None = None) -> BarrierDesign | None:
         """The barrier gains and influence distance derived from the robot's drives
         (``controller.barrier_design = "drives"``, :mod:`qpctl.barrier_design`), or None ("manual": the
-        scenario's ``barrier_k0``, ``barrier_k1`` and ``d_influence`` as written)."""
-        c = self.data["controller"]
-        if c["barrier_design"] not in ("manual", "drives"):
-            raise self._err("controller.barrier_design", f'must be "manual" or "drives", got {c["barrier_design"]!r}')
+        scenario's ``barrier_k0``, ``barrier_k1`` and ``d_influence`` as written). ``margin``: the
+        d_safe margin when the caller has it (:meth:`d_safe_margin`)."""
+        c = self.data["controller"]  # barrier_design and approach_speed checked by ControllerConfig
         if c["barrier_design"] == "manual":
             return None
         robot = robot if robot is not None else self.build_robot()
@@ -523,19 +520,20 @@ class Scenario:
         v = c["approach_speed"]
         if v == "auto":
             v = auto_approach_speed(self.build_path(robot, q0), self.build_obstacles())
-        elif not (np.isfinite(v) and v > 0):
-            raise self._err("controller.approach_speed", f'must be a number > 0 [m/s] or "auto", got {v}')
+        margin = self.d_safe_margin(robot) if margin is None else margin
         try:
-            return design_for(robot, q0, float(v), c["d_safe"] + self.d_safe_margin(robot), self.data["sim"]["dt"])
+            return design_for(robot, q0, float(v), c["d_safe"] + margin, self.data["sim"]["dt"])
         except ConfigError as exc:
             raise self._err(exc.key or "controller.barrier_design", exc.message) from None
 
     def gains(self, robot: RobotModel | None = None) -> LawGains:
         """The laws' gains, with d_safe raised by :meth:`d_safe_margin` (``controller.d_safe`` stays the
-        distance the run is judged by)."""
-        c = dict(self.data["controller"])
+        distance the run is judged by; ``d_influence`` the design's under ``barrier_design = "drives"``)."""
         margin = self.d_safe_margin(robot)
-        designed = self.barrier_design(robot)
+        return self._gains(margin, self.barrier_design(robot, margin=margin))
+
+    def _gains(self, margin: float, designed: BarrierDesign | None) -> LawGains:
+        c = dict(self.data["controller"])
         if designed is not None:
             c["d_influence"] = designed.d_influence
         if margin > 0 and not c["d_safe"] + margin < c["d_influence"]:
@@ -553,7 +551,8 @@ class Scenario:
         robot = robot or self.build_robot()
         q0 = self.q0(robot)
         c = dict(self.data["controller"])
-        designed = self.barrier_design(robot)
+        margin = self.d_safe_margin(robot)
+        designed = self.barrier_design(robot, margin=margin)  # once: the gains below take it too
         if designed is not None:
             c["barrier_k0"], c["barrier_k1"], c["d_influence"] = designed.k0, designed.k1, designed.d_influence
         if kind is not None:
@@ -563,5 +562,5 @@ class Scenario:
         controller_class(c["kind"], self.source)  # a ConfigError naming the registered kinds
         bp = {"auto": None, "on": True, "off": False}[c["broadphase"]]  # ControllerConfig's choices
         scene = self.build_obstacles() if obstacles is None else obstacles
-        return make_controller(c, robot, self.build_path(robot, q0), scene, self.gains(robot),
+        return make_controller(c, robot, self.build_path(robot, q0), scene, self._gains(margin, designed),
                                broadphase=bp, source=self.source)  # type: ignore[arg-type]

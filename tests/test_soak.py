@@ -28,6 +28,7 @@ import os
 import sys
 import time
 from collections import Counter
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -280,6 +281,33 @@ def new_stats() -> dict[str, Any]:
             "budget_overrun_gt_1ms": 0, "tick_us": [], "overruns": [], "independent_cases": []}
 
 
+def valid_scenes(rng: np.random.Generator, rejected: Counter[str],
+                 decorate: Callable[[dict[str, Any], int], None] | None = None
+                 ) -> Iterator[tuple[int, str, dict[str, Any]]]:
+    """The soak's scenes in draw order — scene k a Panda when k % 4 == 0, else planar — as (k, which,
+    raw) for those the scenario validation accepts (an obstacle drawn on top of the start pose is a
+    valid refusal) and whose start is clear of d_safe (valid, but then d_safe cannot be promised); the
+    others counted in ``rejected`` by key. ``decorate(raw, k)`` adds to a scene before validation."""
+    k = 0
+    while True:
+        k += 1
+        which = "panda" if k % 4 == 0 else "planar"
+        raw = panda_scene(rng, k) if which == "panda" else planar_scene(rng, k)
+        if decorate is not None:
+            decorate(raw, k)
+        try:
+            scen = Scenario.from_dict(raw, source=raw["name"])
+        except ConfigError as exc:
+            rejected[str(exc.key)] += 1
+            continue
+        robot = scen.build_robot()
+        start_clearance = Dynamics(robot, scen.build_obstacles()).compute(scen.q0(robot), np.zeros(robot.nv)).clearance
+        if start_clearance < raw["controller"]["d_safe"]:
+            rejected["start within d_safe"] += 1
+            continue
+        yield k, which, raw
+
+
 def run_scene(raw: dict[str, Any], kind: str, stats: dict[str, Any], exceptions: list[str],
               diverged: list[str]) -> dict[str, Any] | None:
     """Run one scene; a run whose state diverges (the simulator's SimulationError, or the controller's
@@ -339,21 +367,10 @@ def test_soak():
     scenes = {"planar": 0, "panda": 0}
     clearance: list[dict[str, Any]] = []
     start = time.time()
-    k = closed_runs = 0
+    closed_runs = 0
+    drawn = valid_scenes(rng, rejected)
     while qp["ticks"] < TARGET_QP_TICKS:
-        k += 1
-        which = "panda" if k % 4 == 0 else "planar"
-        raw = panda_scene(rng, k) if which == "panda" else planar_scene(rng, k)
-        try:
-            scen = Scenario.from_dict(raw, source=raw["name"])
-        except ConfigError as exc:  # e.g. an obstacle drawn on top of the start pose: a valid refusal
-            rejected[str(exc.key)] += 1
-            continue
-        robot = scen.build_robot()
-        start_clearance = Dynamics(robot, scen.build_obstacles()).compute(scen.q0(robot), np.zeros(robot.nv)).clearance
-        if start_clearance < raw["controller"]["d_safe"]:  # valid, but then d_safe cannot be promised
-            rejected["start within d_safe"] += 1
-            continue
+        k, which, raw = next(drawn)
         scenes[which] += 1
         faulthandler.dump_traceback_later(SCENE_WATCHDOG_S, exit=True, file=sys.stderr)
         try:
@@ -453,22 +470,14 @@ def test_soak_with_faults():
     runs: list[dict[str, Any]] = []
     scenes = {"planar": 0, "panda": 0}
     start = time.time()
-    k = closed_runs = 0
-    while qp["ticks"] < TARGET_QP_TICKS:
-        k += 1
-        which = "panda" if k % 4 == 0 else "planar"
-        raw = panda_scene(scene_rng, k) if which == "panda" else planar_scene(scene_rng, k)
+    closed_runs = 0
+
+    def with_faults(raw: dict[str, Any], k: int) -> None:
         raw["faults"] = random_faults(np.random.default_rng([SEED, 12, k]), raw, k)
-        try:
-            scen = Scenario.from_dict(raw, source=raw["name"])
-        except ConfigError as exc:
-            rejected[str(exc.key)] += 1
-            continue
-        robot = scen.build_robot()
-        start_clearance = Dynamics(robot, scen.build_obstacles()).compute(scen.q0(robot), np.zeros(robot.nv)).clearance
-        if start_clearance < raw["controller"]["d_safe"]:
-            rejected["start within d_safe"] += 1
-            continue
+
+    drawn = valid_scenes(scene_rng, rejected, with_faults)
+    while qp["ticks"] < TARGET_QP_TICKS:
+        k, which, raw = next(drawn)
         scenes[which] += 1
         faulthandler.dump_traceback_later(SCENE_WATCHDOG_S, exit=True, file=sys.stderr)
         try:
@@ -542,20 +551,13 @@ def test_soak_barrier_design():
     ``results/soak/summary_design.json`` (the README's "Reliability" numbers); the claims: no commanded
     torque change beyond the limit in either mode, and the designed barrier holds d_safe − 1 mm on at
     least as many scenes as the hand-drawn one."""
-    rng = np.random.default_rng(SEED)
     rows: list[dict[str, Any]] = []
     start = time.time()
-    for k in range(1, 121):
-        raw = panda_scene(rng, k) if k % 4 == 0 else planar_scene(rng, k)
-        try:
-            scen = Scenario.from_dict(raw, source=raw["name"])
-        except ConfigError:
-            continue
-        robot = scen.build_robot()
+    for k, _, raw in valid_scenes(np.random.default_rng(SEED), Counter()):
+        if k > 120:
+            break
+        robot = Scenario.from_dict(raw, source=raw["name"]).build_robot()
         if not np.isfinite(robot.tau_rate_max).any():
-            continue
-        if Dynamics(robot, scen.build_obstacles()).compute(scen.q0(robot), np.zeros(robot.nv)).clearance < \
-                raw["controller"]["d_safe"]:
             continue
         row: dict[str, Any] = {"name": raw["name"], "d_safe": raw["controller"]["d_safe"]}
         for mode in ("manual", "drives"):

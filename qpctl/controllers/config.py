@@ -34,9 +34,9 @@ class ControllerConfig:
     task: str = setting("position", choices=("position", "pose", "approach"))
     task_mask: list[float] | None = None
     approach_axis: list[float] = field(default_factory=lambda: [0.0, 0.0, 1.0])
-    barrier_design: str = "manual"
-    approach_speed: float | str = setting("auto", unit="m/s")
-    d_safe_margin: float | str = setting(0.0, unit="m")
+    barrier_design: str = setting("manual", choices=("manual", "drives"))
+    approach_speed: float | str = setting("auto", valid="positive", unit="m/s")
+    d_safe_margin: float | str = setting(0.0, valid="nonnegative", unit="m")
     broadphase: str = setting("auto", choices=("auto", "on", "off"))
 
     def __post_init__(self) -> None:

@@ -296,8 +296,7 @@ class QPController(Controller):
         self._hard_first = self.relaxation == "on_failure"
         self._try_hard = True  # the native hard-first path: try the hard QP this tick (_step_hard_first)
         self._hf_ws: Workspace | None = None  # the workspace _hf was found for (_hard_first_args)
-        self._hf: tuple[Any, Any, tuple[Any, ...], float] | None = None
-        self._build_s = 0.0  # its set-up path's build time [s]
+        self._hf: tuple[Any, Any, tuple[Any, ...]] | None = None
         if tasks is None:
             tasks = [AccelerationTask(), EndEffectorTask(cfg.slack_l1, cfg.slack_l2, cfg.task_weights)]
             if cfg.posture_weight > 0:
@@ -519,8 +518,8 @@ class QPController(Controller):
         hard, soft = cast(DAQPSolver, self._solver), cast(DAQPSolver, self._solver_soft)
         return hard.native(ws.hard) is not None and soft.native(ws.relaxed) is not None
 
-    def _hard_first_args(self, ws: Workspace) -> tuple[Any, Any, tuple[Any, ...], float] | None:
-        """(the hard and relaxed QPs' native DAQP, the kernel's arguments after the state, ℓ₁) for this
+    def _hard_first_args(self, ws: Workspace) -> tuple[Any, Any, tuple[Any, ...]] | None:
+        """(the hard and relaxed QPs' native DAQP, the kernel's arguments after the state) for this
         workspace when :meth:`_native_hard_first` holds, else None; kept until the workspace changes
         (the per-tick path reads it instead of looking the solvers up again)."""
         hf = None
@@ -529,19 +528,21 @@ class QPController(Controller):
             nat_h = cast(DAQPSolver, self._solver).native(ws.hard)
             nat_r = cast(DAQPSolver, self._solver_soft).native(ws.relaxed)
             assert nat_h is not None and nat_r is not None
-            l1 = float(ws.spec.slack_l1)
-            hf = (nat_h, nat_r, (*nat_h.kernel_args, nat_h.lam, *nat_r.kernel_args, SOLUTION_RTOL, l1), l1)
+            hf = (nat_h, nat_r, (*nat_h.kernel_args, nat_h.lam, *nat_r.kernel_args, SOLUTION_RTOL,
+                                 float(ws.spec.slack_l1)))
         self._hf_ws, self._hf = ws, hf
         return hf
 
-    def _step_hard_first(self, ws: Workspace, hf: tuple[Any, Any, tuple[Any, ...], float], q: np.ndarray,
+    def _step_hard_first(self, ws: Workspace, hf: tuple[Any, Any, tuple[Any, ...]], q: np.ndarray,
                          v: np.ndarray, t: float, start: float) -> QPOutput:
         """:meth:`step` on the native hard-first path (:meth:`_native_hard_first`): one kernel call
-        when both DAQP workspaces are set up, else the same steps with the set-up in between. The
-        hard QP is skipped on the ticks after one where the task gave way (its slack non-zero)."""
-        nat_h, nat_r, args, l1 = hf
+        (:func:`qpctl.kernels.tick.tick_qp_native_hard_first`) when both DAQP workspaces are set up and
+        the state needs no Python; else the state, the set-up (:meth:`_hard_first_setup`) and the same
+        kernel after it. The hard QP is skipped on the ticks after one where the task gave way (its
+        slack non-zero)."""
+        nat_h, nat_r, args = hf
         try_hard = self._try_hard
-        if ws.fast and nat_h.ready and nat_r.ready:
+        if ws.fast and nat_r.ready and (nat_h.ready or not try_hard):
             t0 = time.perf_counter()
             pin.computeAllTerms(ws.model, ws.data, q, v)
             t1 = time.perf_counter()
@@ -554,15 +555,17 @@ class QPController(Controller):
             stages = (t1 - t0, -1.0, -1.0, -1.0)
         else:
             self._state(q, v, t)
-            self._build_s = 0.0
-            t0 = time.perf_counter()
-            code, hard = self._hard_first_setup(ws, nat_h, nat_r, l1, try_hard)
-            total = time.perf_counter() - t0
-            stages = (ws.pin_s, ws.state_s, self._build_s, max(total - self._build_s, 1e-9))  # set-up in "solve"
+            code, hard_ready = self._hard_first_setup(ws, nat_h, nat_r, try_hard)
+            hard = -1
+            if code == 0:
+                code, hard = K.qp_tick_native_hard_first(ws.work, *args, try_hard and hard_ready)
+            if try_hard and not hard_ready:
+                hard = 3  # DAQP could not set the hard QP up (its exit flag in nat_h.flag)
+            stages = (ws.pin_s, ws.state_s, -1.0, -1.0)  # the set-up is in "other"
         if code == 1:
             raise InvalidStateError(f"the inertia matrix is not positive definite at q={q.tolist()}")
-        if hard == 3 and nat_h.flag[0] < 0:
-            nat_h.free()  # a failed working set is not a warm start: cold the next time it is tried
+        if hard in (3, 4):
+            nat_h.free()  # a failed or rejected working set is no warm start: cold the next time it is tried
         used_hard = hard == 0
         nat, solver = (nat_h, self._solver) if used_hard else (nat_r, self._solver_soft)
         code, status, iters = self._native_outcome(code, nat, solver)
@@ -584,48 +587,30 @@ class QPController(Controller):
         self.last = out
         return out
 
-    def _hard_first_setup(self, ws: Workspace, nat_h: Any, nat_r: Any, l1: float, try_hard: bool) -> tuple[int, int]:
-        """:func:`qpctl.kernels.tick.qp_tick_native_hard_first`'s steps with DAQP's workspaces set up
-        where they are not (the first ticks, and after a failure freed one); its (code, hard)."""
-        hard = -1
+    def _hard_first_setup(self, ws: Workspace, nat_h: Any, nat_r: Any, try_hard: bool) -> tuple[int, bool]:
+        """DAQP's workspaces set up where they are not (the first tick, and after a failure freed one):
+        each QP's arrays written from this tick's state, then DAQP's set-up on them. Returns (code,
+        whether the hard QP is ready): code as :meth:`_solve_layout`'s (0: both go to the kernel)."""
         hb, rb = ws.hard, ws.relaxed
         assert hb is not None and rb is not None
-        tb = time.perf_counter()
-        if try_hard:
+        terms_done = False
+        if try_hard and not nat_h.ready:
             code = K.qp_terms_and_build(ws.work, hb.H, hb.f, hb.rows, hb.bu, hb.bl)
-            self._build_s += time.perf_counter() - tb
             if code:
-                return code, hard
-            flag = 1 if nat_h.ready else nat_h.setup()
-            if flag < 0 or K.native_solve(*nat_h.addresses, nat_h.flag) <= 0:
-                if flag < 0:
-                    nat_h.flag[0] = flag
-                hard = 3
-            elif not K.task_rows_hold(nat_h.x, hb.rows, hb.bu, hb.n_in, hb.n_eq, SOLUTION_RTOL):
-                hard = 4
-            elif not K.penalty_exact(nat_h.lam, hb.nv + hb.n_in, hb.n_eq, l1):
-                hard = 7
-            elif not K.qp_finish(ws.work, nat_h.x, hb.rows, hb.bu, hb.bl, SOLUTION_RTOL):
-                hard = 4
-            else:
-                ws.rec[ws.layout.scalars + K.R_ITERATIONS] = nat_h.flag[1]
-                # set the relaxed QP's workspace up too, so that the next ticks take one call
-                if not nat_r.ready and K.qp_rebuild(ws.work, rb.H, rb.f, rb.rows, rb.bu, rb.bl) == 0:
-                    nat_r.setup()
-                return 0, 0
-            tb = time.perf_counter()
-            code = K.qp_rebuild(ws.work, rb.H, rb.f, rb.rows, rb.bu, rb.bl)
-        else:
-            code = K.qp_terms_and_build(ws.work, rb.H, rb.f, rb.rows, rb.bu, rb.bl)
-        self._build_s += time.perf_counter() - tb
-        if code:
-            return code, hard
-        flag = 1 if nat_r.ready else nat_r.setup()
-        if flag < 0:
-            nat_r.flag[0], nat_r.flag[1] = flag, 0
-            return 3, hard
-        return K.native_solve_finish(ws.work, rb.rows, rb.bu, rb.bl, *nat_r.addresses, nat_r.flag, nat_r.x,
-                                     SOLUTION_RTOL), hard
+                return code, False
+            terms_done = True
+            flag = nat_h.setup()
+            if flag < 0:
+                nat_h.flag[0] = flag
+        if not nat_r.ready:
+            code = (K.qp_rebuild if terms_done else K.qp_terms_and_build)(ws.work, rb.H, rb.f, rb.rows, rb.bu, rb.bl)
+            if code:
+                return code, nat_h.ready
+            flag = nat_r.setup()
+            if flag < 0:  # DAQP could not even set the relaxed QP up (its exit flag says why)
+                nat_r.flag[0], nat_r.flag[1] = flag, 0
+                return 3, nat_h.ready
+        return 0, nat_h.ready
 
     def _fast_native(self, ws: Workspace, solver: QPSolver, buf: QPBuffers) -> Any:
         """The native DAQP of ``buf`` when this tick can run as one kernel call (no tick budget; DAQP's

@@ -1420,14 +1420,9 @@ def qp_tick_native_hard_first(ws, Hh: np.ndarray, fh: np.ndarray, rowsh: np.ndar
     ws.rec[s + R_BUILD_US], ws.rec[s + R_SOLVE_US] = build, solve
     if code != 0:
         return code, hard
-    ok = native_solve(workr, problemr, resultr, flagr) > 0
-    ws.rec[s + R_SOLVE_US] = solve + now_us(ts) - t1
-    if not ok:
-        return 3, hard
-    if not qp_finish(ws, xr, rowsr, bur, blr, tol):
-        return 4, hard
-    ws.rec[s + R_ITERATIONS] = flagr[1]
-    return 0, hard
+    code = native_solve_finish(ws, rowsr, bur, blr, workr, problemr, resultr, flagr, xr, tol)
+    ws.rec[s + R_SOLVE_US] = solve + now_us(ts) - t1  # the solve and the check of its answer
+    return code, hard
 
 
 @njit(cache=True)
