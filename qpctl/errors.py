@@ -83,3 +83,10 @@ class InfeasibleError(SolverError):
 
 class SimulationError(QpctlError, RuntimeError):
     """The simulated state diverged (non-finite state) or the integrator cannot go on."""
+
+
+class PerceptionError(QpctlError, ValueError):
+    """A sensor's input cannot be used: a wrongly shaped depth image, labels or point cloud, missing
+    or invalid intrinsics, a camera pose that is not a rigid transform, a non-finite stamp, or stamps
+    going backwards (:mod:`qpctl.perception`). Invalid *pixels* (NaN, inf, zero or negative depth) are
+    not errors: they are dropped and counted."""

@@ -7,6 +7,12 @@ Shapes and sizes (all in metres) are the registered shapes of :mod:`qpctl.geomet
 * ``capsule`` / ``cylinder``: ``radius`` and ``length`` (of the axis), axis along ``axis``
   (a unit vector, default z — in the planar scenarios a z-axis cylinder is a disc in the plane).
 
+``material`` is ``"rigid"`` (stems, branches, trunk, wires: hard barrier rows, and the run's
+``min_clearance``) or ``"soft"`` (leaves: slack-penalised rows a link may pass no faster than the
+controller's ``soft_speed``). ``perceived = true`` puts the obstacle in the world only (the simulator,
+its clearance metrics and its simulated depth camera have it): the controller knows it only through
+the depth map (DESIGN.md §6), not as a primitive.
+
 ``v_ref`` [m/s] optionally overrides the controller's obstacle reference velocity for this obstacle
 (the paper's Fig. 4 sweeps area B's while area A's stays fixed).
 
@@ -26,7 +32,9 @@ import numpy as np
 from qpctl.errors import ConfigError
 from qpctl.geometry.shapes import SHAPES, Shape, shape_of
 
-__all__ = ["SHAPES", "Obstacle", "quaternion_z_to", "rotation_z_to"]
+__all__ = ["MATERIALS", "SHAPES", "Obstacle", "quaternion_z_to", "rotation_z_to"]
+
+MATERIALS = ("rigid", "soft")  # Obstacle.material
 
 
 def _vec3(value: Sequence[float] | np.ndarray, key: str) -> np.ndarray:
@@ -78,6 +86,8 @@ class Obstacle:
     frequency: float = 0.0
     name: str = ""
     v_ref: float | None = None  # [m/s] this obstacle's reference velocity (None: the controller's)
+    material: str = "rigid"  # "rigid" or "soft" (module docstring)
+    perceived: bool = False  # True: in the world only; the controller sees it through the depth map
 
     def __post_init__(self) -> None:
         key = f"obstacles.{self.name}" if self.name else "obstacles"
@@ -90,6 +100,8 @@ class Obstacle:
             raise ConfigError("axis must be non-zero", key=f"{key}.axis")
         if self.v_ref is not None and not (np.isfinite(self.v_ref) and self.v_ref >= 0):
             raise ConfigError(f"must be a number >= 0, got {self.v_ref}", key=f"{key}.v_ref")
+        if self.material not in MATERIALS:
+            raise ConfigError(f"must be {' or '.join(MATERIALS)}, got {self.material!r}", key=f"{key}.material")
         if not (np.isfinite(self.frequency) and self.frequency >= 0):
             raise ConfigError(f"must be >= 0, got {self.frequency}", key=f"{key}.frequency")
         kind.check(self, key)
