@@ -8,8 +8,8 @@ and what is done instead:
 * **Collision meshes.** Drake's parser refuses STL collision meshes ("MakeConvexHull only applies to
   .obj, .vtk, and .gltf"): every ``<collision>`` is dropped and qpctl's link capsules
   (``robot.capsules``, the shapes the controller keeps clear) are registered instead, for collision
-  and illustration. They never touch each other (filtered within the robot), and under
-  :class:`DrakeSimulator` they push nothing (all contact filtered out; the clearance is measured).
+  and illustration. They never touch each other (filtered within the robot); in a diagram of
+  your own they may touch your plant's other geometry.
 * **Visuals** stay where their meshes are on this machine: a ``package://NAME/`` URL resolves through
   ``ROS_PACKAGE_PATH`` or a folder NAME above the URDF (example-robot-data's layout); anything else is
   dropped with a note. Drake's remote ``drake_models`` package is removed from the parser's package map:
@@ -26,10 +26,12 @@ and what is done instead:
   Pinocchio's): joints are matched by name, each one's ``position_start``/``velocity_start`` and its
   actuator's slot against Pinocchio's ``idx_q``/``idx_v`` order (:class:`DrakeJoints`).
 
-**Obstacles** are Drake geometry of a source of their own (``qpctl_obstacles``): static ones anchored,
-moving ones on frames whose poses :class:`ObstaclePoses` computes from the context's time, with
-proximity and illustration roles — a Meshcat visualiser shows them, and Drake's own signed distance
-(SceneGraph's query) measures the run's clearance beside qpctl's.
+**Obstacles** (:func:`add_obstacles`) are Drake geometry of a source of their own (``qpctl_obstacles``):
+static ones anchored, moving ones on frames whose poses :class:`ObstaclePoses` computes from the
+context's time, with proximity and illustration roles — a Meshcat visualiser shows them — and their
+contact filtered out (Drake never pushes the arm, as no other simulator here does). In a second
+context where the capsule–obstacle pairs are allowed, Drake's own signed distance (SceneGraph's query)
+measures the run's clearance again beside qpctl's.
 
 **The simulation** (:class:`DrakeSimulator`, ``--sim drake``) steps a continuous ``MultibodyPlant``
 with Drake's ``SemiExplicitEulerIntegrator`` in fixed-step mode, one step of ``dt`` per control tick
@@ -82,6 +84,7 @@ try:
         GeometrySet,
         MakePhongIllustrationProperties,
         ProximityProperties,
+        Role,
         SceneGraph,
         Shape,
         Sphere,
@@ -319,7 +322,10 @@ class DrakeObstacles:
 def add_obstacles(builder: DiagramBuilder, scene_graph: SceneGraph, obstacles: Sequence[Obstacle]) -> DrakeObstacles:
     """Register ``obstacles`` in ``scene_graph`` under the source ``qpctl_obstacles``: anchored geometry
     for the static ones, frames posed by an :class:`ObstaclePoses` system (added and connected here)
-    for the moving ones; proximity and illustration roles."""
+    for the moving ones; proximity and illustration roles. They are ghosts — shown, measurable, never
+    in contact: a ``MultibodyPlant`` refuses contact with geometry it does not own, so their contact
+    with every proximity geometry registered so far is filtered out. Call it after :func:`add_robot`
+    (and your other models)."""
     source = scene_graph.RegisterSource("qpctl_obstacles")
     ids, frames = [], []
     for i, obs in enumerate(obstacles):
@@ -335,6 +341,11 @@ def add_obstacles(builder: DiagramBuilder, scene_graph: SceneGraph, obstacles: S
         instance.set_illustration_properties(MakePhongIllustrationProperties(OBSTACLE_RGBA))
         ids.append(scene_graph.RegisterGeometry(source, frame, instance) if obs.moving
                    else scene_graph.RegisterAnchoredGeometry(source, instance))
+    if ids:  # ghosts: a MultibodyPlant refuses contact with geometry it does not own
+        others = [g for g in scene_graph.model_inspector().GetAllGeometryIds(Role.kProximity) if g not in ids]
+        scene_graph.collision_filter_manager().Apply(
+            CollisionFilterDeclaration().ExcludeWithin(GeometrySet(ids)).ExcludeBetween(GeometrySet(ids),
+                                                                                          GeometrySet(others)))
     poses = None
     if frames:
         poses = builder.AddSystem(ObstaclePoses(frames))
@@ -552,17 +563,13 @@ class DrakeSimulator(SimulatorBase):
             self.simulator.get_mutable_integrator().set_fixed_step_mode(True)
         self._context = self.simulator.get_mutable_context()
         self._plant_context = plant.GetMyMutableContextFromRoot(self._context)
-        robot_ids = GeometrySet(self.robot_in_plant.capsule_ids)
-        obstacle_ids = GeometrySet(self.obstacle_geometry.ids)
-        everything = GeometrySet(self.robot_in_plant.capsule_ids + self.obstacle_geometry.ids)
-        scene_graph.collision_filter_manager(scene_graph.GetMyMutableContextFromRoot(self._context)).Apply(
-            CollisionFilterDeclaration().ExcludeWithin(everything))  # Drake never pushes the arm
         self._actuation = plant.get_actuation_input_port(instance).FixValue(self._plant_context,
                                                                             np.zeros(self.joints.nu))
-        # a second context for measuring: the robot–obstacle pairs only
+        # a second context for measuring, where the capsule–obstacle pairs are allowed (only there)
         self._measure = self.diagram.CreateDefaultContext()
         scene_graph.collision_filter_manager(scene_graph.GetMyMutableContextFromRoot(self._measure)).Apply(
-            CollisionFilterDeclaration().ExcludeWithin(robot_ids).ExcludeWithin(obstacle_ids))
+            CollisionFilterDeclaration().AllowBetween(GeometrySet(self.robot_in_plant.capsule_ids),
+                                                      GeometrySet(self.obstacle_geometry.ids)))
         self._measure_plant = plant.GetMyMutableContextFromRoot(self._measure)
         self._robot_id_set = set(self.robot_in_plant.capsule_ids)
         self.effort_clamped_ticks = 0
