@@ -58,10 +58,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pinocchio as pin
 
 from qpctl.adapters.joint_map import JointMap
-from qpctl.adapters.model_check import DynamicsCheck, check_dynamics, random_states
+from qpctl.adapters.model_check import DynamicsCheck, check_simulator
 from qpctl.adapters.urdf import prepare_urdf, robot_urdf, urdf_joints
 from qpctl.controllers.base import Controller
 from qpctl.errors import ConfigError, SimulationError
@@ -98,7 +97,6 @@ try:
 except ImportError as exc:  # pragma: no cover - exercised only without the extra
     raise ImportError("the Drake adapter needs Drake: pip install 'qpctl[drake]' (or pip install drake)") from exc
 
-FORWARD_TOLERANCE = 1e-9  # relative q̈ difference above which the forward dynamics are reported
 CAPSULE_RGBA = np.array([0.9, 0.55, 0.1, 0.5])
 OBSTACLE_RGBA = np.array([0.45, 0.6, 0.3, 0.6])
 
@@ -572,6 +570,8 @@ class DrakeSimulator(SimulatorBase):
                                                       GeometrySet(self.obstacle_geometry.ids)))
         self._measure_plant = plant.GetMyMutableContextFromRoot(self._measure)
         self._robot_id_set = set(self.robot_in_plant.capsule_ids)
+        self._v_in_x = plant.num_positions() + self.joints.v  # the velocities' slots in [q; v]
+        self._limited = bool(np.isfinite(self.joints.effort_limit).any())
         self.effort_clamped_ticks = 0
         self.drake_clearance = np.zeros(0)
         self._check_model(self.robot_in_plant.by_order)
@@ -599,33 +599,12 @@ class DrakeSimulator(SimulatorBase):
         return M[np.ix_(j.v, j.v)], bias[j.v]
 
     def _check_model(self, by_order: bool) -> None:
-        self.dynamics: DynamicsCheck = check_dynamics(self.robot, self.terms)
-        if by_order and not self.dynamics.same:
-            raise ConfigError("joints matched by order, but " + self.dynamics.sentence("the Drake model")
-                              + "; name the joints with sim.joint_names (or fix the model)", key="sim.joint_names")
-        if not self.dynamics.same or by_order:
-            self.notes.append(self.dynamics.sentence("the Drake model"))
-        self.forward_rel = self._forward_check()
-        if self.forward_rel > FORWARD_TOLERANCE:
-            self.notes.append(f"Drake's forward dynamics (one step from {len(random_states(self.robot))} random "
-                              f"states, τ = 0) differ from Pinocchio's ABA by {self.forward_rel:.2g} relative in q̈")
-        limited = [n for n, e in zip(self.robot.joint_names, self.joints.effort_limit) if np.isfinite(e)]
-        if limited:
-            self.notes.append("the URDF's transmissions give effort limits, to which Drake clamps the torque: "
-                              + ", ".join(f"{n} {e:g} N·m" for n, e in zip(self.robot.joint_names,
-                                                                       self.joints.effort_limit) if np.isfinite(e)))
-
-    def _forward_check(self) -> float:
-        """Largest relative difference of Drake's q̈ (its first step's Δv/dt, τ = 0) and ABA's."""
-        data = self.robot.model.createData()
-        worst = 0.0
-        for q, v in random_states(self.robot):
-            self.reset(q, v)
-            self.step(0.0)
-            a_sim = (self.read()[1] - v) / self.dt
-            a = pin.aba(self.robot.model, data, q, v, np.zeros(self.robot.nv))
-            worst = max(worst, float(np.max(np.abs(a_sim - a)) / max(np.max(np.abs(a)), 1.0)))
-        return worst
+        self.dynamics: DynamicsCheck
+        self.dynamics, self.forward_rel = check_simulator(self, self.terms, "the Drake model", by_order=by_order)
+        limits = [f"{n} {e:g}" for n, e in zip(self.robot.joint_names, self.joints.effort_limit) if np.isfinite(e)]
+        if limits:
+            self.notes.append("the URDF's transmissions give effort limits [N·m or N], to which Drake clamps the "
+                              "actuation: " + ", ".join(limits))
 
     def drake_distance(self, q: np.ndarray, t: float) -> float:
         """Drake's least signed distance [m] between the link capsules and the obstacles at (q, t)
@@ -660,15 +639,14 @@ class DrakeSimulator(SimulatorBase):
         self.effort_clamped_ticks = 0
 
     def read(self) -> tuple[np.ndarray, np.ndarray]:
-        q = self.plant.GetPositions(self._plant_context)[self.joints.q]
-        v = self.plant.GetVelocities(self._plant_context)[self.joints.v]
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v))):
+        x = self.plant.GetPositionsAndVelocities(self._plant_context)
+        if not np.isfinite(x).all():
             raise SimulationError("Drake state diverged (non-finite joint state)")
-        return q, v
+        return x[self.joints.q], x[self._v_in_x]
 
     def apply(self, tau: np.ndarray) -> None:
         tau = np.asarray(tau, float)
-        if np.any(np.abs(tau) > self.joints.effort_limit):
+        if self._limited and np.any(np.abs(tau) > self.joints.effort_limit):
             self.effort_clamped_ticks += 1
         self._actuation.GetMutableData().get_mutable_value().SetFromVector(self.joints.actuation(tau))
 

@@ -44,7 +44,7 @@ import numpy as np
 import pinocchio as pin
 
 from qpctl.adapters.joint_map import JointMap
-from qpctl.adapters.model_check import DynamicsCheck, check_dynamics, random_states
+from qpctl.adapters.model_check import DynamicsCheck, check_simulator
 from qpctl.adapters.urdf import prepare_urdf, robot_urdf, urdf_joints
 from qpctl.controllers.base import Controller
 from qpctl.errors import ConfigError, SimulationError
@@ -76,9 +76,6 @@ try:
 except ImportError as exc:  # pragma: no cover - exercised only without the extra
     raise ImportError("the PyBullet adapter needs PyBullet: pip install 'qpctl[pybullet]' (or pip install "
                       "pybullet)") from exc
-
-FORWARD_TOLERANCE = 1e-9  # relative q̈ difference above which the forward dynamics are reported
-
 
 class PybulletSimulator(SimulatorBase):
     """Runs a controller in PyBullet and records the same trajectory as the built-in simulator.
@@ -179,29 +176,8 @@ class PybulletSimulator(SimulatorBase):
         return M[np.ix_(idx, idx)], b[idx]
 
     def _check_model(self, by_order: bool) -> None:
-        self.dynamics: DynamicsCheck = check_dynamics(self.robot, self._terms)
-        if by_order and not self.dynamics.same:
-            raise ConfigError("joints matched by order, but " + self.dynamics.sentence("the PyBullet model")
-                              + "; name the joints with sim.joint_names (or fix the model)", key="sim.joint_names")
-        if not self.dynamics.same or by_order:
-            self.notes.append(self.dynamics.sentence("the PyBullet model"))
-        self.forward_rel = self._forward_check()
-        if self.forward_rel > FORWARD_TOLERANCE:
-            self.notes.append(f"PyBullet's forward dynamics (one step from {len(random_states(self.robot))} random "
-                              f"states, τ = 0) differ from Pinocchio's ABA by {self.forward_rel:.2g} relative in q̈")
-
-    def _forward_check(self) -> float:
-        """Largest relative difference of PyBullet's q̈ (its first step's Δv/dt, τ = 0) and ABA's."""
-        data = self.robot.model.createData()
-        worst = 0.0
-        for q, v in random_states(self.robot):
-            self.reset(q, v)
-            self.apply(np.zeros(self.robot.nv))
-            pybullet.stepSimulation(physicsClientId=self.client)
-            a_sim = (self.read()[1] - v) / self.dt
-            a = pin.aba(self.robot.model, data, q, v, np.zeros(self.robot.nv))
-            worst = max(worst, float(np.max(np.abs(a_sim - a)) / max(np.max(np.abs(a)), 1.0)))
-        return worst
+        self.dynamics: DynamicsCheck
+        self.dynamics, self.forward_rel = check_simulator(self, self._terms, "the PyBullet model", by_order=by_order)
 
     def _place_obstacles(self) -> None:
         c = self.client
