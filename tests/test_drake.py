@@ -216,7 +216,7 @@ def test_periodic_controller_in_a_continuous_diagram_is_the_adapter(planar):
     plant.Finalize()
     with pytest.raises(ConfigError, match="period"):
         QpctlController(controller, plant, arm)
-    system = builder.AddSystem(QpctlController(controller, plant, arm, period=1e-3))
+    system = builder.AddSystem(QpctlController(controller, plant, period=1e-3))  # the instance found by name
     builder.Connect(plant.get_state_output_port(arm), system.get_input_port())
     builder.Connect(system.get_output_port(), plant.get_actuation_input_port(arm))
     simulator = DrakeDiagramSimulator(builder.Build())
@@ -237,6 +237,13 @@ def test_periodic_controller_in_a_continuous_diagram_is_the_adapter(planar):
     plant2.Finalize()
     with pytest.raises(ConfigError, match="missing from the simulator: joint2"):
         QpctlController(controller, plant2, inst)
+    builder3 = DiagramBuilder()
+    plant3, scene_graph3 = AddMultibodyPlantSceneGraph(builder3, time_step=1e-3)
+    for _ in range(2):
+        add_robot(plant3, scene_graph3, controller.robot)
+    plant3.Finalize()
+    with pytest.raises(ConfigError, match="2 model instances"):
+        QpctlController(controller, plant3)
 
 
 def test_users_urdf_joint_names_order_and_mismatch(planar, tmp_path):

@@ -128,7 +128,7 @@ def _resolve_visual_meshes(root: ET.Element, parser: Parser, source: Path | None
     packages = parser.package_map()
     if packages.Contains("drake_models"):
         packages.Remove("drake_models")  # a remote package: resolving it downloads
-    with contextlib.suppress(Exception):
+    with _drake_messages([]):  # (it warns of each missing folder of ROS_PACKAGE_PATH)
         packages.PopulateFromRosPackagePath()
     dropped: list[str] = []
     for link in root.iter("link"):
@@ -325,9 +325,11 @@ def add_obstacles(builder: DiagramBuilder, scene_graph: SceneGraph, obstacles: S
     with every proximity geometry registered so far is filtered out. Call it after :func:`add_robot`
     (and your other models)."""
     source = scene_graph.RegisterSource("qpctl_obstacles")
-    ids, frames = [], []
+    ids, frames, names = [], [], set()
     for i, obs in enumerate(obstacles):
         name = obs.name or f"obstacle{i}"
+        name = name if name not in names else f"{name}_{i}"  # SceneGraph wants unique names
+        names.add(name)
         shape, rotation = obstacle_shape(obs)
         if obs.moving:
             frame = scene_graph.RegisterFrame(source, GeometryFrame(name))
@@ -408,11 +410,13 @@ class DrakeJoints:
 
 
 def _find_instance(plant: MultibodyPlant, names: Sequence[str]) -> ModelInstanceIndex:
-    found = {plant.GetJointByName(n).model_instance() for n in names if plant.HasJointNamed(n)}
+    """The one model instance that has every joint in ``names``."""
+    found = [ModelInstanceIndex(i) for i in range(plant.num_model_instances())
+             if all(plant.HasJointNamed(n, ModelInstanceIndex(i)) for n in names)]
     if len(found) != 1:
-        raise ConfigError(f"cannot tell the robot's model instance from the joint names {', '.join(names)} "
-                          f"({len(found)} instances have them); pass instance=", key="joint_map")
-    return found.pop()
+        raise ConfigError(f"{len(found)} model instances have the joints {', '.join(names)}; pass instance= "
+                          "(the arm's model instance) or joint_names=", key="joint_map")
+    return found[0]
 
 
 # -- the controller as a Drake system ------------------------------------------------------------------
