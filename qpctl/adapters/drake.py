@@ -688,7 +688,7 @@ class DrakeSimulator(SimulatorBase):
             self.drake_clearance = np.array([self.drake_distance(q, t) for q, t in zip(traj.q, traj.t)])
             gap = float(np.max(np.abs(self.drake_clearance - traj.clearance)))
             self.notes.append(f"Drake's own signed distance (SceneGraph) between the capsules and the obstacles: "
-                              f"min {self.drake_clearance.min():.4f} m over the run, within {gap:.1g} m of qpctl's "
+                              f"min {self.drake_clearance.min():.4f} m over the run, within {gap:.2g} m of qpctl's "
                               "clearance at every tick")
         return traj
 
