@@ -329,3 +329,21 @@ def test_cli_simulate_under_drake_records_and_prints_its_notes(tmp_path, capsys)
     assert metrics["simulator"] == "drake" and not metrics["collided"]
     printed = capsys.readouterr().out
     assert "drake: Drake's own signed distance" in printed and "9 STL meshes" in printed
+
+
+@pytest.mark.slow
+def test_full_runs_meet_the_issues_targets(tmp_path):
+    """The full scenarios (make soak): Drake = built-in Euler to 1e-8 rad on ``paper`` (5 s) and
+    ``panda_canopy`` (6 s, QP), and ``qpctl simulate panda_canopy --controller qp --sim drake``
+    collision-free, its clearance within 1 mm of the built-in run's, its tracking within 2× of it."""
+    for name, kind in (("paper", "paper"), ("panda_canopy", "qp")):
+        scenario = Scenario.load(name, ["sim.integrator=euler"])
+        drake = simulate(scenario, kind=kind, simulator="drake").trajectory
+        euler = simulate(scenario, kind=kind).trajectory
+        assert np.max(np.abs(drake.q - euler.q)) <= 1e-8, name
+    for which in ("builtin", "drake"):
+        assert main(["simulate", "panda_canopy", "--controller", "qp", "--sim", which, "--out", str(tmp_path / which),
+                     "--no-figures", "--quiet"]) == 0
+    b, d = (json.loads((tmp_path / w / "metrics.json").read_text()) for w in ("builtin", "drake"))
+    assert not d["collided"] and abs(d["min_clearance"] - b["min_clearance"]) <= 1e-3
+    assert d["max_tracking_error"] <= 2 * b["max_tracking_error"]
