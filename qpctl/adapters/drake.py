@@ -224,9 +224,9 @@ def add_robot(plant: MultibodyPlant, scene_graph: SceneGraph, robot: RobotModel,
         ConfigError (``sim.model``): a file that is not a URDF or that Drake cannot parse.
     """
     own = model is not None
-    if own:
-        source: Path | None = Path(model)  # type: ignore[arg-type]
-        assert source is not None
+    source: Path | None
+    if model is not None:
+        source = Path(model)
         if not source.is_file() or source.suffix.lower() != ".urdf":
             raise ConfigError(f"the Drake adapter needs a URDF file, got {source}"
                               + ("" if source.is_file() else " (not found)"), key="sim.model")
@@ -271,8 +271,9 @@ def add_robot(plant: MultibodyPlant, scene_graph: SceneGraph, robot: RobotModel,
     for name in joints.names:
         if not plant.HasJointNamed(name, instance):
             raise ConfigError(f"no joint {name!r} in {source or 'the generated URDF'}", key="sim.joint_names")
-    actuated = {plant.get_joint_actuator(a).joint().name() for a in plant.GetJointActuatorIndices()  # (the
-                if plant.get_joint_actuator(a).model_instance() == instance}  # instance's list: empty before Finalize)
+    # the transmissions' actuators (GetJointActuatorIndices(instance) is empty before Finalize: all, filtered)
+    actuated = {plant.get_joint_actuator(a).joint().name() for a in plant.GetJointActuatorIndices()
+                if plant.get_joint_actuator(a).model_instance() == instance}
     for name in joints.names:
         if name not in actuated:
             plant.AddJointActuator(name, plant.GetJointByName(name, instance), math.inf)
@@ -431,8 +432,10 @@ class QpctlController(LeafSystem):
 
     * ``period`` [s] given: a periodic discrete update (offset ``period``; the first sample at
       initialisation) holds the torque in the system's discrete state — a zero-order hold, what a
-      continuous plant needs. Beside a discrete plant of the same step, Drake's update semantics delay
-      it by one step (both updates read the state before either runs).
+      continuous plant needs (or a controller slower than a discrete plant). At instants a discrete
+      plant's step shares with it, Drake's event order decides what the controller samples: in Drake
+      1.51 the plant steps first (an unrestricted update), so the controller reads the next state with
+      the current time — measured on the paper arm, 7.8e-5 rad off the adapter's run after 0.2 s.
     * ``period=None``, a discrete plant: the output is computed from the state when the plant's step
       asks for it — one controller call per plant step, no delay (a repeated evaluation at the same time
       and state returns the same torque without a call).
