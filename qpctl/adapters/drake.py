@@ -448,7 +448,7 @@ class QpctlController(LeafSystem):
         controller: any qpctl :class:`~qpctl.controllers.base.Controller`.
         plant: the finalised ``MultibodyPlant`` the arm is in.
         instance: the arm's model instance (default: the one with ``controller.robot.joint_names``).
-        period: the control period [s], or None (module docstring, above).
+        period: the control period [s], or None (the two ways above).
         joint_names: the plant's names of the controller's joints, in the controller's order.
 
     Raises:
