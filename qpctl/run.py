@@ -18,6 +18,7 @@ import numpy as np
 import pinocchio as pin
 
 from qpctl.controllers.base import Controller
+from qpctl.robot.model import RobotModel
 from qpctl.scenario import Scenario
 from qpctl.simulation.loop import SimulatorBase
 from qpctl.simulation.metrics import compute_metrics
@@ -32,9 +33,9 @@ class RunResult:
     metrics: dict[str, Any]
 
 
-def link_segments(controller: Controller, q: np.ndarray) -> np.ndarray:
-    """(T, L, 2, 3) link axes for each recorded configuration."""
-    robot = controller.robot
+def link_segments(controller: Controller | RobotModel, q: np.ndarray) -> np.ndarray:
+    """(T, L, 2, 3) link capsule axes [m] for each configuration (a controller's robot, or a robot)."""
+    robot = controller if isinstance(controller, RobotModel) else controller.robot
     data = robot.model.createData()
     out = np.empty((len(q), len(robot.capsules), 2, 3))
     for k, qk in enumerate(q):
