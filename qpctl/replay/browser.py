@@ -12,6 +12,7 @@ request for a resource that is not inside the file itself (``http:``, ``https:``
 from __future__ import annotations
 
 import base64
+import fcntl
 import json
 import os
 import queue
@@ -22,7 +23,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 from urllib.parse import urlencode
 
 import numpy as np
@@ -140,17 +141,19 @@ def _launch(width: int, height: int, profile: str) -> _Pipe:
     to_chrome_r, to_chrome_w = os.pipe()
     from_chrome_r, from_chrome_w = os.pipe()
 
-    # the protocol's fds in the child are 3 (commands in) and 4 (replies out): a shell moves the pipes
-    # there and execs Chromium (no preexec_fn, which is unsafe beside threads)
-    r, w = to_chrome_r, from_chrome_w
-    args = ["/bin/sh", "-c", f'exec "$@" 3<&{r} 4>&{w}', "sh", exe, *_FLAGS,
+    # the protocol's fds in the child are 3 (commands in) and 4 (replies out): bash moves the pipes
+    # there and execs Chromium (no preexec_fn, which is unsafe beside threads; dash takes no fd above 9)
+    r, w = (fcntl.fcntl(fd, fcntl.F_DUPFD_CLOEXEC, 10) for fd in (to_chrome_r, from_chrome_w))  # clear of 3, 4
+    for fd in (to_chrome_r, from_chrome_w):
+        os.close(fd)
+    args = [shutil.which("bash") or "/bin/bash", "-c", f'exec "$@" 3<&{r} 4>&{w}', "sh", exe, *_FLAGS,
             f"--user-data-dir={profile}", f"--window-size={width},{height}", "about:blank"]
     try:
         proc = subprocess.Popen(args, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                                 stderr=subprocess.DEVNULL, pass_fds=(r, w))
     finally:
-        os.close(to_chrome_r)
-        os.close(from_chrome_w)
+        os.close(r)
+        os.close(w)
     return _Pipe(proc, to_chrome_w, from_chrome_r)
 
 
@@ -162,40 +165,59 @@ def _page_url(path: Path, at: float | None, params: dict[str, str] | None) -> st
     return url + ("?" + urlencode(query) if query else "")
 
 
-def render(path: str | Path, *, at: float | None = None, width: int = 1280, height: int = 800,
-           params: dict[str, str] | None = None, timeout: float = 120.0) -> Rendered:
-    """Open the replay page ``path`` in headless Chromium at ``at`` [s] (paused there; None: the page
-    as it opens, playing) and screenshot it once the replay reports that it has drawn that time.
+_B = TypeVar("_B", bound="Browser")
 
-    ``params`` adds query parameters to the page's URL (``initialCameraPosition`` and the other camera
-    parameters of viser's viewer). :class:`ReplayError` if there is no Chromium, the page does not
-    report ready within ``timeout`` [s], or Chromium fails."""
-    path = Path(path)
-    if not path.is_file():
-        raise ReplayError(f"no such replay file: {path}")
-    t0 = time.perf_counter()
-    profile = tempfile.mkdtemp(prefix="qpctl-chromium-")
-    pipe = _launch(width, height, profile)
-    errors: list[str] = []
-    requests: list[str] = []
-    own = path.resolve().as_uri()
-    try:
-        targets = pipe.call("Target.getTargets")["targetInfos"]
-        page = next(t for t in targets if t["type"] == "page")
-        session = pipe.call("Target.attachToTarget", {"targetId": page["targetId"], "flatten": True})["sessionId"]
-        for domain in ("Page", "Runtime", "Log", "Network"):
-            pipe.call(f"{domain}.enable", session=session)
+
+class Browser:
+    """One headless Chromium for several pages (a test module, a series of screenshots); a context
+    manager. :class:`ReplayError` if there is no Chromium or it fails to start."""
+
+    def __init__(self) -> None:
+        self._profile = tempfile.mkdtemp(prefix="qpctl-chromium-")
+        self._pipe = _launch(1280, 800, self._profile)
+        try:
+            targets = self._pipe.call("Target.getTargets")["targetInfos"]
+            page = next(t for t in targets if t["type"] == "page")
+            self._session = self._pipe.call("Target.attachToTarget", {"targetId": page["targetId"],
+                                                                      "flatten": True})["sessionId"]
+            for domain in ("Page", "Runtime", "Log", "Network"):
+                self._pipe.call(f"{domain}.enable", session=self._session)
+        except BaseException:
+            self.close()
+            raise
+
+    def __enter__(self: _B) -> _B:
+        return self
+
+    def __exit__(self, *_exc: object) -> None:
+        self.close()
+
+    def render(self, path: str | Path, *, at: float | None = None, width: int = 1280, height: int = 800,
+               params: dict[str, str] | None = None, timeout: float = 120.0) -> Rendered:
+        """Open the replay page ``path`` at ``at`` [s] (paused there; None: as it opens, playing) in a
+        ``width`` × ``height`` window and screenshot it once the replay reports that it has drawn
+        that time and the picture has settled. ``params``: more query parameters for the page's URL.
+        :class:`ReplayError` if the page does not report ready within ``timeout`` [s]."""
+        path = Path(path)
+        if not path.is_file():
+            raise ReplayError(f"no such replay file: {path}")
+        t0 = time.perf_counter()
+        pipe, session = self._pipe, self._session
+        errors: list[str] = []
+        requests: list[str] = []
+        own = path.resolve().as_uri()
+        pipe.call("Page.navigate", {"url": "about:blank"}, session=session)
+        _drain(pipe, [], [], own)  # what the page before logged
         pipe.call("Emulation.setDeviceMetricsOverride", {"width": width, "height": height, "deviceScaleFactor": 1,
                                                          "mobile": False}, session=session)
         pipe.call("Page.navigate", {"url": _page_url(path, at, params)}, session=session)
-        state: dict[str, Any] = {}
         deadline = time.perf_counter() + timeout
         while True:
             _drain(pipe, errors, requests, own)
             reply = pipe.call("Runtime.evaluate", {"expression": "JSON.stringify(window.qpctlReplay || null)",
                                                    "returnByValue": True}, session=session)
             value = reply.get("result", {}).get("value")
-            state = json.loads(value) if isinstance(value, str) else {}
+            state: dict[str, Any] = json.loads(value) if isinstance(value, str) else {}
             if state and state.get("ready"):
                 break
             if time.perf_counter() > deadline:
@@ -205,18 +227,27 @@ def render(path: str | Path, *, at: float | None = None, width: int = 1280, heig
         png = _settled(pipe, session, deadline)
         _drain(pipe, errors, requests, own)
         return Rendered(png, errors, requests, state, time.perf_counter() - t0)
-    finally:
-        try:
-            pipe.call("Browser.close", timeout=10)
-        except ReplayError:
-            pass
+
+    def close(self) -> None:
+        pipe = self._pipe
+        if pipe.proc.poll() is None:
+            try:
+                pipe.call("Browser.close", timeout=10)
+            except ReplayError:
+                pass
         try:
             pipe.proc.wait(timeout=10)
         except subprocess.TimeoutExpired:
             pipe.proc.kill()
             pipe.proc.wait()
         pipe.close()
-        shutil.rmtree(profile, ignore_errors=True)
+        shutil.rmtree(self._profile, ignore_errors=True)
+
+
+def render(path: str | Path, **kwargs: Any) -> Rendered:
+    """:meth:`Browser.render` in a browser of its own (started and closed for this page)."""
+    with Browser() as browser:
+        return browser.render(path, **kwargs)
 
 
 def _settled(pipe: _Pipe, session: str, deadline: float) -> bytes:

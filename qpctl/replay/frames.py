@@ -15,11 +15,13 @@ from dataclasses import dataclass
 import numpy as np
 import pinocchio as pin
 
+from qpctl.errors import ConfigError
 from qpctl.geometry.distance import DistanceEngine
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.robot.model import RobotModel
 
 DEFAULT_FPS = 30.0  # [frames/s] the display rate
+MAX_FPS = 240.0  # [frames/s] beyond a screen's refresh rate, frames are never shown
 
 
 @dataclass(frozen=True)
@@ -52,8 +54,9 @@ def display_ticks(t: np.ndarray, fps: float = DEFAULT_FPS) -> tuple[np.ndarray, 
     t = np.asarray(t, float)
     if t.size == 0:
         return np.zeros(0), np.zeros(0, int)
-    if not (np.isfinite(fps) and fps > 0):
-        raise ValueError(f"the display rate must be a positive number of frames per second, got {fps}")
+    if not (np.isfinite(fps) and 0 < fps <= MAX_FPS):
+        raise ConfigError(f"the display rate must be a number of frames per second in (0, {MAX_FPS:g}], got {fps}",
+                          key="fps")
     span = float(t[-1] - t[0])
     count = int(np.floor(span * fps + 1e-9)) + 1
     times = np.arange(count) / fps

@@ -83,7 +83,7 @@ def default_camera(points: np.ndarray, up: np.ndarray, planar: bool) -> Camera:
     centre = 0.5 * (lo + hi)
     radius = max(float(np.linalg.norm(hi - lo)) / 2, 0.2)
     fov = 50.0
-    dist = 1.15 * radius / math.tan(math.radians(fov) / 2)
+    dist = 1.35 * radius / math.tan(math.radians(fov) / 2)  # a margin for a view narrower than tall
     if planar:
         direction = np.array([0.0, 0.0, 1.0])
     else:
@@ -153,7 +153,7 @@ def _scene(server: Any, src: ReplayInput, frames: Frames, parts: list[V.LinkVisu
         ref = _reference_points(robot, traj, trace)
         if len(ref) > 1:
             scene.add_line_segments("/reference", np.stack([ref[:-1], ref[1:]], axis=1).astype(np.float32),
-                                    V.REFERENCE, thickness=2.0, thickness_units="screen")
+                                    V.REFERENCE, thickness=5.0, thickness_units="screen")
         snapshots = _map_snapshots(src)
         # the robot: one frame per moving joint, its meshes (and hidden capsules) inside
         joint_nodes = {j: scene.add_frame(f"/robot/joint{j}", show_axes=False) for j in frames.joints}
@@ -171,7 +171,9 @@ def _scene(server: Any, src: ReplayInput, frames: Frames, parts: list[V.LinkVisu
                     f"/robot/joint{c.joint_id}/capsule{i}_{c.name}", cap.vertices, cap.faces, color=V.NEUTRAL,
                     opacity=0.45, visible=False))
         reach = float(np.linalg.norm(np.subtract(camera.position, camera.look_at)))
-        marker = scene.add_icosphere("/task_point", radius=max(0.01 * reach, 0.005), color=V.MARKER, subdivisions=2,
+        last = [c.radius for c in robot.capsules if c.joint_id == robot.model.frames[robot.ee_frame_id].parentJoint]
+        outside = 1.3 * max(last) if drawn_as == "capsules" and last else 0.0  # not inside the drawn capsule
+        marker = scene.add_icosphere("/task_point", radius=max(0.01 * reach, outside, 0.005), color=V.MARKER, subdivisions=2,
                                      position=tuple(frames.task_point[0]))
         # the frames
         shown: dict[int, V.Rgb] = {}

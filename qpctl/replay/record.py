@@ -21,13 +21,12 @@ import numpy as np
 from qpctl.errors import ConfigError, ReplayError
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.robot.model import RobotModel
+from qpctl.run import SCENARIO_FILE
 from qpctl.simulation.trajectory import Trajectory
 
 if TYPE_CHECKING:
     from qpctl.run import RunResult
     from qpctl.scenario import Scenario
-
-SCENARIO_FILE = "scenario.toml"
 
 #: Optional arrays of ``trajectory.npz`` the page draws as the depth map's points: ``map_points``
 #: (K, 3) [m] in the world frame and, optionally, ``map_stamps`` (K,) [s], the time from which each
