@@ -25,7 +25,6 @@ from qpctl.simulation.loop import SimulatorBase
 from qpctl.simulation.metrics import compute_metrics
 from qpctl.simulation.simulator import Simulator, Trajectory
 
-
 SCENARIO_FILE = "scenario.toml"  # beside a run's outputs: its scenario as it ran (scenario_as_run)
 
 

@@ -23,12 +23,15 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, TypeVar
+from typing import TYPE_CHECKING, Any
 from urllib.parse import urlencode
 
 import numpy as np
 
 from qpctl.errors import ReplayError
+
+if TYPE_CHECKING:
+    from typing_extensions import Self
 
 #: Names under which Chromium is looked up on PATH (Debian's package installs ``chromium``).
 BROWSERS = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
@@ -165,9 +168,6 @@ def _page_url(path: Path, at: float | None, params: dict[str, str] | None) -> st
     return url + ("?" + urlencode(query) if query else "")
 
 
-_B = TypeVar("_B", bound="Browser")
-
-
 class Browser:
     """One headless Chromium for several pages (a test module, a series of screenshots); a context
     manager. :class:`ReplayError` if there is no Chromium or it fails to start."""
@@ -186,7 +186,7 @@ class Browser:
             self.close()
             raise
 
-    def __enter__(self: _B) -> _B:
+    def __enter__(self) -> Self:
         return self
 
     def __exit__(self, *_exc: object) -> None:

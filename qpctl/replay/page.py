@@ -290,15 +290,18 @@ def replay_html(src: ReplayInput, *, fps: float = DEFAULT_FPS, camera: Camera | 
     up = _up(robot.model.gravity.linear)
     if camera is None:
         pts = [trace, frames.poses[:, :, :3].reshape(-1, 3)]
-        near = [o.position for o in src.obstacles
-                if np.min(np.linalg.norm(trace - o.position, axis=1)) < 1.5 * max(src.d_influence, 0.3) + o.bounding_radius()]
-        camera = default_camera(np.vstack(pts + ([np.array(near)] if near else [])), up, planar)
+        arm = np.vstack(pts)
+        centre, size = 0.5 * (arm.min(axis=0) + arm.max(axis=0)), float(np.ptp(arm, axis=0).max())
+        # the obstacles near the arm, wherever they move during the run (a far-away one is left out of view)
+        near = [frames.obstacle_positions[:, j] for j, o in enumerate(src.obstacles)
+                if np.linalg.norm(o.position - centre) < size + o.bounding_radius()]
+        camera = default_camera(np.vstack(pts + near), up, planar)
     html = _offline(_record(src, frames, parts, drawn_as, trace, camera, planar))
     fig = explain(traj, d_safe=src.d_safe, d_influence=src.d_influence, tau_max=src.tau_max)
     config = {
         "title": src.title,
         "duration": float(frames.times[-1]) if len(frames.times) else 0.0,
-        "frameTimes": [round(float(x), 6) for x in frames.times],
+        "frameTimes": [float(x) for x in frames.times],
         "frameTicks": [int(i) for i in frames.ticks],
         "fps": fps,
         "dSafe": src.d_safe, "dInfluence": src.d_influence,
