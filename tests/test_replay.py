@@ -398,3 +398,26 @@ def test_no_replay_skips_the_page(tmp_path):
     out = tmp_path / "run"
     assert main(["simulate", "paper", "--set", "sim.duration=0.05", "--out", str(out), "--quiet", "--no-replay"]) == 0
     assert (out / "scenario.toml").is_file() and not (out / "replay.html").exists()
+
+
+def test_urdf_meshes_are_cached_until_a_mesh_file_changes(tmp_path, monkeypatch):
+    from qpctl.replay import visuals
+    from qpctl.robot.model import panda
+
+    monkeypatch.setenv("QPCTL_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(visuals, "_VISUALS", {})
+    robot = panda()
+    fresh, _ = visuals.robot_visuals(robot)
+    [cached_file] = tmp_path.glob("replay-visuals-*.npz")
+    monkeypatch.setattr(visuals, "_VISUALS", {})
+    again, _ = visuals.robot_visuals(robot)  # from the file
+    for a, b in zip(fresh, again, strict=True):
+        assert a.name == b.name and a.joint_id == b.joint_id and a.link == b.link
+        np.testing.assert_array_equal(a.placement.homogeneous, b.placement.homogeneous)
+        np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
+        np.testing.assert_array_equal(a.mesh.faces, b.mesh.faces)
+    with np.load(cached_file) as d:
+        arrays = {k: d[k] for k in d.files}
+    arrays["mtimes"] = arrays["mtimes"] - 1  # as if a mesh file had been replaced since
+    np.savez(cached_file, **arrays)
+    assert visuals._load(cached_file) is None

@@ -15,6 +15,7 @@ of the links' clearance.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -123,25 +124,79 @@ def _coal_mesh(geometry: object, scale: np.ndarray) -> Mesh | None:
     return None
 
 
-_VISUALS: dict[tuple[object, ...], tuple[tuple[str, int, pin.SE3, Mesh], ...]] = {}
+Part = tuple[str, int, pin.SE3, Mesh]  # (name, parent joint, placement in the joint's frame, mesh)
+_VISUALS: dict[str, tuple[Part, ...]] = {}
 
 
-def _urdf_visuals(urdf: Path, model: pin.Model) -> tuple[tuple[str, int, pin.SE3, Mesh], ...]:
-    """(name, parent joint, placement, mesh) of each visual element of ``urdf`` on ``model``; kept per
-    process for the URDF's version and the model's joints and frames (a sweep or the reproduction
-    writes many replays of one robot)."""
-    key = (str(urdf), urdf.stat().st_mtime_ns, tuple(model.names), tuple(f.name for f in model.frames))
+def cache_dir() -> Path:
+    """Where the replay keeps the robots' meshes as Pinocchio read them: ``$QPCTL_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/qpctl`` (``~/.cache/qpctl``)."""
+    if os.environ.get("QPCTL_CACHE_DIR"):
+        return Path(os.environ["QPCTL_CACHE_DIR"])
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "qpctl"
+
+
+def _key(urdf: Path, model: pin.Model) -> str:
+    """The URDF's version (path, size, time) and the model's joints and frames, hashed."""
+    import hashlib
+
+    st = urdf.stat()
+    text = repr((str(urdf.resolve()), st.st_size, st.st_mtime_ns, tuple(model.names), tuple(f.name for f in model.frames),
+                 pin.__version__))
+    return hashlib.sha1(text.encode()).hexdigest()[:20]
+
+
+def _save(path: Path, parts: tuple[Part, ...], meshes: list[str]) -> None:
+    arrays: dict[str, np.ndarray] = {
+        "names": np.array([p[0] for p in parts]), "joints": np.array([p[1] for p in parts], int),
+        "placements": np.array([p[2].homogeneous for p in parts]).reshape(-1, 4, 4),
+        "files": np.array(meshes), "mtimes": np.array([Path(f).stat().st_mtime_ns for f in meshes], np.int64)}
+    for i, p in enumerate(parts):
+        arrays[f"v{i}"], arrays[f"f{i}"] = p[3].vertices, p[3].faces
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(f".{os.getpid()}.tmp.npz")
+    np.savez(tmp, **arrays)  # type: ignore[arg-type]  # (numpy's stub: allow_pickle among the kwargs)
+    tmp.replace(path)
+
+
+def _load(path: Path) -> tuple[Part, ...] | None:
+    """The cached parts, or None if there are none or a mesh file changed since."""
+    try:
+        with np.load(path) as d:
+            if any(Path(f).stat().st_mtime_ns != m for f, m in zip(d["files"].tolist(), d["mtimes"].tolist())):
+                return None
+            return tuple((str(n), int(j), pin.SE3(M), Mesh(d[f"v{i}"], d[f"f{i}"]))
+                         for i, (n, j, M) in enumerate(zip(d["names"], d["joints"], d["placements"])))
+    except (OSError, KeyError, ValueError):
+        return None
+
+
+def _urdf_visuals(urdf: Path, model: pin.Model) -> tuple[Part, ...]:
+    """(name, parent joint, placement, mesh) of each visual element of ``urdf`` on ``model``, as
+    Pinocchio reads them (coal loads the meshes, ~1 s for the Panda's). Kept per process (a sweep or
+    the reproduction writes many replays of one robot) and in :func:`cache_dir` (until the URDF or a
+    mesh file changes), so that writing a replay does not load the meshes again."""
+    key = _key(urdf, model)
     if key in _VISUALS:
         return _VISUALS[key]
-    dirs = [str(p) for p in urdf.parents]  # package://NAME/... resolves under any folder above the URDF
-    geom = pin.buildGeomFromUrdf(model, str(urdf), pin.GeometryType.VISUAL, package_dirs=dirs)
-    out = []
-    for g in geom.geometryObjects:
-        mesh = _coal_mesh(g.geometry, np.asarray(g.meshScale, float))
-        if mesh is not None and len(mesh.faces):
-            out.append((g.name, int(g.parentJoint), pin.SE3(g.placement), mesh))
-    _VISUALS[key] = tuple(out)
-    return _VISUALS[key]
+    cached = cache_dir() / f"replay-visuals-{key}.npz"
+    parts = _load(cached)
+    if parts is None:
+        dirs = [str(p) for p in urdf.parents]  # package://NAME/... resolves under any folder above the URDF
+        geom = pin.buildGeomFromUrdf(model, str(urdf), pin.GeometryType.VISUAL, package_dirs=dirs)
+        found = []
+        for g in geom.geometryObjects:
+            mesh = _coal_mesh(g.geometry, np.asarray(g.meshScale, float))
+            if mesh is not None and len(mesh.faces):
+                found.append((g.name, int(g.parentJoint), pin.SE3(g.placement), mesh))
+        parts = tuple(found)
+        files = sorted({g.meshPath for g in geom.geometryObjects if g.meshPath and Path(g.meshPath).is_file()})
+        try:
+            _save(cached, parts, files)
+        except OSError:  # a read-only home: no cache, the meshes are loaded each time
+            pass
+    _VISUALS[key] = parts
+    return parts
 
 
 def robot_visuals(robot: RobotModel) -> tuple[list[LinkVisual], str]:
