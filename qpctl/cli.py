@@ -53,6 +53,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
             raise ConfigError(f"must be WIDTHxHEIGHT in pixels, e.g. 1280x800, got {args.size!r}", key="--size")
         shot = render(out, at=args.at, width=int(width), height=int(height), params={"notices": "0"})
         Path(args.screenshot).write_bytes(shot.png)
+        from qpctl.plots import compact_png
+
+        compact_png(Path(args.screenshot), octree=True)  # 256 colours: a third of the size, small enough for a README
         problems = shot.errors + [f"requested {url}" for url in shot.requests]
         print(f"{args.screenshot}: at t = {shot.state.get('time')} s (frame {shot.state.get('frame')}), "
               f"{len(problems)} console errors or outside requests" + (": " + "; ".join(problems) if problems else ""))

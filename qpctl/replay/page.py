@@ -153,7 +153,7 @@ def _scene(server: Any, src: ReplayInput, frames: Frames, parts: list[V.LinkVisu
         ref = _reference_points(robot, traj, trace)
         if len(ref) > 1:
             scene.add_line_segments("/reference", np.stack([ref[:-1], ref[1:]], axis=1).astype(np.float32),
-                                    V.REFERENCE, thickness=5.0, thickness_units="screen")
+                                    V.REFERENCE, thickness=2.5, thickness_units="screen")
         snapshots = _map_snapshots(src)
         # the robot: one frame per moving joint, its meshes (and hidden capsules) inside
         joint_nodes = {j: scene.add_frame(f"/robot/joint{j}", show_axes=False) for j in frames.joints}
@@ -201,7 +201,7 @@ def _scene(server: Any, src: ReplayInput, frames: Frames, parts: list[V.LinkVisu
             if b > a:
                 seg = trace[a:b + 1]
                 scene.add_line_segments(f"/trace/{k:05d}", np.stack([seg[:-1], seg[1:]], axis=1).astype(np.float32),
-                                        V.TRACE, thickness=3.0, thickness_units="screen")
+                                        V.TRACE, thickness=4.5, thickness_units="screen")
             map_index = _show_map(scene, snapshots, float(frames.times[k]), map_index)
         if len(frames.times) > 1:  # the last frame is shown for one frame's time before the replay loops
             ser.insert_sleep(float(frames.times[-1] - frames.times[-2]))
