@@ -421,3 +421,22 @@ def test_urdf_meshes_are_cached_until_a_mesh_file_changes(tmp_path, monkeypatch)
     arrays["mtimes"] = arrays["mtimes"] - 1  # as if a mesh file had been replaced since
     np.savez(cached_file, **arrays)
     assert visuals._load(cached_file) is None
+
+
+def test_a_scene_with_a_box_and_one_without_obstacles(tmp_path):
+    """Shapes beyond spheres (a box, drawn at its size) and an empty scene (no clearance colours) both
+    give a page."""
+    from qpctl.replay import from_result, write_replay
+    from qpctl.run import simulate
+
+    base = tomllib.loads(MOVING)
+    base["sim"]["duration"] = 0.2
+    base["obstacles"] = [{"name": "crate", "shape": "box", "position": [0.0, -2.6, 0.0], "size": [0.3, 0.2, 0.2]}]
+    for obstacles in (base["obstacles"], []):
+        run = simulate(Scenario.from_dict({**base, "obstacles": obstacles}, source="test"))
+        stats = write_replay(from_result(run), tmp_path / "replay.html")
+        msgs = recording((tmp_path / "replay.html").read_text())["messages"]
+        meshes = [m["name"] for _, m in msgs if m["type"] == "MeshMessage" and m["name"].startswith("/obstacles/")]
+        assert meshes == (["/obstacles/00_crate"] if obstacles else []) and stats.frames == 7
+        colours = [m for _, m in msgs if m["type"] == "SceneNodeUpdateMessage" and "color" in m.get("updates", {})]
+        assert colours == []  # the box is beyond d_influence, and nothing is near in an empty scene

@@ -196,7 +196,7 @@ class Browser:
                params: dict[str, str] | None = None, timeout: float = 120.0) -> Rendered:
         """Open the replay page ``path`` at ``at`` [s] (paused there; None: as it opens, playing) in a
         ``width`` × ``height`` window and screenshot it once the replay reports that it has drawn
-        that time and the picture has settled. ``params``: more query parameters for the page's URL.
+        that time and the picture has settled (playing: once it has drawn a few frames). ``params``: more query parameters for the page's URL.
         :class:`ReplayError` if the page does not report ready within ``timeout`` [s]."""
         path = Path(path)
         if not path.is_file():
@@ -224,7 +224,11 @@ class Browser:
                 raise ReplayError(f"the replay did not report ready within {timeout:.0f} s (state: {state or 'none'}; "
                                   f"errors: {errors or 'none'})")
             time.sleep(0.2)
-        png = _settled(pipe, session, deadline)
+        if at is None:  # playing: the picture never settles, take it as it is
+            png = base64.b64decode(pipe.call("Page.captureScreenshot", {"format": "png"}, session=session,
+                                             timeout=timeout)["data"])
+        else:
+            png = _settled(pipe, session, deadline)
         _drain(pipe, errors, requests, own)
         return Rendered(png, errors, requests, state, time.perf_counter() - t0)
 
