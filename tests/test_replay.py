@@ -163,7 +163,7 @@ def brown(img: np.ndarray) -> np.ndarray:
 
 
 def near(mask: np.ndarray, uv: np.ndarray, radius: int) -> int:
-    u, v = int(round(uv[0])), int(round(uv[1]))
+    u, v = round(float(uv[0])), round(float(uv[1]))
     return int(mask[max(v - radius, 0):v + radius + 1, max(u - radius, 0):u + radius + 1].sum())
 
 
@@ -268,7 +268,7 @@ def test_chromium_draws_the_robot_at_the_recorded_pose(runs, browser, name):
     assert np.linalg.norm(centroid - here) < 6, (centroid, here)
     assert near(mask, start, 4) == 0
     if name == "moving":  # the drifting obstacle is drawn where it has drifted to, not where it began
-        p = lambda tt: np.array([0.6 * tt, -2.5 + 0.05 * np.sin(np.pi * tt), 0.0])  # noqa: E731
+        p = lambda tt: np.array([0.6 * tt, -2.5 + 0.05 * np.sin(np.pi * tt), 0.0])
         now, before = project(p(traj.t[cfg["frameTicks"][k]]), cfg["camera"], c), project(p(0.0), cfg["camera"], c)
         assert np.linalg.norm(now - before) > 40
         assert near(brown(img) & inside, now, 4) >= 60 and near(brown(img) & inside, before, 4) == 0
