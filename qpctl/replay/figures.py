@@ -91,8 +91,12 @@ def explain(traj: Trajectory, *, d_safe: float, d_influence: float, tau_max: np.
     ax[0].axhline(0.0, color="k", lw=0.6)
     finite = clear[np.isfinite(clear)]
     low = min(0.0, float(finite.min())) if finite.size else 0.0
-    high = min(float(finite.max()), 3 * d_influence) if finite.size else 3 * d_influence
-    high = max(high, 1.3 * d_influence)
+    # up to 3 d_influence (where the interesting part is), or the whole range if the run stays beyond it
+    top = float(finite.max()) if finite.size else 3 * d_influence
+    high = min(top, 3 * d_influence)
+    if finite.size and float(finite.min()) >= 0.8 * high:
+        high = top
+    high = max(1.05 * high, 1.3 * d_influence)
     ax[0].set_ylim(low - 0.06 * (high - low), high)
     ax[0].set_ylabel("clearance [m]")
     ax[0].legend(loc="upper right", fontsize="x-small", ncol=2)
