@@ -1,4 +1,4 @@
-"""The ``qpctl`` command line: ``simulate``, ``bench``, ``sweep``, ``solvers``, ``warmup``.
+"""The ``qpctl`` command line: ``simulate``, ``replay``, ``bench``, ``sweep``, ``solvers``, ``warmup``.
 
 Any :class:`~qpctl.errors.QpctlError` (or an ``OSError`` reading or writing files) becomes one line on
 stderr and exit status 2; any other exception (a bug) one line and exit status 3, with the traceback
@@ -24,7 +24,7 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     result = simulate(scenario, kind=args.controller, solver=args.solver, simulator=args.sim,
                       progress=not args.quiet)
     out = Path(args.out) if args.out else Path("results") / f"{scenario.name}-{result.controller.kind}"
-    write_outputs(result, out, figures=not args.no_figures)
+    write_outputs(result, out, figures=not args.no_figures, replay=not args.no_replay)
     m = result.metrics
     print(f"{scenario.name} / {m['controller']} ({m['solver']}, {m['simulator']}): "
           f"max tracking error {m['max_tracking_error']:.3g} m, max |τ| {m['max_abs_torque']:.4g} N·m, "
@@ -32,6 +32,33 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
           f"collided {m['collided']}, tick median {m['tick_us_median']:.0f} µs -> {out}")
     for note in m.get("simulator_notes", []):
         print(f"  {m['simulator']}: {note}")
+    return 0
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from qpctl.errors import ConfigError
+    from qpctl.replay import REPLAY_FILE, from_run_dir, write_replay
+
+    if args.at is not None and not args.screenshot:
+        raise ConfigError("sets the time of --screenshot; give --screenshot PNG too", key="--at")
+    out = Path(args.out) if args.out else Path(args.run_dir) / REPLAY_FILE
+    stats = write_replay(from_run_dir(args.run_dir), out, fps=args.fps)
+    print(f"{out}: {stats.bytes / 1e6:.2f} MB, {stats.frames} frames, robot drawn with its {stats.robot_drawn_as}, "
+          f"written in {stats.seconds:.2f} s")
+    if args.screenshot:
+        from qpctl.replay.browser import render
+
+        width, _, height = args.size.partition("x")
+        if not (width.isdigit() and height.isdigit() and int(width) > 0 and int(height) > 0):
+            raise ConfigError(f"must be WIDTHxHEIGHT in pixels, e.g. 1280x800, got {args.size!r}", key="--size")
+        shot = render(out, at=args.at, width=int(width), height=int(height), params={"notices": "0"})
+        Path(args.screenshot).write_bytes(shot.png)
+        from qpctl.plots import compact_png
+
+        compact_png(Path(args.screenshot), octree=True)  # 256 colours: a third of the size, small enough for a README
+        problems = shot.errors + [f"requested {url}" for url in shot.requests]
+        print(f"{args.screenshot}: at t = {shot.state.get('time')} s (frame {shot.state.get('frame')}), "
+              f"{len(problems)} console errors or outside requests" + (": " + "; ".join(problems) if problems else ""))
     return 0
 
 
@@ -112,8 +139,17 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--out", help="output folder (default results/<scenario>-<controller>)")
     s.add_argument("--set", action="append", metavar="KEY=VALUE", help="override a scenario key by dotted path")
     s.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    s.add_argument("--no-replay", action="store_true", help="skip the replay page (replay.html)")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     s.set_defaults(func=_cmd_simulate)
+    r = sub.add_parser("replay", help="write a run folder's replay page (RUN_DIR/replay.html), optionally a screenshot")
+    r.add_argument("run_dir", metavar="RUN_DIR", help="the output folder of qpctl simulate")
+    r.add_argument("--out", help="the page to write (default RUN_DIR/replay.html)")
+    r.add_argument("--fps", type=float, default=30.0, help="display frames per second (default 30)")
+    r.add_argument("--screenshot", metavar="PNG", help="also render the page in headless Chromium into PNG")
+    r.add_argument("--at", type=float, help="the screenshot's time [s] (default: as the page opens)")
+    r.add_argument("--size", default="1280x800", help="the screenshot's window, WIDTHxHEIGHT (default 1280x800)")
+    r.set_defaults(func=_cmd_replay)
     b = sub.add_parser("bench", help="benchmark the controllers side by side")
     b.add_argument("--quick", action="store_true", help="a run of under two minutes")
     b.add_argument("--out", default="results/bench", help="output folder")

@@ -90,3 +90,9 @@ class PerceptionError(QpctlError, ValueError):
     or invalid intrinsics, a camera pose that is not a rigid transform, a non-finite stamp, or stamps
     going backwards (:mod:`qpctl.perception`). Invalid *pixels* (NaN, inf, zero or negative depth) are
     not errors: they are dropped and counted."""
+
+
+class ReplayError(QpctlError, RuntimeError):
+    """A replay page cannot be written or shown: a run folder without what a replay needs (its
+    ``trajectory.npz`` or the ``scenario.toml`` that ``qpctl simulate`` writes beside it), or no
+    headless browser to render one (:mod:`qpctl.replay`)."""

@@ -154,12 +154,20 @@ def write_figures(out: Path, traj: Trajectory, segments: np.ndarray, obstacles: 
 def save_compact(fig: plt.Figure, path: Path, dpi: int) -> Path:
     """Save ``fig`` as a palette PNG (256 colours): a third of the size of matplotlib's RGBA file for
     line plots, so that the figures stay small enough to keep in the repository."""
-    from PIL import Image
-
     fig.savefig(path, dpi=dpi)
     plt.close(fig)
+    return compact_png(path)
+
+
+def compact_png(path: Path, *, octree: bool = False) -> Path:
+    """Rewrite the PNG at ``path`` as a palette PNG (256 colours, no dithering; ``octree``: PIL's octree
+    palette, which keeps a small patch of a distinct colour — a screenshot's marker — where median cut
+    merges it into its neighbours)."""
+    from PIL import Image
+
     with Image.open(path) as img:
-        small = img.convert("RGB").quantize(colors=256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+        method = Image.Quantize.FASTOCTREE if octree else Image.Quantize.MEDIANCUT
+        small = img.convert("RGB").quantize(colors=256, method=method, dither=Image.Dither.NONE)
     small.save(path, optimize=True)
     return Path(path)
 

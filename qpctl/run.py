@@ -1,4 +1,5 @@
-"""Run a scenario end to end and write its outputs (``trajectory.npz``, ``metrics.json``, figures).
+"""Run a scenario end to end and write its outputs (``trajectory.npz``, ``metrics.json``, figures,
+``scenario.toml`` — the scenario as it ran — and the replay page ``replay.html``).
 
 Outputs are written to a temporary folder beside ``out`` and moved into place only when the run
 has finished, so a failed run leaves nothing half-written.
@@ -18,10 +19,13 @@ import numpy as np
 import pinocchio as pin
 
 from qpctl.controllers.base import Controller
+from qpctl.robot.model import RobotModel
 from qpctl.scenario import Scenario
 from qpctl.simulation.loop import SimulatorBase
 from qpctl.simulation.metrics import compute_metrics
 from qpctl.simulation.simulator import Simulator, Trajectory
+
+SCENARIO_FILE = "scenario.toml"  # beside a run's outputs: its scenario as it ran (scenario_as_run)
 
 
 @dataclass
@@ -32,9 +36,9 @@ class RunResult:
     metrics: dict[str, Any]
 
 
-def link_segments(controller: Controller, q: np.ndarray) -> np.ndarray:
-    """(T, L, 2, 3) link axes for each recorded configuration."""
-    robot = controller.robot
+def link_segments(controller: Controller | RobotModel, q: np.ndarray) -> np.ndarray:
+    """(T, L, 2, 3) link capsule axes [m] for each configuration (a controller's robot, or a robot)."""
+    robot = controller if isinstance(controller, RobotModel) else controller.robot
     data = robot.model.createData()
     out = np.empty((len(q), len(robot.capsules), 2, 3))
     for k, qk in enumerate(q):
@@ -105,14 +109,26 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
     return RunResult(scenario, controller, traj, metrics)
 
 
-def write_outputs(result: RunResult, out: Path, *, figures: bool = True) -> list[Path]:
-    """Write trajectory.npz, metrics.json and the figures into ``out`` atomically (folder-wise)."""
+def scenario_as_run(result: RunResult) -> str:
+    """The run's scenario as TOML (:meth:`Scenario.to_toml`), with the law, solver and simulator it
+    ran with (``qpctl simulate RUN_DIR/scenario.toml`` runs it again; ``qpctl replay`` reads it)."""
+    controller = {"kind": result.controller.kind}
+    solver = result.metrics.get("solver")
+    if solver and solver != "closed-form":
+        controller["solver"] = solver
+    return result.scenario.to_toml(controller=controller, sim={"simulator": result.metrics["simulator"]})
+
+
+def write_outputs(result: RunResult, out: Path, *, figures: bool = True, replay: bool = True) -> list[Path]:
+    """Write trajectory.npz, metrics.json, scenario.toml, the figures and (``replay``) the replay page
+    replay.html (:mod:`qpctl.replay`) into ``out`` atomically (folder-wise)."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     try:
         result.trajectory.save(tmp / "trajectory.npz")
         (tmp / "metrics.json").write_text(json.dumps(result.metrics, indent=2) + "\n")
+        (tmp / SCENARIO_FILE).write_text(scenario_as_run(result))
         if figures:
             from qpctl.plots import write_figures
 
@@ -120,6 +136,10 @@ def write_outputs(result: RunResult, out: Path, *, figures: bool = True) -> list
             label = f"{result.scenario.name}, {result.controller.kind}"
             write_figures(tmp, result.trajectory, segs, result.controller.obstacles, label,
                           tau_rate_max=result.controller.robot.tau_rate_max)
+        if replay:
+            from qpctl.replay import REPLAY_FILE, from_result, write_replay
+
+            write_replay(from_result(result), tmp / REPLAY_FILE)
         names = sorted(f.name for f in tmp.iterdir())
         if not out.exists():  # the usual case: one rename, so the folder appears complete or not at all
             mask = os.umask(0)

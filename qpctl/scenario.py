@@ -540,3 +540,30 @@ class Scenario:
         scene = self.build_obstacles() if obstacles is None else obstacles
         return make_controller(c, robot, self.build_path(robot, q0), scene, self._gains(margin, designed),
                                broadphase=bp, source=self.source)  # type: ignore[arg-type]
+
+    def to_toml(self, **changes: dict[str, Any]) -> str:
+        """The validated scenario as a TOML file that :meth:`load` reads back to the same ``data``:
+        every default filled in, relative paths (``robot.urdf``, ``sim.model``) made absolute, unset
+        optional keys left out. ``changes`` replaces keys of a table, e.g. ``controller={"kind": "qp"}``
+        for the law a run used (what ``qpctl simulate`` writes beside a run as ``scenario.toml``)."""
+        import tomli_w
+
+        data = copy.deepcopy(self.data)
+        for table, values in changes.items():
+            data[table].update(values)
+        for table, key in (("robot", "urdf"), ("sim", "model")):
+            if data[table].get(key):
+                data[table][key] = str(self.resolve(data[table][key]).resolve())
+        return tomli_w.dumps(_toml_value(data))
+
+
+def _toml_value(value: Any) -> Any:
+    """``value`` with numpy scalars and arrays as plain numbers and lists, tuples as lists, and the
+    None of unset optional keys dropped (TOML has no null)."""
+    if isinstance(value, dict):
+        return {k: _toml_value(v) for k, v in value.items() if v is not None}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [_toml_value(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value

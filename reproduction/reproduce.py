@@ -3,7 +3,8 @@
     python -m reproduction --out results/paper          (what ``make demo`` runs)
 
 Runs, each into its own sub-folder of ``--out`` with the standard outputs of ``qpctl simulate``
-(``trajectory.npz``, ``metrics.json``, figures):
+(``trajectory.npz``, ``metrics.json``, ``scenario.toml``; the figures and the replay page
+``replay.html`` for the runs ``--run-figures`` names, by default all):
 
 * ``paper``, ``hsu`` (and ``qp`` when :mod:`qpctl.controllers.qp` imports) on the scenario as it is;
 * ``vref-<v>-<law>``: the four reference velocities a < b < c < d of the paper's Fig. 4, given to
@@ -226,7 +227,7 @@ def run_one(scenario: str | Path, overrides: Sequence[str], spec: RunSpec, out: 
         if spec.kind != "qp":
             raise
         return RunSummary(spec, skipped=f"the QP controller is not available ({exc})")
-    write_outputs(result, out / spec.name, figures=figures)
+    write_outputs(result, out / spec.name, figures=figures, replay=figures)  # the runs with figures: a replay
     robot = result.controller.robot
     gravity = pin.computeGeneralizedGravity(robot.model, robot.model.createData(), result.trajectory.q[0])
     obstacle_clearance, area_clearance = _clearances(result, scen)
@@ -283,8 +284,9 @@ def run_all(scenario: str | Path, overrides: Sequence[str], specs: Sequence[RunS
     """All runs, ``jobs`` at a time through the sweep engine (:mod:`qpctl.sweep.engine`, local
     processes; one job runs them in this process), with a progress bar over the runs.
 
-    ``run_figures``: which runs also write their own PNGs (``all``, ``main`` — the scenario as it
-    is, one run per law — or ``none``); trajectory.npz and metrics.json are always written.
+    ``run_figures``: which runs also write their own PNGs and replay page (``all``, ``main`` — the
+    scenario as it is, one run per law — or ``none``); trajectory.npz and metrics.json are always
+    written.
     """
     from qpctl.sweep.backends import LocalBackend
     from qpctl.sweep.engine import map_ordered
@@ -429,9 +431,10 @@ def verdicts(t: Tables) -> list[dict[str, str]]:
 
 
 def report_markdown(t: Tables, base: Scenario, *, notes: Sequence[str], figures: dict[str, str],
-                    command: str, heading: str = "#") -> str:
+                    command: str, heading: str = "#", replays: Sequence[str] = ()) -> str:
     """report.md: tables (a) metrics per law, (b) the v_ref sweep, (c) the claims; plus the J̇e_N
-    measurement, the torque-rate events and the placement robustness."""
+    measurement, the torque-rate events and the placement robustness; links to the ``replays``
+    (run folders with a replay.html)."""
     h2 = heading + "#"
     laws = [law for law in LAWS if t.get(law) is not None]
     c = base.data["controller"]
@@ -530,6 +533,9 @@ def report_markdown(t: Tables, base: Scenario, *, notes: Sequence[str], figures:
     if figures:
         lines += [f"{h2} Figures", ""]
         lines += [f"![{caption}]({name})" + "\n" for name, caption in figures.items()]
+    if replays:
+        lines += [f"{h2} Replays", "", "The runs in 3D, each a page that opens offline in a browser (docs/replay.md): "
+                  + ", ".join(f"[{name}]({name}/replay.html)" for name in replays) + ".", ""]
     return "\n".join(lines).rstrip() + "\n"
 
 
@@ -584,7 +590,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help=f"moved-obstacle layouts for claim 2's robustness (default {DEFAULT_JITTER})")
     p.add_argument("--no-qp", action="store_true", help="leave the QP controller out")
     p.add_argument("--run-figures", choices=["all", "main", "none"], default="all",
-                   help="which runs write their own PNGs besides trajectory.npz and metrics.json (default all)")
+                   help="which runs write their own PNGs and replay.html besides trajectory.npz and metrics.json "
+                        "(default all)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     args = p.parse_args(argv)
     out = Path(args.out)
@@ -612,7 +619,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 notes.append(f"{r.spec.name} skipped: {r.skipped}")
         tables = Tables(runs)
         figs = make_figures(tables, args.scenario, args.set, out)
-        text = report_markdown(tables, base, notes=notes, figures=figs, command=command)
+        replays = [r.spec.name for r in runs if r.spec.group == "main" and (out / r.spec.name / "replay.html").is_file()]
+        text = report_markdown(tables, base, notes=notes, figures=figs, command=command, replays=replays)
         (out / "report.md").write_text(text)
         (out / "summary.json").write_text(json.dumps(
             [{"run": r.spec.name, "law": r.spec.kind, "group": r.spec.group, "v_ref": r.spec.v_ref,

@@ -277,7 +277,7 @@ def test_new_output_folder_appears_whole_with_a_normal_mode(tmp_path, capsys):
     out = tmp_path / "run"
     assert main(["simulate", "paper", "--out", str(out), "--set", "sim.duration=0.01", "--quiet",
                  "--no-figures"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["metrics.json", "trajectory.npz"]
+    assert sorted(p.name for p in out.iterdir()) == ["metrics.json", "replay.html", "scenario.toml", "trajectory.npz"]
     assert out.stat().st_mode & 0o077 == (0o777 & ~_umask()) & 0o077  # not mkdtemp's private 0700
     assert [p.name for p in tmp_path.iterdir()] == ["run"]
 

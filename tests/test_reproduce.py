@@ -81,8 +81,10 @@ def test_every_run_writes_its_standard_outputs(short_run):
     for name in names:
         run = short_run / name
         assert (run / "trajectory.npz").is_file() and (run / "metrics.json").is_file(), name
-    for law in laws_run():  # --run-figures main: the main runs have their own figures too
-        assert (short_run / law / "torques.png").is_file()
+    for law in laws_run():  # --run-figures main: the main runs have their own figures and replay too
+        assert (short_run / law / "torques.png").is_file() and (short_run / law / "replay.html").is_file()
+    assert not (short_run / "jitter1-paper" / "replay.html").exists()  # nor the others
+    assert "](paper/replay.html)" in (short_run / "report.md").read_text()
 
 
 def test_figures_are_written_and_small(short_run):

@@ -38,10 +38,15 @@ class Trajectory:
     orientation_error_deg: np.ndarray | None = None  # (T,) the angle between them (approach: the axis's)
     self_clearance: np.ndarray | None = None  # (T,) least distance between the self-collision pairs [m]
     tau_command: np.ndarray | None = None  # (T, n) the controller's command, with faults (tau: what acted)
+    # with the QP: each tick's SolveStatus ("solved", "infeasible", ...) and the fallback that gave the
+    # torque ("" where the QP's own answer did), from the ticks' infos (the replay's status panel)
+    qp_status: np.ndarray | None = None
+    qp_fallback: np.ndarray | None = None
 
     ARRAYS = ("t", "q", "v", "tau", "x", "x_ref", "xd_ref", "xdd_ref", "clearance", "e_null", "tick_us",
               "singular")
-    OPTIONAL = ("quat", "quat_ref", "orientation_error_deg", "self_clearance", "tau_command")
+    OPTIONAL = ("quat", "quat_ref", "orientation_error_deg", "self_clearance", "tau_command", "qp_status",
+                "qp_fallback")
 
     def save(self, path: str | Path) -> None:
         arrays = {k: getattr(self, k) for k in self.ARRAYS}
@@ -89,7 +94,11 @@ def finish_trajectory(traj: Trajectory, controller: Controller) -> Trajectory:
     """The task's position columns only in x, x_ref, ẋ_ref, ẍ_ref (the orientation rows' coordinates are
     centred at each tick's orientation: not a trajectory), and, with an orientation task, the frame's
     orientation and its reference as quaternions and the angle between them, from the recorded q
-    and the path (after the run, outside the tick's timing)."""
+    and the path (after the run, outside the tick's timing); with the QP, its status and fallback per tick."""
+    if traj.infos and all("status" in i for i in traj.infos):
+        traj.qp_status = np.array([str(getattr(s, "value", s)) for s in
+                                   (i.get("solve_status", i["status"]) for i in traj.infos)])
+        traj.qp_fallback = np.array([str(i.get("fallback") or "") for i in traj.infos])
     robot = controller.robot
     if not robot.m_orientation:
         return traj
