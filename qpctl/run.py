@@ -15,17 +15,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-import pinocchio as pin
-
 from qpctl.controllers.base import Controller
-from qpctl.robot.model import RobotModel
+from qpctl.replay.record import SCENARIO_FILE
 from qpctl.scenario import Scenario
 from qpctl.simulation.loop import SimulatorBase
 from qpctl.simulation.metrics import compute_metrics
 from qpctl.simulation.simulator import Simulator, Trajectory
-
-SCENARIO_FILE = "scenario.toml"  # beside a run's outputs: its scenario as it ran (scenario_as_run)
+from qpctl.simulation.trajectory import link_segments
 
 
 @dataclass
@@ -34,18 +30,6 @@ class RunResult:
     controller: Controller
     trajectory: Trajectory
     metrics: dict[str, Any]
-
-
-def link_segments(controller: Controller | RobotModel, q: np.ndarray) -> np.ndarray:
-    """(T, L, 2, 3) link capsule axes [m] for each configuration (a controller's robot, or a robot)."""
-    robot = controller if isinstance(controller, RobotModel) else controller.robot
-    data = robot.model.createData()
-    out = np.empty((len(q), len(robot.capsules), 2, 3))
-    for k, qk in enumerate(q):
-        pin.forwardKinematics(robot.model, data, qk)
-        for i, c in enumerate(robot.capsules):
-            out[k, i] = data.oMi[c.joint_id].act(c.p0), data.oMi[c.joint_id].act(c.p1)
-    return out
 
 
 def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None = None,

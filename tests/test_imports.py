@@ -41,6 +41,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("simulation", ("qpctl.simulation",)),
     ("adapters", ("qpctl.adapters",)),
     ("scenario", ("qpctl.scenario",)),
+    ("replay", ("qpctl.replay",)),
     ("run", ("qpctl.run", "qpctl.plots")),
     ("applications", ("qpctl.cli", "qpctl.bench", "qpctl.sweep")),
 )

@@ -80,7 +80,7 @@ def sample(robot: RobotModel, obstacles: list[Obstacle], t: np.ndarray, q: np.nd
            *, fps: float = DEFAULT_FPS, cutoff: float = np.inf) -> Frames:
     """The display frames of a run recorded at times ``t`` [s] with configurations ``q``; ``joints``:
     the joints whose poses the page moves; ``cutoff`` [m]: the link clearances beyond it are inf."""
-    from qpctl.run import link_segments
+    from qpctl.simulation.trajectory import link_segments
 
     times, ticks = display_ticks(t, fps)
     model, data = robot.model, robot.model.createData()

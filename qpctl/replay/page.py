@@ -35,7 +35,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import pinocchio as pin
 
-from qpctl.replay import visuals as V
+import qpctl.replay.visuals as V
 from qpctl.replay.figures import explain
 from qpctl.replay.frames import DEFAULT_FPS, Frames, sample, task_point_positions
 from qpctl.replay.record import ReplayInput

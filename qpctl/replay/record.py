@@ -14,18 +14,18 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 
 from qpctl.errors import ConfigError, ReplayError
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.robot.model import RobotModel
-from qpctl.run import SCENARIO_FILE
 from qpctl.simulation.trajectory import Trajectory
 
+SCENARIO_FILE = "scenario.toml"  # beside a run's outputs: its scenario as it ran (qpctl.run.scenario_as_run)
+
 if TYPE_CHECKING:
-    from qpctl.run import RunResult
     from qpctl.scenario import Scenario
 
 #: Optional arrays of ``trajectory.npz`` the page draws as the depth map's points: ``map_points``
@@ -99,7 +99,16 @@ def _make(scenario: Scenario, robot: RobotModel, traj: Trajectory, metrics: dict
                        np.asarray(robot.tau_max, float), *maps)
 
 
-def from_result(result: RunResult) -> ReplayInput:
+class RunLike(Protocol):
+    """What :func:`from_result` reads of a :class:`qpctl.run.RunResult` (the run layer is above this one)."""
+
+    scenario: Scenario
+    controller: Any
+    trajectory: Trajectory
+    metrics: dict[str, Any]
+
+
+def from_result(result: RunLike) -> ReplayInput:
     """The replay of a run just simulated (:func:`qpctl.run.simulate`)."""
     robot = result.controller.robot
     return _make(result.scenario, robot, result.trajectory, result.metrics, _map(result.trajectory))

@@ -13,6 +13,7 @@ import pinocchio as pin
 
 from qpctl.controllers.base import Controller
 from qpctl.errors import ConfigError
+from qpctl.robot.model import RobotModel
 
 
 @dataclass
@@ -118,3 +119,15 @@ def finish_trajectory(traj: Trajectory, controller: Controller) -> Trajectory:
         traj.quat_ref[k] = pin.Quaternion(R_d).coeffs()
         traj.orientation_error_deg[k] = orientation_error_deg(robot, R, R_d)
     return traj
+
+
+def link_segments(controller: Controller | RobotModel, q: np.ndarray) -> np.ndarray:
+    """(T, L, 2, 3) link capsule axes [m] for each configuration (a controller's robot, or a robot)."""
+    robot = controller if isinstance(controller, RobotModel) else controller.robot
+    data = robot.model.createData()
+    out = np.empty((len(q), len(robot.capsules), 2, 3))
+    for k, qk in enumerate(q):
+        pin.forwardKinematics(robot.model, data, qk)
+        for i, c in enumerate(robot.capsules):
+            out[k, i] = data.oMi[c.joint_id].act(c.p0), data.oMi[c.joint_id].act(c.p1)
+    return out
