@@ -42,13 +42,18 @@ def frame_index(model: pin.Model, name: str) -> int:
 
 @dataclass(frozen=True)
 class LinkCapsule:
-    """A capsule attached to a joint's frame: the segment p0–p1 [m] (in that frame) swept by ``radius`` [m]."""
+    """A capsule attached to a joint's frame: the segment p0–p1 [m] (in that frame) swept by ``radius`` [m].
+
+    ``links``: the robot's links (URDF links, MJCF bodies) it covers, which an SRDF's pairs name;
+    empty where unknown (then no SRDF applies to it).
+    """
 
     name: str
     joint_id: int
     p0: np.ndarray
     p1: np.ndarray
     radius: float
+    links: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.radius) and self.radius > 0):
@@ -95,6 +100,9 @@ class RobotModel:
     orientation_axes: tuple[int, ...] = ()
     approach_axis: np.ndarray | None = None
     urdf: Path | None = None  # the URDF it was read from (simulators that load URDFs use it), if any
+    mjcf: Path | None = None  # the MJCF it was read from (MuJoCo runs it), if any
+    srdf: Path | None = None  # the SRDF whose disabled pairs the self-collision pairs leave out, if any
+    disabled_pairs: frozenset[frozenset[str]] | None = None  # its <disable_collisions> link pairs
 
     def __post_init__(self) -> None:
         if self.model.nq != self.model.nv:
@@ -228,6 +236,42 @@ class RobotModel:
                 setattr(out, name, np.broadcast_to(arr.reshape(-1) if arr.ndim else arr, (self.nv,)).copy())
         return out
 
+    def link_names(self) -> list[str]:
+        """The robot's links (URDF links, MJCF bodies): its Pinocchio model's body frames."""
+        return list(dict.fromkeys(f.name for f in self.model.frames if f.type == pin.FrameType.BODY))
+
+    def with_capsules(self, path: str | Path, *, key: str = "robot.capsules") -> RobotModel:
+        """A copy whose capsules are a capsules file's (:func:`qpctl.robot.capsules.read_capsules`),
+        each moved from its link's frame to its joint's; a link the model lacks is a
+        :class:`ConfigError` naming ``key`` and listing the links."""
+        from qpctl.robot.capsules import read_capsules
+
+        entries = read_capsules(path, key=key)
+        links = self.link_names()
+        counts: dict[str, int] = {}
+        for e in entries:
+            counts[e.link] = counts.get(e.link, 0) + 1
+        capsules, seen = [], dict.fromkeys(counts, 0)
+        for e in entries:
+            if e.link not in links:
+                raise ConfigError(f"{Path(path).name} names link {e.link!r}, which {self.name} lacks; its links: "
+                                  f"{', '.join(links)}", key=key)
+            frame = self.model.frames[self.frame_id(e.link)]
+            name = e.link if counts[e.link] == 1 else f"{e.link}:{seen[e.link]}"
+            seen[e.link] += 1
+            capsules.append(LinkCapsule(name, int(frame.parentJoint), frame.placement.act(e.capsule.a),
+                                        frame.placement.act(e.capsule.b), e.capsule.radius, (e.link,)))
+        return replace(self, capsules=capsules, joint_names=list(self.joint_names))
+
+    def with_srdf(self, path: str | Path, *, key: str = "robot.srdf") -> RobotModel:
+        """A copy whose self-collision pairs leave out the SRDF's disabled link pairs
+        (:func:`qpctl.robot.srdf.disabled_pairs`; a link the model lacks is a :class:`ConfigError`)."""
+        from qpctl.robot.srdf import disabled_pairs
+
+        pairs = disabled_pairs(path, self.link_names(), key=key)
+        return replace(self, srdf=Path(path).resolve(), disabled_pairs=pairs, capsules=list(self.capsules),
+                       joint_names=list(self.joint_names))
+
     @classmethod
     def from_urdf(cls, path: str | Path, ee_frame: str, *, capsules: list[LinkCapsule] | None = None,
                   locked_joints: Sequence[str] = (), capsule_radius: float = 0.05,
@@ -237,10 +281,13 @@ class RobotModel:
 
         ``ee_offset`` [m] adds a frame ``<ee_frame>_tcp`` at that offset in ``ee_frame`` and uses it.
         """
-        path = Path(path)
+        path = resolve_package_uri(path)
         if not path.is_file():
             raise ConfigError(f"URDF not found: {path}", key="robot.urdf")
-        full = pin.buildModelFromUrdf(str(path))
+        try:
+            full = pin.buildModelFromUrdf(str(path))
+        except (ValueError, RuntimeError) as exc:
+            raise ConfigError(f"cannot parse {path.name}: {' '.join(str(exc).split())}", key="robot.urdf") from None
         if locked_joints:
             ids = []
             for jn in locked_joints:
@@ -279,17 +326,38 @@ def default_capsules(model: pin.Model, radius: float) -> list[LinkCapsule]:
     """One capsule per joint's body, from the joint to its first child joint — or, on a link with no
     child joint (the last), to the farthest frame the URDF attaches to it (the task frame, a tool or
     tip link), so that every link with a length is covered. A link with neither is a sphere at its
-    joint."""
+    joint. Each covers the links (body frames) its joint carries."""
     capsules = []
     for j in range(1, model.njoints):
+        links = tuple(f.name for f in model.frames if f.parentJoint == j and f.type == pin.FrameType.BODY)
         children = [c for c in range(j + 1, model.njoints) if model.parents[c] == j]
         if children:
             p1 = model.jointPlacements[children[0]].translation.copy()
         else:
             ends = [f.placement.translation for f in model.frames if f.parentJoint == j]
             p1 = max(ends, key=lambda p: float(np.linalg.norm(p)), default=np.zeros(3)).copy()
-        capsules.append(LinkCapsule(model.names[j], j, np.zeros(3), p1, radius))
+        capsules.append(LinkCapsule(model.names[j], j, np.zeros(3), p1, radius, links))
     return capsules
+
+
+def resolve_package_uri(path: str | Path) -> Path:
+    """A path, with ``package://example-robot-data/robots/<file>`` read as that installed package's file."""
+    text = str(path)
+    prefix = "package://example-robot-data/robots/"
+    if text.startswith(prefix):
+        return example_robot_data_path(text[len(prefix):])
+    return Path(path)
+
+
+def package_dirs(path: str | Path) -> list[str]:
+    """Where a robot file's ``package://`` meshes are looked for: example-robot-data's share folder
+    (when installed) and every folder above the file."""
+    dirs = [str(p) for p in Path(path).resolve().parents]
+    try:
+        dirs.insert(0, str(example_robot_data_path("panda_description/urdf/panda.urdf").parents[4]))
+    except ConfigError:
+        pass
+    return dirs
 
 
 def planar_arm(n: int = RobotConfig.links, *, length: float = RobotConfig.length, mass: float = RobotConfig.mass,
