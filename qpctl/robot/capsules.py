@@ -86,6 +86,7 @@ class LinkGeometry:
     faces: np.ndarray  # (f, 3) int; primitives' polytopes have none (their hull is theirs)
     source: str  # "collision" or "visual"
     parts: int  # geometry objects merged
+    exact: Capsule | None = None  # the link's one geometry object is a capsule or a sphere: itself
 
 
 @dataclass(frozen=True)
@@ -294,10 +295,15 @@ def fit_links(geometry: Iterable[LinkGeometry], **options: Any) -> list[LinkFit]
     """:func:`fit_link` on each link's geometry (``options`` are its keywords)."""
     out = []
     for g in geometry:
-        caps, volume, hull_v = fit_link(g.vertices, g.faces, **options)
+        caps: tuple[Capsule, ...]
+        if g.exact is not None:
+            caps, volume, hull_v = (g.exact,), g.exact.volume, g.exact.volume
+        else:
+            caps, volume, hull_v = fit_link(g.vertices, g.faces, **options)
         caps = tuple(_rounded(c) for c in caps)
-        outside = np.min([c.distance(g.vertices) for c in caps], axis=0)
-        out.append(LinkFit(g.link, caps, hull_v, volume if len(caps) > 1 else caps[0].volume, float(outside.max()),
+        # the polytope of an exact capsule circumscribes it: the capsule itself is the geometry
+        outside = 0.0 if g.exact is not None else float(np.min([c.distance(g.vertices) for c in caps], axis=0).max())
+        out.append(LinkFit(g.link, caps, hull_v, volume if len(caps) > 1 else caps[0].volume, outside,
                            len(g.vertices), g.source))
     return out
 
@@ -396,8 +402,22 @@ def link_geometry(model: pin.Model, collision: pin.GeometryModel, visual: pin.Ge
             verts.append(v @ local.rotation.T + local.translation)
             faces.append(tri + base)
             base += len(v)
-        out.append(LinkGeometry(f.name, np.vstack(verts), np.vstack(faces), source, len(objs)))
+        out.append(LinkGeometry(f.name, np.vstack(verts), np.vstack(faces), source, len(objs),
+                                _exact(objs[0], f.placement) if len(objs) == 1 else None))
     return out
+
+
+def _exact(obj: Any, link: pin.SE3) -> Capsule | None:
+    """A capsule or sphere geometry object as the capsule it is, in the link's frame; else None."""
+    import coal
+
+    geo = obj.geometry
+    if not isinstance(geo, (coal.Capsule, coal.Sphere)):
+        return None
+    local = link.inverse() * obj.placement
+    half = float(geo.halfLength) if isinstance(geo, coal.Capsule) else 0.0
+    a, b = local.act(np.array([0.0, 0.0, -half])), local.act(np.array([0.0, 0.0, half]))
+    return Capsule(a, b, float(geo.radius))
 
 
 def _needs_visual(urdf: Path) -> bool:

@@ -18,6 +18,7 @@ import importlib.metadata
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -246,7 +247,11 @@ class RobotModel:
         :class:`ConfigError` naming ``key`` and listing the links."""
         from qpctl.robot.capsules import read_capsules
 
-        entries = read_capsules(path, key=key)
+        return self.with_link_capsules(read_capsules(path, key=key), Path(path).name, key=key)
+
+    def with_link_capsules(self, entries: Sequence[Any], source: str, *, key: str = "robot.capsules") -> RobotModel:
+        """A copy whose capsules are ``entries`` (:class:`qpctl.robot.capsules.CapsuleEntry`: a link and
+        a capsule in its frame), named after their links (``link:k`` where a link has several)."""
         links = self.link_names()
         counts: dict[str, int] = {}
         for e in entries:
@@ -254,7 +259,7 @@ class RobotModel:
         capsules, seen = [], dict.fromkeys(counts, 0)
         for e in entries:
             if e.link not in links:
-                raise ConfigError(f"{Path(path).name} names link {e.link!r}, which {self.name} lacks; its links: "
+                raise ConfigError(f"{source} names link {e.link!r}, which {self.name} lacks; its links: "
                                   f"{', '.join(links)}", key=key)
             frame = self.model.frames[self.frame_id(e.link)]
             name = e.link if counts[e.link] == 1 else f"{e.link}:{seen[e.link]}"
@@ -262,6 +267,24 @@ class RobotModel:
             capsules.append(LinkCapsule(name, int(frame.parentJoint), frame.placement.act(e.capsule.a),
                                         frame.placement.act(e.capsule.b), e.capsule.radius, (e.link,)))
         return replace(self, capsules=capsules, joint_names=list(self.joint_names))
+
+    def with_robot_files(self, *, capsules: str | Path | None = None, srdf: str | Path | None = None) -> RobotModel:
+        """The scenario's ``robot.capsules`` and ``robot.srdf``: a capsules file replacing the
+        capsules; the SRDF given, or (``srdf`` None) the one beside the robot's URDF when the capsules
+        name their links, or none (``srdf = "none"``)."""
+        from qpctl.robot.srdf import find_srdf
+
+        out = self.with_capsules(capsules) if capsules else self
+        named = any(c.links for c in out.capsules)
+        if srdf == "none":
+            return out
+        if srdf:
+            if not named:
+                raise ConfigError(f"the capsules of {self.name} do not name their links, so no SRDF pair applies to "
+                                  "them: set robot.capsules (qpctl fit-capsules)", key="robot.srdf")
+            return out.with_srdf(srdf)
+        found = find_srdf(self.urdf) if self.urdf is not None and named else None
+        return out.with_srdf(found) if found is not None else out
 
     def with_srdf(self, path: str | Path, *, key: str = "robot.srdf") -> RobotModel:
         """A copy whose self-collision pairs leave out the SRDF's disabled link pairs
@@ -346,6 +369,9 @@ def resolve_package_uri(path: str | Path) -> Path:
     prefix = "package://example-robot-data/robots/"
     if text.startswith(prefix):
         return example_robot_data_path(text[len(prefix):])
+    if text.startswith("package://"):
+        raise ConfigError(f"cannot resolve {text}: only package://example-robot-data/robots/... is known; give a path",
+                          key="robot")
     return Path(path)
 
 
