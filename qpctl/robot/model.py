@@ -332,7 +332,7 @@ class RobotModel:
             ee_frame = tcp
             ee_id = frame_index(model, tcp)
         if capsules is None:
-            capsules = default_capsules(model, capsule_radius)
+            capsules = default_capsules(model, capsule_radius, _links_with_geometry(path))
         nv = model.nv
         return cls(
             name=name or path.stem, model=model, ee_frame=ee_frame, task_axes=(0, 1, 2), capsules=capsules,
@@ -345,14 +345,29 @@ class RobotModel:
         )
 
 
-def default_capsules(model: pin.Model, radius: float) -> list[LinkCapsule]:
+def _links_with_geometry(urdf: Path) -> set[str] | None:
+    """The URDF's links that have a collision (or visual) element, or None if it cannot be read here."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.parse(urdf).getroot()
+    except ET.ParseError:
+        return None
+    return {str(link.get("name")) for link in root.iter("link")
+            if link.find("collision") is not None or link.find("visual") is not None}
+
+
+def default_capsules(model: pin.Model, radius: float, shaped: set[str] | None = None) -> list[LinkCapsule]:
     """One capsule per joint's body, from the joint to its first child joint — or, on a link with no
     child joint (the last), to the farthest frame the URDF attaches to it (the task frame, a tool or
     tip link), so that every link with a length is covered. A link with neither is a sphere at its
-    joint. Each covers the links (body frames) its joint carries."""
+    joint. Each covers the links (body frames) its joint carries — those with geometry, when
+    ``shaped`` names them."""
     capsules = []
     for j in range(1, model.njoints):
         links = tuple(f.name for f in model.frames if f.parentJoint == j and f.type == pin.FrameType.BODY)
+        if shaped is not None and any(name in shaped for name in links):
+            links = tuple(name for name in links if name in shaped)
         children = [c for c in range(j + 1, model.njoints) if model.parents[c] == j]
         if children:
             p1 = model.jointPlacements[children[0]].translation.copy()
