@@ -18,8 +18,9 @@ vertex-to-segment distance, so every vertex is inside whatever the solver did.
 (on links of at least :data:`SPLIT_MIN_VOLUME`),
 the link's mesh is cut by planes normal to the hull's principal axes and to the capsule's axis (7
 offsets each); each side's points, with the points where the mesh's edges cross the plane, get
-their own capsule — so every point of every triangle lies in one of the two. The split with the
-least union volume is kept when it saves ``min_gain`` of the single capsule's volume, or when the
+their own capsule — so every point of every triangle lies in one of the two. The splits are ranked
+by the union volume of capsules fitted to 48 well-spread hull vertices of each side; the best is
+fitted to every point and kept when it saves ``min_gain`` of the single capsule's volume, or when the
 single capsule exceeds ``max_ratio`` × the hull.
 
 **Volumes.** A link's capsule volume is the volume of their union: exact for one capsule, a
@@ -227,6 +228,20 @@ def _unit_samples(samples: int) -> np.ndarray:
     return np.random.default_rng(0).random((samples, 3))
 
 
+def _thin(points: np.ndarray, count: int = 48) -> np.ndarray:
+    """At most ``count`` of the hull's vertices, spread out (farthest-point order): enough to rank
+    the split planes; the split kept is fitted to every point."""
+    hull = _hull_vertices(points)
+    if len(hull) <= count:
+        return hull
+    chosen = [int(np.argmax(np.linalg.norm(hull - hull.mean(axis=0), axis=1)))]
+    gap = np.linalg.norm(hull - hull[chosen[0]], axis=1)
+    for _ in range(count - 1):
+        chosen.append(int(np.argmax(gap)))
+        gap = np.minimum(gap, np.linalg.norm(hull - hull[chosen[-1]], axis=1))
+    return hull[chosen]
+
+
 def union_volume(capsules: Sequence[Capsule], samples: int = 2**16) -> float:
     """Volume [m³] of the union of ``capsules``: exact for one, else the fraction of ``samples``
     fixed-seed uniform points of the union's bounding box inside one (deterministic; standard error
@@ -284,7 +299,7 @@ def fit_link(vertices: np.ndarray, faces: np.ndarray | None = None, *, try_split
             left, right = _sides(verts, tris, n, float(np.quantile(proj, q)))
             if len(left) < 2 or len(right) < 2:
                 continue
-            pair = (fit_capsule(left, starts=1), fit_capsule(right, starts=1))
+            pair = (fit_capsule(_thin(left), starts=1), fit_capsule(_thin(right), starts=1))
             v = union_volume(pair, samples=2**12)
             if best is None or v < best[0]:
                 best = (v, pair, (left, right))
