@@ -25,7 +25,7 @@ import pinocchio as pin
 from qpctl import Scenario
 from qpctl.errors import ConfigError
 from qpctl.geometry.self_collision import fcl_self_distances, self_collision_pairs
-from qpctl.robot.capsules import fit_robot, write_capsules
+from qpctl.robot.capsules import fit_robot, robot_file, write_capsules
 from qpctl.run import simulate
 from qpctl.scenario import arm_reach
 
@@ -73,9 +73,10 @@ def reach_scene(robot: Any, seed: int = 0) -> dict[str, Any]:
     ee_radius = max((c.radius for c in robot.capsules if c.joint_id == robot.model.frames[robot.ee_frame_id].parentJoint),
                     default=0.05)
 
-    def draw() -> tuple[np.ndarray, np.ndarray]:
+    def draw(near: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         for _ in range(20000):
-            q = rng.uniform(lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo))
+            q = rng.uniform(lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo)) if near is None else \
+                np.clip(near + rng.uniform(-0.8, 0.8, len(near)), lo, hi)
             if _clear(robot, q, pairs, data):
                 pin.framesForwardKinematics(robot.model, data, q)
                 return q, data.oMf[robot.ee_frame_id].translation.copy()
@@ -83,8 +84,8 @@ def reach_scene(robot: Any, seed: int = 0) -> dict[str, Any]:
 
     q0, x0 = draw()
     for _ in range(500):
-        _, x1 = draw()
-        if 0.3 * reach < np.linalg.norm(x1 - x0) < 0.8 * reach and x1[2] > 0.2 * reach:
+        _, x1 = draw(q0)
+        if 0.25 * reach < np.linalg.norm(x1 - x0) < 0.7 * reach and x1[2] > 0.15 * reach:
             break
     mid, along = 0.5 * (x0 + x1), (x1 - x0) / np.linalg.norm(x1 - x0)
     size = 0.04 * reach
@@ -126,6 +127,10 @@ def run_arm(label: str, rel: str, ee: str, srdf: str, out: Path) -> dict[str, An
     try:
         robot = Scenario.from_dict(raw, overrides=["sim.duration=0.01"]).build_robot()
     except ConfigError as exc:  # e.g. continuous joints (nq != nv): part B of issue 24
+        model = pin.buildModelFromUrdf(str(robot_file(uri)))
+        if model.nq != model.nv:
+            kinds = sorted({model.joints[j].shortname().removeprefix("JointModel") for j in range(1, model.njoints)})
+            return {**row, "error": f"needs part B: joints {', '.join(kinds)} (nq {model.nq} ≠ nv {model.nv})"}
         return {**row, "error": str(exc)}
     for seed in range(50):  # the first seeded scene whose obstacles clear the arm at the start
         try:
