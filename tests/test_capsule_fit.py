@@ -253,3 +253,18 @@ def test_a_mesh_that_does_not_load_names_the_key(tmp_path):
     (tmp_path / "broken.urdf").write_text("<robot name='x'><link name='a'>")
     with pytest.raises(ConfigError, match=r"^robot: cannot parse broken\.urdf"):
         file_geometry(tmp_path / "broken.urdf")
+
+
+def test_a_robot_file_that_does_not_parse_names_the_key(tmp_path):
+    from qpctl import Scenario
+
+    (tmp_path / "broken.urdf").write_text("<robot name='x'><link name='a'>")
+    raw = {"robot": {"kind": "urdf", "urdf": "broken.urdf", "ee_frame": "a"},
+           "path": {"waypoints": [[0.4, 0.0, 0.3]], "duration": 1.0}}
+    with pytest.raises(ConfigError, match=r"^<dict>: robot\.urdf: cannot parse broken\.urdf"):
+        Scenario.from_dict(raw, base_dir=tmp_path)
+    raw["robot"]["capsules"] = "none.toml"
+    raw["robot"]["urdf"] = "package://example-robot-data/robots/ur_description/urdf/ur5_robot.urdf"
+    raw["robot"]["ee_frame"] = "tool0"
+    with pytest.raises(ConfigError, match=r"^<dict>: robot\.capsules: capsules file not found"):
+        Scenario.from_dict(raw, base_dir=tmp_path)

@@ -458,16 +458,11 @@ def _needs_visual(urdf: Path) -> bool:
 def file_geometry(path: str | Path, *, key: str = "robot") -> list[LinkGeometry]:
     """Each link's geometry (:func:`link_geometry`) of a URDF or MJCF file (``.xml``), read by
     Pinocchio's parsers; :class:`ConfigError` naming ``key`` if the file or a mesh does not load."""
-    from qpctl.robot.model import package_dirs, resolve_package_uri
+    from qpctl.robot.model import package_dirs, read_model, resolve_package_uri
 
     path = resolve_package_uri(path)
-    if not path.is_file():
-        raise ConfigError(f"robot file not found: {path}", key=key)
     mjcf = path.suffix.lower() in (".xml", ".mjcf")
-    try:
-        model = pin.buildModelFromMJCF(str(path)) if mjcf else pin.buildModelFromUrdf(str(path))
-    except (ValueError, RuntimeError) as exc:
-        raise ConfigError(f"cannot parse {path.name}: {' '.join(str(exc).split())}", key=key) from None
+    model = read_model(path, key=key)
 
     def geometry(kind: Any) -> pin.GeometryModel:
         try:

@@ -30,7 +30,7 @@ import pinocchio as pin
 
 from qpctl.errors import ConfigError
 from qpctl.robot.capsules import CapsuleEntry, file_geometry, fit_links
-from qpctl.robot.model import RobotModel, frame_index
+from qpctl.robot.model import RobotModel, frame_index, read_model
 
 
 def _compiled(path: Path) -> Any | None:
@@ -86,12 +86,7 @@ def from_mjcf(path: str | Path, ee_frame: str, *, gravity: Sequence[float] | Non
     """An MJCF robot (module docstring); ``ee_frame``: a body or site whose origin is the task point;
     ``gravity`` [m/s²] replaces the file's; ``capsules=False`` leaves the robot without any."""
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"MJCF not found: {path}", key="robot.mjcf")
-    try:
-        model = pin.buildModelFromMJCF(str(path))
-    except (ValueError, RuntimeError) as exc:
-        raise ConfigError(f"cannot parse {path.name}: {' '.join(str(exc).split())}", key="robot.mjcf") from None
+    model = read_model(path, key="robot.mjcf")
     if model.nq != model.nv:
         raise ConfigError(f"{path.name} has joints whose configuration is not one number per degree of freedom "
                           f"(nq {model.nq} ≠ nv {model.nv}: a ball or free joint); only hinges and slides are "

@@ -305,12 +305,7 @@ class RobotModel:
         ``ee_offset`` [m] adds a frame ``<ee_frame>_tcp`` at that offset in ``ee_frame`` and uses it.
         """
         path = resolve_package_uri(path)
-        if not path.is_file():
-            raise ConfigError(f"URDF not found: {path}", key="robot.urdf")
-        try:
-            full = pin.buildModelFromUrdf(str(path))
-        except (ValueError, RuntimeError) as exc:
-            raise ConfigError(f"cannot parse {path.name}: {' '.join(str(exc).split())}", key="robot.urdf") from None
+        full = read_model(path, key="robot.urdf")
         if locked_joints:
             ids = []
             for jn in locked_joints:
@@ -376,6 +371,18 @@ def default_capsules(model: pin.Model, radius: float, shaped: set[str] | None = 
             p1 = max(ends, key=lambda p: float(np.linalg.norm(p)), default=np.zeros(3)).copy()
         capsules.append(LinkCapsule(model.names[j], j, np.zeros(3), p1, radius, links))
     return capsules
+
+
+def read_model(path: Path, *, key: str) -> pin.Model:
+    """Pinocchio's model of a URDF, or of an MJCF (``.xml``, ``.mjcf``); :class:`ConfigError` naming
+    ``key`` if the file is missing or does not parse."""
+    mjcf = path.suffix.lower() in (".xml", ".mjcf")
+    if not path.is_file():
+        raise ConfigError(f"{'MJCF' if mjcf else 'URDF'} not found: {path}", key=key)
+    try:
+        return pin.buildModelFromMJCF(str(path)) if mjcf else pin.buildModelFromUrdf(str(path))
+    except (ValueError, RuntimeError) as exc:
+        raise ConfigError(f"cannot parse {path.name}: {' '.join(str(exc).split())}", key=key) from None
 
 
 def resolve_package_uri(path: str | Path) -> Path:
