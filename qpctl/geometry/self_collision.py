@@ -15,7 +15,7 @@ nearer than ``d_safe`` at home; no sampling.
 
 :func:`self_collision_pairs` returns what is kept and why the rest is not; a scenario may name its
 own pairs instead (``controller.self_collision_pairs``). The distances the tick computes in closed
-form (:func:`qpctl.kernels.tick.self_pairs`) are held against :func:`fcl_self_distances` in the tests.
+form (:func:`qpctl.kernels.self_pairs.self_pairs`) are held against :func:`fcl_self_distances` in the tests.
 """
 
 from __future__ import annotations
