@@ -316,7 +316,7 @@ class Scenario:
         """A path of the scenario's, relative ones from the scenario file's folder (or the working folder);
         ``package://example-robot-data/robots/<file>`` is that installed package's file."""
         if path.startswith("package://"):
-            from qpctl.robot.model import resolve_package_uri
+            from qpctl.robot.files import resolve_package_uri
 
             return resolve_package_uri(path)
         p = Path(path).expanduser()

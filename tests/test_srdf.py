@@ -13,7 +13,8 @@ import pytest
 from qpctl import Scenario
 from qpctl.errors import ConfigError
 from qpctl.geometry.self_collision import fcl_self_distances, self_collision_pairs
-from qpctl.robot.model import RobotModel, example_robot_data_path, package_dirs
+from qpctl.robot.files import package_dirs
+from qpctl.robot.model import RobotModel, example_robot_data_path
 from qpctl.robot.srdf import disabled_pairs, find_srdf
 
 URDF = example_robot_data_path("panda_description/urdf/panda.urdf")

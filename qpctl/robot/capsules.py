@@ -47,6 +47,7 @@ import numpy as np
 import pinocchio as pin
 
 from qpctl.errors import ConfigError
+from qpctl.robot.files import example_robot_data_path, package_dirs, read_model, resolve_package_uri
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -458,8 +459,6 @@ def _needs_visual(urdf: Path) -> bool:
 def file_geometry(path: str | Path, *, key: str = "robot") -> list[LinkGeometry]:
     """Each link's geometry (:func:`link_geometry`) of a URDF or MJCF file (``.xml``), read by
     Pinocchio's parsers; :class:`ConfigError` naming ``key`` if the file or a mesh does not load."""
-    from qpctl.robot.model import package_dirs, read_model, resolve_package_uri
-
     path = resolve_package_uri(path)
     mjcf = path.suffix.lower() in (".xml", ".mjcf")
     model = read_model(path, key=key)
@@ -480,8 +479,6 @@ def file_geometry(path: str | Path, *, key: str = "robot") -> list[LinkGeometry]
 def robot_file(robot: str | Path) -> Path:
     """The robot file ``qpctl fit-capsules ROBOT`` means: ``"panda"`` (example-robot-data's Panda
     URDF), ``package://example-robot-data/robots/<file>``, or a path to a URDF or MJCF (``.xml``) file."""
-    from qpctl.robot.model import example_robot_data_path, resolve_package_uri
-
     if str(robot) == "panda":
         return example_robot_data_path("panda_description/urdf/panda.urdf")
     path = resolve_package_uri(robot)

@@ -30,7 +30,8 @@ import pinocchio as pin
 
 from qpctl.errors import ConfigError
 from qpctl.robot.capsules import CapsuleEntry, file_geometry, fit_links
-from qpctl.robot.model import RobotModel, frame_index, read_model
+from qpctl.robot.files import read_model
+from qpctl.robot.model import RobotModel, frame_index
 
 
 def _compiled(path: Path) -> Any | None:

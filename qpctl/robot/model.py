@@ -1,6 +1,7 @@
 """Robot models: a Pinocchio model, the task frame, link collision capsules and limits.
 
-Every rigid-body quantity in qpctl comes from Pinocchio; this module only builds the models.
+Every rigid-body quantity in qpctl comes from Pinocchio; this module only builds the models (reading
+their files through :mod:`qpctl.robot.files`).
 
 * :func:`planar_arm` — the paper's arm: ``n`` revolute joints about z, uniform thin rods of length
   ``l`` [m] and mass ``m`` [kg] (centre of mass at mid-link, I_c = m l²/12 about the axes normal to
@@ -14,7 +15,6 @@ Every rigid-body quantity in qpctl comes from Pinocchio; this module only builds
 
 from __future__ import annotations
 
-import importlib.metadata
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -25,6 +25,7 @@ import pinocchio as pin
 
 from qpctl.errors import ConfigError, UnknownFrameError
 from qpctl.robot.config import RobotConfig
+from qpctl.robot.files import example_robot_data_path, read_model, resolve_package_uri
 
 # Where a URDF names a link and a joint alike (example-robot-data's Z1: "gripperStator"), Pinocchio
 # has several frames of that name; the task point is then the first of these kinds.
@@ -373,41 +374,6 @@ def default_capsules(model: pin.Model, radius: float, shaped: set[str] | None = 
     return capsules
 
 
-def read_model(path: Path, *, key: str) -> pin.Model:
-    """Pinocchio's model of a URDF, or of an MJCF (``.xml``, ``.mjcf``); :class:`ConfigError` naming
-    ``key`` if the file is missing or does not parse."""
-    mjcf = path.suffix.lower() in (".xml", ".mjcf")
-    if not path.is_file():
-        raise ConfigError(f"{'MJCF' if mjcf else 'URDF'} not found: {path}", key=key)
-    try:
-        return pin.buildModelFromMJCF(str(path)) if mjcf else pin.buildModelFromUrdf(str(path))
-    except (ValueError, RuntimeError) as exc:
-        raise ConfigError(f"cannot parse {path.name}: {' '.join(str(exc).split())}", key=key) from None
-
-
-def resolve_package_uri(path: str | Path) -> Path:
-    """A path, with ``package://example-robot-data/robots/<file>`` read as that installed package's file."""
-    text = str(path)
-    prefix = "package://example-robot-data/robots/"
-    if text.startswith(prefix):
-        return example_robot_data_path(text[len(prefix):])
-    if text.startswith("package://"):
-        raise ConfigError(f"cannot resolve {text}: only package://example-robot-data/robots/... is known; give a path",
-                          key="robot")
-    return Path(path)
-
-
-def package_dirs(path: str | Path) -> list[str]:
-    """Where a robot file's ``package://`` meshes are looked for: example-robot-data's share folder
-    (when installed) and every folder above the file."""
-    dirs = [str(p) for p in Path(path).resolve().parents]
-    try:
-        dirs.insert(0, str(example_robot_data_path("panda_description/urdf/panda.urdf").parents[4]))
-    except ConfigError:
-        pass
-    return dirs
-
-
 def planar_arm(n: int = RobotConfig.links, *, length: float = RobotConfig.length, mass: float = RobotConfig.mass,
                radius: float = RobotConfig.radius,
                gravity: float | Sequence[float] = 9.81,
@@ -446,23 +412,6 @@ def planar_arm(n: int = RobotConfig.links, *, length: float = RobotConfig.length
         tau_max=np.broadcast_to(np.asarray(tau_max, float), (n,)).copy(),
         q_home=np.array([np.pi, np.pi / 2] + [0.0] * (n - 2)),
     )
-
-
-def example_robot_data_path(relative: str) -> Path:
-    """Absolute path of a file shipped by the installed ``example-robot-data`` package.
-
-    ``relative`` is below the package's ``robots/`` folder, e.g. ``panda_description/urdf/panda.urdf``.
-    """
-    try:
-        files = importlib.metadata.files("example-robot-data") or []
-    except importlib.metadata.PackageNotFoundError as exc:
-        raise ConfigError("the example-robot-data package is not installed (pip install example-robot-data)",
-                          key="robot") from exc
-    suffix = "example-robot-data/robots/" + relative
-    for f in files:
-        if str(f).replace("\\", "/").endswith(suffix):
-            return Path(f.locate()).resolve()
-    raise ConfigError(f"example-robot-data has no file {relative}", key="robot")
 
 
 # Capsules approximating the Panda's links, in each joint's frame [m], one per link. Measured against
