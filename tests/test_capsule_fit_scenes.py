@@ -50,7 +50,8 @@ def test_fitted_panda_runs_panda_canopy_collision_free(tmp_path):
     out = tmp_path / "panda.toml"
     subprocess.run([sys.executable, "-m", "qpctl.cli", "fit-capsules", "panda", "--out", str(out)], check=True,
                    capture_output=True)
-    for kind in ("qp", "paper"):
+    # the paper law collides on this scene with the hand-made capsules too (-0.095 m; fitted: -0.092 m)
+    for kind in ("qp", "hsu"):
         result = simulate(Scenario.load("panda_canopy", [f"robot.capsules={out}"]), kind=kind, progress=False)
         assert not result.metrics["collided"], kind
 
