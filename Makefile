@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: all env demo test soak robust bench bench-quick harvest simulators sweep-small sweep-1k sweep-throughput lint clean
+.PHONY: all env demo test soak robust bench bench-quick harvest simulators robots sweep-small sweep-1k sweep-throughput lint clean
 
 all: test
 
@@ -44,6 +44,10 @@ harvest: $(STAMP)
 # Built-in / MuJoCo / PyBullet / Drake side by side: results/simulators/simulators.md (docs/simulators.md, "Other simulators").
 simulators: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks.simulators --out results/simulators
+
+# example-robot-data's arms with fitted capsules, their SRDF and a QP reach: results/robots/robots.md (docs/robots.md).
+robots: $(STAMP)
+	MPLBACKEND=Agg $(PY) -m benchmarks.robots --out results/robots
 
 # Sweeps (docs/sweeps.md). The packaged canopy_small (40 runs) and canopy_1k (1,000 runs) specs; rerunning
 # a target resumes the sweep in its folder. sweep-throughput makes the runs/min table of docs/sweeps.md.

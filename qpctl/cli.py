@@ -1,4 +1,4 @@
-"""The ``qpctl`` command line: ``simulate``, ``replay``, ``bench``, ``sweep``, ``solvers``, ``warmup``.
+"""The ``qpctl`` command line: ``simulate``, ``replay``, ``bench``, ``sweep``, ``solvers``, ``warmup``, ``fit-capsules``.
 
 Any :class:`~qpctl.errors.QpctlError` (or an ``OSError`` reading or writing files) becomes one line on
 stderr and exit status 2; any other exception (a bug) one line and exit status 3, with the traceback
@@ -124,6 +124,25 @@ def _cmd_warmup(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_fit_capsules(args: argparse.Namespace) -> int:
+    from qpctl.errors import ConfigError
+    from qpctl.robot.capsules import fit_robot, write_capsules
+
+    if args.max_capsules not in (1, 2):
+        raise ConfigError(f"must be 1 or 2, got {args.max_capsules}", key="--max-capsules")
+    path, fits = fit_robot(args.robot, skip=args.skip or (), max_capsules=args.max_capsules)
+    command = " ".join(["qpctl fit-capsules", args.robot] + (["--max-capsules", "1"] if args.max_capsules == 1 else [])
+                       + [f"--skip {s}" for s in args.skip or ()])
+    out = write_capsules(fits, args.out, robot=args.robot if args.robot == "panda" else path.stem,
+                         source=str(path), command=command)
+    for fit in fits:
+        print(fit.line())
+    worst = max(fits, key=lambda f: f.ratio)
+    print(f"{sum(len(f.capsules) for f in fits)} capsules on {len(fits)} links of {path.name}; largest volume ratio "
+          f"{worst.ratio:.2f} ({worst.link}) -> {out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="qpctl", description=__doc__.splitlines()[0] if __doc__ else None)
     sub = p.add_subparsers(dest="command", required=True)
@@ -169,6 +188,12 @@ def build_parser() -> argparse.ArgumentParser:
     v.set_defaults(func=_cmd_solvers)
     w = sub.add_parser("warmup", help="compile the per-tick kernels into numba's on-disk cache")
     w.set_defaults(func=_cmd_warmup)
+    fc = sub.add_parser("fit-capsules", help="fit collision capsules to a robot's link meshes into a TOML file")
+    fc.add_argument("robot", help="panda, a .urdf or MJCF .xml file, or package://example-robot-data/robots/<file>")
+    fc.add_argument("--out", required=True, help="the capsules file to write (robot.capsules reads it)")
+    fc.add_argument("--max-capsules", type=int, default=2, help="capsules per link at most: 1 or 2 (default 2)")
+    fc.add_argument("--skip", action="append", metavar="LINK", help="leave this link without capsules (repeatable)")
+    fc.set_defaults(func=_cmd_fit_capsules)
     return p
 
 

@@ -313,7 +313,12 @@ class Scenario:
         return str(self.data["name"])
 
     def resolve(self, path: str) -> Path:
-        """A path of the scenario's, relative ones from the scenario file's folder (or the working folder)."""
+        """A path of the scenario's, relative ones from the scenario file's folder (or the working folder);
+        ``package://example-robot-data/robots/<file>`` is that installed package's file."""
+        if path.startswith("package://"):
+            from qpctl.robot.files import resolve_package_uri
+
+            return resolve_package_uri(path)
         p = Path(path).expanduser()
         return p if p.is_absolute() or self.base_dir is None else self.base_dir / p
 
@@ -335,9 +340,19 @@ class Scenario:
                 if r["gravity"] is not None:
                     kw["gravity"] = r["gravity"]
                 robot = RobotModel.from_urdf(self.resolve(r["urdf"]), r["ee_frame"], **kw)
+            elif r["kind"] == "mjcf":
+                from qpctl.robot.mjcf import from_mjcf
+
+                for key in ("mjcf", "ee_frame"):
+                    if not r[key]:
+                        raise self._err(f"robot.{key}", 'is required with robot.kind = "mjcf" (the MJCF file and '
+                                                         "the frame whose origin is the task point)")
+                robot = from_mjcf(self.resolve(r["mjcf"]), r["ee_frame"], gravity=r["gravity"])
             else:
                 kw = {"gravity": r["gravity"]} if r["gravity"] is not None else {}
                 robot = load_robot(r["kind"], **kw)
+            robot = robot.with_robot_files(capsules=self.resolve(r["capsules"]) if r["capsules"] else None,
+                                           srdf=self.resolve(r["srdf"]) if r["srdf"] not in ("", "none") else r["srdf"] or None)
             robot = self._with_task(robot)
             limits = {k: r[k] for k in ("tau_max", "v_max", "tau_rate_max", "qdd_max") if r[k] is not None}
             if limits:

@@ -301,15 +301,18 @@ def _my_arm(tmp_path, old, new, name="arm.xml"):
     return path
 
 
-def test_servo_actuators_are_switched_off_with_a_note(tmp_path, planar):
+def test_servo_actuators_become_motors_with_a_note(tmp_path, planar):
     """Position servos (as in Menagerie's Panda) left in the MJCF would pull the arm toward ctrl = 0:
-    they are switched off and said so, and the run is the built-in one."""
+    in a file, they are turned into motors (MjSpec set_to_motor) and said so in one line, and the run
+    is the built-in one."""
     servo = _my_arm(tmp_path, '<motor gear="100" ctrlrange="-5 5"/>', '<position kp="500" kv="50"/>')
     servo.write_text(servo.read_text().replace("<motor ", "<position "))
     ctrl = _paper_controller(planar, 0.5)
     sim = MujocoSimulator(ctrl, duration=0.5, model=servo, joint_names=MY_NAMES)
-    assert sum("switched off" in n and "kp = 500" in n for n in sim.notes) == 3
-    assert np.all(sim.model.actuator_gainprm[:, 0] == 0) and np.all(sim.model.actuator_biasprm == 0)
+    notes = [n for n in sim.notes if "turned into motors" in n]
+    assert len(notes) == 1 and notes[0].count("kp 500, kv 50") == 3
+    assert len(sim.actuation.motor_ids) == 3 and np.all(sim.model.actuator_biasprm == 0)
+    assert np.all(sim.model.actuator_ctrllimited == 0)  # a position range is no torque limit
     ref = Simulator(_paper_controller(planar, 0.5), dt=1e-3, duration=0.5).run(planar.q_home)
     assert np.max(np.abs(sim.run(planar.q_home).q - ref.q)) <= 1e-12
 

@@ -392,18 +392,45 @@ def _add_obstacles(spec: Any, obstacles: Sequence[Obstacle], prefix: str) -> Non
                         size=size, pos=pos, quat=quat, contype=0, conaffinity=0, group=1, rgba=[0.45, 0.6, 0.3, 0.6])
 
 
-def load_user_model(path: str | Path, obstacles: Sequence[Obstacle] = ()) -> mujoco.MjModel:
+def servos_to_motors(spec: Any, joints: Sequence[str]) -> str | None:
+    """Turn the position and velocity servos (and other affine-bias actuators) on ``joints`` into
+    motors (``actuator.set_to_motor()``): torque = gear × ctrl, still clamped by ``forcerange``; their
+    ``ctrlrange`` — a position or a speed — no longer limits it. Returns the one-line note, or None."""
+    names = set(joints)
+    changed = []
+    for act in spec.actuators:
+        if act.trntype not in (mujoco.mjtTrn.mjTRN_JOINT, mujoco.mjtTrn.mjTRN_JOINTINPARENT) or act.target not in names:
+            continue
+        if act.biastype == mujoco.mjtBias.mjBIAS_AFFINE and act.dyntype in (mujoco.mjtDyn.mjDYN_NONE,
+                                                                             mujoco.mjtDyn.mjDYN_INTEGRATOR):
+            kp, kv = -act.biasprm[1], -act.biasprm[2]
+            changed.append(f"{act.name or act.target} (kp {kp:.4g}, kv {kv:.4g})")
+            act.set_to_motor()
+            act.dyntype = mujoco.mjtDyn.mjDYN_NONE
+            act.ctrllimited = mujoco.mjtLimited.mjLIMITED_FALSE
+    if not changed:
+        return None
+    return (f"{len(changed)} servo{'s' if len(changed) > 1 else ''} turned into motors (MjSpec set_to_motor; "
+            f"forcerange kept, ctrlrange dropped): {', '.join(changed)}")
+
+
+def load_user_model(path: str | Path, obstacles: Sequence[Obstacle] = (), *, motor_joints: Sequence[str] = (),
+                    notes: list[str] | None = None, key: str = "sim.model") -> mujoco.MjModel:
     """Compile the user's MJCF (or URDF) at ``path`` with ``obstacles`` added as contact-free geoms
-    (bodies and geoms named ``qpctl_<obstacle name>``)."""
+    (bodies and geoms named ``qpctl_<obstacle name>``), servos on ``motor_joints`` turned into motors
+    (:func:`servos_to_motors`, its note appended to ``notes``)."""
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"MuJoCo model not found: {path}", key="sim.model")
+        raise ConfigError(f"MuJoCo model not found: {path}", key=key)
     try:
         spec = mujoco.MjSpec.from_file(str(path))
         _add_obstacles(spec, obstacles, "qpctl_")
+        note = servos_to_motors(spec, motor_joints)
+        if note is not None and notes is not None:
+            notes.append(note)
         return spec.compile()
     except ValueError as exc:
-        raise ConfigError(f"MuJoCo rejected {path}: {' '.join(str(exc).split())}", key="sim.model") from None
+        raise ConfigError(f"MuJoCo rejected {path}: {' '.join(str(exc).split())}", key=key) from None
 
 
 class MujocoSimulator(SimulatorBase):
@@ -449,7 +476,8 @@ class MujocoSimulator(SimulatorBase):
                              joint_limits=joint_limits)
         else:
             if isinstance(model, (str, Path)):
-                mj = load_user_model(model, self.obstacles)
+                mj = load_user_model(model, self.obstacles, motor_joints=joint_names or self.robot.joint_names,
+                                     notes=self.notes)
                 prefix = "qpctl_"
             else:
                 mj = copy.copy(model)
@@ -478,9 +506,10 @@ class MujocoSimulator(SimulatorBase):
     @classmethod
     def from_scenario(cls, controller: Controller, scenario: Any, *, progress: bool = False) -> MujocoSimulator:
         """MuJoCo for the scenario's ``[sim]``: ``dt``, ``duration``, ``integrator``, and the user's
-        ``model`` (relative to the scenario file's folder) with its ``joint_names``."""
+        ``model`` (relative to the scenario file's folder) with its ``joint_names`` — by default, for an
+        MJCF robot (``robot.kind = "mjcf"``), the robot's own file."""
         sim = scenario.data["sim"]
-        model = scenario.resolve(sim["model"]) if sim["model"] else None
+        model = scenario.resolve(sim["model"]) if sim["model"] else controller.robot.mjcf  # an MJCF robot's own file
         return cls(controller, dt=sim["dt"], duration=sim["duration"], integrator=sim["integrator"],
                    progress=progress, model=model, joint_names=sim["joint_names"])
 

@@ -8,6 +8,11 @@ Pairs are left out, as Pink and mink leave them out (their SRDF-style "disabled 
   of ``samples`` seeded random configurations within the joint limits: a barrier on such a pair
   would hold the arm near its start or be infeasible from it (for the Panda: its wrist's links 5–7).
 
+A robot with an SRDF (``robot.srdf``; :mod:`qpctl.robot.srdf`) whose capsules name their links
+(fitted ones do) leaves out instead the pairs the SRDF disables (every pair of the two capsules'
+links disabled), the capsules of one rigid body (one joint) and of a joint and its parent, and those
+nearer than ``d_safe`` at home; no sampling.
+
 :func:`self_collision_pairs` returns what is kept and why the rest is not; a scenario may name its
 own pairs instead (``controller.self_collision_pairs``). The distances the tick computes in closed
 form (:func:`qpctl.kernels.self_pairs.self_pairs`) are held against :func:`fcl_self_distances` in the tests.
@@ -69,12 +74,36 @@ _CACHE: dict[tuple[object, ...], SelfPairs] = {}
 def self_collision_pairs(robot: RobotModel, d_safe: float, *, samples: int = 200, seed: int = 0) -> SelfPairs:
     """The capsule pairs a self-collision barrier keeps ``d_safe`` [m] apart (module docstring);
     remembered per robot geometry (a controller or simulator built again does not sample again)."""
-    key = (robot.name, robot.model.nq, tuple((c.joint_id, *c.p0, *c.p1, c.radius) for c in robot.capsules),
+    srdf = robot.disabled_pairs if robot.disabled_pairs is not None and any(c.links for c in robot.capsules) else None
+    key = (robot.name, robot.model.nq, tuple((c.joint_id, *c.p0, *c.p1, c.radius, c.links) for c in robot.capsules),
            tuple(robot.q_min), tuple(robot.q_max), tuple(robot.q_home), tuple(robot.model.parents),
-           float(d_safe), samples, seed)
+           float(d_safe), samples, seed, srdf)
     if key not in _CACHE:
-        _CACHE[key] = _select(robot, d_safe, samples, seed)
+        _CACHE[key] = _select(robot, d_safe, samples, seed) if srdf is None else _select_srdf(robot, d_safe, srdf)
     return _CACHE[key]
+
+
+def _select_srdf(robot: RobotModel, d_safe: float, disabled: frozenset[frozenset[str]]) -> SelfPairs:
+    """The pairs an SRDF leaves (module docstring)."""
+    data = robot.model.createData()
+    home = _segments(robot, data, robot.q_home)
+    caps = robot.capsules
+    keep, excluded = [], {}
+    for i in range(len(caps)):
+        for j in range(i + 1, len(caps)):
+            a, b = caps[i], caps[j]
+            if a.joint_id == b.joint_id:
+                excluded[(i, j)] = "one rigid body"
+            elif adjacent(robot, i, j):
+                excluded[(i, j)] = "adjacent"
+            elif a.links and b.links and all(la == lb or frozenset((la, lb)) in disabled
+                                               for la in a.links for lb in b.links):
+                excluded[(i, j)] = "disabled by the SRDF"
+            elif segment_distance(*home[i], *home[j]) < a.radius + b.radius + d_safe:
+                excluded[(i, j)] = "within d_safe at home"
+            else:
+                keep.append((i, j))
+    return SelfPairs(tuple(keep), excluded)
 
 
 def _select(robot: RobotModel, d_safe: float, samples: int, seed: int) -> SelfPairs:

@@ -13,10 +13,13 @@ from dataclasses import dataclass
 class RobotConfig:
     """The ``[robot]`` table (units in brackets; None: the robot's own).
 
-    kind: "planar3" / "planarN" (the paper's arm with N links), "planar" (with ``links``), "panda",
-    "urdf". links, length [m], mass [kg]: the planar arm's links (uniform thin rods); radius [m]: the
-    link capsules' radius (planar arm; URDF links). gravity [m/s²]: a 3-vector. urdf: the URDF file
-    (relative to the scenario's folder) and ee_frame: the task frame (kind = "urdf"). task_axes: the
+    kind: "planar3" / "planarN" (the paper's arm with N links), "panda", "urdf", "mjcf". links, length [m],
+    mass [kg]: the planar arm's links (uniform thin rods); radius [m]: the link capsules' radius (planar
+    arm; URDF links). gravity [m/s²]: a 3-vector. urdf (kind = "urdf") or mjcf (kind = "mjcf"): the
+    robot file (relative to the scenario's folder, or package://example-robot-data/robots/...) and
+    ee_frame: the task frame. capsules: a capsules file (``qpctl fit-capsules``) replacing the link
+    capsules. srdf: the SRDF whose disabled pairs the self-collision pairs leave out ("": the one beside
+    the URDF, if any, when the capsules name their links; "none": no SRDF). task_axes: the
     world axes the task point tracks. q0 [rad]: the start. tau_max [N·m], v_max [rad/s], tau_rate_max
     [N·m/s], qdd_max [rad/s²]: limits, one value or one per joint. payload_mass [kg],
     payload_radius [m]: a payload the controller knows, a solid sphere on the task frame.
@@ -29,7 +32,10 @@ class RobotConfig:
     radius: float = 0.05
     gravity: list[float] | None = None
     urdf: str = ""
+    mjcf: str = ""
     ee_frame: str = ""
+    capsules: str = ""
+    srdf: str = ""
     task_axes: list[str] | None = None
     q0: list[float] | None = None
     tau_max: float | list[float] | None = None

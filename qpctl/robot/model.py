@@ -1,6 +1,7 @@
 """Robot models: a Pinocchio model, the task frame, link collision capsules and limits.
 
-Every rigid-body quantity in qpctl comes from Pinocchio; this module only builds the models.
+Every rigid-body quantity in qpctl comes from Pinocchio; this module only builds the models (reading
+their files through :mod:`qpctl.robot.files`).
 
 * :func:`planar_arm` — the paper's arm: ``n`` revolute joints about z, uniform thin rods of length
   ``l`` [m] and mass ``m`` [kg] (centre of mass at mid-link, I_c = m l²/12 about the axes normal to
@@ -14,16 +15,17 @@ Every rigid-body quantity in qpctl comes from Pinocchio; this module only builds
 
 from __future__ import annotations
 
-import importlib.metadata
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
 
 from qpctl.errors import ConfigError, UnknownFrameError
 from qpctl.robot.config import RobotConfig
+from qpctl.robot.files import example_robot_data_path, read_model, resolve_package_uri
 
 # Where a URDF names a link and a joint alike (example-robot-data's Z1: "gripperStator"), Pinocchio
 # has several frames of that name; the task point is then the first of these kinds.
@@ -42,13 +44,18 @@ def frame_index(model: pin.Model, name: str) -> int:
 
 @dataclass(frozen=True)
 class LinkCapsule:
-    """A capsule attached to a joint's frame: the segment p0–p1 [m] (in that frame) swept by ``radius`` [m]."""
+    """A capsule attached to a joint's frame: the segment p0–p1 [m] (in that frame) swept by ``radius`` [m].
+
+    ``links``: the robot's links (URDF links, MJCF bodies) it covers, which an SRDF's pairs name;
+    empty where unknown (then no SRDF applies to it).
+    """
 
     name: str
     joint_id: int
     p0: np.ndarray
     p1: np.ndarray
     radius: float
+    links: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.radius) and self.radius > 0):
@@ -95,6 +102,9 @@ class RobotModel:
     orientation_axes: tuple[int, ...] = ()
     approach_axis: np.ndarray | None = None
     urdf: Path | None = None  # the URDF it was read from (simulators that load URDFs use it), if any
+    mjcf: Path | None = None  # the MJCF it was read from (MuJoCo runs it), if any
+    srdf: Path | None = None  # the SRDF whose disabled pairs the self-collision pairs leave out, if any
+    disabled_pairs: frozenset[frozenset[str]] | None = None  # its <disable_collisions> link pairs
 
     def __post_init__(self) -> None:
         if self.model.nq != self.model.nv:
@@ -228,6 +238,64 @@ class RobotModel:
                 setattr(out, name, np.broadcast_to(arr.reshape(-1) if arr.ndim else arr, (self.nv,)).copy())
         return out
 
+    def link_names(self) -> list[str]:
+        """The robot's links (URDF links, MJCF bodies): its Pinocchio model's body frames."""
+        return list(dict.fromkeys(f.name for f in self.model.frames if f.type == pin.FrameType.BODY))
+
+    def with_capsules(self, path: str | Path, *, key: str = "robot.capsules") -> RobotModel:
+        """A copy whose capsules are a capsules file's (:func:`qpctl.robot.capsules.read_capsules`),
+        each moved from its link's frame to its joint's; a link the model lacks is a
+        :class:`ConfigError` naming ``key`` and listing the links."""
+        from qpctl.robot.capsules import read_capsules
+
+        return self.with_link_capsules(read_capsules(path, key=key), Path(path).name, key=key)
+
+    def with_link_capsules(self, entries: Sequence[Any], source: str, *, key: str = "robot.capsules") -> RobotModel:
+        """A copy whose capsules are ``entries`` (:class:`qpctl.robot.capsules.CapsuleEntry`: a link and
+        a capsule in its frame), named after their links (``link:k`` where a link has several)."""
+        links = self.link_names()
+        counts: dict[str, int] = {}
+        for e in entries:
+            counts[e.link] = counts.get(e.link, 0) + 1
+        capsules, seen = [], dict.fromkeys(counts, 0)
+        for e in entries:
+            if e.link not in links:
+                raise ConfigError(f"{source} names link {e.link!r}, which {self.name} lacks; its links: "
+                                  f"{', '.join(links)}", key=key)
+            frame = self.model.frames[self.frame_id(e.link)]
+            name = e.link if counts[e.link] == 1 else f"{e.link}:{seen[e.link]}"
+            seen[e.link] += 1
+            capsules.append(LinkCapsule(name, int(frame.parentJoint), frame.placement.act(e.capsule.a),
+                                        frame.placement.act(e.capsule.b), e.capsule.radius, (e.link,)))
+        return replace(self, capsules=capsules, joint_names=list(self.joint_names))
+
+    def with_robot_files(self, *, capsules: str | Path | None = None, srdf: str | Path | None = None) -> RobotModel:
+        """The scenario's ``robot.capsules`` and ``robot.srdf``: a capsules file replacing the
+        capsules; the SRDF given, or (``srdf`` None) the one beside the robot's URDF when the capsules
+        name their links, or none (``srdf = "none"``)."""
+        from qpctl.robot.srdf import find_srdf
+
+        out = self.with_capsules(capsules) if capsules else self
+        named = any(c.links for c in out.capsules)
+        if srdf == "none":
+            return out
+        if srdf:
+            if not named:
+                raise ConfigError(f"the capsules of {self.name} do not name their links, so no SRDF pair applies to "
+                                  "them: set robot.capsules (qpctl fit-capsules)", key="robot.srdf")
+            return out.with_srdf(srdf)
+        found = find_srdf(self.urdf) if self.urdf is not None and named else None
+        return out.with_srdf(found) if found is not None else out
+
+    def with_srdf(self, path: str | Path, *, key: str = "robot.srdf") -> RobotModel:
+        """A copy whose self-collision pairs leave out the SRDF's disabled link pairs
+        (:func:`qpctl.robot.srdf.disabled_pairs`; a link the model lacks is a :class:`ConfigError`)."""
+        from qpctl.robot.srdf import disabled_pairs
+
+        pairs = disabled_pairs(path, self.link_names(), key=key)
+        return replace(self, srdf=Path(path).resolve(), disabled_pairs=pairs, capsules=list(self.capsules),
+                       joint_names=list(self.joint_names))
+
     @classmethod
     def from_urdf(cls, path: str | Path, ee_frame: str, *, capsules: list[LinkCapsule] | None = None,
                   locked_joints: Sequence[str] = (), capsule_radius: float = 0.05,
@@ -237,10 +305,8 @@ class RobotModel:
 
         ``ee_offset`` [m] adds a frame ``<ee_frame>_tcp`` at that offset in ``ee_frame`` and uses it.
         """
-        path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"URDF not found: {path}", key="robot.urdf")
-        full = pin.buildModelFromUrdf(str(path))
+        path = resolve_package_uri(path)
+        full = read_model(path, key="robot.urdf")
         if locked_joints:
             ids = []
             for jn in locked_joints:
@@ -262,7 +328,7 @@ class RobotModel:
             ee_frame = tcp
             ee_id = frame_index(model, tcp)
         if capsules is None:
-            capsules = default_capsules(model, capsule_radius)
+            capsules = default_capsules(model, capsule_radius, _links_with_geometry(path))
         nv = model.nv
         return cls(
             name=name or path.stem, model=model, ee_frame=ee_frame, task_axes=(0, 1, 2), capsules=capsules,
@@ -275,20 +341,36 @@ class RobotModel:
         )
 
 
-def default_capsules(model: pin.Model, radius: float) -> list[LinkCapsule]:
+def _links_with_geometry(urdf: Path) -> set[str] | None:
+    """The URDF's links that have a collision (or visual) element, or None if it cannot be read here."""
+    import xml.etree.ElementTree as ET
+
+    try:
+        root = ET.parse(urdf).getroot()
+    except ET.ParseError:
+        return None
+    return {str(link.get("name")) for link in root.iter("link")
+            if link.find("collision") is not None or link.find("visual") is not None}
+
+
+def default_capsules(model: pin.Model, radius: float, shaped: set[str] | None = None) -> list[LinkCapsule]:
     """One capsule per joint's body, from the joint to its first child joint — or, on a link with no
     child joint (the last), to the farthest frame the URDF attaches to it (the task frame, a tool or
     tip link), so that every link with a length is covered. A link with neither is a sphere at its
-    joint."""
+    joint. Each covers the links (body frames) its joint carries — those with geometry, when
+    ``shaped`` names them."""
     capsules = []
     for j in range(1, model.njoints):
+        links = tuple(f.name for f in model.frames if f.parentJoint == j and f.type == pin.FrameType.BODY)
+        if shaped is not None and any(name in shaped for name in links):
+            links = tuple(name for name in links if name in shaped)
         children = [c for c in range(j + 1, model.njoints) if model.parents[c] == j]
         if children:
             p1 = model.jointPlacements[children[0]].translation.copy()
         else:
             ends = [f.placement.translation for f in model.frames if f.parentJoint == j]
             p1 = max(ends, key=lambda p: float(np.linalg.norm(p)), default=np.zeros(3)).copy()
-        capsules.append(LinkCapsule(model.names[j], j, np.zeros(3), p1, radius))
+        capsules.append(LinkCapsule(model.names[j], j, np.zeros(3), p1, radius, links))
     return capsules
 
 
@@ -330,23 +412,6 @@ def planar_arm(n: int = RobotConfig.links, *, length: float = RobotConfig.length
         tau_max=np.broadcast_to(np.asarray(tau_max, float), (n,)).copy(),
         q_home=np.array([np.pi, np.pi / 2] + [0.0] * (n - 2)),
     )
-
-
-def example_robot_data_path(relative: str) -> Path:
-    """Absolute path of a file shipped by the installed ``example-robot-data`` package.
-
-    ``relative`` is below the package's ``robots/`` folder, e.g. ``panda_description/urdf/panda.urdf``.
-    """
-    try:
-        files = importlib.metadata.files("example-robot-data") or []
-    except importlib.metadata.PackageNotFoundError as exc:
-        raise ConfigError("the example-robot-data package is not installed (pip install example-robot-data)",
-                          key="robot") from exc
-    suffix = "example-robot-data/robots/" + relative
-    for f in files:
-        if str(f).replace("\\", "/").endswith(suffix):
-            return Path(f.locate()).resolve()
-    raise ConfigError(f"example-robot-data has no file {relative}", key="robot")
 
 
 # Capsules approximating the Panda's links, in each joint's frame [m], one per link. Measured against
