@@ -11,8 +11,27 @@ the scenario's ``[perception]`` table.
 from qpctl.perception.config import PerceptionConfig
 from qpctl.perception.depth_map import DepthMap, FrameReport
 from qpctl.perception.frames import RIGID, SOFT, UNLABELED, DepthFrame, Intrinsics, PointCloud
+from qpctl.perception.perception import Perception
 from qpctl.perception.self_filter import JointHistory
 from qpctl.perception.snapshot import MapSnapshot, VoxelGrid
+from qpctl.perception.stale import StalePolicy, TimeScaledPath
+from qpctl.perception.worker import MapWorker
 
-__all__ = ["RIGID", "SOFT", "UNLABELED", "DepthFrame", "DepthMap", "FrameReport", "Intrinsics", "JointHistory",
-           "MapSnapshot", "PerceptionConfig", "PointCloud", "VoxelGrid"]
+__all__ = [
+           "RIGID",
+           "SOFT",
+           "UNLABELED",
+           "DepthFrame",
+           "DepthMap",
+           "FrameReport",
+           "Intrinsics",
+           "JointHistory",
+           "MapSnapshot",
+           "MapWorker",
+           "Perception",
+           "PerceptionConfig",
+           "PointCloud",
+           "StalePolicy",
+           "TimeScaledPath",
+           "VoxelGrid",
+]
