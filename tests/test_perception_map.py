@@ -75,7 +75,7 @@ def test_field_gradient_matches_finite_differences(rng: np.random.Generator) -> 
 
 
 def test_soft_labels_fill_the_soft_channel_only() -> None:
-    leaf = Sphere((0.25, -0.2, 0.4), 0.06, label=SOFT)
+    leaf = Sphere((0.25, -0.2, 0.4), 0.06, SOFT)
     m = DepthMap(CFG)
     snap = m.update(render(EYE, [BALL, leaf], labelled=True))
     ball, lf = np.array(BALL.centre), np.array(leaf.centre)

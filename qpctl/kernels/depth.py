@@ -37,7 +37,7 @@ def capsule_boxes(segments: np.ndarray, radii: np.ndarray, boxes: np.ndarray) ->
             boxes[i, 3 + a] = hi + radii[i]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def in_capsules(x: float, y: float, z: float, segments: np.ndarray, radii: np.ndarray, boxes: np.ndarray) -> bool:
     """Whether (x, y, z) [m] lies within one of the capsules (their boxes first)."""
     for i in range(segments.shape[0]):
@@ -57,32 +57,66 @@ def in_capsules(x: float, y: float, z: float, segments: np.ndarray, radii: np.nd
     return False
 
 
+@njit(cache=True, nogil=True, inline="always")
+def voxel_index(x: float, y: float, z: float, ox: float, oy: float, oz: float, inv: float, nx: int, ny: int,
+                nz: int) -> int:
+    """The flat index (C order) of the voxel holding (x, y, z) [m] in a grid of nx × ny × nz voxels of
+    edge 1/inv [m] from the corner (ox, oy, oz); −1 outside it."""
+    i = math.floor((x - ox) * inv)
+    j = math.floor((y - oy) * inv)
+    k = math.floor((z - oz) * inv)
+    if i < 0 or j < 0 or k < 0 or i >= nx or j >= ny or k >= nz:
+        return -1
+    return (i * ny + j) * nz + k
+
+
 @njit(cache=True, nogil=True)
 def classify_point(x: float, y: float, z: float, segments: np.ndarray, radii: np.ndarray, boxes: np.ndarray,
-                   target: np.ndarray, target_radius: float, origin: np.ndarray, voxel: float,
-                   shape: np.ndarray) -> int:
-    """A base-frame point's status: :data:`SELF` (in an inflated capsule), :data:`TARGET` (within
-    ``target_radius`` of the grasp target), :data:`OUTSIDE` (out of the map's bounds) or :data:`KEPT`."""
-    if in_capsules(x, y, z, segments, radii, boxes):
+                   robot_box: np.ndarray, target: np.ndarray, target_radius: float) -> int:
+    """A base-frame point's status before the bounds: :data:`SELF` (in an inflated capsule; ``robot_box``
+    (6,) bounds them all), :data:`TARGET` (within ``target_radius`` of the grasp target) or :data:`KEPT`.
+    (The integrating kernels test the boxes in scalars first and call this only for the points in them:
+    a call per point that passes arrays costs more than the whole back-projection.)"""
+    if (x >= robot_box[0] and y >= robot_box[1] and z >= robot_box[2] and x <= robot_box[3] and y <= robot_box[4]
+            and z <= robot_box[5] and in_capsules(x, y, z, segments, radii, boxes)):
         return SELF
     if target_radius > 0.0:
         dx, dy, dz = x - target[0], y - target[1], z - target[2]
         if dx * dx + dy * dy + dz * dz < target_radius * target_radius:
             return TARGET
-    ix = math.floor((x - origin[0]) / voxel)
-    iy = math.floor((y - origin[1]) / voxel)
-    iz = math.floor((z - origin[2]) / voxel)
-    if ix < 0 or iy < 0 or iz < 0 or ix >= shape[0] or iy >= shape[1] or iz >= shape[2]:
-        return OUTSIDE
     return KEPT
 
 
 @njit(cache=True, nogil=True)
+def zone_box(robot_box: np.ndarray, target: np.ndarray, target_radius: float) -> np.ndarray:
+    """(6,) the box around the robot's capsules and the target's zone (what may not be KEPT)."""
+    box = robot_box.copy()
+    if target_radius > 0.0:
+        for a in range(3):
+            box[a] = min(box[a], target[a] - target_radius)
+            box[3 + a] = max(box[3 + a], target[a] + target_radius)
+    return box
+
+
+@njit(cache=True, nogil=True)
+def robot_bounds(segments: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The capsules' boxes (L, 6) and the box (6,) around them all (empty: an inverted box)."""
+    boxes = np.empty((segments.shape[0], 6))
+    capsule_boxes(segments, radii, boxes)
+    box = np.array([np.inf, np.inf, np.inf, -np.inf, -np.inf, -np.inf])
+    for i in range(boxes.shape[0]):
+        for a in range(3):
+            box[a] = min(box[a], boxes[i, a])
+            box[3 + a] = max(box[3 + a], boxes[i, 3 + a])
+    return boxes, box
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _valid(z: float) -> bool:
     return z > 0.0 and z < math.inf  # NaN fails both
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _flying(z: float, za: float, zb: float, ratio: float) -> bool:
     """A mixed pixel: both neighbours return, they jump by more than ratio·z, and z is far from both."""
     if not (_valid(za) and _valid(zb)):
@@ -106,11 +140,20 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
     inflated by the self-filter's margin."""
     H, W = depth.shape
     has_labels = labels.shape[0] == H and labels.shape[1] == W
-    shape = np.array(last.shape[1:], dtype=np.int64)
-    boxes = np.empty((segments.shape[0], 6))
-    capsule_boxes(segments, radii, boxes)
+    nx, ny, nz = last.shape[1], last.shape[2], last.shape[3]
+    flat = last.reshape(-1)
+    soft = nx * ny * nz  # the soft channel's offset in flat
+    ox, oy, oz, inv = origin[0], origin[1], origin[2], 1.0 / voxel
+    boxes, robot_box = robot_bounds(segments, radii)
+    zone = zone_box(robot_box, target, target_radius)
+    zx0, zy0, zz0, zx1, zy1, zz1 = zone[0], zone[1], zone[2], zone[3], zone[4], zone[5]
+    r00, r01, r02, tx = pose[0, 0], pose[0, 1], pose[0, 2], pose[0, 3]
+    r10, r11, r12, ty = pose[1, 0], pose[1, 1], pose[1, 2], pose[1, 3]
+    r20, r21, r22, tz = pose[2, 0], pose[2, 1], pose[2, 2], pose[2, 3]
+    ifx, ify = 1.0 / fx, 1.0 / fy
     counts[:] = 0
     for v in range(H):
+        yn = (v - cy) * ify
         for u in range(W):
             z = depth[v, u] * scale
             if not _valid(z):
@@ -123,16 +166,20 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
                                                                  depth[v + 1, u] * scale, flying))):
                 st = FLYING
             else:
-                xc = (u - cx) * z / fx
-                yc = (v - cy) * z / fy
-                x = pose[0, 0] * xc + pose[0, 1] * yc + pose[0, 2] * z + pose[0, 3]
-                y = pose[1, 0] * xc + pose[1, 1] * yc + pose[1, 2] * z + pose[1, 3]
-                w = pose[2, 0] * xc + pose[2, 1] * yc + pose[2, 2] * z + pose[2, 3]
-                st = classify_point(x, y, w, segments, radii, boxes, target, target_radius, origin, voxel, shape)
+                xc = (u - cx) * ifx * z
+                yc = yn * z
+                x = r00 * xc + r01 * yc + r02 * z + tx
+                y = r10 * xc + r11 * yc + r12 * z + ty
+                w = r20 * xc + r21 * yc + r22 * z + tz
+                st = KEPT
+                if x >= zx0 and y >= zy0 and w >= zz0 and x <= zx1 and y <= zy1 and w <= zz1:
+                    st = classify_point(x, y, w, segments, radii, boxes, robot_box, target, target_radius)
                 if st == KEPT:
-                    ch = 1 if has_labels and labels[v, u] == SOFT_LABEL else 0
-                    last[ch, math.floor((x - origin[0]) / voxel), math.floor((y - origin[1]) / voxel),
-                         math.floor((w - origin[2]) / voxel)] = stamp
+                    idx = voxel_index(x, y, w, ox, oy, oz, inv, nx, ny, nz)
+                    if idx < 0:
+                        st = OUTSIDE
+                    else:
+                        flat[idx + soft if has_labels and labels[v, u] == SOFT_LABEL else idx] = stamp
             status[v, u] = st
             counts[st] += 1
 
@@ -145,20 +192,28 @@ def integrate_points(points: np.ndarray, labels: np.ndarray, segments: np.ndarra
     non-finite points are :data:`NO_RETURN`; no range or flying-pixel test (a cloud has no image)."""
     n = points.shape[0]
     has_labels = labels.shape[0] == n
-    shape = np.array(last.shape[1:], dtype=np.int64)
-    boxes = np.empty((segments.shape[0], 6))
-    capsule_boxes(segments, radii, boxes)
+    nx, ny, nz = last.shape[1], last.shape[2], last.shape[3]
+    flat = last.reshape(-1)
+    soft = nx * ny * nz
+    ox, oy, oz, inv = origin[0], origin[1], origin[2], 1.0 / voxel
+    boxes, robot_box = robot_bounds(segments, radii)
+    zone = zone_box(robot_box, target, target_radius)
+    zx0, zy0, zz0, zx1, zy1, zz1 = zone[0], zone[1], zone[2], zone[3], zone[4], zone[5]
     counts[:] = 0
     for i in range(n):
         x, y, w = points[i, 0], points[i, 1], points[i, 2]
         if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(w)):
             st = NO_RETURN
         else:
-            st = classify_point(x, y, w, segments, radii, boxes, target, target_radius, origin, voxel, shape)
+            st = KEPT
+            if x >= zx0 and y >= zy0 and w >= zz0 and x <= zx1 and y <= zy1 and w <= zz1:
+                st = classify_point(x, y, w, segments, radii, boxes, robot_box, target, target_radius)
             if st == KEPT:
-                ch = 1 if has_labels and labels[i] == SOFT_LABEL else 0
-                last[ch, math.floor((x - origin[0]) / voxel), math.floor((y - origin[1]) / voxel),
-                     math.floor((w - origin[2]) / voxel)] = stamp
+                idx = voxel_index(x, y, w, ox, oy, oz, inv, nx, ny, nz)
+                if idx < 0:
+                    st = OUTSIDE
+                else:
+                    flat[idx + soft if has_labels and labels[i] == SOFT_LABEL else idx] = stamp
         status[i] = st
         counts[st] += 1
 

@@ -30,7 +30,7 @@ import numpy as np
 from numba import njit
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def trilinear(dist: np.ndarray, grad: np.ndarray, origin: np.ndarray, voxel: float, truncation: float,
               x: float, y: float, z: float, smooth: bool, out: np.ndarray) -> float:
     """The field at (x, y, z) [m]: returns the distance [m] and writes its gradient to ``out`` (3,):
@@ -90,7 +90,34 @@ def trilinear(dist: np.ndarray, grad: np.ndarray, origin: np.ndarray, voxel: flo
     return d
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
+def trilinear_distance(dist: np.ndarray, origin: np.ndarray, voxel: float, truncation: float, x: float, y: float,
+                       z: float) -> float:
+    """:func:`trilinear`'s distance alone [m] (the samples along a link need no gradient)."""
+    nx, ny, nz = dist.shape
+    fx = (x - origin[0]) / voxel
+    fy = (y - origin[1]) / voxel
+    fz = (z - origin[2]) / voxel
+    if not (0.0 <= fx <= nx and 0.0 <= fy <= ny and 0.0 <= fz <= nz):
+        return truncation
+    fx = min(max(fx - 0.5, 0.0), nx - 1.0)
+    fy = min(max(fy - 0.5, 0.0), ny - 1.0)
+    fz = min(max(fz - 0.5, 0.0), nz - 1.0)
+    i = min(int(fx), nx - 2) if nx > 1 else 0
+    j = min(int(fy), ny - 2) if ny > 1 else 0
+    k = min(int(fz), nz - 2) if nz > 1 else 0
+    tx, ty, tz = fx - i, fy - j, fz - k
+    i1, j1, k1 = min(i + 1, nx - 1), min(j + 1, ny - 1), min(k + 1, nz - 1)
+    d00 = dist[i, j, k] + tx * (dist[i1, j, k] - dist[i, j, k])
+    d10 = dist[i, j1, k] + tx * (dist[i1, j1, k] - dist[i, j1, k])
+    d01 = dist[i, j, k1] + tx * (dist[i1, j, k1] - dist[i, j, k1])
+    d11 = dist[i, j1, k1] + tx * (dist[i1, j1, k1] - dist[i, j1, k1])
+    d0 = d00 + ty * (d10 - d00)
+    d1 = d01 + ty * (d11 - d01)
+    return d0 + tz * (d1 - d0)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _refine(ds: np.ndarray, j: int, samples: int, smooth: bool) -> float:
     """The axis parameter s ∈ [0, 1] of the minimum near sample j (the parabola's vertex, smooth)."""
     s = j / (samples - 1.0)
@@ -104,7 +131,7 @@ def _refine(ds: np.ndarray, j: int, samples: int, smooth: bool) -> float:
     return (j + delta) / (samples - 1.0)
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def _pair(segments: np.ndarray, radii: np.ndarray, l: int, s: float, dist: np.ndarray, grad: np.ndarray,
           origin: np.ndarray, voxel: float, truncation: float, smooth: bool, g: np.ndarray, row: int,
           out_d: np.ndarray, out_n: np.ndarray, out_p: np.ndarray, out_s: np.ndarray) -> None:
@@ -142,11 +169,22 @@ def field_pairs(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, grad:
     for l in range(segments.shape[0]):
         ax, ay, az = segments[l, 0, 0], segments[l, 0, 1], segments[l, 0, 2]
         ux, uy, uz = segments[l, 1, 0] - ax, segments[l, 1, 1] - ay, segments[l, 1, 2] - az
+        # the field is 1-Lipschitz: nothing within the truncation anywhere on the axis when the
+        # axis's midpoint is farther than the truncation plus half the axis (one lookup, no rows)
+        half = 0.5 * math.sqrt(ux * ux + uy * uy + uz * uz)
+        if trilinear_distance(dist, origin, voxel, truncation, ax + 0.5 * ux, ay + 0.5 * uy,
+                              az + 0.5 * uz) >= truncation + half:
+            for r in range(rows):
+                row = l * rows + r
+                out_d[row] = truncation - radii[l]
+                out_s[row] = 0.5
+                out_n[row, :] = 0.0
+                out_p[row, 0], out_p[row, 1], out_p[row, 2] = ax + 0.5 * ux, ay + 0.5 * uy, az + 0.5 * uz
+            continue
         best = 0
         for j in range(samples):
             f = j / (samples - 1.0)
-            ds[j] = trilinear(dist, grad, origin, voxel, truncation, ax + f * ux, ay + f * uy, az + f * uz,
-                              False, g)
+            ds[j] = trilinear_distance(dist, origin, voxel, truncation, ax + f * ux, ay + f * uy, az + f * uz)
             if ds[j] < ds[best]:
                 best = j
         _pair(segments, radii, l, _refine(ds, best, samples, smooth), dist, grad, origin, voxel, truncation,
