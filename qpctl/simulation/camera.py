@@ -56,13 +56,13 @@ from qpctl.config import check_fields, setting
 from qpctl.errors import ConfigError, PerceptionError, UnknownFrameError
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels import raycast as K
-from qpctl.kernels.sensor_noise import depth_noise
+from qpctl.kernels.sensor_noise import depth_frame
 from qpctl.perception.frames import RIGID, SOFT, UNLABELED, DepthFrame, Intrinsics
 from qpctl.robot.model import RobotModel
 
 EDGE_JUMP = 0.05  # [m] a neighbour's depth differing by more than this makes a pixel a depth edge (flying pixels)
 
-# What a hit index is (FrameTruth.source)
+# What a shape of the camera is (DepthCamera.source)
 NOTHING, OBSTACLE, SCENERY, ROBOT, OTHER = 0, 1, 2, 3, 4
 
 
@@ -468,39 +468,33 @@ class DepthCamera:
         k = math.ceil(t * rate - 1e-9)
         return k / rate < t + dt - 1e-12
 
-    def frame_seed(self, t: float) -> int:
+    def frame_seed(self, t: float) -> np.uint64:
         """The seed of the noise of the frame stamped t [s]: from the camera's seed and the stamp [µs]."""
         ss = np.random.SeedSequence([self.config.seed, round(t * 1e6) % (1 << 63)])
-        return int(ss.generate_state(1)[0])
+        return np.uint64(ss.generate_state(1, np.uint64)[0])
 
     def capture(self, q: np.ndarray, t: float) -> SimulatedDepthFrame:
         """The depth frame at (q [rad], t [s]): rendered, with the noise model, encoded, labelled,
         stamped t, with its :class:`FrameTruth`."""
         cfg = self.config
         pose, hits = self.render(q, t)
-        z_true = hits.depth
-        found = np.isfinite(z_true)
-        flying = np.zeros(z_true.shape, np.bool_)
-        if cfg.noise:
-            z = np.empty_like(z_true)
-            depth_noise(z_true, hits.cos_incidence, self.frame_seed(t), cfg.flying_pixels, EDGE_JUMP, cfg.sigma_0,
-                        cfg.sigma_z2, math.cos(math.radians(cfg.grazing_deg)), cfg.dropout, z, flying)
-        else:
-            z = z_true
-        ok = np.isfinite(z) & (z >= cfg.range_min) & (z <= cfg.range_max)
-        if cfg.encoding == "uint16":
-            depth: np.ndarray = np.where(ok, np.clip(np.round(z / cfg.depth_scale), 1, 65535), 0).astype(np.uint16)
-            scale = cfg.depth_scale
-        else:
-            depth, scale = np.where(ok, z, 0.0).astype(np.float32), 1.0
-        hit = hits.hit
-        kind = np.where(hit >= 0, self.source[hit], NOTHING)
-        truth = FrameTruth(np.where(found, z_true, np.nan), hit, self.names, kind == ROBOT, kind == SCENERY,
-                           flying & ok, found & ~ok)
-        labels = np.where(ok, self.label[np.maximum(hit, 0)], UNLABELED).astype(np.uint8) if cfg.labels else None
+        H, W = hits.depth.shape
+        uint16 = cfg.encoding == "uint16"
+        depth_m = np.zeros((0, 0) if uint16 else (H, W), np.float32)
+        depth_u = np.zeros((H, W) if uint16 else (0, 0), np.uint16)
+        labels = np.empty((H, W), np.uint8)
+        truth_depth = np.empty((H, W))
+        source = np.empty((H, W), np.uint8)
+        flying, dropped = np.empty((H, W), np.bool_), np.empty((H, W), np.bool_)
+        depth_frame(hits.depth, hits.cos_incidence, hits.hit, self.label, self.source, cfg.noise, self.frame_seed(t),
+                    cfg.flying_pixels, EDGE_JUMP, cfg.sigma_0, cfg.sigma_z2, math.cos(math.radians(cfg.grazing_deg)),
+                    cfg.dropout, cfg.range_min, cfg.range_max, cfg.depth_scale if uint16 else 0.0, depth_m, depth_u,
+                    labels, truth_depth, source, flying, dropped)
+        truth = FrameTruth(truth_depth, hits.hit, self.names, source == ROBOT, source == SCENERY, flying, dropped)
         meta = {"sigma_0": cfg.sigma_0 if cfg.noise else 0.0, "sigma_z2": cfg.sigma_z2 if cfg.noise else 0.0,
                 "range_min": cfg.range_min, "range_max": cfg.range_max, "rate": cfg.rate}
-        return SimulatedDepthFrame(depth, self.intrinsics, pose, float(t), labels, scale, meta, truth)
+        return SimulatedDepthFrame(depth_u if uint16 else depth_m, self.intrinsics, pose, float(t),
+                                   labels if cfg.labels else None, cfg.depth_scale if uint16 else 1.0, meta, truth)
 
     @classmethod
     def from_scenario(cls, scenario: Any, robot: RobotModel | None = None, *, simulator: Any = None) -> DepthCamera:
