@@ -32,6 +32,7 @@ from qpctl.law import LawGains
 from qpctl.paths import PathConfig, PosePath, WaypointPath
 from qpctl.robot.config import RobotConfig
 from qpctl.robot.model import RobotModel, load_robot
+from qpctl.simulation.camera import CameraConfig
 from qpctl.simulation.faults import Faults, with_payload
 from qpctl.simulation.loop import SimConfig
 
@@ -57,7 +58,11 @@ SCHEMA: dict[str, Any] = {
     # every fault off (qpctl.simulation.faults)
     "faults": schema_of(Faults),
     "sim": schema_of(SimConfig),
+    "camera": schema_of(CameraConfig),  # a simulated depth camera (qpctl.simulation.camera); mount "": none
 }
+
+# Tables that exist only when a key names them: a [camera] is its mount.
+NAMED_BY = {"camera": "mount"}
 
 
 def arm_reach(robot: RobotModel) -> tuple[np.ndarray, float] | None:
@@ -207,6 +212,10 @@ class Scenario:
         resolved from ``base_dir`` (default: the working folder)."""
         raw = apply_overrides(raw, overrides) if overrides else raw
         data = _validate_table(raw, SCHEMA, source, "")
+        for table, key in NAMED_BY.items():  # a table written without the key that makes it exist
+            if isinstance(raw.get(table), dict) and raw[table] and key not in raw[table]:
+                raise ConfigError(f"missing value (the [{table}] table is written but its {key} is not given)",
+                                  source=source, key=f"{table}.{key}")
         from qpctl.controllers.factory import CONTROLLERS, unknown_kind
 
         if data["controller"]["kind"] not in CONTROLLERS:
@@ -263,6 +272,7 @@ class Scenario:
             raise self._err("sim.joint_names", f"needs {robot.nv} distinct names (the simulator's names of "
                             f"{', '.join(robot.joint_names)}, in that order), got {names}")
         q0 = self.q0(robot)
+        self._check_camera(robot)
         self._check_reach(robot, self.build_path(robot, q0))
         self._check_start_clear(robot, obstacles, q0)
         sat = faults.torque_saturation
@@ -297,6 +307,25 @@ class Scenario:
         for key in ("tau_max", "v_max", "tau_rate_max", "qdd_max"):
             if r[key] is not None and not np.all(np.asarray(r[key], float) > 0):  # inf allowed, NaN not
                 raise self._err(f"robot.{key}", f"must be positive (inf: no limit), got {r[key]}")
+
+    def _check_camera(self, robot: RobotModel) -> None:
+        """The ``[camera]`` keys (CameraConfig's rules) and its mount frame on this robot."""
+        try:
+            cfg = self.camera_config()
+            if cfg.mount not in ("", "world"):
+                from qpctl.simulation.camera import DepthCamera
+
+                DepthCamera(cfg, robot)
+        except ConfigError as exc:
+            raise self._err(exc.key or "camera", exc.message) from None
+
+    def camera_config(self) -> CameraConfig:
+        """The scenario's ``[camera]`` (``mount`` "": none; :mod:`qpctl.simulation.camera`)."""
+        return CameraConfig.from_dict(self.data["camera"])
+
+    def scenery(self) -> list[Obstacle]:
+        """Shapes only a camera sees (a canopy's fruits): in its images, in no clearance."""
+        return []
 
     def _check_reach(self, robot: RobotModel, path: WaypointPath) -> None:
         """Every waypoint within the arm's reach (a sphere about its first joint; revolute arms only)."""
