@@ -114,14 +114,17 @@ def test_invalid_pixels_are_dropped_and_counted_not_errors() -> None:
 
 def test_flying_pixels_at_a_depth_edge_are_dropped_and_the_surfaces_kept() -> None:
     # a near plane (0.6 m) on the left half, a far one (1.2 m) on the right, one column of mixed
-    # pixels between them (the average, as a real sensor's footprint straddling the edge reports)
+    # pixels between them (the average, as a real sensor's footprint straddling the edge reports):
+    # every pixel with a neighbour nearer by more than 2 % of its depth is behind an edge
     depth = np.full((K.height, K.width), 1.2)
     depth[:, :160] = 0.6
     depth[:, 160] = 0.9
     rep = DepthMap(CFG).integrate(DepthFrame(depth, K, EYE, 0.0))
     assert np.all(rep.status[:, 160] == FLYING)
-    assert np.all(rep.status[:, 159] != FLYING) and np.all(rep.status[:, 161] != FLYING)
-    assert rep.counts["flying"] == K.height
+    assert np.all(rep.status[:, 159] == KEPT)  # the edge's near side is kept
+    assert np.all(rep.status[:, 161] == FLYING)  # its far side's first pixel goes (seen beside it)
+    assert np.all(rep.status[:, 162] != FLYING)
+    assert rep.counts["flying"] == 2 * K.height
     # a steep but smooth ramp is not a depth edge
     ramp = np.tile(np.linspace(0.6, 1.2, K.width), (K.height, 1))
     assert DepthMap(CFG).integrate(DepthFrame(ramp, K, EYE, 0.0)).counts["flying"] == 0
@@ -133,7 +136,9 @@ def test_range_limits_drop_returns() -> None:
     d = render(EYE, [BALL]).depth
     valid = np.isfinite(d)
     assert rep.counts["out_of_range"] == int(np.sum(valid & ((d < 0.7) | (d > 0.95))))
-    assert rep.counts["kept"] + rep.counts["outside"] == int(np.sum(valid & (d >= 0.7) & (d <= 0.95)))
+    in_range = int(np.sum(valid & (d >= 0.7) & (d <= 0.95)))
+    assert rep.counts["kept"] + rep.counts["outside"] + rep.counts["flying"] == in_range
+    assert rep.counts["flying"] < 0.05 * in_range  # the ball's steep rim only
 
 
 def test_statuses_match_the_numpy_reference_for_a_cloud(panda_robot, rng: np.random.Generator) -> None:
@@ -291,3 +296,14 @@ def test_a_voxel_within_the_noise_margin_of_the_return_is_not_cleared() -> None:
     m.integrate(render(EYE, [], wall_x=0.445, stamp=0.2))
     m.snapshot()
     assert not first & {tuple(c) for c in np.round(m.occupied_centres(), 4)}
+
+
+def test_a_lone_return_does_not_occupy_a_voxel() -> None:
+    depth = np.full((K.height, K.width), np.nan)
+    depth[100, 100] = 0.9  # one pixel in free space: the noise's tail
+    m = DepthMap(CFG)
+    m.integrate(DepthFrame(depth, K, EYE, 0.0))
+    assert CFG.min_points == 2 and m.snapshot().occupied == (0, 0)
+    depth[100, 101] = 0.9  # its neighbour falls in the same voxel: a surface
+    m.integrate(DepthFrame(depth, K, EYE, 0.1))
+    assert m.snapshot().occupied == (1, 0)

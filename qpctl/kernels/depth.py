@@ -117,12 +117,9 @@ def _valid(z: float) -> bool:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _flying(z: float, za: float, zb: float, ratio: float) -> bool:
-    """A mixed pixel: both neighbours return, they jump by more than ratio·z, and z is far from both."""
-    if not (_valid(za) and _valid(zb)):
-        return False
-    thr = ratio * z
-    return abs(za - zb) > thr and abs(z - za) > 0.5 * thr and abs(z - zb) > 0.5 * thr
+def _behind(z: float, zn: float, thr: float) -> bool:
+    """A 4-neighbour returns nearer than z by more than thr: z is behind a depth edge."""
+    return zn > 0.0 and zn < z - thr  # NaN and no-return neighbours fail
 
 
 @njit(cache=True, nogil=True)
@@ -130,11 +127,13 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
                     cy: float, pose: np.ndarray, min_range: float, max_range: float, flying: float,
                     segments: np.ndarray, radii: np.ndarray, target: np.ndarray, target_radius: float,
                     origin: np.ndarray, voxel: float, last: np.ndarray, stamp: float, status: np.ndarray,
-                    counts: np.ndarray) -> None:
+                    counts: np.ndarray, hits: np.ndarray, min_points: int) -> None:
     """Back-project a depth image (H×W, × ``scale`` [m]) through the pinhole (fx, fy, cx, cy) and the
     camera ``pose`` (4×4, optical frame in the base frame), classify every pixel into ``status``
     (H×W uint8) and count them (``counts``, one per status), and stamp the voxels of the kept points
-    in ``last`` (2, nx, ny, nz): channel 1 where ``labels`` (H×W, or 0×0 for none) says soft, else 0.
+    in ``last`` (2, nx, ny, nz): channel 1 where ``labels`` (H×W, or 0×0 for none) says soft, else 0 —
+    once ``min_points`` of this frame's points fall in it (``hits``, (2, nx, ny, nz) uint16 scratch,
+    counts them): a lone point in free space is the noise's tail, not an obstacle.
 
     ``segments`` (L, 2, 3) and ``radii`` (L,) are the robot's capsules at the frame's stamp, already
     inflated by the self-filter's margin."""
@@ -152,6 +151,8 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
     r20, r21, r22, tz = pose[2, 0], pose[2, 1], pose[2, 2], pose[2, 3]
     ifx, ify = 1.0 / fx, 1.0 / fy
     counts[:] = 0
+    hit = hits.reshape(-1)
+    hit[:] = 0
     for v in range(H):
         yn = (v - cy) * ify
         for u in range(W):
@@ -160,10 +161,10 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
                 st = NO_RETURN
             elif z < min_range or z > max_range:
                 st = OUT_OF_RANGE
-            elif flying > 0.0 and ((0 < u < W - 1 and _flying(z, depth[v, u - 1] * scale, depth[v, u + 1] * scale,
-                                                                flying))
-                                   or (0 < v < H - 1 and _flying(z, depth[v - 1, u] * scale,
-                                                                 depth[v + 1, u] * scale, flying))):
+            elif flying > 0.0 and ((u > 0 and _behind(z, depth[v, u - 1] * scale, flying * z))
+                                   or (u < W - 1 and _behind(z, depth[v, u + 1] * scale, flying * z))
+                                   or (v > 0 and _behind(z, depth[v - 1, u] * scale, flying * z))
+                                   or (v < H - 1 and _behind(z, depth[v + 1, u] * scale, flying * z))):
                 st = FLYING
             else:
                 xc = (u - cx) * ifx * z
@@ -179,7 +180,11 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
                     if idx < 0:
                         st = OUTSIDE
                     else:
-                        flat[idx + soft if has_labels and labels[v, u] == SOFT_LABEL else idx] = stamp
+                        idx += soft if has_labels and labels[v, u] == SOFT_LABEL else 0
+                        if hit[idx] < 65535:
+                            hit[idx] += 1
+                        if hit[idx] >= min_points:
+                            flat[idx] = stamp
             status[v, u] = st
             counts[st] += 1
 

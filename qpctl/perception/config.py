@@ -29,8 +29,9 @@ class PerceptionConfig:
         default_factory=lambda: [0.8, 0.6, 1.0], metadata={"unit": "m"})  # its upper corner [m]
     min_range: float = setting(0.1, valid="nonnegative", unit="m")  # nearer returns are dropped [m]
     max_range: float = setting(3.0, valid="positive", unit="m")  # farther returns are dropped (they still clear) [m]
-    flying_pixel: float = setting(0.03, valid="nonnegative")  # a pixel between neighbours whose depths jump by
-    #                                  more than this fraction of its depth, far from both, is dropped (0: off)
+    flying_pixel: float = setting(0.02, valid="nonnegative")  # a pixel with a 4-neighbour nearer by more than
+    #                                  this fraction of its depth is dropped: behind a depth edge (0: off)
+    min_points: int = setting(2)  # a voxel is occupied by a depth image once this many of its pixels fall in it
     self_margin: float = setting(0.03, valid="nonnegative", unit="m")  # the robot's capsules, inflated by this, are not obstacles [m]
     target_radius: float = setting(0.06, valid="nonnegative", unit="m")  # nothing within this of the grasp target is an obstacle [m]
     decay: float = setting(3.0, valid="seconds", unit="s")  # a voxel not seen again for this long is forgotten [s]
@@ -56,6 +57,8 @@ class PerceptionConfig:
         if self.max_range <= self.min_range:
             raise ConfigError(f"must exceed min_range ({self.min_range}), got {self.max_range}",
                               key="perception.max_range")
+        if not 1 <= self.min_points <= 1000:
+            raise ConfigError(f"must be an integer from 1 to 1000, got {self.min_points}", key="perception.min_points")
         if not 2 <= self.samples <= 64:
             raise ConfigError(f"must be an integer from 2 to 64, got {self.samples}", key="perception.samples")
         if self.rows_per_link not in (1, 2):

@@ -4,13 +4,17 @@ DESIGN.md §6. :class:`DepthMap` holds the map's state (per channel and voxel, t
 the voxel was last seen occupied) and turns each frame into it (:meth:`DepthMap.integrate`):
 
 1. filtering: no-return pixels (NaN, ±inf, 0, negative) and returns outside [min_range, max_range]
-   are dropped and counted; a *flying pixel* — a pixel between two neighbours whose depths jump by
-   more than ``flying_pixel`` × its depth, far from both — is dropped;
+   are dropped and counted; so are *flying pixels*: a pixel with a 4-neighbour nearer than it by more
+   than ``flying_pixel`` × its depth lies behind a depth edge, where a sensor's footprint straddling
+   two surfaces reports a mixed depth on neither (the edge's near side is kept; its far side loses a
+   pixel, seen elsewhere);
 2. back-projection through the pinhole intrinsics and the camera's pose;
 3. self-filtering: points within the robot's capsules at the frame's stamp, inflated by
    ``self_margin`` (:mod:`qpctl.perception.self_filter`), or within ``target_radius`` of the grasp
    target, are dropped; so are points outside the map's bounds;
-4. the rest stamp their voxel, in the soft channel where labelled soft, the rigid one otherwise;
+4. the rest stamp their voxel, in the soft channel where labelled soft, the rigid one otherwise —
+   from a depth image, once ``min_points`` pixels of the frame fall in it (a lone return in free
+   space is the noise's tail); a cloud's points count one each (a cloud is taken as filtered);
 5. free-space clearing: a voxel seen before whose centre projects into this image in front of its
    pixel's return by more than √3/2 voxel + ``depth_noise`` is freed (a cloud with a sensor origin:
    the voxels along each ray);
@@ -78,6 +82,7 @@ class DepthMap:
         nx, ny, nz = self.grid.shape
         self.last = np.full((2, nx, ny, nz), -np.inf)  # per channel, the stamp each voxel was last seen [s]
         self._occupied = np.zeros((2, nx, ny, nz), bool)
+        self._hits = np.zeros((2, nx, ny, nz), np.uint16)
         self._work = np.empty((nx, ny, nz))
         self.robot = robot
         self.self_filter = SelfFilter(robot, c.self_margin) if robot is not None else None
@@ -140,7 +145,7 @@ class DepthMap:
                 status: np.ndarray = np.empty(depth.shape, np.uint8)
                 KD.integrate_depth(depth, scale, labels, K.fx, K.fy, K.cx, K.cy, frame.pose, c.min_range,
                                    c.max_range, c.flying_pixel, segs, radii, target, target_r, g.origin, g.voxel,
-                                   self.last, frame.stamp, status, counts)
+                                   self.last, frame.stamp, status, counts, self._hits, c.min_points)
                 cleared = KD.clear_depth(depth, scale, status, K.fx, K.fy, K.cx, K.cy, frame.pose, margin,
                                          g.origin, g.voxel, self.last, frame.stamp)
             else:

@@ -61,6 +61,14 @@ class Perception:
         self._latest = self.map.update(frame)
         self._built(self._latest)
 
+    def publish(self, snapshot: MapSnapshot) -> None:
+        """Make ``snapshot`` the controller's map (a simulation does, when its build time has passed
+        on the simulated clock: :mod:`qpctl.perception.closed_loop`)."""
+        if self.worker is not None:
+            self.worker.latest = snapshot
+        else:
+            self._latest = snapshot
+
     def update_map(self, depth: np.ndarray, intrinsics: Intrinsics, pose: np.ndarray, stamp: float, *,
                    labels: np.ndarray | None = None, depth_scale: float = 1.0) -> None:
         """A depth image (H×W [m], or integers × ``depth_scale`` [m/unit]) with its pinhole
