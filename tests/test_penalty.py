@@ -153,7 +153,7 @@ def test_daqp_native_hard_first_gives_the_relaxed_answer():
 def test_daqp_native_hard_first_at_a_singular_configuration():
     """The planar arm starting outstretched (the x row of J ~1e-5): DAQP drops the nearly dependent
     task row of the hard QP and reports it solved with the row missed by 0.2 m/s²; the hard-first
-    tick must see that (:func:`qpctl.kernels.tick.task_rows_hold`) and take the relaxed QP. Over the
+    tick must see that (:func:`qpctl.kernels.hard_first.task_rows_hold`) and take the relaxed QP. Over the
     whole run its torques equal those of the relaxed QP solved every tick."""
     def scenario(relaxation: str) -> Scenario:
         raw = {"name": "singular", "robot": {"kind": "planar3", "q0": [0.0, 0.0, 0.0]},

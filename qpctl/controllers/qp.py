@@ -65,6 +65,7 @@ from qpctl.fallbacks import (
 from qpctl.formulation import Formulation
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.geometry.self_collision import named_pairs, self_collision_pairs
+from qpctl.kernels import codes
 from qpctl.kernels import tick as K
 from qpctl.law import LawGains, LawTerms, law_terms
 from qpctl.outcome import SOLUTION_RTOL, SolveOutcome, SolveStatus, checked_solve, solve_status
@@ -213,17 +214,17 @@ class QPOutput(RecordOutput):
     def _decode(self, info: dict[str, Any]) -> None:
         r, s = self._rec, self._layout.scalars
         info["solve_status"] = solve_status(info["status"])
-        if r[s + K.R_DROPPED]:
-            info["pairs_dropped"] = int(r[s + K.R_DROPPED])
+        if r[s + codes.R_DROPPED]:
+            info["pairs_dropped"] = int(r[s + codes.R_DROPPED])
         if not self._solved:
             return
-        if r[s + K.R_CLIPPED]:
-            info["clipped"] = float(r[s + K.R_CLIPPED])
-        if r[s + K.R_RATE_HITS]:
-            info["rate_limited"] = int(r[s + K.R_RATE_HITS])
-        info["slack_norm"] = float(r[s + K.R_SLACK])
-        info["active"] = int(r[s + K.R_ACTIVE])
-        mask = int(r[s + K.R_ACTIVE_MASK])
+        if r[s + codes.R_CLIPPED]:
+            info["clipped"] = float(r[s + codes.R_CLIPPED])
+        if r[s + codes.R_RATE_HITS]:
+            info["rate_limited"] = int(r[s + codes.R_RATE_HITS])
+        info["slack_norm"] = float(r[s + codes.R_SLACK])
+        info["active"] = int(r[s + codes.R_ACTIVE])
+        mask = int(r[s + codes.R_ACTIVE_MASK])
         info["active_rows"] = [name for bit, name in ((1, "obstacles"), (0, "torque_limits")) if mask >> bit & 1]
 
 
@@ -474,7 +475,7 @@ class QPController(Controller):
             pin.computeAllTerms(ws.model, ws.data, q, v)
             t1 = time.perf_counter()
             code = K.tick_qp_native(ws.work, q, v, t, *nat.kernel_args, SOLUTION_RTOL)
-            if code == K.STATE_PYTHON:
+            if code == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
                 code = K.qp_tick_native(ws.work, *nat.kernel_args, SOLUTION_RTOL)
             if code < 0:
@@ -509,7 +510,7 @@ class QPController(Controller):
         """Whether this tick solves the task hard first on DAQP's C API (task_relaxation "auto", the
         compiled assembly, DAQP's native path for both layouts, a task with slack): the hard QP has no
         slack variables (n instead of n + 2m), and its answer is used only where it is the relaxed
-        QP's too (:func:`qpctl.kernels.tick.penalty_exact` on DAQP's multipliers), so the torques are
+        QP's too (:func:`qpctl.kernels.hard_first.penalty_exact` on DAQP's multipliers), so the torques are
         those of the relaxed QP on every tick."""
         if self.config.task_relaxation != "auto" or type(self._solver) is not DAQPSolver:
             return False
@@ -547,7 +548,7 @@ class QPController(Controller):
             pin.computeAllTerms(ws.model, ws.data, q, v)
             t1 = time.perf_counter()
             code, hard = K.tick_qp_native_hard_first(ws.work, q, v, t, *args, try_hard)
-            if code == K.STATE_PYTHON:
+            if code == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
                 code, hard = K.qp_tick_native_hard_first(ws.work, *args, try_hard)
             if code < 0:
@@ -579,7 +580,7 @@ class QPController(Controller):
         assert buf is not None  # both layouts exist on this path (_native_hard_first)
         self._last_problem = buf.problem
         ok = code == 0
-        self._try_hard = used_hard or (ok and ws.rec[ws.layout.scalars + K.R_SLACK] <= 1e-12)
+        self._try_hard = used_hard or (ok and ws.rec[ws.layout.scalars + codes.R_SLACK] <= 1e-12)
         if not ok:
             self._compiled_fallback(ws, buf, status, extra, math.inf, False)
         end = time.perf_counter()
@@ -623,7 +624,7 @@ class QPController(Controller):
     def _solve_layout(self, solver: QPSolver, buf: QPBuffers, deadline: float, *,
                       terms_done: bool) -> tuple[int, str, int]:
         """The law's terms (unless ``terms_done``) and the QP's rows written into ``buf``, solved within
-        what is left of the budget, the answer checked (:func:`qpctl.kernels.tick.qp_finish` writes τ,
+        what is left of the budget, the answer checked (:func:`qpctl.kernels.finish.qp_finish` writes τ,
         q̈ and the record when it holds); the build and solve times [µs] go into the record (added to
         those of an earlier attempt in this tick when ``terms_done``). Returns (code, status,
         iterations), code 0: solved and accepted; 1: M not positive definite; 2: non-finite problem;
@@ -646,11 +647,11 @@ class QPController(Controller):
             code = K.qp_tick_native(ws.work, buf.H, buf.f, buf.rows, buf.bu, buf.bl, *nat.addresses, nat.flag,
                                     nat.x, SOLUTION_RTOL)  # the whole tick in one call; times in the record
             return self._native_outcome(code, nat, solver)
-        before_build, before_solve = (rec[s + K.R_BUILD_US], rec[s + K.R_SOLVE_US]) if terms_done else (0.0, 0.0)
+        before_build, before_solve = (rec[s + codes.R_BUILD_US], rec[s + codes.R_SOLVE_US]) if terms_done else (0.0, 0.0)
         t0 = time.perf_counter()
         code = (K.qp_rebuild if terms_done else K.qp_terms_and_build)(ws.work, buf.H, buf.f, buf.rows, buf.bu, buf.bl)
         t1 = time.perf_counter()
-        rec[s + K.R_BUILD_US], rec[s + K.R_SOLVE_US] = before_build + (t1 - t0) * 1e6, before_solve
+        rec[s + codes.R_BUILD_US], rec[s + codes.R_SOLVE_US] = before_build + (t1 - t0) * 1e6, before_solve
         if code:
             self._last = (None, "nonfinite_problem", 0, solver.name)
             return code, "nonfinite_problem", 0
@@ -664,7 +665,7 @@ class QPController(Controller):
             else:
                 code = K.native_solve_finish(ws.work, buf.rows, buf.bu, buf.bl, *nat.addresses, nat.flag, nat.x,
                                              SOLUTION_RTOL)
-            rec[s + K.R_SOLVE_US] = before_solve + (time.perf_counter() - t1) * 1e6
+            rec[s + codes.R_SOLVE_US] = before_solve + (time.perf_counter() - t1) * 1e6
             return self._native_outcome(code, nat, solver)
         if type(solver) is DAQPSolver:
             x, status, iters = solver.solve_buffers(buf.H, buf.f, buf.rows, buf.bu, buf.bl, buf.sense)
@@ -681,9 +682,9 @@ class QPController(Controller):
             # at a link's fixed base) can be violated by m/s² in our units while it reports "solved".
             status = "inaccurate" if np.isfinite(x).all() else "nonfinite_solution"
             x = None
-        rec[s + K.R_SOLVE_US] = before_solve + (time.perf_counter() - t1) * 1e6
+        rec[s + codes.R_SOLVE_US] = before_solve + (time.perf_counter() - t1) * 1e6
         if x is not None:
-            rec[s + K.R_ITERATIONS] = iters
+            rec[s + codes.R_ITERATIONS] = iters
         self._last = (x, status, iters, solver.name)
         return (0 if x is not None else 3), status, iters
 
