@@ -100,6 +100,9 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
         metrics["faults"] = {k: getattr(faults, k) for k in faults.kinds()} | {"seed": faults.seed}
         metrics.update(getattr(sim, "fault_counts", {}))
     metrics.update(sim.counts)
+    canopy = scenario.canopy()
+    if canopy is not None:  # what was grown, and each fruit's reachability (with the reason where not)
+        metrics["canopy"] = canopy.summary()
     if sim.notes:
         metrics["simulator_notes"] = list(sim.notes)
     return RunResult(scenario, controller, traj, metrics)

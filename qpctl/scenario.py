@@ -32,6 +32,7 @@ from qpctl.law import LawGains
 from qpctl.paths import PathConfig, PosePath, WaypointPath
 from qpctl.robot.config import RobotConfig
 from qpctl.robot.model import RobotModel, arm_reach, load_robot
+from qpctl.scenes.canopy import Canopy, CanopyConfig, generate_canopy
 from qpctl.simulation.camera import CameraConfig
 from qpctl.simulation.faults import Faults, with_payload
 from qpctl.simulation.loop import SimConfig
@@ -59,10 +60,11 @@ SCHEMA: dict[str, Any] = {
     "faults": schema_of(Faults),
     "sim": schema_of(SimConfig),
     "camera": schema_of(CameraConfig),  # a simulated depth camera (qpctl.simulation.camera); mount "": none
+    "canopy": schema_of(CanopyConfig),  # a seeded canopy (qpctl.scenes.canopy); seed unset: none
 }
 
-# Tables that exist only when a key names them: a [camera] is its mount.
-NAMED_BY = {"camera": "mount"}
+# Tables that exist only when a key names them: a [camera] is its mount, a [canopy] its seed.
+NAMED_BY = {"camera": "mount", "canopy": "seed"}
 
 
 def _validate_table(raw: Any, schema: dict[str, Any], source: str, prefix: str) -> dict[str, Any]:
@@ -160,6 +162,7 @@ class Scenario:
     data: dict[str, Any]
     source: str
     base_dir: Path | None = None  # where relative paths in it (robot.urdf) are resolved: the file's folder
+    _canopy: Canopy | None = dataclasses.field(default=None, init=False, repr=False, compare=False)
 
     @classmethod
     def load(cls, spec: str | Path, overrides: Sequence[str] = ()) -> Scenario:
@@ -222,6 +225,9 @@ class Scenario:
         path = self.data["path"]
         if path["duration"] is None and path["durations"] is None:
             raise self._err("path.duration", "missing value (give duration or durations)")
+        if path["waypoints"] is None and self.data["canopy"]["seed"] is None:
+            raise self._err("path.waypoints", "missing value (or name a [canopy], whose reachable fruits are the "
+                                              "waypoints)")
         from qpctl.adapters import SIMULATORS
 
         if sim["simulator"] not in SIMULATORS:
@@ -231,6 +237,10 @@ class Scenario:
         if sim["joint_names"] is not None and not sim["model"]:
             raise self._err("sim.joint_names", "names the joints of sim.model, which is not set")
         faults = self.faults()
+        try:
+            CanopyConfig.from_dict(self.data["canopy"])
+        except ConfigError as exc:
+            raise self._err(exc.key or "canopy", exc.message) from None
         try:
             self.gains()
         except ConfigError as exc:
@@ -301,7 +311,25 @@ class Scenario:
 
     def scenery(self) -> list[Obstacle]:
         """Shapes only a camera sees (a canopy's fruits): in its images, in no clearance."""
-        return []
+        canopy = self.canopy()
+        return canopy.scenery() if canopy is not None else []
+
+    def canopy(self) -> Canopy | None:
+        """The scenario's seeded canopy (``[canopy]``, :mod:`qpctl.scenes.canopy`; None without a seed),
+        grown once in front of its robot at q0, its fruits hidden from the world camera if there is one."""
+        cfg = CanopyConfig.from_dict(self.data["canopy"])
+        if not cfg.enabled:
+            return None
+        if self._canopy is None:
+            robot = self.build_robot()
+            camera = self.camera_config()
+            eye = camera.mount_pose()[:3, 3] if camera.mount == "world" else None
+            try:
+                self._canopy = generate_canopy(cfg, robot, self.q0(robot), d_safe=self.data["controller"]["d_safe"],
+                                               viewpoint=eye)
+            except ConfigError as exc:
+                raise self._err(exc.key or "canopy", exc.message) from None
+        return self._canopy
 
     def _check_reach(self, robot: RobotModel, path: WaypointPath) -> None:
         """Every waypoint within the arm's reach (a sphere about its first joint; revolute arms only)."""
@@ -472,7 +500,12 @@ class Scenario:
             data = robot.model.createData()
             pin.framesForwardKinematics(robot.model, data, q0)
             start = data.oMf[robot.ee_frame_id].translation[list(robot.task_axes)].copy()
-        pts = [list(start)] + p["waypoints"]
+        waypoints = p["waypoints"]
+        if waypoints is None:  # a canopy's reachable fruits (_check_values made sure there is one)
+            canopy = self.canopy()
+            assert canopy is not None
+            waypoints = canopy.waypoints.tolist()
+        pts = [list(start)] + waypoints
         if any(len(w) != robot.m_position for w in pts):
             raise self._err("path.waypoints", f"each point needs {robot.m_position} coordinates for robot {robot.name}")
         timing = {"duration": p["duration"], "durations": p["durations"], "start_time": p["start_time"],
@@ -485,6 +518,7 @@ class Scenario:
             raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key) from None
 
     def build_obstacles(self) -> list[Obstacle]:
+        """The ``[[obstacles]]``, then a ``[canopy]``'s trunk, wires, branches and leaves."""
         out = []
         for i, o in enumerate(self.data["obstacles"]):
             kwargs = {k: v for k, v in o.items() if k != "area"}
@@ -494,7 +528,8 @@ class Scenario:
             except ConfigError as exc:
                 raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source,
                                   key=f"obstacles[{i}].{(exc.key or '').rsplit('.', 1)[-1]}") from None
-        return out
+        canopy = self.canopy()
+        return out + (copy.deepcopy(canopy.obstacles) if canopy is not None else [])  # fresh, as the others
 
     def faults(self) -> Faults:
         """The run's faults (``[faults]``, all off by default; :mod:`qpctl.simulation.faults`)."""

@@ -21,7 +21,7 @@ import pytest
 
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels import raycast as K
-from qpctl.simulation.camera import CameraConfig, DepthCamera
+from qpctl.simulation.camera import CameraConfig, DepthCamera, MujocoCaster
 
 
 def random_obstacles(rng: np.random.Generator, count: int, lo: tuple[float, ...], hi: tuple[float, ...]) -> list[Obstacle]:
@@ -220,3 +220,46 @@ def test_wrist_camera_inside_its_link_capsule(panda_robot):
     link7 = a_cam.names.index("panda_joint7")
     assert not (a.hit == link7).any()
     assert (a.hit == 0).mean() > 0.5 and (a.hit == 1).any()
+
+
+def test_camera_in_the_mujoco_simulators_live_model(panda_robot):
+    """In the MuJoCo simulator (caster "auto") the camera casts in the simulator's own model, which
+    holds the scenario's obstacles and the arm; it sees what the kernel sees."""
+    from qpctl import Scenario
+    from qpctl.adapters.mujoco import MujocoSimulator
+
+    scen = Scenario.load("panda_canopy", overrides=[
+        "camera.mount=world", "camera.position=[-0.3, -0.6, 1.0]", "camera.look_at=[0.6, 0.0, 0.4]",
+        "camera.width=160", "camera.height=120", "sim.simulator=mujoco"])
+    sim = MujocoSimulator.from_scenario(scen.build_controller(robot=panda_robot), scen)
+    live = DepthCamera.from_scenario(scen, panda_robot, simulator=sim)
+    assert isinstance(live.caster, MujocoCaster) and live.caster.model is sim.model
+    ours = DepthCamera.from_scenario(scen, panda_robot)
+    q = panda_robot.q_home + 0.2
+    _agree(ours.render(q, 0.0)[1], live.render(q, 0.0)[1], 2000)
+
+
+def test_a_users_own_model_is_seen_as_the_robot():
+    """examples/my_arm.xml (the user's MJCF, its own link geoms): MuJoCo sees the user's geoms and
+    names them "robot"; where they are, the kernel sees qpctl's link capsules of the same size."""
+    from pathlib import Path
+
+    from qpctl import Scenario
+    from qpctl.adapters.mujoco import MujocoSimulator
+
+    toml = Path(__file__).resolve().parents[1] / "examples" / "my_arm.toml"
+    scen = Scenario.load(toml, overrides=["camera.mount=world", "camera.position=[0.0, -1.0, 2.5]",
+                                          "camera.look_at=[0.0, -1.0, 0.0]", "camera.up=[0, 1, 0]",
+                                          "camera.width=240", "camera.height=180"])
+    robot = scen.build_robot()
+    sim = MujocoSimulator.from_scenario(scen.build_controller(robot=robot), scen)
+    live = DepthCamera.from_scenario(scen, robot, simulator=sim)
+    ours = DepthCamera.from_scenario(scen, robot)
+    q = scen.q0(robot)
+    a, b = ours.render(q, 0.0)[1], live.render(q, 0.0)[1]
+    robot_a = a.hit >= len(ours.obstacles)
+    assert (b.hit[robot_a] == live.id_robot).all() and robot_a.sum() > 200
+    assert ((b.hit == live.id_robot) == robot_a).mean() > 0.995
+    assert (a.hit[~robot_a] == b.hit[~robot_a]).all() and (b.hit == 0).sum() > 30  # obstacle A
+    both = np.isfinite(a.depth) & np.isfinite(b.depth)
+    assert np.abs(a.depth[both] - b.depth[both]).max() < 1e-9

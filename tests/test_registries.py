@@ -165,7 +165,9 @@ def test_every_key_is_one_dataclass_field_and_its_default_is_the_fields():
 
     tables = {"robot": (RobotConfig,), "path": (PathConfig,), "controller": (ControllerConfig, LawGains, QPConfig),
               "faults": (Faults,), "sim": (SimConfig,)}
-    tables["camera"] = (CameraConfig,)
+    from qpctl.scenes.canopy import CanopyConfig
+
+    tables["camera"], tables["canopy"] = (CameraConfig,), (CanopyConfig,)
     assert sorted(tables) == sorted(k for k, v in SCHEMA.items() if isinstance(v, dict) and k != "obstacles")
     for table, classes in tables.items():
         fields = [f for c in classes for f in dataclasses.fields(c) if f.name != "obstacle_v_ref"]
