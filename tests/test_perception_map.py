@@ -17,7 +17,7 @@ from qpctl.perception.config import PerceptionConfig
 from qpctl.perception.depth_map import DepthMap
 from qpctl.perception.reference import classify_points
 from qpctl.perception.self_filter import JointHistory
-from qpctl.state import Dynamics
+from qpctl.dynamics import Dynamics
 
 CFG = PerceptionConfig(voxel=0.02, bounds_min=[-0.2, -0.4, 0.0], bounds_max=[0.6, 0.4, 0.8], truncation=0.2,
                        decay=1.0, depth_noise=0.002)

@@ -186,7 +186,7 @@ class MapLoop:
                 self.phantom += 1
 
     def _measure_soft(self, q: np.ndarray, v: np.ndarray, t: float) -> None:
-        from qpctl.state import Dynamics
+        from qpctl.dynamics import Dynamics
         from qpctl.tick import WorldClearance
 
         if self._soft_world is None:
