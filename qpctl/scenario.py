@@ -30,6 +30,7 @@ from qpctl.errors import ConfigError
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.law import LawGains
 from qpctl.paths import PathConfig, PosePath, WaypointPath
+from qpctl.perception.config import PerceptionConfig
 from qpctl.robot.config import RobotConfig
 from qpctl.robot.model import RobotModel, arm_reach, load_robot
 from qpctl.scenes.canopy import Canopy, CanopyConfig, generate_canopy
@@ -61,6 +62,7 @@ SCHEMA: dict[str, Any] = {
     "sim": schema_of(SimConfig),
     "camera": schema_of(CameraConfig),  # a simulated depth camera (qpctl.simulation.camera); mount "": none
     "canopy": schema_of(CanopyConfig),  # a seeded canopy (qpctl.scenes.canopy); seed unset: none
+    "perception": schema_of(PerceptionConfig),  # the depth map the QP reads with a [camera] (qpctl.perception)
 }
 
 # Tables that exist only when a key names them: a [camera] is its mount, a [canopy] its seed.
@@ -259,6 +261,10 @@ class Scenario:
                             f"{', '.join(robot.joint_names)}, in that order), got {names}")
         q0 = self.q0(robot)
         self._check_camera(robot)
+        self.perception_config()
+        if not self.camera_config().enabled and any(o.get("perceived") for o in self.data["obstacles"]):
+            raise self._err("camera.mount", "perceived obstacles are known to the controller only through a depth "
+                            "camera: give the [camera] a mount, or set perceived = false")
         self._check_reach(robot, self.build_path(robot, q0))
         self._check_start_clear(robot, obstacles, q0)
         sat = faults.torque_saturation
@@ -304,6 +310,13 @@ class Scenario:
                 DepthCamera(cfg, robot)
         except ConfigError as exc:
             raise self._err(exc.key or "camera", exc.message) from None
+
+    def perception_config(self) -> PerceptionConfig:
+        """The scenario's ``[perception]`` (the depth map's settings; used where a ``[camera]`` is)."""
+        try:
+            return PerceptionConfig(**self.data["perception"])
+        except ConfigError as exc:
+            raise self._err(exc.key or "perception", exc.message) from None
 
     def camera_config(self) -> CameraConfig:
         """The scenario's ``[camera]`` (``mount`` "": none; :mod:`qpctl.simulation.camera`)."""

@@ -11,12 +11,12 @@ import pinocchio as pin
 import pytest
 
 from qpctl import Scenario
+from qpctl.dynamics import Dynamics
 from qpctl.perception import Perception, PerceptionConfig, PointCloud
 from qpctl.perception.closed_loop import attach
 from qpctl.perception.rows import FieldBarrier, field_pairs
 from qpctl.simulation.camera import CameraConfig, DepthCamera
 from qpctl.simulation.simulator import Simulator
-from qpctl.dynamics import Dynamics
 
 CFG = PerceptionConfig(voxel=0.02, bounds_min=[-0.3, -0.6, 0.0], bounds_max=[1.1, 0.6, 1.1], truncation=0.3,
                        depth_noise=0.025)  # 3σ of the camera at 1.3 m (σ = 0.5 mm + 4.2 mm·z²)

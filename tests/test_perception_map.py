@@ -10,6 +10,7 @@ import pytest
 from depth_scenes import K, Sphere, look_at, render, true_points
 from scipy.spatial import cKDTree
 
+from qpctl.dynamics import Dynamics
 from qpctl.errors import ConfigError, PerceptionError
 from qpctl.kernels.depth import FLYING, KEPT, NO_RETURN, SELF
 from qpctl.perception import SOFT, DepthFrame, PointCloud
@@ -17,7 +18,6 @@ from qpctl.perception.config import PerceptionConfig
 from qpctl.perception.depth_map import DepthMap
 from qpctl.perception.reference import classify_points
 from qpctl.perception.self_filter import JointHistory
-from qpctl.dynamics import Dynamics
 
 CFG = PerceptionConfig(voxel=0.02, bounds_min=[-0.2, -0.4, 0.0], bounds_max=[0.6, 0.4, 0.8], truncation=0.2,
                        decay=1.0, depth_noise=0.002)

@@ -57,8 +57,8 @@ class MapLoop:
         rigid, soft: the world's true rigid and soft obstacles (perceived and known).
         path: the controller's time-scaled reference (None: the stale policy is only recorded).
         dt: the control period [s].
-        targets: the grasp targets in order (the path's waypoints) and the times [s] from which each
-            is current; None: no target exclusion.
+        targets: the grasp targets in order (the path's waypoints) and the path times [s] from which
+            each is current; None: no target exclusion.
     """
 
     def __init__(self, perception: Perception, barrier: FieldBarrier, camera: Any, robot: RobotModel,
@@ -110,9 +110,10 @@ class MapLoop:
     def before(self, t: float, q: np.ndarray, v: np.ndarray) -> None:
         p = self.perception
         p.record(t, q)
-        if self.targets is not None:
+        if self.targets is not None:  # the waypoint the path is heading for, on the path's own clock
             points, starts = self.targets
-            i = int(np.searchsorted(starts, t, side="right")) - 1
+            s = self.path.s if self.path is not None else t
+            i = int(np.searchsorted(starts, s, side="right")) - 1
             p.set_target(points[max(i, 0)])
         if self.camera is not None and self.camera.due(t, self.dt):
             frame = self.camera.capture(q, t)

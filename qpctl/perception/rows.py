@@ -111,18 +111,20 @@ class FieldBarrier(Constraint):
         J̇_p q̇ = J̇_v q̇ + (J̇_ω q̇) × r + ω × (ω × r), r = p − o."""
         model, data = self.robot.model, self._data
         pin.computeJointJacobiansTimeVariation(model, data, q, v)  # also the placements and J
-        k, n = len(links), model.nv
-        J = np.empty((k, 3, n))
-        a = np.empty((k, 3))
-        for i, (link, p) in enumerate(zip(links, points, strict=True)):
-            j = int(self.joints[link])
-            Jj = pin.getJointJacobian(model, data, j, pin.LOCAL_WORLD_ALIGNED)
-            dJ = pin.getJointJacobianTimeVariation(model, data, j, pin.LOCAL_WORLD_ALIGNED)
-            r = p - data.oMi[j].translation
-            Jw = Jj[3:]
-            J[i] = Jj[:3] - np.cross(r, Jw.T).T
-            w = Jw @ v
-            a[i] = dJ[:3] @ v + np.cross(dJ[3:] @ v, r) + np.cross(w, np.cross(w, r))
+        joints = self.joints[links]
+        J6 = np.empty((len(links), 6, model.nv))
+        dJ6 = np.empty((len(links), 6, model.nv))
+        origin = np.empty((len(links), 3))
+        for j in np.unique(joints):  # once per body, not per pair
+            at = joints == j
+            J6[at] = pin.getJointJacobian(model, data, int(j), pin.LOCAL_WORLD_ALIGNED)
+            dJ6[at] = pin.getJointJacobianTimeVariation(model, data, int(j), pin.LOCAL_WORLD_ALIGNED)
+            origin[at] = data.oMi[int(j)].translation
+        r = points - origin
+        Jw = J6[:, 3:]
+        J = J6[:, :3] - np.cross(r[:, :, None], Jw, axis=1)  # column-wise r × J_ω
+        w = Jw @ v
+        a = dJ6[:, :3] @ v + np.cross(dJ6[:, 3:] @ v, r) + np.cross(w, np.cross(w, r))
         return J, a
 
     def compute(self, state: TickState, terms: LawTerms) -> Inequality:
