@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: all env demo test soak robust bench bench-quick harvest simulators sweep-small sweep-1k sweep-throughput lint clean
+.PHONY: all env demo test soak robust bench bench-quick perception perception-canopies harvest simulators sweep-small sweep-1k sweep-throughput lint clean
 
 all: test
 
@@ -36,6 +36,14 @@ bench: $(STAMP)
 
 bench-quick: $(STAMP)
 	MPLBACKEND=Agg $(VENV)/bin/qpctl bench --quick --out results/bench-quick
+
+# The depth map (docs/perception.md): frame → field on recorded 640×480 frames, EDT backends, field queries,
+# the tick beside the map worker; and the closed loop on panda_canopy_depth under 20 canopy seeds.
+perception: $(STAMP)
+	MPLBACKEND=Agg $(PY) -m benchmarks.perception --out results/perception
+
+perception-canopies: $(STAMP)
+	MPLBACKEND=Agg $(PY) -m benchmarks.perception --canopies 20 --out results/perception-canopies
 
 # The harvesting scenario under every law, approach and pose tasks: results/harvest/harvest.md (docs/harvesting.md).
 harvest: $(STAMP)

@@ -1,6 +1,7 @@
 """The depth map's costs on the same recorded frames (issue 21's targets; docs/perception.md).
 
     python -m benchmarks.perception [--quick] [--out results/perception]
+    python -m benchmarks.perception --canopies 20 [--duration S] [--out results/perception-canopies]
 
 1. **Frame to field**: 640×480 frames of a seeded canopy (300 soft leaves, 12 rigid branches, depth
    noise σ = 1 mm·z²), recorded once into ``frames.npz``; each goes through the whole pipeline
@@ -12,6 +13,10 @@
 3. **Field queries**: :func:`qpctl.kernels.field.field_pairs` for the Panda's capsules, both channels.
 4. **The tick beside the worker**: the Panda's QP tick on a closed-loop run of ``panda_spheres``,
    in alternating stretches with the map worker idle and with it fed frames at 30 Hz; p99 ratio.
+
+5. With ``--canopies N``: the closed loop on ``panda_canopy_depth`` under canopy seeds 1..N (the
+   camera's noise on): collisions, true rigid and soft clearances, soft contact speeds, fruits
+   reached, map costs and latency, phantom rows (``canopies.json``, ``canopies.md``).
 
 Writes ``perception.json`` and ``perception.md`` (the tables of docs/perception.md) in --out.
 """
@@ -223,6 +228,49 @@ def tick_beside_worker(frames: list[DepthFrame], robot: Any, stretches: int, sec
             "median_ratio": out["worker at 30 Hz"]["median"] / out["worker idle"]["median"]}
 
 
+CLOSED_LOOP_KEYS = ("collided", "min_clearance", "min_soft_clearance", "soft_contact_max_speed",
+                    "soft_contact_max_approach_speed", "map_min_clearance", "map_age_ms_max", "map_update_cpu_ms_median",
+                    "map_update_cpu_ms_p99", "map_latency_ms_p99", "phantom_rows", "phantom_rows_checked",
+                    "stale_stop_ticks", "tick_us_median", "fruit_errors_mm")
+
+
+def closed_loops(seeds: list[int], duration: float | None = None) -> list[dict[str, Any]]:
+    """``panda_canopy_depth`` under each canopy seed (seed 1 is the packaged scenario), noise on: the
+    closed-loop metrics of issue 21's targets, and the canopy's unreachable fruits with their reasons."""
+    from qpctl import Scenario
+    from qpctl.run import simulate
+
+    out = []
+    for seed in seeds:
+        extra = [f"sim.duration={duration}"] if duration else []
+        scen = Scenario.load("panda_canopy_depth", overrides=[f"canopy.seed={seed}", *extra])
+        t0 = time.perf_counter()
+        m = simulate(scen).metrics
+        row = {"seed": seed, "wall_s": time.perf_counter() - t0, "d_safe": float(scen.data["controller"]["d_safe"]),
+               "voxel": scen.perception_config().voxel, "soft_speed": scen.perception_config().soft_speed}
+        row.update({k: m.get(k) for k in CLOSED_LOOP_KEYS})
+        canopy = m.get("canopy", {})
+        row["unreachable"] = [f.get("reason", "") for f in canopy.get("fruits", []) if not f.get("reachable", True)]
+        out.append(row)
+        print(json.dumps(row, default=str), flush=True)
+    return out
+
+
+def closed_loop_markdown(rows: list[dict[str, Any]]) -> str:
+    lines = [("| seed | collided | min clearance [m] | ≥ d_safe − voxel | min soft clearance [m] | soft contact speed "
+             "[m/s] (into the leaf) | fruits within 5 mm | map p99 [ms CPU] | stamp → rows p99 [ms] | phantom rows |"),
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        errs = r["fruit_errors_mm"] or []
+        ok = r["min_clearance"] >= r["d_safe"] - r["voxel"]
+        lines.append(f"| {r['seed']} | {r['collided']} | {r['min_clearance']:.3f} | {'yes' if ok else 'NO'} | "
+                     f"{r['min_soft_clearance']:.3f} | {r['soft_contact_max_speed']:.2f} "
+                     f"({r['soft_contact_max_approach_speed']:.2f}) | {sum(e <= 5.0 for e in errs)} of {len(errs)} | "
+                     f"{r['map_update_cpu_ms_p99']:.1f} | {r['map_latency_ms_p99']:.1f} | "
+                     f"{r['phantom_rows']} of {r['phantom_rows_checked']} |")
+    return "\n".join(lines) + "\n"
+
+
 def markdown(res: dict[str, Any]) -> str:
     lines = [f"Machine: {res['machine']}; load before: {res['load_before']}, after: {res['load_after']}.", ""]
     lines += [("| frame → field (640×480) | grid | wall median [ms] | wall p99 [ms] | CPU median [ms] | CPU p99 [ms] "
@@ -255,9 +303,19 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer frames and shorter stretches")
     ap.add_argument("--out", default="results/perception")
+    ap.add_argument("--canopies", type=int, default=0,
+                    help="instead: closed loops on panda_canopy_depth under canopy seeds 1..N")
+    ap.add_argument("--duration", type=float, default=None, help="with --canopies: simulated seconds")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    if args.canopies:
+        rows = closed_loops(list(range(1, args.canopies + 1)), args.duration)
+        (out / "canopies.json").write_text(json.dumps(rows, indent=2, default=str))
+        md = f"Load before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}\n\n" + closed_loop_markdown(rows)
+        (out / "canopies.md").write_text(md)
+        print(md)
+        return {"canopies": rows}
     robot = panda()
     n = 12 if args.quick else 61
     res: dict[str, Any] = {"machine": f"{os.cpu_count()} cores, {os.uname().machine}",

@@ -30,6 +30,7 @@ class RunResult:
     controller: Controller
     trajectory: Trajectory
     metrics: dict[str, Any]
+    perception: Any = None  # the depth map's loop (qpctl.perception.closed_loop.MapLoop), with a [camera]
 
 
 def link_segments(controller: Controller, q: np.ndarray) -> np.ndarray:
@@ -115,7 +116,7 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
         metrics["canopy"] = canopy.summary()
     if sim.notes:
         metrics["simulator_notes"] = list(sim.notes)
-    return RunResult(scenario, controller, traj, metrics)
+    return RunResult(scenario, controller, traj, metrics, loop)
 
 
 def _perceive(scenario: Scenario, controller: Controller, sim: SimulatorBase, truth: list[Any]) -> Any:
@@ -151,6 +152,9 @@ def write_outputs(result: RunResult, out: Path, *, figures: bool = True) -> list
             label = f"{result.scenario.name}, {result.controller.kind}"
             write_figures(tmp, result.trajectory, segs, result.controller.obstacles, label,
                           tau_rate_max=result.controller.robot.tau_rate_max)
+            if result.perception is not None:  # the depth map's: a frame, a field slice, true vs believed
+                result.perception.write_figures(tmp, result.trajectory.t, result.trajectory.clearance,
+                                                float(result.scenario.data["controller"]["d_safe"]))
         names = sorted(f.name for f in tmp.iterdir())
         if not out.exists():  # the usual case: one rename, so the folder appears complete or not at all
             mask = os.umask(0)

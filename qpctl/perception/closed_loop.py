@@ -18,7 +18,8 @@ rows believed, from the link surfaces [m]), ``map_age_ms_max`` (the oldest the c
 after the first), ``map_update_ms_median``/``_p99`` (frame to snapshot), ``map_latency_ms_p99``
 (stamp to the first tick using it), ``min_soft_clearance`` (true, to the soft obstacles [m]),
 ``soft_contact_max_speed`` (the fastest a link's witness point moved while inside a soft obstacle
-[m/s]), ``phantom_rows`` (active rigid rows, checked every ``PHANTOM_EVERY`` ticks, whose field value at
+[m/s]) and ``soft_contact_max_approach_speed`` (its component into the obstacle, along the normal:
+what the soft rows bound), ``phantom_rows`` (active rigid rows, checked every ``PHANTOM_EVERY`` ticks, whose field value at
 their link's axis point is short of the true distance from there to the world's obstacles by more
 than ``phantom_tolerance``: the map saw something where nothing is, the robot included),
 ``stale_slow_ticks`` and ``stale_stop_ticks``.
@@ -29,6 +30,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import fcl
@@ -102,6 +104,9 @@ class MapLoop:
         self.slow_ticks = 0
         self.stop_ticks = 0
         self.frames = 0
+        self.soft_approach_max = 0.0
+        self.sample: tuple[Any, np.ndarray, MapSnapshot, np.ndarray] | None = None
+        self._sample_self = -1
         self._used: float = -math.inf
         self.series: dict[str, list[float]] = {"t": [], "map_clearance": [], "age_ms": [], "kappa": []}
         self.perception.policy.reset()
@@ -124,6 +129,10 @@ class MapLoop:
             self.build_cpu_ms.append(cpu * 1e3)
             self.frames += 1
             self._pending.append((frame.stamp + cpu, snap))
+            rep = p.map.last_report
+            if rep is not None and rep.counts["self"] >= self._sample_self:  # the figure's frame
+                self._sample_self = rep.counts["self"]
+                self.sample = (frame, rep.status, snap, np.array(q, float))
         ready = [s for when, s in self._pending if when <= t + 1e-12]
         if ready:
             p.publish(ready[-1])
@@ -199,8 +208,10 @@ class MapLoop:
             state = self._soft_dyn.compute(q, v, t)
             inside = state.pairs.distance < 0.0
             if inside.any():
-                speed = np.linalg.norm(np.einsum("kin,n->ki", state.pair_jac[inside], v), axis=1)
-                self.soft_speed_max = max(self.soft_speed_max, float(speed.max()))
+                vel = np.einsum("kin,n->ki", state.pair_jac[inside], v)
+                self.soft_speed_max = max(self.soft_speed_max, float(np.linalg.norm(vel, axis=1).max()))
+                approach = -np.einsum("ki,ki->k", state.pairs.normal[inside], vel)  # into the leaf
+                self.soft_approach_max = max(self.soft_approach_max, float(approach.max()))
 
     # -- results ----------------------------------------------------------------------------------
     def metrics(self) -> dict[str, Any]:
@@ -218,11 +229,30 @@ class MapLoop:
             "map_frames": self.frames,
             "min_soft_clearance": self.soft_clearance,
             "soft_contact_max_speed": self.soft_speed_max,
+            "soft_contact_max_approach_speed": self.soft_approach_max,
             "phantom_rows": self.phantom,
             "phantom_rows_checked": self.checked_rows,
             "stale_slow_ticks": self.slow_ticks,
             "stale_stop_ticks": self.stop_ticks,
         }
+
+
+    def write_figures(self, out: Path, t: np.ndarray, clearance: np.ndarray, d_safe: float) -> list[Path]:
+        """The map's three figures into ``out``: a depth frame and its pixels' fate, a slice of the field
+        at the hand's height, the true against the believed clearance."""
+        from qpctl.perception.figures import clearance_figure, depth_frame_figure, field_slice_figure
+
+        files = []
+        if self.sample is not None:
+            frame, status, snap, q = self.sample
+            files.append(depth_frame_figure(out / "depth_frame.png", frame, status))
+            segs = self.barrier.segments(q)
+            files.append(field_slice_figure(out / "field_slice.png", snap, float(segs[-1, 1, 2]), segments=segs))
+        n = min(len(t), len(self.series["map_clearance"]))
+        files.append(clearance_figure(out / "clearance_true_vs_map.png", t[:n], clearance[:n],
+                                      np.asarray(self.series["map_clearance"][:n]), d_safe, self.barrier.margin,
+                                      np.asarray(self.series["age_ms"][:n])))
+        return files
 
 
 def attach(controller: Any, simulator: Any, config: Any, *, camera: Any = None, world: Sequence[Obstacle] = (),
@@ -236,10 +266,7 @@ def attach(controller: Any, simulator: Any, config: Any, *, camera: Any = None, 
     ``material`` splits them for the metrics)."""
     robot = controller.robot
     p = perception if perception is not None else Perception(config, robot)
-    qp_cfg = getattr(controller, "config", None)
-    barrier = FieldBarrier(p, robot, p.config, d_safe=controller.gains.d_safe, cutoff=controller.cutoff,
-                           k0=getattr(qp_cfg, "barrier_k0", 400.0), k1=getattr(qp_cfg, "barrier_k1", 40.0))
-    controller.add_constraint(barrier)
+    barrier = p.rows_for(controller)
     scaled = None
     if time_scaled:
         scaled = TimeScaledPath(controller.path)

@@ -11,7 +11,7 @@ stale-map policy (:mod:`qpctl.perception.stale`).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -75,6 +75,18 @@ class Perception:
         ``intrinsics``, the camera's ``pose`` in the base frame (4×4, optical frame) and its ``stamp``
         [s] on the controller's clock; optional per-pixel ``labels`` (rigid/soft)."""
         self.submit(DepthFrame(depth, intrinsics, pose, stamp, labels=labels, depth_scale=depth_scale))
+
+    def rows_for(self, controller: Any) -> Any:
+        """Give a QP ``controller`` this map's barrier rows (a :class:`~qpctl.perception.rows.FieldBarrier`
+        with its d_safe, influence distance and barrier gains) and return them."""
+        from qpctl.perception.rows import FieldBarrier
+
+        cfg = getattr(controller, "config", None)
+        barrier = FieldBarrier(self, controller.robot, self.config, d_safe=controller.gains.d_safe,
+                               cutoff=controller.cutoff, k0=getattr(cfg, "barrier_k0", 400.0),
+                               k1=getattr(cfg, "barrier_k1", 40.0))
+        controller.add_constraint(barrier)
+        return barrier
 
     def record(self, t: float, q: np.ndarray) -> None:
         """The robot's joint positions q [rad] at t [s] (the self-filter looks them up at a frame's stamp)."""

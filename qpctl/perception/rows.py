@@ -103,6 +103,12 @@ class FieldBarrier(Constraint):
         self._data = robot.model.createData()
         self.last: FieldPairs | None = None  # the last tick's pairs (for metrics and figures)
 
+    def segments(self, q: np.ndarray) -> np.ndarray:
+        """(L, 2, 3) the capsules' axes [m] at q [rad] (Pinocchio's forward kinematics)."""
+        pin.forwardKinematics(self.robot.model, self._data, np.asarray(q, float))
+        return np.array([[self._data.oMi[c.joint_id].act(c.p0), self._data.oMi[c.joint_id].act(c.p1)]
+                         for c in self.robot.capsules])
+
     def jacobians(self, q: np.ndarray, v: np.ndarray, links: np.ndarray, points: np.ndarray
                   ) -> tuple[np.ndarray, np.ndarray]:
         """(k, 3, n) Jacobians and (k, 3) drifts J̇_p q̇ [m/s²] of ``points`` (k, 3) [m] fixed on the
