@@ -148,8 +148,9 @@ def test_statuses_match_the_numpy_reference_for_a_cloud(panda_robot, rng: np.ran
     m.set_target([0.3, 0.0, 0.4])
     segs, radii = m.capsules_at(0.0)
     pts = rng.uniform([-0.3, -0.5, -0.1], [0.7, 0.5, 0.9], (20000, 3))
-    rep = m.integrate(PointCloud(pts, 0.0))
-    ref = classify_points(pts, segs, radii, m.target, CFG.target_radius, m.grid)
+    labels = rng.integers(0, 3, len(pts)).astype(np.uint8)
+    rep = m.integrate(PointCloud(pts, 0.0, labels=labels))
+    ref = classify_points(pts, segs, radii, m.target, CFG.target_radius, m.grid, soft=labels == SOFT)
     assert np.array_equal(rep.status, ref)
     assert rep.counts["self"] > 100 and rep.counts["target"] > 10 and rep.counts["outside"] > 100
 
@@ -189,6 +190,11 @@ def test_grasp_target_zone_is_not_an_obstacle() -> None:
     rep = m.integrate(render(EYE, [fruit]))
     assert CFG.target_radius > fruit.radius
     assert rep.counts["target"] > 100 and rep.counts["kept"] == 0
+    # the leaves in front of a fruit stay: a soft point in the zone is a soft obstacle
+    leafy = DepthMap(CFG)
+    leafy.set_target(fruit.centre)
+    rep = leafy.integrate(render(EYE, [Sphere(fruit.centre, fruit.radius, SOFT)], labelled=True))
+    assert rep.counts["target"] == 0 and rep.counts["kept"] > 100
     with pytest.raises(PerceptionError, match="target"):
         m.set_target([0.0, math.nan, 0.0])
 

@@ -72,15 +72,16 @@ def voxel_index(x: float, y: float, z: float, ox: float, oy: float, oz: float, i
 
 @njit(cache=True, nogil=True)
 def classify_point(x: float, y: float, z: float, segments: np.ndarray, radii: np.ndarray, boxes: np.ndarray,
-                   robot_box: np.ndarray, target: np.ndarray, target_radius: float) -> int:
+                   robot_box: np.ndarray, target: np.ndarray, target_radius: float, soft: bool) -> int:
     """A base-frame point's status before the bounds: :data:`SELF` (in an inflated capsule; ``robot_box``
-    (6,) bounds them all), :data:`TARGET` (within ``target_radius`` of the grasp target) or :data:`KEPT`.
+    (6,) bounds them all), :data:`TARGET` (not ``soft`` and within ``target_radius`` of the grasp
+    target: the fruit goes, the leaves in front of it stay soft obstacles) or :data:`KEPT`.
     (The integrating kernels test the boxes in scalars first and call this only for the points in them:
     a call per point that passes arrays costs more than the whole back-projection.)"""
     if (x >= robot_box[0] and y >= robot_box[1] and z >= robot_box[2] and x <= robot_box[3] and y <= robot_box[4]
             and z <= robot_box[5] and in_capsules(x, y, z, segments, radii, boxes)):
         return SELF
-    if target_radius > 0.0:
+    if target_radius > 0.0 and not soft:
         dx, dy, dz = x - target[0], y - target[1], z - target[2]
         if dx * dx + dy * dy + dz * dz < target_radius * target_radius:
             return TARGET
@@ -127,13 +128,15 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
                     cy: float, pose: np.ndarray, min_range: float, max_range: float, flying: float,
                     segments: np.ndarray, radii: np.ndarray, target: np.ndarray, target_radius: float,
                     origin: np.ndarray, voxel: float, last: np.ndarray, stamp: float, status: np.ndarray,
-                    counts: np.ndarray, hits: np.ndarray, min_points: int) -> None:
+                    counts: np.ndarray, hits: np.ndarray, min_points: int, soft_depth: float) -> None:
     """Back-project a depth image (H×W, × ``scale`` [m]) through the pinhole (fx, fy, cx, cy) and the
     camera ``pose`` (4×4, optical frame in the base frame), classify every pixel into ``status``
     (H×W uint8) and count them (``counts``, one per status), and stamp the voxels of the kept points
     in ``last`` (2, nx, ny, nz): channel 1 where ``labels`` (H×W, or 0×0 for none) says soft, else 0 —
     once ``min_points`` of this frame's points fall in it (``hits``, (2, nx, ny, nz) uint16 scratch,
-    counts them): a lone point in free space is the noise's tail, not an obstacle.
+    counts them): a lone point in free space is the noise's tail, not an obstacle. A soft voxel also
+    stamps the voxels behind it along the pixel's ray, ``soft_depth`` [m] deep: a camera sees a
+    leaf's front, and a link that passed it would otherwise be free of it inside.
 
     ``segments`` (L, 2, 3) and ``radii`` (L,) are the robot's capsules at the frame's stamp, already
     inflated by the self-filter's margin."""
@@ -173,18 +176,29 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
                 y = r10 * xc + r11 * yc + r12 * z + ty
                 w = r20 * xc + r21 * yc + r22 * z + tz
                 st = KEPT
+                is_soft = has_labels and labels[v, u] == SOFT_LABEL
                 if x >= zx0 and y >= zy0 and w >= zz0 and x <= zx1 and y <= zy1 and w <= zz1:
-                    st = classify_point(x, y, w, segments, radii, boxes, robot_box, target, target_radius)
+                    st = classify_point(x, y, w, segments, radii, boxes, robot_box, target, target_radius, is_soft)
                 if st == KEPT:
                     idx = voxel_index(x, y, w, ox, oy, oz, inv, nx, ny, nz)
                     if idx < 0:
                         st = OUTSIDE
                     else:
-                        idx += soft if has_labels and labels[v, u] == SOFT_LABEL else 0
+                        idx += soft if is_soft else 0
                         if hit[idx] < 65535:
                             hit[idx] += 1
                         if hit[idx] >= min_points:
                             flat[idx] = stamp
+                            if is_soft and soft_depth > 0.0:  # a leaf seen from the front has a back
+                                dx = r00 * xc / z + r01 * yc / z + r02
+                                dy = r10 * xc / z + r11 * yc / z + r12
+                                dz = r20 * xc / z + r21 * yc / z + r22
+                                step = 0.5 * voxel
+                                for kk in range(1, int(soft_depth / step) + 1):
+                                    e = kk * step
+                                    j2 = voxel_index(x + e * dx, y + e * dy, w + e * dz, ox, oy, oz, inv, nx, ny, nz)
+                                    if j2 >= 0:
+                                        flat[j2 + soft] = stamp
             status[v, u] = st
             counts[st] += 1
 
@@ -211,14 +225,15 @@ def integrate_points(points: np.ndarray, labels: np.ndarray, segments: np.ndarra
             st = NO_RETURN
         else:
             st = KEPT
+            is_soft = has_labels and labels[i] == SOFT_LABEL
             if x >= zx0 and y >= zy0 and w >= zz0 and x <= zx1 and y <= zy1 and w <= zz1:
-                st = classify_point(x, y, w, segments, radii, boxes, robot_box, target, target_radius)
+                st = classify_point(x, y, w, segments, radii, boxes, robot_box, target, target_radius, is_soft)
             if st == KEPT:
                 idx = voxel_index(x, y, w, ox, oy, oz, inv, nx, ny, nz)
                 if idx < 0:
                     st = OUTSIDE
                 else:
-                    flat[idx + soft if has_labels and labels[i] == SOFT_LABEL else idx] = stamp
+                    flat[idx + soft if is_soft else idx] = stamp
         status[i] = st
         counts[st] += 1
 

@@ -33,9 +33,11 @@ class PerceptionConfig:
     #                                  this fraction of its depth is dropped: behind a depth edge (0: off)
     min_points: int = setting(2)  # a voxel is occupied by a depth image once this many of its pixels fall in it
     self_margin: float = setting(0.03, valid="nonnegative", unit="m")  # the robot's capsules, inflated by this, are not obstacles [m]
-    target_radius: float = setting(0.06, valid="nonnegative", unit="m")  # nothing within this of the grasp target is an obstacle [m]
+    soft_depth: float = setting(0.04, valid="nonnegative", unit="m")  # a soft surface fills this behind it along the ray [m]
+    target_radius: float = setting(0.1, valid="nonnegative", unit="m")  # nothing within this of the grasp target is an obstacle [m]
+    #                                  (the fruit and the hand about it)
     decay: float = setting(3.0, valid="seconds", unit="s")  # a voxel not seen again for this long is forgotten [s]
-    depth_noise: float = setting(0.005, valid="nonnegative", unit="m")  # the sensor's depth error (3σ at the
+    depth_noise: float = setting(0.015, valid="nonnegative", unit="m")  # the sensor's depth error (3σ at the
     #                                  working range) [m]: added to the rigid rows' margin and to the clearing test
     truncation: float = setting(0.3, valid="positive", unit="m")  # the field is exact up to this distance [m]
     samples: int = setting(12)  # points sampled along each link capsule's axis for the field's rows

@@ -14,7 +14,8 @@ the voxel was last seen occupied) and turns each frame into it (:meth:`DepthMap.
    target, are dropped; so are points outside the map's bounds;
 4. the rest stamp their voxel, in the soft channel where labelled soft, the rigid one otherwise —
    from a depth image, once ``min_points`` pixels of the frame fall in it (a lone return in free
-   space is the noise's tail); a cloud's points count one each (a cloud is taken as filtered);
+   space is the noise's tail); a cloud's points count one each (a cloud is taken as filtered); a
+   soft voxel seen in a depth image fills ``soft_depth`` behind it along the ray (a leaf's body);
 5. free-space clearing: a voxel seen before whose centre projects into this image in front of its
    pixel's return by more than √3/2 voxel + ``depth_noise`` is freed (a cloud with a sensor origin:
    the voxels along each ray);
@@ -145,7 +146,8 @@ class DepthMap:
                 status: np.ndarray = np.empty(depth.shape, np.uint8)
                 KD.integrate_depth(depth, scale, labels, K.fx, K.fy, K.cx, K.cy, frame.pose, c.min_range,
                                    c.max_range, c.flying_pixel, segs, radii, target, target_r, g.origin, g.voxel,
-                                   self.last, frame.stamp, status, counts, self._hits, c.min_points)
+                                   self.last, frame.stamp, status, counts, self._hits, c.min_points,
+                                   c.soft_depth)
                 cleared = KD.clear_depth(depth, scale, status, K.fx, K.fy, K.cx, K.cy, frame.pose, margin,
                                          g.origin, g.voxel, self.last, frame.stamp)
             else:

@@ -18,8 +18,9 @@ from qpctl.perception.snapshot import VoxelGrid
 
 
 def classify_points(points: np.ndarray, segments: np.ndarray, radii: np.ndarray, target: np.ndarray | None,
-                    target_radius: float, grid: VoxelGrid) -> np.ndarray:
-    """(N,) statuses of finite base-frame points: inside a capsule, near the target, outside, kept."""
+                    target_radius: float, grid: VoxelGrid, soft: np.ndarray | None = None) -> np.ndarray:
+    """(N,) statuses of finite base-frame points: inside a capsule, near the target (unless ``soft``,
+    (N,) bool), outside, kept."""
     pts = np.asarray(points, float)
     status = np.full(len(pts), KEPT, np.uint8)
     inside = np.zeros(len(pts), bool)
@@ -28,6 +29,8 @@ def classify_points(points: np.ndarray, segments: np.ndarray, radii: np.ndarray,
         s = np.clip(((pts - a) @ u) / max(u @ u, 1e-300), 0.0, 1.0) if u @ u > 0 else np.zeros(len(pts))
         inside |= np.linalg.norm(pts - (a + s[:, None] * u), axis=1) < r
     near = (np.linalg.norm(pts - target, axis=1) < target_radius) if target is not None else np.zeros(len(pts), bool)
+    if soft is not None:
+        near &= ~soft
     idx = np.floor((pts - grid.origin) / grid.voxel)
     out = np.any((idx < 0) | (idx >= np.asarray(grid.shape)), axis=1)
     status[out] = OUTSIDE
