@@ -31,6 +31,25 @@ from numba import njit
 
 
 @njit(cache=True, nogil=True, inline="always")
+def cell(nx: int, ny: int, nz: int, origin: np.ndarray, voxel: float, x: float, y: float, z: float
+         ) -> tuple[bool, int, int, int, int, int, int, float, float, float]:
+    """The lattice cell of voxel centres around (x, y, z) [m]: (inside the bounds, i, j, k, i+1, j+1,
+    k+1, tx, ty, tz), the centres clamped to the outermost ones within the bounds."""
+    fx = (x - origin[0]) / voxel
+    fy = (y - origin[1]) / voxel
+    fz = (z - origin[2]) / voxel
+    inside = 0.0 <= fx <= nx and 0.0 <= fy <= ny and 0.0 <= fz <= nz
+    fx = min(max(fx - 0.5, 0.0), nx - 1.0)
+    fy = min(max(fy - 0.5, 0.0), ny - 1.0)
+    fz = min(max(fz - 0.5, 0.0), nz - 1.0)
+    i = min(int(fx), nx - 2) if nx > 1 else 0
+    j = min(int(fy), ny - 2) if ny > 1 else 0
+    k = min(int(fz), nz - 2) if nz > 1 else 0
+    return (inside, i, j, k, min(i + 1, nx - 1), min(j + 1, ny - 1), min(k + 1, nz - 1), fx - i, fy - j,
+            fz - k)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def trilinear(dist: np.ndarray, grad: np.ndarray, origin: np.ndarray, voxel: float, truncation: float,
               x: float, y: float, z: float, smooth: bool, out: np.ndarray) -> float:
     """The field at (x, y, z) [m]: returns the distance [m] and writes its gradient to ``out`` (3,):
@@ -38,22 +57,12 @@ def trilinear(dist: np.ndarray, grad: np.ndarray, origin: np.ndarray, voxel: flo
     the bounds: ``truncation`` and a zero gradient; within them, the centres' lattice is clamped to
     the outermost centres."""
     nx, ny, nz = dist.shape
-    fx = (x - origin[0]) / voxel
-    fy = (y - origin[1]) / voxel
-    fz = (z - origin[2]) / voxel
-    if not (0.0 <= fx <= nx and 0.0 <= fy <= ny and 0.0 <= fz <= nz):
+    inside, i, j, k, i1, j1, k1, tx, ty, tz = cell(nx, ny, nz, origin, voxel, x, y, z)
+    if not inside:
         out[0] = 0.0
         out[1] = 0.0
         out[2] = 0.0
         return truncation
-    fx = min(max(fx - 0.5, 0.0), nx - 1.0)
-    fy = min(max(fy - 0.5, 0.0), ny - 1.0)
-    fz = min(max(fz - 0.5, 0.0), nz - 1.0)
-    i = min(int(fx), nx - 2) if nx > 1 else 0
-    j = min(int(fy), ny - 2) if ny > 1 else 0
-    k = min(int(fz), nz - 2) if nz > 1 else 0
-    tx, ty, tz = fx - i, fy - j, fz - k
-    i1, j1, k1 = min(i + 1, nx - 1), min(j + 1, ny - 1), min(k + 1, nz - 1)
     d000, d100, d010, d110 = dist[i, j, k], dist[i1, j, k], dist[i, j1, k], dist[i1, j1, k]
     d001, d101, d011, d111 = dist[i, j, k1], dist[i1, j, k1], dist[i, j1, k1], dist[i1, j1, k1]
     # along x, then y, then z
@@ -95,19 +104,9 @@ def trilinear_distance(dist: np.ndarray, origin: np.ndarray, voxel: float, trunc
                        z: float) -> float:
     """:func:`trilinear`'s distance alone [m] (the samples along a link need no gradient)."""
     nx, ny, nz = dist.shape
-    fx = (x - origin[0]) / voxel
-    fy = (y - origin[1]) / voxel
-    fz = (z - origin[2]) / voxel
-    if not (0.0 <= fx <= nx and 0.0 <= fy <= ny and 0.0 <= fz <= nz):
+    inside, i, j, k, i1, j1, k1, tx, ty, tz = cell(nx, ny, nz, origin, voxel, x, y, z)
+    if not inside:
         return truncation
-    fx = min(max(fx - 0.5, 0.0), nx - 1.0)
-    fy = min(max(fy - 0.5, 0.0), ny - 1.0)
-    fz = min(max(fz - 0.5, 0.0), nz - 1.0)
-    i = min(int(fx), nx - 2) if nx > 1 else 0
-    j = min(int(fy), ny - 2) if ny > 1 else 0
-    k = min(int(fz), nz - 2) if nz > 1 else 0
-    tx, ty, tz = fx - i, fy - j, fz - k
-    i1, j1, k1 = min(i + 1, nx - 1), min(j + 1, ny - 1), min(k + 1, nz - 1)
     d00 = dist[i, j, k] + tx * (dist[i1, j, k] - dist[i, j, k])
     d10 = dist[i, j1, k] + tx * (dist[i1, j1, k] - dist[i, j1, k])
     d01 = dist[i, j, k1] + tx * (dist[i1, j, k1] - dist[i, j, k1])

@@ -24,6 +24,10 @@ from qpctl.perception.snapshot import MapSnapshot
 STATUS_COLOURS = ("#2ca02c", "#dddddd", "#8c564b", "#ff7f0e", "#d62728", "#9467bd", "#1f77b4")
 
 
+def _save(fig: plt.Figure, path: Path, title: str) -> Path:
+    return _save(fig, path, title)
+
+
 def depth_frame_figure(path: Path, frame: DepthFrame, status: np.ndarray, title: str = "") -> Path:
     """The frame's depth [m] and each pixel's fate (the self-filter's pixels in red)."""
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2))
@@ -42,12 +46,7 @@ def depth_frame_figure(path: Path, frame: DepthFrame, status: np.ndarray, title:
     for ax in (a, b):
         ax.set_xticks([])
         ax.set_yticks([])
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title)
 
 
 def field_slice_figure(path: Path, snapshot: MapSnapshot, z: float, *, segments: np.ndarray | None = None,
@@ -70,12 +69,7 @@ def field_slice_figure(path: Path, snapshot: MapSnapshot, z: float, *, segments:
         ax.set_xlabel("x [m]")
         ax.set_ylabel("y [m]")
         fig.colorbar(im, ax=ax, label="distance [m]", shrink=0.85)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title)
 
 
 def clearance_figure(path: Path, t: np.ndarray, true: np.ndarray, believed: np.ndarray, d_safe: float,
@@ -97,9 +91,4 @@ def clearance_figure(path: Path, t: np.ndarray, true: np.ndarray, believed: np.n
         axes[1, 0].plot(t, age_ms, color="tab:gray")
         axes[1, 0].set_ylabel("map age [ms]")
     axes[-1, 0].set_xlabel("t [s]")
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, path, title)
