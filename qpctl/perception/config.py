@@ -43,7 +43,6 @@ class PerceptionConfig:
     samples: int = setting(12)  # points sampled along each link capsule's axis for the field's rows
     rows_per_link: int = setting(2)  # field rows per link and channel (the nearest one or two)
     soft_speed: float = setting(0.05, valid="nonnegative", unit="m/s")  # the fastest a link may pass through a leaf [m/s]
-    soft_weight: float = setting(1e4, valid="positive")  # the cost of a soft row's slack (relative to the task's)
     stale_slow: float = setting(0.15, valid="seconds", unit="s")  # a map older than this slows the task [s]
     stale_stop: float = setting(0.5, valid="seconds", unit="s")  # older than this, the arm stops [s]
 
