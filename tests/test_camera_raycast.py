@@ -68,7 +68,13 @@ def test_image_equals_brute_force(seed):
     origin, R = rng.uniform(-0.1, 0.1, 3), random_rotation(rng) if seed else np.eye(3)
     obstacles += [Obstacle("capsule", origin + R @ [0.3, 0.1, 0.0], radius=0.05, length=1.0, axis=R[:, 2]),  # across
                   Obstacle("box", origin + R @ [-0.2, 0.0, 0.1], size=[0.1, 0.1, 0.4], axis=R[:, 2]),  # the plane
-                  Obstacle("sphere", origin + R @ [0.0, 0.0, -0.5], radius=0.3)]  # behind
+                  Obstacle("sphere", origin + R @ [0.0, 0.0, -0.5], radius=0.3),  # behind
+                  Obstacle("sphere", origin + R @ [0.0, 0.25, 0.05], radius=0.2),  # beside, across the plane
+                  Obstacle("cylinder", origin + R @ [-0.1, -0.1, 0.3], radius=0.03, length=1.2, axis=R @ [1, 1, 0.2]),
+                  Obstacle("capsule", origin + R @ [0.0, 0.06, 0.03], radius=0.05, length=1.0, axis=R[:, 0]),
+                  Obstacle("capsule", origin + R @ [0.05, 0.0, -0.01], radius=0.049, length=1.0, axis=R[:, 1])]
+    # two bars just before and beside the camera, across its whole view: on one plane each one's shadow
+    # holds the camera, the second's axis behind it
     scene = primitives(obstacles)
     W, H, f = 96, 72, 60.0
     depth, hit, cos = np.empty((H, W)), np.empty((H, W), np.int32), np.empty((H, W))
@@ -82,7 +88,9 @@ def test_image_equals_brute_force(seed):
     assert np.isinf(depth.ravel()[~seen]).all()
     assert np.abs(depth.ravel()[seen] - t[seen]).max() < 1e-12  # the rays' directions round differently
     assert 0.02 < (who >= 0).mean() < 0.98  # a scene with hits and misses
-    assert {len(obstacles) - 3, len(obstacles) - 2} <= set(who.tolist())  # seen across the camera's plane
+    n = len(obstacles)
+    seen_ids = set(who.tolist())
+    assert {n - 7, n - 6, n - 2, n - 1} <= seen_ids and seen_ids & {n - 4, n - 3}  # seen across the camera's plane
     assert tests < W * H * len(obstacles) / 2  # the bounds cull
 
 
