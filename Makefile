@@ -41,7 +41,7 @@ bench-quick: $(STAMP)
 harvest: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks.harvest --out results/harvest
 
-# Built-in / MuJoCo / PyBullet side by side: results/simulators/simulators.md (docs/simulators.md, "Other simulators").
+# Built-in / MuJoCo / PyBullet / Drake side by side: results/simulators/simulators.md (docs/simulators.md, "Other simulators").
 simulators: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks.simulators --out results/simulators
 

@@ -4,7 +4,7 @@
 
 Replays the states of a closed-loop run of the canopy scene (``qpctl.bench.scenes.canopy_scene``) and
 prints (1) the median wall time of each part of a tick, measured by making the calls the compiled
-tick makes (``computeAllTerms``, then each kernel of ``qpctl.kernels.tick`` and the solve), one at a
+tick makes (``computeAllTerms``, then each stage's kernel of ``qpctl.kernels`` and the solve), one at a
 time and in tick order, on every state; (2) cProfile's functions with the most cumulative time
 (cProfile's own overhead inflates those: compare shares).
 """

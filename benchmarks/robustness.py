@@ -393,7 +393,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.report_only:
         data = json.loads((out / "results.json").read_text())
     else:
-        from qpctl.tick import warmup
+        from qpctl.warmup import warmup
 
         warmup()  # compile or load the kernels once here, before the workers load them from the cache
         kinds = KINDS if not args.kinds else tuple(k for k in KINDS if k.name in args.kinds.split(","))

@@ -87,7 +87,7 @@ def _cmd_warmup(args: argparse.Namespace) -> int:
     import numba
 
     from qpctl.kernels import tick
-    from qpctl.tick import warmup
+    from qpctl.warmup import warmup
 
     times = warmup()
     cache = tick.state.stats.cache_path

@@ -1,6 +1,6 @@
 """The task frame's orientation rows (:attr:`RobotModel.orientation`), in Python.
 
-The compiled tick computes the same rows in :mod:`qpctl.kernels.tick` (``tests/test_orientation.py``
+The compiled tick computes the same rows in :mod:`qpctl.kernels.scene` (``tests/test_orientation.py``
 holds the two together, and these against finite differences on SO(3)). Every row is in the form
 the laws already use for positions, e = x_d − x, ė = ẋ_d − ẋ, a = ẍ_d + K_v ė + K_p e − J̇q̇, in
 exponential coordinates centred at the current orientation R (so x = 0 on these rows and x_d is

@@ -31,7 +31,7 @@ from qpctl.geometry.obstacles import Obstacle
 from qpctl.law import LawGains
 from qpctl.paths import PathConfig, PosePath, WaypointPath
 from qpctl.robot.config import RobotConfig
-from qpctl.robot.model import RobotModel, load_robot
+from qpctl.robot.model import RobotModel, arm_reach, load_robot
 from qpctl.scenes.canopy import Canopy, CanopyConfig, generate_canopy
 from qpctl.simulation.camera import CameraConfig
 from qpctl.simulation.faults import Faults, with_payload
@@ -65,30 +65,6 @@ SCHEMA: dict[str, Any] = {
 
 # Tables that exist only when a key names them: a [camera] is its mount, a [canopy] its seed.
 NAMED_BY = {"camera": "mount", "canopy": "seed"}
-
-
-def arm_reach(robot: RobotModel) -> tuple[np.ndarray, float] | None:
-    """(centre [m], radius [m]) of a sphere that holds every position of the task point, or None.
-
-    For a chain of revolute joints the first joint's origin stays put and each further joint origin
-    (and the task frame) sits at a fixed distance from the previous one, so the task point is never
-    farther from the first joint's origin than the sum of those distances. Prismatic or other joints
-    give no such bound (None).
-    """
-    model = robot.model
-    frame = model.frames[robot.ee_frame_id]
-    radius = float(np.linalg.norm(frame.placement.translation))
-    j = int(frame.parentJoint)
-    if j == 0:
-        return None
-    while True:
-        if not model.joints[j].shortname().startswith("JointModelR"):
-            return None
-        parent = int(model.parents[j])
-        if parent == 0:
-            return np.asarray(model.jointPlacements[j].translation, float).copy(), radius
-        radius += float(np.linalg.norm(model.jointPlacements[j].translation))
-        j = parent
 
 
 def _validate_table(raw: Any, schema: dict[str, Any], source: str, prefix: str) -> dict[str, Any]:

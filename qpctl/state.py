@@ -1,26 +1,20 @@
 """The per-tick state: every rigid-body quantity and distance a law needs, computed once.
 
-:class:`Dynamics` runs one tick's state through the compiled kernels (:mod:`qpctl.tick`: one
-``computeAllTerms`` pass, then M, N = C q̇ + G, the task and link Jacobians and drifts, and the
-link–obstacle pairs) and returns a :class:`TickState` — copies of the workspace's arrays — that
-tasks, constraints and the Python reference laws (:mod:`qpctl.law`) only read.
+A :class:`TickState` holds copies of one tick's arrays (M, N = C q̇ + G, the task and link Jacobians
+and drifts, the link–obstacle pairs) that tasks, constraints and the Python reference laws
+(:mod:`qpctl.law`) only read. The compiled tick's workspace makes them
+(:meth:`qpctl.tick.Workspace.snapshot`; :class:`qpctl.dynamics.Dynamics` on a workspace of its own).
 """
 
 from __future__ import annotations
 
 import math
-import time
-from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
-import pinocchio as pin
 
 from qpctl.errors import InvalidStateError
 from qpctl.geometry.distance import PairSet
-from qpctl.geometry.obstacles import Obstacle
-from qpctl.robot.model import RobotModel
 
 
 @dataclass
@@ -81,7 +75,7 @@ class TickState:
         With ḣ(q, q̇, t) = nᵀ(J_p q̇ − v_obs), ḧ = nᵀJ_p q̈ + ∂ḣ/∂q q̇ + ∂ḣ/∂t; this returns the last two
         terms, which include what the rigid-point drift nᵀ(J̇_p q̇ − a_obs) leaves out: the normal's
         rotation and the witness points sliding over the surfaces. Closed form for sphere and capsule
-        obstacles (:func:`qpctl.kernels.tick.barrier_drift`), a look-ahead difference of ḣ through
+        obstacles (:func:`qpctl.kernels.pairs.barrier_drift`), a look-ahead difference of ḣ through
         python-fcl for the other shapes (:meth:`qpctl.tick.Workspace._look_ahead`).
         """
         if self._barrier_drift is None:
@@ -110,71 +104,3 @@ def validate_state(q: np.ndarray, v: np.ndarray, t: float, n: int) -> tuple[np.n
     if not (np.isfinite(q).all() and np.isfinite(v).all() and math.isfinite(t)):
         raise InvalidStateError(f"non-finite state: q={q.tolist()}, v={v.tolist()}, t={t}")
     return q, v, t
-
-
-class Dynamics:
-    """Computes :class:`TickState` for one robot in one scene, with the tick's compiled kernels.
-
-    A thin wrapper over a :class:`~qpctl.tick.Workspace` of its own: :meth:`compute` runs one tick's
-    state (``computeAllTerms``, the kernels, python-fcl for shapes without a closed form) and returns
-    a snapshot (copies), so states computed one after the other stay independent. Controllers run
-    their ticks on their own workspace and build a TickState only where a Python path needs one
-    (custom tasks, the fallbacks).
-
-    Args:
-        robot: the robot model.
-        obstacles: the scene.
-        cutoff: pairs farther than this [m] are not reported (the largest influence distance).
-        broadphase: see :class:`~qpctl.tick.Workspace`.
-    """
-
-    def __init__(self, robot: RobotModel, obstacles: Sequence[Obstacle] = (), cutoff: float = np.inf,
-                 broadphase: bool | None = None) -> None:
-        self.robot = robot
-        self.model = robot.model
-        self.obstacles = list(obstacles)
-        self.cutoff = float(cutoff)
-        self.broadphase = broadphase
-        self.self_pairs: tuple[tuple[int, int], ...] = ()  # capsule pairs whose distances the state includes
-        self.self_cutoff = math.inf  # [m] and, nearer than this, their rows and drifts
-        self._workspace: Any = None
-        self._jdot_data = robot.model.createData()
-
-    @property
-    def workspace(self) -> Any:
-        """The :class:`~qpctl.tick.Workspace` :meth:`compute` runs on (built on first use)."""
-        if self._workspace is None:
-            from qpctl.tick import Workspace
-
-            self._workspace = Workspace(self.robot, self.obstacles, None, None, self.cutoff,
-                                        broadphase=self.broadphase, barrier_drift=True, self_pairs=self.self_pairs,
-                                        self_cutoff=self.self_cutoff)
-        return self._workspace
-
-    @property
-    def data(self) -> pin.Data:
-        """Pinocchio's data after the last :meth:`compute` (``computeAllTerms``)."""
-        return self.workspace.data
-
-    def compute(self, q: np.ndarray, v: np.ndarray, t: float = 0.0) -> TickState:
-        """Everything at (q [rad], v [rad/s], t [s]); raises :class:`InvalidStateError` on bad input."""
-        q, v, t = validate_state(q, v, t, self.model.nv)
-        start = time.perf_counter()
-        if self.workspace.state(q, v, t) < 0:
-            raise InvalidStateError(f"the dynamics overflow at this state: q={q.tolist()}, v={v.tolist()}")
-        state = self.workspace.snapshot()
-        state._jdot = self.task_jacobian_derivative(q, v)
-        state.timing["state_us"] = (time.perf_counter() - start) * 1e6
-        return state
-
-    def task_jacobian_derivative(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """J̇ (m, n) of the task point at (q, v)."""
-        data = self._jdot_data
-        pin.computeJointJacobiansTimeVariation(self.model, data, q, v)
-        dJ = pin.getFrameJacobianTimeVariation(self.model, data, self.robot.ee_frame_id,
-                                               pin.LOCAL_WORLD_ALIGNED)[:3]
-        return dJ[list(self.robot.task_axes)].copy()
-
-    def forward_dynamics(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> np.ndarray:
-        """q̈ = M⁻¹(τ − N) by Pinocchio's ABA [rad/s²]."""
-        return pin.aba(self.model, self._jdot_data, q, v, tau).copy()

@@ -9,7 +9,7 @@ law terms, the QP in DAQP's layout, the output record), and runs a tick as a han
 
 Obstacles without a closed form (boxes, cylinders) are the only per-pair Python work: python-fcl's
 queries and the look-ahead difference of their barrier drift. Everything the kernels compute has a
-reference implementation elsewhere in the package (:class:`qpctl.state.Dynamics`'s Pinocchio and
+reference implementation elsewhere in the package (:class:`qpctl.dynamics.Dynamics`'s Pinocchio and
 python-fcl path, :mod:`qpctl.law`, :class:`qpctl.formulation.Formulation`) that the tests compare.
 """
 
@@ -28,6 +28,7 @@ import pinocchio as pin
 from qpctl.errors import ConfigError
 from qpctl.geometry.distance import DistanceEngine, PairSet
 from qpctl.geometry.obstacles import Obstacle
+from qpctl.kernels import codes
 from qpctl.kernels import tick as K
 from qpctl.kernels.work import FIELDS, new_tick_work
 from qpctl.law import LawGains, LawTerms
@@ -148,7 +149,7 @@ class RecordLayout:
         self.x = slice(2 * n + 3 * m, 2 * n + 4 * m)
         self.e_null = slice(2 * n + 4 * m, 3 * n + 4 * m)
         self.scalars = 3 * n + 4 * m
-        self.size = self.scalars + K.R_SCALARS
+        self.size = self.scalars + codes.R_SCALARS
 
 
 class Workspace:
@@ -210,8 +211,8 @@ class Workspace:
         self.sc_hdot, self.sc_drift = np.zeros(P), np.zeros(P)
         m_p = robot.m_position
         # scene
-        kinds = {"sphere": K.KIND_SPHERE, "capsule": K.KIND_CAPSULE}
-        self.ob_kind = np.array([kinds.get(o.shape, K.KIND_FCL) for o in self.obstacles], dtype=np.int64)
+        kinds = {"sphere": codes.KIND_SPHERE, "capsule": codes.KIND_CAPSULE}
+        self.ob_kind = np.array([kinds.get(o.shape, codes.KIND_FCL) for o in self.obstacles], dtype=np.int64)
         self.ob_radius = np.array([o.radius for o in self.obstacles], float)
         self.ob_bound = np.array([o.bounding_radius() for o in self.obstacles], float)
         self.ob_axis = np.array([o.length * o.axis / np.linalg.norm(o.axis) if o.shape == "capsule" else np.zeros(3)
@@ -225,13 +226,13 @@ class Workspace:
         self.ob_c = np.array([o.position_at(0.0) for o in self.obstacles], float).reshape(O, 3)
         self.ob_v = np.array([o.velocity_at(0.0) for o in self.obstacles], float).reshape(O, 3)
         self.ob_a = np.array([o.acceleration_at(0.0) for o in self.obstacles], float).reshape(O, 3)
-        self.has_fcl = bool(np.any(self.ob_kind == K.KIND_FCL))
+        self.has_fcl = bool(np.any(self.ob_kind == codes.KIND_FCL))
         self._fcl = DistanceEngine(self.cap_radius, self.obstacles, broadphase=False) if self.has_fcl else None
         self._probe_data = model.createData() if self.has_fcl else None
         self.pin_s = self.state_s = 0.0  # the last tick's stage wall times [s]
         self.drift_step = 2e-3  # [s] look-ahead of the barrier drift's finite difference (python-fcl shapes)
-        self.fpar = np.zeros(K.FP_SIZE)
-        self.ipar = np.zeros(K.IP_SIZE, dtype=np.int64)
+        self.fpar = np.zeros(codes.FP_SIZE)
+        self.ipar = np.zeros(codes.IP_SIZE, dtype=np.int64)
         self._grid(broadphase, cutoff)
         # path (None: state only)
         self.path_in_kernel = isinstance(path, WaypointPath) or path is None
@@ -250,11 +251,11 @@ class Workspace:
         # gains and settings
         fp, ip = self.fpar, self.ipar
         g = gains if gains is not None else LawGains()
-        fp[K.FP_KP], fp[K.FP_KV], fp[K.FP_KN], fp[K.FP_VREF] = g.kp, g.kv, g.kn, g.v_ref
-        fp[K.FP_DI], fp[K.FP_DS], fp[K.FP_GDAMP] = g.d_influence, g.d_safe, g.g_damping
-        fp[K.FP_PINV_EPS], fp[K.FP_CUTOFF] = g.pinv_eps, cutoff
-        ip[K.IP_JDOT_EN] = int(bool(g.jdot_en))
-        ip[K.IP_BDRIFT] = int(barrier_drift)
+        fp[codes.FP_KP], fp[codes.FP_KV], fp[codes.FP_KN], fp[codes.FP_VREF] = g.kp, g.kv, g.kn, g.v_ref
+        fp[codes.FP_DI], fp[codes.FP_DS], fp[codes.FP_GDAMP] = g.d_influence, g.d_safe, g.g_damping
+        fp[codes.FP_PINV_EPS], fp[codes.FP_CUTOFF] = g.pinv_eps, cutoff
+        ip[codes.IP_JDOT_EN] = int(bool(g.jdot_en))
+        ip[codes.IP_BDRIFT] = int(barrier_drift)
         if g.obstacle_v_ref:
             self.ob_vref = np.asarray(g.obstacle_v_ref, float).copy()
         # a whole tick in one kernel call when the law needs nothing from Python between state and law
@@ -263,9 +264,9 @@ class Workspace:
         self.tau_prev, self.t_prev = np.full(n, np.nan), np.full(1, np.nan)
         self.q_min, self.q_max, self.v_max = np.full(n, -np.inf), np.full(n, np.inf), np.full(n, np.inf)
         self.qdd_max = np.full(n, np.inf)
-        ip[K.IP_TORQUE_ROW0] = ip[K.IP_BARRIER_ROW0] = ip[K.IP_SELF_ROW0] = -1
-        self.fpar[K.FP_SELF_CLEARANCE] = np.inf
-        self.fpar[K.FP_SCUT] = self_cutoff  # self pairs farther apart have no row (SelfCollisionBarrier.cutoff)
+        ip[codes.IP_TORQUE_ROW0] = ip[codes.IP_BARRIER_ROW0] = ip[codes.IP_SELF_ROW0] = -1
+        self.fpar[codes.FP_SELF_CLEARANCE] = np.inf
+        self.fpar[codes.FP_SCUT] = self_cutoff  # self pairs farther apart have no row (SelfCollisionBarrier.cutoff)
         capacity = 0
         if spec is not None:
             capacity = self._settings(spec)
@@ -283,17 +284,17 @@ class Workspace:
         self.pr_jac, self.pr_drift = np.zeros((KC, 3, n)), np.zeros((KC, 3))
         self.pr_bdrift, self.pr_bok = np.zeros(KC), np.zeros(KC, np.int64)
         self.order = np.zeros(max(capacity, 1), np.int64)
-        self.cnt = np.zeros(K.CNT_SIZE, np.int64)
+        self.cnt = np.zeros(codes.CNT_SIZE, np.int64)
         self.e, self.edot, self.a = np.zeros(m), np.zeros(m), np.zeros(m)
         self.g, self.e_null, self.qdd0 = np.zeros(n), np.zeros(n), np.zeros(n)
         self.Jb, self.Jp, self.qdd, self.tau = np.zeros((n, m)), np.zeros((n, m)), np.zeros(n), np.zeros(n)
         self.Lm, self.Lb, self.S = np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, n))
         self.Bt, self.Vm = np.zeros((n, m)), np.zeros((m, m))
         self.w1, self.w2, self.w3 = np.zeros(n), np.zeros(n), np.zeros(max(n, 6))
-        self.flags = np.zeros(K.FLAG_SIZE, np.int64)
+        self.flags = np.zeros(codes.FLAG_SIZE, np.int64)
         self.layout = RecordLayout(n, m)
         self.rec = np.zeros(self.layout.size)
-        self.fpar[K.FP_CLEARANCE] = np.inf
+        self.fpar[codes.FP_CLEARANCE] = np.inf
         self.work = new_tick_work(*(f[name] for name in FIELDS))
         # the QP's layouts: with the task slack, and hard (the "on_failure" relaxation's first try)
         self.relaxed = QPBuffers(n, m, spec, relax=True) if spec is not None else None
@@ -302,29 +303,29 @@ class Workspace:
     # -- construction helpers -------------------------------------------------------------------
     def _settings(self, spec: QPSpec) -> int:
         fp, ip = self.fpar, self.ipar
-        fp[K.FP_WACC], fp[K.FP_SL1], fp[K.FP_SL2] = spec.acc_weight, spec.slack_l1, spec.slack_l2
+        fp[codes.FP_WACC], fp[codes.FP_SL1], fp[codes.FP_SL2] = spec.acc_weight, spec.slack_l1, spec.slack_l2
         if spec.posture is not None:
             q_ref, w, kp, kd = spec.posture
             self.q_ref = np.asarray(q_ref, float).copy()
-            ip[K.IP_POSTURE] = 1
-            fp[K.FP_WPOST], fp[K.FP_PKP], fp[K.FP_PKD] = w, kp, kd
+            ip[codes.IP_POSTURE] = 1
+            fp[codes.FP_WPOST], fp[codes.FP_PKP], fp[codes.FP_PKD] = w, kp, kd
         if spec.damping is not None:
-            ip[K.IP_DAMPING] = 1
-            fp[K.FP_DAMP], fp[K.FP_DAMP_KD] = spec.damping
+            ip[codes.IP_DAMPING] = 1
+            fp[codes.FP_DAMP], fp[codes.FP_DAMP_KD] = spec.damping
         row = 0
         capacity = 0
         for name, count in spec.rows:
             if name == "torque_limits":
-                ip[K.IP_TORQUE_ROW0] = row
+                ip[codes.IP_TORQUE_ROW0] = row
             elif name == "obstacles":
-                ip[K.IP_BARRIER_ROW0] = row
+                ip[codes.IP_BARRIER_ROW0] = row
                 capacity = count
             elif name == "self_collision":
                 if count != len(self.sc_pairs):
                     raise ValueError("the self-collision rows and the workspace's pairs differ")
-                ip[K.IP_SELF_ROW0] = row
+                ip[codes.IP_SELF_ROW0] = row
             row += count
-        ip[K.IP_N_IN] = row
+        ip[codes.IP_N_IN] = row
         if spec.torque is not None:
             self.tau_max, self.tau_rate = spec.torque.tau_max.copy(), spec.torque.tau_rate_max.copy()
             self.tau_prev, self.t_prev = spec.torque.previous, spec.torque.t_previous  # shared: the same arrays
@@ -332,16 +333,16 @@ class Workspace:
             q_min, q_max, v_max, k0, k1, kv, qdd_max = spec.joint_limits
             self.q_min, self.q_max, self.v_max, self.qdd_max = (np.asarray(a, float).copy()
                                                                 for a in (q_min, q_max, v_max, qdd_max))
-            fp[K.FP_JK0], fp[K.FP_JK1], fp[K.FP_JKV] = k0, k1, kv
-            ip[K.IP_JOINT_LIMITS] = 1
+            fp[codes.FP_JK0], fp[codes.FP_JK1], fp[codes.FP_JKV] = k0, k1, kv
+            ip[codes.IP_JOINT_LIMITS] = 1
         if spec.self_barrier is not None:
-            fp[K.FP_SK0], fp[K.FP_SK1], fp[K.FP_SDS] = spec.self_barrier
+            fp[codes.FP_SK0], fp[codes.FP_SK1], fp[codes.FP_SDS] = spec.self_barrier
         if spec.barrier is not None:
             cap, bk0, bk1, rigid = spec.barrier
-            ip[K.IP_CAPACITY] = cap
-            fp[K.FP_BK0], fp[K.FP_BK1] = bk0, bk1
-            ip[K.IP_DRIFT_RIGID] = int(rigid)
-            ip[K.IP_BDRIFT] = int(not rigid or ip[K.IP_BDRIFT])
+            ip[codes.IP_CAPACITY] = cap
+            fp[codes.FP_BK0], fp[codes.FP_BK1] = bk0, bk1
+            ip[codes.IP_DRIFT_RIGID] = int(rigid)
+            ip[codes.IP_BDRIFT] = int(not rigid or ip[codes.IP_BDRIFT])
         return capacity
 
     def _grid(self, broadphase: bool | None, cutoff: float) -> None:
@@ -372,7 +373,7 @@ class Workspace:
                     for cz in range(a[2], b[2] + 1):
                         cells[(cx * dims[1] + cy) * dims[2] + cz].append(j)
         self.grid_dims, self.grid_lo = dims, lo
-        self.fpar[K.FP_GRID_H] = h
+        self.fpar[codes.FP_GRID_H] = h
         self.grid_start = np.concatenate([[0], np.cumsum([len(c) for c in cells])]).astype(np.int64)
         self.grid_items = np.array([j for c in cells for j in c], dtype=np.int64)
 
@@ -392,7 +393,7 @@ class Workspace:
         if not self.path_in_kernel:
             ref = self.path(t)  # type: ignore[operator]
             self.ref[0], self.ref[1], self.ref[2] = ref.x, ref.xd, ref.xdd
-        if self.cnt[K.CNT_LOOKAHEAD]:
+        if self.cnt[codes.CNT_LOOKAHEAD]:
             self._look_ahead(q, v, t)
         self.pin_s, self.state_s = mid - start, time.perf_counter() - mid
         return 0
@@ -401,28 +402,28 @@ class Workspace:
         """What the state kernel left to Python (it returned STATE_PYTHON): python-fcl's pairs, then
         the look-ahead drift of the pairs without a closed form."""
         start = time.perf_counter()
-        if self.cnt[K.CNT_FCL]:
+        if self.cnt[codes.CNT_FCL]:
             self._fcl_pairs(t)
-        if self.cnt[K.CNT_LOOKAHEAD]:
+        if self.cnt[codes.CNT_LOOKAHEAD]:
             self._look_ahead(q, v, t)
-        self.rec[self.layout.scalars + K.R_STATE_US] += (time.perf_counter() - start) * 1e6
+        self.rec[self.layout.scalars + codes.R_STATE_US] += (time.perf_counter() - start) * 1e6
 
     def _fcl_pairs(self, t: float) -> None:
         """python-fcl for the pairs the kernel could not do in closed form (boxes, cylinders)."""
         engine = self._fcl
         assert engine is not None
-        k = int(self.cnt[K.CNT_PAIRS])
-        pending = np.flatnonzero(self.pr_state[:k] == K.PAIR_FCL)
+        k = int(self.cnt[codes.CNT_PAIRS])
+        pending = np.flatnonzero(self.pr_state[:k] == codes.PAIR_FCL)
         links = sorted(set(self.pr_link[pending].tolist()))
         engine.update(self.segments, t, links=links)
-        cutoff = float(self.fpar[K.FP_CUTOFF])
+        cutoff = float(self.fpar[codes.FP_CUTOFF])
         for r in pending.tolist():
             out = engine._query(int(self.pr_link[r]), int(self.pr_obs[r]), cutoff)
             if out is None:
-                self.pr_state[r] = K.PAIR_FAR
+                self.pr_state[r] = codes.PAIR_FAR
                 continue
             self.pr_d[r], self.pr_n[r], self.pr_pl[r], self.pr_po[r] = out
-            self.pr_state[r] = K.PAIR_OK
+            self.pr_state[r] = codes.PAIR_OK
         K.finish_pairs(self.work)
 
     def _look_ahead(self, q: np.ndarray, v: np.ndarray, t: float) -> None:
@@ -434,7 +435,7 @@ class Workspace:
         if engine is None or data is None:  # closed-form shapes only: meeting or parallel axes
             engine = self._fcl = DistanceEngine(self.cap_radius, self.obstacles, broadphase=False)
             data = self._probe_data = self.model.createData()
-        k = int(self.cnt[K.CNT_PAIRS])
+        k = int(self.cnt[codes.CNT_PAIRS])
         idx = np.flatnonzero(self.pr_bok[:k] == 0)
         delta = self.drift_step
         pin.forwardKinematics(self.model, data, q + delta * v, v)
@@ -456,16 +457,16 @@ class Workspace:
     # -- snapshots for the Python paths ---------------------------------------------------------
     def snapshot(self) -> TickState:
         """The state of the last tick as a :class:`~qpctl.state.TickState` of copies."""
-        k = int(self.cnt[K.CNT_PAIRS])
+        k = int(self.cnt[codes.CNT_PAIRS])
         pairs = PairSet(self.pr_link[:k].copy(), self.pr_obs[:k].copy(), self.pr_d[:k].copy(), self.pr_n[:k].copy(),
                         self.pr_pl[:k].copy(), self.pr_po[:k].copy(), self.ob_v[self.pr_obs[:k]],
                         self.ob_a[self.pr_obs[:k]])
-        bdrift = self.pr_bdrift[:k].copy() if self.ipar[K.IP_BDRIFT] else None
-        return TickState(float(self.fpar[K.FP_T]), self.q.copy(), self.v.copy(), self.M.copy(), self.N.copy(),
+        bdrift = self.pr_bdrift[:k].copy() if self.ipar[codes.IP_BDRIFT] else None
+        return TickState(float(self.fpar[codes.FP_T]), self.q.copy(), self.v.copy(), self.M.copy(), self.N.copy(),
                          self.x.copy(), self.xdot.copy(), self.J.copy(), self.drift.copy(), self.link_jac.copy(),
                          self.segments.copy(), pairs, self.pr_jac[:k].copy(), self.pr_drift[:k].copy(),
-                         float(self.fpar[K.FP_CLEARANCE]), _barrier_drift=bdrift,
-                         _jdot=self.Jdot.copy() if self.ipar[K.IP_JDOT_EN] else None,  # Controller._state's
+                         float(self.fpar[codes.FP_CLEARANCE]), _barrier_drift=bdrift,
+                         _jdot=self.Jdot.copy() if self.ipar[codes.IP_JDOT_EN] else None,  # Controller._state's
                          R=self.ee_R.copy() if len(self.ori_rows) else None,
                          self_pairs=SelfPairState(self.sc_d.copy(), self.sc_n.copy(), self.sc_row.copy(),
                                                   self.sc_hdot.copy(), self.sc_drift.copy())
@@ -478,13 +479,13 @@ class Workspace:
     def terms(self) -> LawTerms:
         """The law's terms of the last tick (copies), as :func:`qpctl.law.law_terms` returns them."""
         return LawTerms(self.reference(), self.e.copy(), self.edot.copy(), self.a.copy(), self.g.copy(),
-                        self.e_null.copy(), self.qdd0.copy(), bool(self.flags[K.FLAG_SINGULAR_TERMS]))
+                        self.e_null.copy(), self.qdd0.copy(), bool(self.flags[codes.FLAG_SINGULAR_TERMS]))
 
 
 class WorldClearance:
     """The exact least distance [m] between any link and any obstacle, every pair, no cutoff: what a
     simulator records as the world's clearance (negative when penetrating). Closed form for spheres
-    and capsules (:func:`qpctl.kernels.tick.min_distance`), python-fcl for the other shapes."""
+    and capsules (:func:`qpctl.kernels.clearance.min_distance`), python-fcl for the other shapes."""
 
     def __init__(self, robot: RobotModel, obstacles: Sequence[Obstacle],
                  self_pairs: Sequence[tuple[int, int]] = ()) -> None:
@@ -506,66 +507,3 @@ class WorldClearance:
             self._fcl.update(ws.segments, t)
             best = min(best, self._fcl.min_distance())
         return best
-
-
-_WARM: dict[str, float] | None = None
-
-
-def warmup() -> dict[str, float]:
-    """Compile every kernel the tick may call, or load it from numba's on-disk cache (``__pycache__``
-    beside :mod:`qpctl.kernels`, numba's user cache folder when that is read-only, or
-    ``NUMBA_CACHE_DIR``), so that no code path compiles or loads in the middle of a control loop:
-    two ticks of each law on a small scene that takes every path (sphere, capsule and box obstacles,
-    the broad-phase grid, a posture task, a hard-first QP), then every remaining entry point (the
-    rebuild after a failed hard QP, the record of a fallback). Once per process; returns the seconds
-    each part took (a warm cache: well under a second in all; a cold one: 15–25 s)."""
-    global _WARM
-    if _WARM is not None:
-        return _WARM
-    from qpctl.controllers.closed_form import HsuController, PaperController
-    from qpctl.controllers.qp import SOLUTION_RTOL, QPConfig, QPController
-    from qpctl.law import LawGains
-    from qpctl.robot.model import planar_arm
-
-    times: dict[str, float] = {}
-    robot = planar_arm(tau_max=500.0)
-    path = WaypointPath([[-1.0, -2.0], [1.0, -1.5]], duration=1.0)
-    scene = [Obstacle("sphere", np.array([-0.7, -1.5, 0.0]), radius=0.1),
-             Obstacle("capsule", np.array([-1.3, -1.2, 0.0]), radius=0.05, length=0.4, axis=np.array([0.0, 0.0, 1.0])),
-             Obstacle("box", np.array([0.5, -0.5, 0.0]), size=np.array([0.1, 0.1, 0.1]),
-                      velocity=np.array([0.0, 0.1, 0.0]))]
-    q0, v0 = robot.q_home.astype(float), np.array([0.1, -0.2, 0.3])
-    gains = LawGains(d_influence=0.5, d_safe=0.05)
-    qp: QPController | None = None
-    for name, make in (("paper", lambda: PaperController(robot, path, scene, gains, broadphase=True)),
-                       ("paper, closed-form shapes", lambda: PaperController(robot, path, scene[:2], gains)),
-                       ("hsu", lambda: HsuController(robot, path, scene, gains)),
-                       ("qp", lambda: QPController(robot, path, scene[:2], gains, QPConfig(posture_weight=1.0),
-                                                   broadphase=True)),
-                       ("qp, python-fcl shapes", lambda: QPController(robot, path, scene, gains)),
-                       ("qp, hard first", lambda: QPController(robot, path, scene, gains,
-                                                               QPConfig(task_relaxation="on_failure")))):
-        t0 = time.perf_counter()
-        ctrl = make()
-        for k in range(2):  # the QP's first tick sets DAQP up, the second runs as one kernel call
-            ctrl.step(q0, v0, 0.1 + 1e-3 * k)
-        times[name] = time.perf_counter() - t0
-        if name == "qp":
-            qp = ctrl  # type: ignore[assignment]
-    t0 = time.perf_counter()
-    assert qp is not None
-    ws = qp.workspace()
-    buf = ws.relaxed
-    assert buf is not None
-    K.qp_rebuild(ws.work, buf.H, buf.f, buf.rows, buf.bu, buf.bl)
-    K.qp_finish(ws.work, buf.x, buf.rows, buf.bu, buf.bl, SOLUTION_RTOL)
-    K.write_record(ws.work, False)
-    K.law_terms(ws.work, True)
-    K.closed_form(ws.work, True)
-    K.qp_build(ws.work, buf.H, buf.f, buf.rows, buf.bu, buf.bl)
-    K.finish_pairs(ws.work)
-    K.state(ws.work, q0, v0, 0.1)
-    WorldClearance(robot, scene)(q0, 0.1)
-    times["other entry points"] = time.perf_counter() - t0
-    _WARM = times
-    return times

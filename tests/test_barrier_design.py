@@ -17,8 +17,8 @@ from scipy.optimize import linprog
 
 from qpctl import ConfigError, Scenario
 from qpctl.barrier_design import _directions, design, design_for, drive_means
+from qpctl.dynamics import Dynamics
 from qpctl.run import simulate
-from qpctl.state import Dynamics
 
 
 @pytest.mark.parametrize(("v", "a", "j"), [(1.0, 5.0, 50.0), (0.5, 2.0, 1e4), (2.0, 40.0, 30.0), (1.5, math.inf, 20.0)])

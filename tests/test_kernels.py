@@ -49,9 +49,9 @@ import pytest
 from baselines import HsuController, PaperController
 from qpctl import LawGains, Obstacle, Scenario, WaypointPath, panda, planar_arm
 from qpctl.controllers.qp import QPConfig, QPController
+from qpctl.kernels import codes
 from qpctl.kernels import geometry as G
 from qpctl.kernels import small as S
-from qpctl.kernels import tick as K
 from qpctl.law import law_terms
 from qpctl.linalg import weighted_pinv
 from qpctl.robot.model import RobotModel
@@ -642,7 +642,7 @@ def test_sphere_bound_is_a_lower_bound_for_boxes_and_cylinders():
 
 
 # ---------------------------------------------------------------------------------------------------
-# 3. The workspace's state (qpctl.tick + kernels.tick.state) against Pinocchio and python-fcl
+# 3. The workspace's state (qpctl.tick + qpctl.kernels.tick.state) against Pinocchio and python-fcl
 # ---------------------------------------------------------------------------------------------------
 def planar_scene(rng: np.random.Generator) -> list[Obstacle]:
     """Spheres, capsules, boxes and cylinders in the arm's plane (z = 0) within its reach; some move."""
@@ -767,7 +767,7 @@ def test_workspace_state_equals_pinocchio_and_fcl(which):
     total = 0
     for q, v, t in sample_states(robot, rng, 20):
         assert ws.state(q, v, t) >= 0
-        count = int(ws.cnt[K.CNT_PAIRS])
+        count = int(ws.cnt[codes.CNT_PAIRS])
         ref.at(q, v)
         assert_close(ws.M, ref.M, 1e-12, "M")
         assert_close(ws.N, ref.N, 1e-12, "N")
@@ -806,10 +806,10 @@ def test_workspace_state_equals_pinocchio_and_fcl(which):
         total += count
         clearance = min((d for d, _, _, _ in want.values() if d < cutoff), default=np.inf)
         if clearance == np.inf:
-            assert ws.fpar[K.FP_CLEARANCE] == np.inf
+            assert ws.fpar[codes.FP_CLEARANCE] == np.inf
         else:
-            assert abs(ws.fpar[K.FP_CLEARANCE] - clearance) <= EPA_TOL
-        assert ws.fpar[K.FP_CLEARANCE] == (ws.pr_d[:count].min() if count else np.inf)
+            assert abs(ws.fpar[codes.FP_CLEARANCE] - clearance) <= EPA_TOL
+        assert ws.fpar[codes.FP_CLEARANCE] == (ws.pr_d[:count].min() if count else np.inf)
     # the scene exercised every kind of pair, static and moving
     assert {k.split()[0] for k in kinds_seen} == {"sphere", "capsule", "box", "cylinder"}, kinds_seen
     assert {"sphere moving", "capsule moving"} & kinds_seen, kinds_seen
@@ -852,13 +852,13 @@ def test_broadphase_grid_lists_the_same_pairs():
     for q, v, t in sample_states(robot, rng, 40):
         t *= 3.0
         assert grid.state(q, v, t) >= 0 and plain.state(q, v, t) >= 0
-        k = int(plain.cnt[K.CNT_PAIRS])
-        assert int(grid.cnt[K.CNT_PAIRS]) == k
+        k = int(plain.cnt[codes.CNT_PAIRS])
+        assert int(grid.cnt[codes.CNT_PAIRS]) == k
         assert np.array_equal(grid.pr_link[:k], plain.pr_link[:k])
         assert np.array_equal(grid.pr_obs[:k], plain.pr_obs[:k])
         assert np.array_equal(grid.pr_d[:k], plain.pr_d[:k])
         assert np.array_equal(grid.pr_n[:k], plain.pr_n[:k])
-        assert grid.fpar[K.FP_CLEARANCE] == plain.fpar[K.FP_CLEARANCE]
+        assert grid.fpar[codes.FP_CLEARANCE] == plain.fpar[codes.FP_CLEARANCE]
         total += k
         moving += int(np.count_nonzero(plain.pr_obs[:k] < 20))
     assert total > 200 and moving > 0, (total, moving)
@@ -915,7 +915,7 @@ def states_near(ctrl: PaperController, rng: np.random.Generator, k: int, v_scale
     ws = Workspace(ctrl.robot, ctrl.obstacles, None, None, ctrl.gains.d_influence)
     for q, v, t in sample_states(ctrl.robot, rng, tries, v_scale):
         assert ws.state(q, v, t) >= 0
-        (near if ws.cnt[K.CNT_PAIRS] and len(near) < (k + 1) // 2 else rest).append((q, v, t))
+        (near if ws.cnt[codes.CNT_PAIRS] and len(near) < (k + 1) // 2 else rest).append((q, v, t))
         if len(near) >= (k + 1) // 2 and len(near) + len(rest) >= k:
             break
     assert len(near) >= (k + 1) // 2, "too few states near an obstacle"
@@ -1001,7 +1001,7 @@ def test_reference_velocity_with_an_obstacle_whose_v_ref_is_zero():
     q, v = np.array([np.pi, np.pi / 2, 0.0]), np.zeros(3)
     tau = ctrl.step(q, v, 0.0).tau.copy()
     ws = ctrl.workspace()
-    k = int(ws.cnt[K.CNT_PAIRS])
+    k = int(ws.cnt[codes.CNT_PAIRS])
     assert list(zip(ws.pr_link[:k].tolist(), ws.pr_obs[:k].tolist())) == [(0, 0), (2, 1)]
     state = ctrl.dynamics.compute(q, v, 0.0)
     terms = law_terms(state, ctrl.path(0.0), ctrl.gains, weighted=True)
@@ -1187,7 +1187,10 @@ CHILD = textwrap.dedent("""
     out = {name: [sum(k.stats.cache_hits.values()), sum(k.stats.cache_misses.values()), k.stats.cache_path]
            for name, k in kernels}
     # whatever else ran (the fallbacks' kernels, if a solve failed) was loaded, not compiled, too
-    out["_misses"] = sum(sum(k.stats.cache_misses.values()) for k in vars(K).values() if hasattr(k, "stats"))
+    import pkgutil, importlib, qpctl.kernels
+    stage_modules = [importlib.import_module("qpctl.kernels." + m.name) for m in pkgutil.iter_modules(qpctl.kernels.__path__)]
+    out["_misses"] = sum(sum(k.stats.cache_misses.values()) for mod in stage_modules for k in vars(mod).values()
+                         if hasattr(k, "stats"))
     out["module"] = qpctl.__file__
     print(json.dumps(out))
 """)

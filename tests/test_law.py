@@ -19,9 +19,9 @@ import pytest
 
 from baselines import HsuController, PaperController
 from qpctl import LawGains, Obstacle, Simulator, WaypointPath, planar_arm
+from qpctl.dynamics import Dynamics
 from qpctl.law import closed_form_acceleration, law_terms
 from qpctl.paths import Reference
-from qpctl.state import Dynamics
 
 
 def explicit_pinv(J: np.ndarray, W: np.ndarray) -> np.ndarray:

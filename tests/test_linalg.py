@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from qpctl.dynamics import Dynamics
 from qpctl.linalg import weighted_pinv
-from qpctl.state import Dynamics
 
 TOL = 1e-9
 

@@ -37,8 +37,8 @@ from qpctl.controllers.qp import (
     QPConfig,
     QPController,
 )
+from qpctl.dynamics import Dynamics
 from qpctl.solvers import available_solvers
-from qpctl.state import Dynamics
 
 _COMMON = dict(deadline=None, suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 settings.register_profile("ci", derandomize=True, database=None, print_blob=True, **_COMMON)

@@ -462,7 +462,7 @@ def test_fallback_torque_keeps_its_direction_within_the_limits(monkeypatch):
 def barrier_rows(ctrl: QPController, q, v, t, qdd) -> np.ndarray:
     """ḧ + k₁ḣ + k₀h of every pair within d_influence at q̈, from a fresh state (its own Pinocchio data
     and distance queries): ≥ 0 where the barrier holds."""
-    from qpctl.state import Dynamics
+    from qpctl.dynamics import Dynamics
 
     state = Dynamics(ctrl.robot, ctrl.obstacles, cutoff=ctrl.gains.d_influence).compute(q, v, t)
     pairs, drift = state.pairs, state.barrier_drift()

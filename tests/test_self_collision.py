@@ -14,7 +14,7 @@ import pytest
 from qpctl import ConfigError, Scenario, Simulator, WaypointPath, panda
 from qpctl.controllers.qp import QPConfig, QPController
 from qpctl.geometry.self_collision import adjacent, fcl_self_distances, named_pairs, self_collision_pairs
-from qpctl.kernels import tick as K
+from qpctl.kernels import codes
 
 
 @pytest.fixture(scope="module")
@@ -64,7 +64,7 @@ def test_distances_match_python_fcl(robot, pairs):
         q = rng.uniform(robot.q_min, robot.q_max)
         assert ws.state(q, np.zeros(7), 0.0) == 0
         ref = fcl_self_distances(robot, q, pairs.pairs)
-        cut = ws.fpar[K.FP_SCUT]
+        cut = ws.fpar[codes.FP_SCUT]
         exact = (ws.sc_d < cut) & (ref > 1e-4)  # python-fcl reports overlap as no distance
         np.testing.assert_allclose(ws.sc_d[exact], ref[exact], atol=1e-6)
         far = ws.sc_d >= cut  # beyond the cutoff: a lower bound, itself beyond it
@@ -89,7 +89,7 @@ def test_barrier_rate_and_drift_are_the_distance_derivatives(robot, pairs):
         q, v = rng.uniform(robot.q_min + 0.2, robot.q_max - 0.2), rng.normal(size=7)
         ws.state(q, v, 0.0)
         d, row, hdot, drift = ws.sc_d.copy(), ws.sc_row.copy(), ws.sc_hdot.copy(), ws.sc_drift.copy()
-        near = (d > 1e-3) & (d < ws.fpar[K.FP_SCUT])  # rows and drifts are computed within the cutoff only
+        near = (d > 1e-3) & (d < ws.fpar[codes.FP_SCUT])  # rows and drifts are computed within the cutoff only
         np.testing.assert_allclose(hdot[near], row[near] @ v, atol=1e-12)
         (dp, hp), (dm, hm) = at(q, v, h), at(q, v, -h)
         np.testing.assert_allclose(hdot[near], ((dp - dm) / (2 * h))[near], atol=1e-5)

@@ -44,10 +44,10 @@ from qpctl.controllers.qp import (
     FALLBACK_SAFE_STOP,
     SOLUTION_RTOL,
 )
+from qpctl.dynamics import Dynamics
 from qpctl.scenario import arm_reach
 from qpctl.simulation import Simulator
 from qpctl.solvers import available_solvers
-from qpctl.state import Dynamics
 
 SEED = 20240611
 TARGET_QP_TICKS = int(os.environ.get("QPCTL_SOAK_TICKS", "100000"))  # a shorter trial: QPCTL_SOAK_TICKS=5000

@@ -26,8 +26,8 @@ import pinocchio as pin
 import pytest
 
 from qpctl import InvalidStateError, Obstacle
+from qpctl.dynamics import Dynamics
 from qpctl.robot.model import RobotModel
-from qpctl.state import Dynamics
 
 H_JAC = 1e-6
 H_ACC = 1e-4

@@ -13,7 +13,7 @@
   link settle a few millimetres inside d_s. A fixed number of rows: inactive rows have −inf bounds.
 * :class:`SelfCollisionBarrier` — the same rows between pairs of the arm's own link capsules
   (:mod:`qpctl.geometry.self_collision` says which), both moving: ḣ = nᵀ(J_p − J_q)q̇ and the exact
-  drift of two rotating capsules (:func:`qpctl.kernels.tick.self_pairs`).
+  drift of two rotating capsules (:func:`qpctl.kernels.self_pairs.self_pairs`).
 """
 
 from __future__ import annotations

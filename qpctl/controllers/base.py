@@ -31,14 +31,16 @@ from typing import Any
 
 import numpy as np
 
+from qpctl.dynamics import Dynamics
 from qpctl.errors import ConfigError, InvalidStateError
 from qpctl.geometry.obstacles import Obstacle
-from qpctl.kernels import tick as K
+from qpctl.kernels import codes
 from qpctl.law import LawGains
 from qpctl.paths import PosePath, Reference, WaypointPath
 from qpctl.robot.model import RobotModel
-from qpctl.state import Dynamics, TickState, validate_state
+from qpctl.state import TickState, validate_state
 from qpctl.tick import RecordLayout, Workspace
+from qpctl.warmup import warmup
 
 
 class TickStatus(enum.Enum):
@@ -91,11 +93,11 @@ class RecordOutput(ControlOutput):
 
     @property
     def clearance(self) -> float:  # type: ignore[override]
-        return float(self._rec[self._layout.scalars + K.R_CLEARANCE])
+        return float(self._rec[self._layout.scalars + codes.R_CLEARANCE])
 
     @property
     def singular(self) -> bool:  # type: ignore[override]
-        return bool(self._rec[self._layout.scalars + K.R_SINGULAR])
+        return bool(self._rec[self._layout.scalars + codes.R_SINGULAR])
 
     @property
     def status(self) -> TickStatus:  # type: ignore[override]
@@ -104,10 +106,10 @@ class RecordOutput(ControlOutput):
     @property
     def iterations(self) -> int:
         """The QP solver's iterations this tick (0 for the closed forms)."""
-        return int(self._rec[self._layout.scalars + K.R_ITERATIONS])
+        return int(self._rec[self._layout.scalars + codes.R_ITERATIONS])
 
     def scalar(self, index: int) -> float:
-        """The record's scalar ``index`` (one of :mod:`qpctl.kernels.tick`'s R_* constants)."""
+        """The record's scalar ``index`` (one of :mod:`qpctl.kernels.codes`' R_* constants)."""
         return float(self._rec[self._layout.scalars + index])
 
     def _get_info(self) -> dict[str, Any]:
@@ -116,11 +118,11 @@ class RecordOutput(ControlOutput):
             pin_s, state_s, build_s, solve_s = self._stages
             r, s = self._rec, self._layout.scalars
             if state_s < 0:  # measured inside the tick's kernel and kept in the record [µs]
-                state_s = r[s + K.R_STATE_US] * 1e-6
+                state_s = r[s + codes.R_STATE_US] * 1e-6
             if build_s < 0:
-                build_s, solve_s = r[s + K.R_BUILD_US] * 1e-6, r[s + K.R_SOLVE_US] * 1e-6
+                build_s, solve_s = r[s + codes.R_BUILD_US] * 1e-6, r[s + codes.R_SOLVE_US] * 1e-6
             info: dict[str, Any] = {"rigid_us": pin_s * 1e6, "state_us": (pin_s + state_s) * 1e6,
-                                    "build_us": float(build_s) * 1e6, "pairs": int(r[s + K.R_PAIRS])}
+                                    "build_us": float(build_s) * 1e6, "pairs": int(r[s + codes.R_PAIRS])}
             if solve_s:
                 info["solve_us"] = float(solve_s) * 1e6
             if self._extra:
@@ -226,13 +228,11 @@ class Controller(ABC):
                          barrier_drift=True)
 
     def warmup(self) -> float:
-        """Compile (or load from the on-disk cache) every kernel of the tick (:func:`qpctl.tick.warmup`,
+        """Compile (or load from the on-disk cache) every kernel of the tick (:func:`qpctl.warmup.warmup`,
         once per process), build this controller's workspace and run two ticks at its home pose (the
         QP's first tick sets its solver up), then :meth:`reset`; returns the seconds it took. Call it
         before a real-time loop starts, so that no tick compiles, loads or allocates a workspace;
         ``qpctl warmup`` fills the on-disk cache ahead of time."""
-        from qpctl.tick import warmup
-
         start = time.perf_counter()
         warmup()
         for k in range(2):

@@ -15,7 +15,7 @@ for the given task acceleration. The bracketed J̇ e_N term is ``LawGains.jdot_e
 it feeds e_N into the task and breaks eq. (11) without helping e_N decay (the argument and the
 measurement are in :mod:`qpctl.law` and the README's "Paper reproduction").
 
-:meth:`PaperController.step` runs the compiled tick (:func:`qpctl.kernels.tick.closed_form_tick`);
+:meth:`PaperController.step` runs the compiled tick (:func:`qpctl.kernels.tick.tick_closed_form`);
 :meth:`PaperController.control` is the same law written with numpy on a :class:`TickState`
 (:mod:`qpctl.law`), the reference the tests hold the compiled one against.
 
@@ -36,6 +36,7 @@ import pinocchio as pin
 
 from qpctl.controllers.base import Controller, ControlOutput, RecordOutput, TickStatus, fast_state
 from qpctl.errors import InvalidStateError
+from qpctl.kernels import codes
 from qpctl.kernels import tick as K
 from qpctl.law import closed_form_acceleration, law_terms
 from qpctl.state import TickState
@@ -61,11 +62,11 @@ class PaperController(Controller):
             pin.computeAllTerms(ws.model, ws.data, q, v)
             t1 = time.perf_counter()
             code = K.tick_closed_form(ws.work, q, v, t, self.weighted)
-            if code == K.STATE_PYTHON:
+            if code == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
                 t2 = time.perf_counter()
                 code = K.closed_form_tick(ws.work, self.weighted)
-                ws.rec[ws.layout.scalars + K.R_BUILD_US] = (time.perf_counter() - t2) * 1e6
+                ws.rec[ws.layout.scalars + codes.R_BUILD_US] = (time.perf_counter() - t2) * 1e6
             stages = (t1 - t0, -1.0, -1.0, 0.0)
         else:
             self._state(q, v, t)

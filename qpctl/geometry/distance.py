@@ -27,7 +27,8 @@ from dataclasses import dataclass
 import fcl
 import numpy as np
 
-from qpctl.geometry.obstacles import Obstacle, quaternion_z_to
+from qpctl.geometry.frames import quaternion_z_to
+from qpctl.geometry.obstacles import Obstacle
 
 _UNSIGNED = fcl.DistanceRequest(enable_nearest_points=True, enable_signed_distance=False)
 _SIGNED = fcl.DistanceRequest(enable_nearest_points=True, enable_signed_distance=True)

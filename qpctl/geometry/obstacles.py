@@ -22,53 +22,18 @@ Motion: constant ``velocity`` [m/s] and/or a sinusoidal sway ``amplitude`` [m] a
 
 from __future__ import annotations
 
-import math
-from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import fcl
 import numpy as np
 
 from qpctl.errors import ConfigError
+from qpctl.geometry.frames import quaternion_z_to, rotation_z_to, vec3
 from qpctl.geometry.shapes import SHAPES, Shape, shape_of
 
 __all__ = ["MATERIALS", "SHAPES", "Obstacle", "quaternion_z_to", "rotation_z_to"]
 
 MATERIALS = ("rigid", "soft")  # Obstacle.material
-
-
-def _vec3(value: Sequence[float] | np.ndarray, key: str) -> np.ndarray:
-    arr = np.asarray(value, dtype=float).reshape(-1)
-    if arr.shape == (2,):
-        arr = np.append(arr, 0.0)
-    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
-        raise ConfigError(f"must be 2 or 3 finite numbers, got {value!r}", key=key)
-    return arr
-
-
-def quaternion_z_to(x: float, y: float, z: float) -> tuple[float, float, float, float]:
-    """(w, x, y, z) of the shortest rotation taking the z axis onto the non-zero direction (x, y, z).
-
-    With a = (x, y, z)/‖·‖ and c = a_z: q = (1 + c, z × a)/√(2(1 + c)), z × a = (−a_y, a_x, 0); a
-    half turn about x when a = −z. Plain floats: it runs for every link capsule at every tick.
-    """
-    norm = math.sqrt(x * x + y * y + z * z)
-    c = z / norm
-    if c > 1 - 1e-12:
-        return (1.0, 0.0, 0.0, 0.0)
-    if c < -1 + 1e-12:
-        return (0.0, 1.0, 0.0, 0.0)
-    w = 1.0 + c
-    s = math.sqrt(2.0 * w) * norm
-    return (w * norm / s, -y / s, x / s, 0.0)
-
-
-def rotation_z_to(axis: np.ndarray) -> np.ndarray:
-    """A rotation matrix taking the z axis onto the unit vector ``axis`` (see :func:`quaternion_z_to`)."""
-    w, x, y, z = quaternion_z_to(*(float(c) for c in axis))
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
 
 
 @dataclass
@@ -92,10 +57,10 @@ class Obstacle:
     def __post_init__(self) -> None:
         key = f"obstacles.{self.name}" if self.name else "obstacles"
         kind = shape_of(self.shape, f"{key}.shape")
-        self.position = _vec3(self.position, f"{key}.position")
-        self.velocity = _vec3(self.velocity, f"{key}.velocity")
-        self.amplitude = _vec3(self.amplitude, f"{key}.amplitude")
-        self.axis = _vec3(self.axis, f"{key}.axis")
+        self.position = vec3(self.position, f"{key}.position")
+        self.velocity = vec3(self.velocity, f"{key}.velocity")
+        self.amplitude = vec3(self.amplitude, f"{key}.amplitude")
+        self.axis = vec3(self.axis, f"{key}.axis")
         if np.linalg.norm(self.axis) == 0:
             raise ConfigError("axis must be non-zero", key=f"{key}.axis")
         if self.v_ref is not None and not (np.isfinite(self.v_ref) and self.v_ref >= 0):

@@ -10,7 +10,7 @@ Pairs are left out, as Pink and mink leave them out (their SRDF-style "disabled 
 
 :func:`self_collision_pairs` returns what is kept and why the rest is not; a scenario may name its
 own pairs instead (``controller.self_collision_pairs``). The distances the tick computes in closed
-form (:func:`qpctl.kernels.tick.self_pairs`) are held against :func:`fcl_self_distances` in the tests.
+form (:func:`qpctl.kernels.self_pairs.self_pairs`) are held against :func:`fcl_self_distances` in the tests.
 """
 
 from __future__ import annotations

@@ -15,15 +15,23 @@ cylinder).
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import fcl
 import numpy as np
 
 from qpctl.errors import ConfigError
+from qpctl.geometry.frames import rotation_z_to, vec3
 
-if TYPE_CHECKING:
-    from qpctl.geometry.obstacles import Obstacle
+
+class Obstacle(Protocol):
+    """What a shape reads of an obstacle (:class:`qpctl.geometry.obstacles.Obstacle` is one): its
+    sizes [m] and axis (the shape's z), which :meth:`Shape.check` may normalise."""
+
+    radius: float
+    length: float
+    size: np.ndarray | None
+    axis: np.ndarray
 
 
 class Geom(NamedTuple):
@@ -37,8 +45,6 @@ class Geom(NamedTuple):
 
 
 def _axis_rotation(obs: Obstacle) -> np.ndarray:
-    from qpctl.geometry.obstacles import rotation_z_to
-
     return rotation_z_to(obs.axis)
 
 
@@ -104,11 +110,9 @@ class Box(Shape):
     name = "box"
 
     def check(self, obs: Obstacle, key: str) -> None:
-        from qpctl.geometry.obstacles import _vec3
-
         if obs.size is None:
             raise ConfigError("a box needs size = [x, y, z]", key=f"{key}.size")
-        obs.size = _vec3(obs.size, f"{key}.size")
+        obs.size = vec3(obs.size, f"{key}.size")
         if np.any(obs.size <= 0):
             raise ConfigError(f"box size must be positive, got {obs.size.tolist()}", key=f"{key}.size")
 

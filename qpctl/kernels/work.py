@@ -72,7 +72,7 @@ FIELDS = (
     "path_t0",  # (K,) segment start times [s]
     "path_T",  # (K,) segment durations [s]
     # -- gains and settings --------------------------------------------------------------------------
-    "fpar",  # (FP_SIZE,) float settings, indexed by the FP_* constants of qpctl.kernels.tick
+    "fpar",  # (FP_SIZE,) float settings, indexed by the FP_* constants of qpctl.kernels.codes
     "ipar",  # (IP_SIZE,) int settings, indexed by the IP_* constants
     "q_ref",  # (n,) posture task target [rad]
     "tau_max",  # (n,) [N·m]

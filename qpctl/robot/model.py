@@ -412,3 +412,27 @@ def load_robot(kind: str, **kwargs: object) -> RobotModel:
     if kind == "panda":
         return panda(**kwargs)  # type: ignore[arg-type]
     raise ConfigError(f"unknown robot {kind!r}; use planar3, panda or a path to a .urdf file", key="robot.kind")
+
+
+def arm_reach(robot: RobotModel) -> tuple[np.ndarray, float] | None:
+    """(centre [m], radius [m]) of a sphere that holds every position of the task point, or None.
+
+    For a chain of revolute joints the first joint's origin stays put and each further joint origin
+    (and the task frame) sits at a fixed distance from the previous one, so the task point is never
+    farther from the first joint's origin than the sum of those distances. Prismatic or other joints
+    give no such bound (None).
+    """
+    model = robot.model
+    frame = model.frames[robot.ee_frame_id]
+    radius = float(np.linalg.norm(frame.placement.translation))
+    j = int(frame.parentJoint)
+    if j == 0:
+        return None
+    while True:
+        if not model.joints[j].shortname().startswith("JointModelR"):
+            return None
+        parent = int(model.parents[j])
+        if parent == 0:
+            return np.asarray(model.jointPlacements[j].translation, float).copy(), radius
+        radius += float(np.linalg.norm(model.jointPlacements[j].translation))
+        j = parent

@@ -45,7 +45,7 @@ from qpctl.config import check_fields, setting
 from qpctl.errors import ConfigError
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels.geometry import capsule_pair
-from qpctl.robot.model import RobotModel
+from qpctl.robot.model import RobotModel, arm_reach
 
 WIRE_RADIUS = 0.0015  # [m] a 3 mm trellis wire
 TRIES = 200  # draws per shape before it is left out
@@ -209,8 +209,6 @@ def reach(robot: RobotModel, target: np.ndarray, q_start: np.ndarray, iterations
 def _fruit_reach(robot: RobotModel, fruit: np.ndarray, q0: np.ndarray, row: list[tuple[str, Capsule]], d_safe: float,
                  rng: np.random.Generator) -> tuple[np.ndarray | None, str]:
     """(a configuration reaching the fruit clear of the row, "") or (None or the best one, the reason not)."""
-    from qpctl.scenario import arm_reach
-
     bound = arm_reach(robot)
     if bound is not None:
         centre, radius = bound

@@ -53,7 +53,7 @@ import pinocchio as pin
 from qpctl.errors import ConfigError
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.robot.config import RobotConfig
-from qpctl.robot.model import RobotModel
+from qpctl.robot.model import RobotModel, arm_reach
 
 #: Default radius [m] of the payload sphere (a fruit of 8 cm).
 PAYLOAD_RADIUS = RobotConfig.payload_radius
@@ -218,8 +218,6 @@ class Faults:
         """A d_safe margin [m] for what the controller cannot see: 3σ of an obstacle's offset along the
         normal, and the largest displacement of a link point that 3σ of joint noise plus half an encoder
         step can cause (each joint's error times the arm's reach, summed over the joints)."""
-        from qpctl.scenario import arm_reach
-
         reach = arm_reach(robot)
         lever = reach[1] if reach is not None else 1.0
         joint = (3.0 * self.q_noise + 0.5 * self.q_quantum) * lever * robot.nv

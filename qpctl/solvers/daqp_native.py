@@ -4,8 +4,9 @@
 five arrays in memoryviews on every ``update`` and builds a dict and two array copies on every
 ``solve``. :class:`NativeDAQP` instead sets DAQP's workspace up once (through ``ctypes``) on the
 very arrays the tick's kernels write (:class:`qpctl.tick.QPBuffers`), and the kernel
-:func:`qpctl.kernels.tick.qp_tick_native` calls ``daqp_update_ldp`` and ``daqp_solve`` itself; their
-symbols come from the ``daqp`` extension module, which exports DAQP's C API.
+:func:`qpctl.kernels.solve.qp_tick_native` calls ``daqp_update_ldp`` and ``daqp_solve`` itself
+(:mod:`qpctl.kernels.daqp`); their symbols come from the ``daqp`` extension module, which exports
+DAQP's C API.
 
 The structs passed in (``DAQPProblem``, ``DAQPResult``, ``DAQPSettings``) follow DAQP's
 ``include/types.h`` and ``include/api.h``; the workspace (``DAQPWorkspace``) is never read here,
@@ -23,11 +24,11 @@ import importlib.metadata
 from typing import Any
 
 import numpy as np
-from numba import types
+
+from qpctl.kernels.daqp import native_solve
 
 CHECKED_VERSIONS = ("0.11.0",)
 WORK_BYTES = 1 << 14  # DAQPWorkspace is ~300 bytes; its arrays are DAQP's own (malloc)
-UPDATE_ALL = 1 | 2 | 4 | 8  # DAQP_UPDATE_Rinv | _M | _v | _d: new H, A, f and bounds, same working set
 
 _dp = C.POINTER(C.c_double)
 _ip = C.POINTER(C.c_int)
@@ -54,10 +55,6 @@ class _Settings(C.Structure):
 
 
 SETTINGS = tuple(str(f[0]) for f in _Settings._fields_)
-
-# The kernels' view of DAQP's C functions (pointers passed as integers: same registers on LP64 ABIs).
-update_ldp: Any = types.ExternalFunction("daqp_update_ldp", types.intc(types.intc, types.intp, types.intp))
-daqp_solve: Any = types.ExternalFunction("daqp_solve", types.void(types.intp, types.intp))
 
 _lib: Any = None
 _available: bool | None = None
@@ -116,7 +113,7 @@ class NativeDAQP:
         assert _Result.iter.offset == _Result.exitflag.offset + 4
         self.flag = np.frombuffer(raw, np.int32, 2, _Result.exitflag.offset)  # type: ignore[call-overload]  # [exit flag, iterations]
         self.addresses = (int(self.work.ctypes.data), C.addressof(self.problem), C.addressof(self.result))
-        # what qpctl.kernels.tick.qp_tick_native takes after the workspace (and before the tolerance)
+        # what qpctl.kernels.solve.qp_tick_native takes after the workspace (and before the tolerance)
         self.kernel_args = (H, f, rows, bu, bl, *self.addresses, self.flag, self.x)
         self.settings = dict(settings or {})
         self.ready = False
@@ -198,8 +195,6 @@ def available() -> bool:
 
 def _self_test() -> bool:
     import daqp
-
-    from qpctl.kernels.tick import native_solve
 
     rng = np.random.default_rng(1)
     nv, n_in, n_eq = 9, 12, 2

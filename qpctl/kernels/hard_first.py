@@ -1,0 +1,105 @@
+"""The task hard first, on DAQP's C API: the QP without the task's slack (n variables instead of
+n + 2m), its answer kept only where it is the relaxed QP's too, the relaxed QP solved otherwise.
+
+The hard answer is used when DAQP solved it, its task rows hold (:func:`task_rows_hold`: DAQP may
+drop a nearly dependent equality), every task multiplier is within the ℓ₁ slack weight (the
+exact-penalty condition, :func:`penalty_exact`) and the other rows hold (:func:`qpctl.kernels.finish.qp_finish`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from qpctl.kernels.clock import now_us
+from qpctl.kernels.codes import IP_N_IN, R_BUILD_US, R_ITERATIONS, R_SOLVE_US, record_scalars
+from qpctl.kernels.daqp import native_solve
+from qpctl.kernels.finish import qp_finish
+from qpctl.kernels.solve import native_solve_finish, qp_rebuild, qp_terms_and_build
+
+
+@njit(cache=True)
+def penalty_exact(lam: np.ndarray, first: int, m: int, l1: float) -> bool:
+    """Whether the hard QP's answer is the relaxed QP's too: every task row's multiplier (DAQP's
+    λ of the equality rows, ``first`` … ``first + m``) within the ℓ₁ slack weight, |λ_i| ≤ l1 — the
+    exact-penalty condition (:func:`qpctl.qp.penalty_is_exact`, which finds λ without the solver)."""
+    for r in range(m):
+        if not abs(lam[first + r]) <= l1:
+            return False
+    return True
+
+
+@njit(cache=True)
+def task_rows_hold(x: np.ndarray, rows: np.ndarray, bu: np.ndarray, n_in: int, m: int, tol: float) -> bool:
+    """Whether the hard QP's x meets its task rows (rows ``n_in`` … ``n_in + m`` of ``rows``, equalities
+    at ``bu``) within ``tol`` relative to the larger of 1, |b| and the row's |A_i|·|x|. DAQP may drop
+    an equality row that is nearly dependent (the planar arm outstretched: the x row of J ~1e-5) and
+    report the rest solved; :func:`qp_finish` checks the inequality rows only."""
+    nv = x.shape[0]
+    for r in range(n_in, n_in + m):
+        ax = 0.0
+        mag = 0.0
+        for c in range(nv):
+            ax += rows[r, c] * x[c]
+            mag += abs(rows[r, c] * x[c])
+        b = bu[nv + r]
+        if not abs(ax - b) <= tol * max(1.0, abs(b), mag):
+            return False
+    return True
+
+
+@njit(cache=True)
+def qp_tick_native_hard_first(ws, Hh: np.ndarray, fh: np.ndarray, rowsh: np.ndarray,  # type: ignore[no-untyped-def]
+                              buh: np.ndarray, blh: np.ndarray, workh: int, problemh: int, resulth: int,
+                              flagh: np.ndarray, xh: np.ndarray, lamh: np.ndarray, Hr: np.ndarray, fr: np.ndarray,
+                              rowsr: np.ndarray, bur: np.ndarray, blr: np.ndarray, workr: int, problemr: int,
+                              resultr: int, flagr: np.ndarray, xr: np.ndarray, tol: float, l1: float,
+                              try_hard: bool) -> tuple[int, int]:
+    """The QP tick after the state with the task hard first (no slack variables: a smaller QP), its
+    answer kept where the exact-penalty condition says the relaxed QP's is the same
+    (:func:`penalty_exact`), the relaxed QP solved otherwise (or when not ``try_hard``). Returns
+    (code, hard): code as :func:`qp_tick_native`'s, for the answer used; hard: −1 not tried, 0 the
+    hard answer used, 3 DAQP failed on it, 4 rejected by the check of its rows (the task rows,
+    :func:`task_rows_hold`, or the others, :func:`qp_finish`), 7 not the relaxed QP's answer."""
+    ts = np.empty(2, np.int64)
+    s = record_scalars(ws.N.shape[0], ws.a.shape[0])
+    build = solve = 0.0
+    hard = -1
+    t0 = now_us(ts)
+    if try_hard:
+        code = qp_terms_and_build(ws, Hh, fh, rowsh, buh, blh)
+        t1 = now_us(ts)
+        build += t1 - t0
+        if code != 0:
+            ws.rec[s + R_BUILD_US], ws.rec[s + R_SOLVE_US] = build, 0.0
+            return code, hard
+        ok = native_solve(workh, problemh, resulth, flagh) > 0
+        t2 = now_us(ts)
+        solve += t2 - t1
+        nvh = Hh.shape[0]
+        n_in = ws.ipar[IP_N_IN]
+        m = ws.a.shape[0]
+        if not ok:
+            hard = 3
+        elif not task_rows_hold(xh, rowsh, buh, n_in, m, tol):
+            hard = 4
+        elif not penalty_exact(lamh, nvh + n_in, m, l1):
+            hard = 7
+        elif not qp_finish(ws, xh, rowsh, buh, blh, tol):
+            hard = 4
+        else:
+            ws.rec[s + R_BUILD_US], ws.rec[s + R_SOLVE_US] = build, solve
+            ws.rec[s + R_ITERATIONS] = flagh[1]
+            return 0, 0
+        t0 = now_us(ts)
+        code = qp_rebuild(ws, Hr, fr, rowsr, bur, blr)
+    else:
+        code = qp_terms_and_build(ws, Hr, fr, rowsr, bur, blr)
+    t1 = now_us(ts)
+    build += t1 - t0
+    ws.rec[s + R_BUILD_US], ws.rec[s + R_SOLVE_US] = build, solve
+    if code != 0:
+        return code, hard
+    code = native_solve_finish(ws, rowsr, bur, blr, workr, problemr, resultr, flagr, xr, tol)
+    ws.rec[s + R_SOLVE_US] = solve + now_us(ts) - t1  # the solve and the check of its answer
+    return code, hard

@@ -1,0 +1,161 @@
+"""Stage 1 of the tick, the rigid-body terms: M, N, the task point's x, ẋ, J, J̇q̇ and the link
+capsules' world geometry, read from Pinocchio's arrays after ``computeAllTerms``.
+
+Pinocchio's data are bound once as numpy views (:func:`qpctl.tick.bind_pinocchio`): the joint
+placements ``oMi``, the joints' q̈ = 0 accelerations in their own frames ``acc_local``, the world
+Jacobian columns ``Jt``, M's lower triangle ``Mt`` and ``nle``. From them: world points, point
+Jacobians J_v − [p]× J_ω, and each capsule body's q̈ = 0 acceleration field a(p) = offset + K p,
+which the pairs' drifts read (:mod:`qpctl.kernels.pairs`, :mod:`qpctl.kernels.self_pairs`).
+
+References (``tests/test_kernels.py``): Pinocchio's crba, nonLinearEffects, getFrameJacobian and
+getFrameClassicalAcceleration on probe frames of a separate model copy.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True)
+def _world_acceleration(ws, j: int, out: np.ndarray) -> None:  # type: ignore[no-untyped-def]
+    """out (6,) = joint j's q̈ = 0 spatial acceleration in the world frame, at the world origin:
+    (R a + p × R α, R α)."""
+    P, A = ws.oMi, ws.acc_local
+    for r in range(3):
+        out[3 + r] = P[j, r] * A[j, 3] + P[j, r + 3] * A[j, 4] + P[j, r + 6] * A[j, 5]
+        out[r] = P[j, r] * A[j, 0] + P[j, r + 3] * A[j, 1] + P[j, r + 6] * A[j, 2]
+    px, py, pz = P[j, 9], P[j, 10], P[j, 11]
+    ax, ay, az = out[3], out[4], out[5]
+    out[0] += py * az - pz * ay
+    out[1] += pz * ax - px * az
+    out[2] += px * ay - py * ax
+
+
+@njit(cache=True)
+def world_point(ws, j: int, local: np.ndarray, out: np.ndarray) -> None:  # type: ignore[no-untyped-def]
+    """out (3,) = oMi[j] · local."""
+    P = ws.oMi
+    for r in range(3):
+        out[r] = P[j, r] * local[0] + P[j, r + 3] * local[1] + P[j, r + 6] * local[2] + P[j, 9 + r]
+
+
+@njit(cache=True)
+def point_jacobian(ws, support: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:  # type: ignore[no-untyped-def]
+    """out (3, n) = J_v − p × J_ω of the body whose joints are ``support`` (world Jacobian columns)."""
+    Jt = ws.Jt
+    for k in range(Jt.shape[0]):
+        s = support[k]
+        wx, wy, wz = Jt[k, 3] * s, Jt[k, 4] * s, Jt[k, 5] * s
+        out[0, k] = Jt[k, 0] * s - (p[1] * wz - p[2] * wy)
+        out[1, k] = Jt[k, 1] * s - (p[2] * wx - p[0] * wz)
+        out[2, k] = Jt[k, 2] * s - (p[0] * wy - p[1] * wx)
+
+
+@njit(cache=True)
+def _classical_acceleration(vel: np.ndarray, acc: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:
+    """out (3,) = the classical acceleration of body point p at q̈ = 0: a + α × p + ω × (v + ω × p),
+    from the body's world spatial velocity (v, ω) and acceleration (a, α) at the world origin."""
+    wx, wy, wz = vel[3], vel[4], vel[5]
+    vx = vel[0] + wy * p[2] - wz * p[1]
+    vy = vel[1] + wz * p[0] - wx * p[2]
+    vz = vel[2] + wx * p[1] - wy * p[0]
+    out[0] = acc[0] + acc[4] * p[2] - acc[5] * p[1] + wy * vz - wz * vy
+    out[1] = acc[1] + acc[5] * p[0] - acc[3] * p[2] + wz * vx - wx * vz
+    out[2] = acc[2] + acc[3] * p[1] - acc[4] * p[0] + wx * vy - wy * vx
+
+
+@njit(cache=True)
+def rigid_terms(ws, v: np.ndarray) -> bool:  # type: ignore[no-untyped-def]
+    """M, N, the task point's x, ẋ, J, J̇q̇ and the capsules' geometry from Pinocchio's arrays (after
+    ``computeAllTerms``); False if N is not finite (speeds so large that C(q, q̇)q̇ overflows)."""
+    M, N, Mt, nle, Jt = ws.M, ws.N, ws.Mt, ws.nle, ws.Jt
+    n = N.shape[0]
+    for i in range(n):
+        N[i] = nle[i]
+        if not math.isfinite(nle[i]):
+            return False
+        for j in range(i + 1):
+            M[i, j] = M[j, i] = Mt[i, j]
+    acc = ws.w3  # scratch (≥ 6)
+    vel = np.empty(6)
+    p = np.empty(3)
+    J3 = np.empty((3, n))
+    # task point
+    support = ws.ee_support
+    world_point(ws, ws.ee_joint, ws.ee_local, p)
+    point_jacobian(ws, support, p, J3)
+    for r in range(6):
+        s = 0.0
+        for k in range(n):
+            s += Jt[k, r] * support[k] * v[k]
+        vel[r] = s
+    _world_acceleration(ws, ws.ee_joint, acc)
+    a3 = np.empty(3)
+    _classical_acceleration(vel, acc, p, a3)
+    axes, x, drift, J, xdot = ws.axes, ws.x, ws.drift, ws.J, ws.xdot
+    for r in range(axes.shape[0]):
+        ax = axes[r]
+        x[r] = p[ax]
+        drift[r] = a3[ax]
+        s = 0.0
+        for k in range(n):
+            J[r, k] = J3[ax, k]
+            s += J3[ax, k] * v[k]
+        xdot[r] = s
+    if ws.ori_rows.shape[0]:  # the frame's R, ω, α₀ for the orientation rows (orientation_reference)
+        _frame_rotation(ws)
+        for c in range(3):
+            ws.ee_w[c], ws.ee_w[3 + c] = vel[3 + c], acc[3 + c]
+    # capsules
+    cap_joint, cap_local, cap_support = ws.cap_joint, ws.cap_local, ws.cap_support
+    segments, body_jac, body_vel = ws.segments, ws.body_jac, ws.body_vel
+    link_jac, acc_off, acc_K = ws.link_jac, ws.acc_off, ws.acc_K
+    for i in range(cap_joint.shape[0]):
+        j = cap_joint[i]
+        world_point(ws, j, cap_local[i, 0], segments[i, 0])
+        world_point(ws, j, cap_local[i, 1], segments[i, 1])
+        for r in range(6):
+            s = 0.0
+            for k in range(n):
+                val = Jt[k, r] * cap_support[i, k]
+                body_jac[i, r, k] = val
+                s += val * v[k]
+            body_vel[i, r] = s
+        for r in range(3):
+            p[r] = 0.5 * (segments[i, 0, r] + segments[i, 1, r])
+        point_jacobian(ws, cap_support[i], p, link_jac[i])
+        # q̈ = 0 acceleration field of the body: a(p) = offset + K p, offset = a + ω × v, K = [α]× + [ω]×²
+        _world_acceleration(ws, j, acc)
+        vx, vy, vz, wx, wy, wz = body_vel[i, 0], body_vel[i, 1], body_vel[i, 2], body_vel[i, 3], body_vel[i, 4], body_vel[i, 5]
+        acc_off[i, 0] = acc[0] + wy * vz - wz * vy
+        acc_off[i, 1] = acc[1] + wz * vx - wx * vz
+        acc_off[i, 2] = acc[2] + wx * vy - wy * vx
+        K = acc_K[i]
+        K[0, 0], K[0, 1], K[0, 2] = -(wy * wy + wz * wz), -acc[5] + wx * wy, acc[4] + wx * wz
+        K[1, 0], K[1, 1], K[1, 2] = acc[5] + wx * wy, -(wx * wx + wz * wz), -acc[3] + wy * wz
+        K[2, 0], K[2, 1], K[2, 2] = -acc[4] + wx * wz, acc[3] + wy * wz, -(wx * wx + wy * wy)
+    return True
+
+
+@njit(cache=True)
+def _frame_rotation(ws) -> None:  # type: ignore[no-untyped-def]
+    """ws.ee_R = the task frame's world rotation (its joint's, times the frame's in the joint)."""
+    P, Rl, R = ws.oMi, ws.ee_rot, ws.ee_R
+    j = ws.ee_joint
+    for r in range(3):
+        for c in range(3):
+            R[r, c] = P[j, r] * Rl[0, c] + P[j, r + 3] * Rl[1, c] + P[j, r + 6] * Rl[2, c]
+
+
+@njit(cache=True)
+def body_point(ws, i: int, p: np.ndarray, vel: np.ndarray, acc: np.ndarray) -> None:  # type: ignore[no-untyped-def]
+    """Velocity and q̈ = 0 acceleration of the point p fixed to capsule i's body."""
+    bv, K, o = ws.body_vel[i], ws.acc_K[i], ws.acc_off[i]
+    vel[0] = bv[0] + bv[4] * p[2] - bv[5] * p[1]
+    vel[1] = bv[1] + bv[5] * p[0] - bv[3] * p[2]
+    vel[2] = bv[2] + bv[3] * p[1] - bv[4] * p[0]
+    for c in range(3):
+        acc[c] = o[c] + K[c, 0] * p[0] + K[c, 1] * p[1] + K[c, 2] * p[2]
