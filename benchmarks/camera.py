@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from qpctl import Scenario
+from qpctl.adapters.mujoco import scene_caster
 from qpctl.simulation.camera import CameraConfig, DepthCamera
 
 SCENARIO = "panda_canopy_depth"
@@ -47,7 +48,7 @@ def measure(keys: dict, rounds: int) -> dict:
     robot = scen.build_robot()
     cfg = dataclasses.replace(scen.camera_config(), **keys)
     kernel, mj = (DepthCamera(cfg, robot, scen.build_obstacles(), scenery=scen.scenery()) for _ in range(2))
-    mj.use_mujoco()
+    mj.caster = scene_caster(mj)
     qs = states(scen)
     for q in qs[:1]:  # compile / load the kernels, build MuJoCo's data
         kernel.capture(q, 0.0)

@@ -155,6 +155,13 @@ def packaged_scenarios() -> list[str]:
     return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
 
 
+def depth_canopies(count: int = 20, first_seed: int = 1) -> list[Scenario]:
+    """The packaged ``panda_canopy_depth`` with ``canopy.seed`` = first_seed, first_seed + 1, … (``count``
+    of them, each validated: each grows at least one reachable fruit; :mod:`qpctl.scenes.canopy`)."""
+    return [Scenario.load("panda_canopy_depth", overrides=[f"canopy.seed={s}"])
+            for s in range(first_seed, first_seed + count)]
+
+
 @dataclass
 class Scenario:
     """A validated scenario; ``data`` mirrors the TOML with every default filled in."""

@@ -19,9 +19,10 @@ import fcl
 import numpy as np
 import pytest
 
+from qpctl import ConfigError, Scenario
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels import raycast as K
-from qpctl.simulation.camera import CameraConfig, DepthCamera, MujocoCaster
+from qpctl.simulation.camera import CameraConfig, DepthCamera, NumbaCaster
 
 
 def random_obstacles(rng: np.random.Generator, count: int, lo: tuple[float, ...], hi: tuple[float, ...]) -> list[Obstacle]:
@@ -186,8 +187,11 @@ mujoco = pytest.importorskip("mujoco")
 
 
 def _pair(robot, obstacles, cfg):
-    numba_cam = DepthCamera(cfg, robot, obstacles)
-    return numba_cam, DepthCamera(cfg, robot, obstacles).use_mujoco()
+    from qpctl.adapters.mujoco import scene_caster
+
+    numba_cam, mujoco_cam = DepthCamera(cfg, robot, obstacles), DepthCamera(cfg, robot, obstacles)
+    mujoco_cam.caster = scene_caster(mujoco_cam)
+    return numba_cam, mujoco_cam
 
 
 def _agree(a, b, min_hits: int) -> None:
@@ -233,15 +237,21 @@ def test_wrist_camera_inside_its_link_capsule(panda_robot):
 def test_camera_in_the_mujoco_simulators_live_model(panda_robot):
     """In the MuJoCo simulator (caster "auto") the camera casts in the simulator's own model, which
     holds the scenario's obstacles and the arm; it sees what the kernel sees."""
-    from qpctl import Scenario
     from qpctl.adapters.mujoco import MujocoSimulator
 
-    scen = Scenario.load("panda_canopy", overrides=[
-        "camera.mount=world", "camera.position=[-0.3, -0.6, 1.0]", "camera.look_at=[0.6, 0.0, 0.4]",
-        "camera.width=160", "camera.height=120", "sim.simulator=mujoco"])
+    scen_keys = ["camera.mount=world", "camera.position=[-0.3, -0.6, 1.0]", "camera.look_at=[0.6, 0.0, 0.4]",
+                 "camera.width=160", "camera.height=120"]
+    scen = Scenario.load("panda_canopy", overrides=[*scen_keys, "sim.simulator=mujoco"])
     sim = MujocoSimulator.from_scenario(scen.build_controller(robot=panda_robot), scen)
     live = DepthCamera.from_scenario(scen, panda_robot, simulator=sim)
+    from qpctl.adapters.mujoco_camera import MujocoCaster
+
     assert isinstance(live.caster, MujocoCaster) and live.caster.model is sim.model
+    with pytest.raises(ConfigError) as err:  # MuJoCo's casting outside the MuJoCo simulator
+        DepthCamera.from_scenario(Scenario.load("panda_canopy", overrides=[*scen_keys, "camera.caster=mujoco"]))
+    assert err.value.key == "camera.caster"
+    assert isinstance(DepthCamera.from_scenario(Scenario.load("panda_canopy", overrides=[
+        *scen_keys, "camera.caster=numba"]), panda_robot, simulator=sim).caster, NumbaCaster)
     ours = DepthCamera.from_scenario(scen, panda_robot)
     q = panda_robot.q_home + 0.2
     _agree(ours.render(q, 0.0)[1], live.render(q, 0.0)[1], 2000)
@@ -252,7 +262,6 @@ def test_a_users_own_model_is_seen_as_the_robot():
     names them "robot"; where they are, the kernel sees qpctl's link capsules of the same size."""
     from pathlib import Path
 
-    from qpctl import Scenario
     from qpctl.adapters.mujoco import MujocoSimulator
 
     toml = Path(__file__).resolve().parents[1] / "examples" / "my_arm.toml"

@@ -16,7 +16,8 @@ import pinocchio as pin
 import pytest
 
 from qpctl import ConfigError, Obstacle, Scenario
-from qpctl.scenes.canopy import CanopyConfig, depth_canopies, generate_canopy, link_capsules
+from qpctl.scenario import depth_canopies
+from qpctl.scenes.canopy import CanopyConfig, generate_canopy, link_capsules
 from qpctl.simulation.camera import DepthCamera
 
 
