@@ -198,8 +198,10 @@ class Scenario:
         resolved from ``base_dir`` (default: the working folder)."""
         raw = apply_overrides(raw, overrides) if overrides else raw
         data = _validate_table(raw, SCHEMA, source, "")
-        for table, key in NAMED_BY.items():  # a table written without the key that makes it exist
-            if isinstance(raw.get(table), dict) and raw[table] and key not in raw[table]:
+        for table, key in NAMED_BY.items():  # a table set without the key that makes it exist (a table of
+            given = raw.get(table)  # defaults only, as a validated scenario written back to TOML gives, is fine)
+            if (isinstance(given, dict) and key not in given
+                    and any(v != SCHEMA[table][k][1] for k, v in given.items() if k in SCHEMA[table])):
                 raise ConfigError(f"missing value (the [{table}] table is written but its {key} is not given)",
                                   source=source, key=f"{table}.{key}")
         from qpctl.controllers.factory import CONTROLLERS, unknown_kind
