@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: all env demo test soak robust bench bench-quick perception perception-canopies harvest simulators sweep-small sweep-1k sweep-throughput lint clean
+.PHONY: all env demo test soak robust bench bench-quick perception perception-canopies harvest simulators camera sweep-small sweep-1k sweep-throughput lint clean
 
 all: test
 
@@ -49,9 +49,13 @@ perception-canopies: $(STAMP)
 harvest: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks.harvest --out results/harvest
 
-# Built-in / MuJoCo / PyBullet side by side: results/simulators/simulators.md (docs/simulators.md, "Other simulators").
+# Built-in / MuJoCo / PyBullet / Drake side by side: results/simulators/simulators.md (docs/simulators.md, "Other simulators").
 simulators: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks.simulators --out results/simulators
+
+# The simulated depth camera: the kernel against mj_multiRay on panda_canopy_depth, and a frame's figure (docs/camera.md).
+camera: $(STAMP)
+	MPLBACKEND=Agg $(PY) -m benchmarks.camera --out results/camera
 
 # Sweeps (docs/sweeps.md). The packaged canopy_small (40 runs) and canopy_1k (1,000 runs) specs; rerunning
 # a target resumes the sweep in its folder. sweep-throughput makes the runs/min table of docs/sweeps.md.

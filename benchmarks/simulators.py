@@ -1,9 +1,10 @@
-"""Built-in, MuJoCo and PyBullet side by side: the same controller, scenario and step in each.
+"""Built-in, MuJoCo, PyBullet and Drake side by side: the same controller, scenario and step in each.
 
     python -m benchmarks.simulators [--out results/simulators] [--quick]
 
 For each case (scenario, law) it runs the built-in simulator (RK4 and semi-implicit Euler), MuJoCo
-(RK4) and PyBullet (its own semi-implicit Euler) through :func:`qpctl.run.simulate`, and reports per
+(RK4), PyBullet (its own semi-implicit Euler) and Drake (a continuous plant under its fixed-step
+semi-explicit Euler) through :func:`qpctl.run.simulate`, and reports per
 simulator: the largest |Δq| [rad] and |Δx| [m] over the run against the built-in RK4 run and against
 the built-in run with the simulator's own integrator, the closed-loop outcome (min clearance [m],
 max and rms tracking error [m], collided), and the simulator's own cost per tick [µs]: read the
@@ -25,7 +26,7 @@ from qpctl.adapters import simulator_class
 from qpctl.run import simulate
 
 CASES = [("paper", "qp"), ("paper", "paper"), ("panda_canopy", "qp"), ("panda_canopy", "hsu")]
-SIMS = [("builtin", "rk4"), ("builtin", "euler"), ("mujoco", "rk4"), ("pybullet", "euler")]
+SIMS = [("builtin", "rk4"), ("builtin", "euler"), ("mujoco", "rk4"), ("pybullet", "euler"), ("drake", "euler")]
 
 
 def step_cost_us(which: str, integrator: str, scenario: Scenario, kind: str, tau: np.ndarray, q0: np.ndarray) -> float:

@@ -50,8 +50,8 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
     """Build the scenario's controller and run it in the chosen simulator (built-in RK4 by default).
 
     ``simulator`` (or ``sim.simulator``) is a name in :data:`qpctl.adapters.SIMULATORS`: ``builtin``,
-    ``mujoco``, ``pybullet``. With ``[faults]`` on, the controller is built on its (perturbed) map of
-    the obstacles and the built-in simulator applies the faults (:mod:`qpctl.simulation.faults`); the
+    ``mujoco``, ``pybullet``, ``drake``. With ``[faults]`` on, the controller is built on its (perturbed)
+    map of the obstacles and the built-in simulator applies the faults (:mod:`qpctl.simulation.faults`); the
     other simulators refuse them. What an adapter changed in or found about the user's model
     (``sim.model``) is in ``metrics["simulator_notes"]``."""
     faults = scenario.faults()

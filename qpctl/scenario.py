@@ -157,6 +157,13 @@ def packaged_scenarios() -> list[str]:
     return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
 
 
+def depth_canopies(count: int = 20, first_seed: int = 1) -> list[Scenario]:
+    """The packaged ``panda_canopy_depth`` with ``canopy.seed`` = first_seed, first_seed + 1, … (``count``
+    of them, each validated: each grows at least one reachable fruit; :mod:`qpctl.scenes.canopy`)."""
+    return [Scenario.load("panda_canopy_depth", overrides=[f"canopy.seed={s}"])
+            for s in range(first_seed, first_seed + count)]
+
+
 @dataclass
 class Scenario:
     """A validated scenario; ``data`` mirrors the TOML with every default filled in."""
@@ -193,8 +200,10 @@ class Scenario:
         resolved from ``base_dir`` (default: the working folder)."""
         raw = apply_overrides(raw, overrides) if overrides else raw
         data = _validate_table(raw, SCHEMA, source, "")
-        for table, key in NAMED_BY.items():  # a table written without the key that makes it exist
-            if isinstance(raw.get(table), dict) and raw[table] and key not in raw[table]:
+        for table, key in NAMED_BY.items():  # a table set without the key that makes it exist (a table of
+            given = raw.get(table)  # defaults only, as a validated scenario written back to TOML gives, is fine)
+            if (isinstance(given, dict) and key not in given
+                    and any(v != SCHEMA[table][k][1] for k, v in given.items() if k in SCHEMA[table])):
                 raise ConfigError(f"missing value (the [{table}] table is written but its {key} is not given)",
                                   source=source, key=f"{table}.{key}")
         from qpctl.controllers.factory import CONTROLLERS, unknown_kind

@@ -19,9 +19,10 @@ import fcl
 import numpy as np
 import pytest
 
+from qpctl import ConfigError, Scenario
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels import raycast as K
-from qpctl.simulation.camera import CameraConfig, DepthCamera, MujocoCaster
+from qpctl.simulation.camera import CameraConfig, DepthCamera, NumbaCaster
 
 
 def random_obstacles(rng: np.random.Generator, count: int, lo: tuple[float, ...], hi: tuple[float, ...]) -> list[Obstacle]:
@@ -68,7 +69,13 @@ def test_image_equals_brute_force(seed):
     origin, R = rng.uniform(-0.1, 0.1, 3), random_rotation(rng) if seed else np.eye(3)
     obstacles += [Obstacle("capsule", origin + R @ [0.3, 0.1, 0.0], radius=0.05, length=1.0, axis=R[:, 2]),  # across
                   Obstacle("box", origin + R @ [-0.2, 0.0, 0.1], size=[0.1, 0.1, 0.4], axis=R[:, 2]),  # the plane
-                  Obstacle("sphere", origin + R @ [0.0, 0.0, -0.5], radius=0.3)]  # behind
+                  Obstacle("sphere", origin + R @ [0.0, 0.0, -0.5], radius=0.3),  # behind
+                  Obstacle("sphere", origin + R @ [0.0, 0.25, 0.05], radius=0.2),  # beside, across the plane
+                  Obstacle("cylinder", origin + R @ [-0.1, -0.1, 0.3], radius=0.03, length=1.2, axis=R @ [1, 1, 0.2]),
+                  Obstacle("capsule", origin + R @ [0.0, 0.06, 0.03], radius=0.05, length=1.0, axis=R[:, 0]),
+                  Obstacle("capsule", origin + R @ [0.05, 0.0, -0.01], radius=0.049, length=1.0, axis=R[:, 1])]
+    # two bars just before and beside the camera, across its whole view: on one plane each one's shadow
+    # holds the camera, the second's axis behind it
     scene = primitives(obstacles)
     W, H, f = 96, 72, 60.0
     depth, hit, cos = np.empty((H, W)), np.empty((H, W), np.int32), np.empty((H, W))
@@ -82,7 +89,9 @@ def test_image_equals_brute_force(seed):
     assert np.isinf(depth.ravel()[~seen]).all()
     assert np.abs(depth.ravel()[seen] - t[seen]).max() < 1e-12  # the rays' directions round differently
     assert 0.02 < (who >= 0).mean() < 0.98  # a scene with hits and misses
-    assert {len(obstacles) - 3, len(obstacles) - 2} <= set(who.tolist())  # seen across the camera's plane
+    n = len(obstacles)
+    seen_ids = set(who.tolist())
+    assert {n - 7, n - 6, n - 2, n - 1} <= seen_ids and seen_ids & {n - 4, n - 3}  # seen across the camera's plane
     assert tests < W * H * len(obstacles) / 2  # the bounds cull
 
 
@@ -178,8 +187,11 @@ mujoco = pytest.importorskip("mujoco")
 
 
 def _pair(robot, obstacles, cfg):
-    numba_cam = DepthCamera(cfg, robot, obstacles)
-    return numba_cam, DepthCamera(cfg, robot, obstacles).use_mujoco()
+    from qpctl.adapters.mujoco import scene_caster
+
+    numba_cam, mujoco_cam = DepthCamera(cfg, robot, obstacles), DepthCamera(cfg, robot, obstacles)
+    mujoco_cam.caster = scene_caster(mujoco_cam)
+    return numba_cam, mujoco_cam
 
 
 def _agree(a, b, min_hits: int) -> None:
@@ -225,15 +237,21 @@ def test_wrist_camera_inside_its_link_capsule(panda_robot):
 def test_camera_in_the_mujoco_simulators_live_model(panda_robot):
     """In the MuJoCo simulator (caster "auto") the camera casts in the simulator's own model, which
     holds the scenario's obstacles and the arm; it sees what the kernel sees."""
-    from qpctl import Scenario
     from qpctl.adapters.mujoco import MujocoSimulator
 
-    scen = Scenario.load("panda_canopy", overrides=[
-        "camera.mount=world", "camera.position=[-0.3, -0.6, 1.0]", "camera.look_at=[0.6, 0.0, 0.4]",
-        "camera.width=160", "camera.height=120", "sim.simulator=mujoco"])
+    scen_keys = ["camera.mount=world", "camera.position=[-0.3, -0.6, 1.0]", "camera.look_at=[0.6, 0.0, 0.4]",
+                 "camera.width=160", "camera.height=120"]
+    scen = Scenario.load("panda_canopy", overrides=[*scen_keys, "sim.simulator=mujoco"])
     sim = MujocoSimulator.from_scenario(scen.build_controller(robot=panda_robot), scen)
     live = DepthCamera.from_scenario(scen, panda_robot, simulator=sim)
+    from qpctl.adapters.mujoco_camera import MujocoCaster
+
     assert isinstance(live.caster, MujocoCaster) and live.caster.model is sim.model
+    with pytest.raises(ConfigError) as err:  # MuJoCo's casting outside the MuJoCo simulator
+        DepthCamera.from_scenario(Scenario.load("panda_canopy", overrides=[*scen_keys, "camera.caster=mujoco"]))
+    assert err.value.key == "camera.caster"
+    assert isinstance(DepthCamera.from_scenario(Scenario.load("panda_canopy", overrides=[
+        *scen_keys, "camera.caster=numba"]), panda_robot, simulator=sim).caster, NumbaCaster)
     ours = DepthCamera.from_scenario(scen, panda_robot)
     q = panda_robot.q_home + 0.2
     _agree(ours.render(q, 0.0)[1], live.render(q, 0.0)[1], 2000)
@@ -244,7 +262,6 @@ def test_a_users_own_model_is_seen_as_the_robot():
     names them "robot"; where they are, the kernel sees qpctl's link capsules of the same size."""
     from pathlib import Path
 
-    from qpctl import Scenario
     from qpctl.adapters.mujoco import MujocoSimulator
 
     toml = Path(__file__).resolve().parents[1] / "examples" / "my_arm.toml"

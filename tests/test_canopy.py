@@ -16,7 +16,8 @@ import pinocchio as pin
 import pytest
 
 from qpctl import ConfigError, Obstacle, Scenario
-from qpctl.scenes.canopy import CanopyConfig, depth_canopies, generate_canopy, link_capsules
+from qpctl.scenario import depth_canopies
+from qpctl.scenes.canopy import CanopyConfig, generate_canopy, link_capsules
 from qpctl.simulation.camera import DepthCamera
 
 
@@ -155,7 +156,7 @@ def test_twenty_seeded_depth_canopies():
 
 
 @pytest.mark.parametrize(("overrides", "key"), [
-    (["canopy.leaves=300"], "canopy.seed"),  # a [canopy] table without its seed
+    (["canopy.leaves=20"], "canopy.seed"),  # a [canopy] table without its seed
     (["canopy.seed=-1"], "canopy.seed"),
     (["canopy.seed=1", "canopy.leaves=-3"], "canopy.leaves"),
     (["canopy.seed=1", "canopy.fruits=0"], "canopy.fruits"),
@@ -189,3 +190,16 @@ def test_waypoints_come_from_a_canopy_or_the_file():
 def test_config_defaults_are_the_documented_ones():
     cfg = CanopyConfig()
     assert not cfg.enabled and (cfg.leaves, cfg.branches, cfg.fruits, cfg.wires) == (300, 12, 3, 3)
+
+
+def test_a_table_of_defaults_written_back_is_no_canopy():
+    """A validated scenario's data without its unset values (as written back to TOML) loads again with
+    no canopy and no camera; a [canopy] that sets a key but not its seed is still an error."""
+    data = Scenario.load("panda_canopy").data
+    raw = {k: ({kk: vv for kk, vv in v.items() if vv is not None} if isinstance(v, dict) else v)
+           for k, v in data.items()}
+    again = Scenario.from_dict(raw)
+    assert again.canopy() is None and not again.camera_config().enabled
+    with pytest.raises(ConfigError) as err:
+        Scenario.from_dict({**raw, "canopy": {**raw["canopy"], "leaves": 20}})
+    assert err.value.key == "canopy.seed"

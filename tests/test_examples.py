@@ -18,6 +18,7 @@ CASES = [
     ("drive_mujoco_loop.py", 0.2, "tracking error", False),
     ("drive_pybullet_loop.py", 0.2, "tracking error", False),
     ("drive_my_mujoco_model.py", 0.3, "ctrl clamped on 0 ticks", False),
+    ("drake_diagram.py", 0.2, "min clearance", True),
     ("swap_solver.py", 0.05, "swapped a live controller to osqp", True),
     ("posture_task.py", 0.1, "with PostureTask", True),
     ("moving_obstacle.py", 0.1, "min clearance", True),
@@ -35,6 +36,8 @@ def test_example_runs(script, duration, expected, needs_qp):
         pytest.importorskip("mujoco")
     if script == "drive_pybullet_loop.py":
         pytest.importorskip("pybullet")
+    if script == "drake_diagram.py":
+        pytest.importorskip("pydrake")
     if needs_qp and importlib.util.find_spec("qpctl.controllers.qp") is None:
         pytest.skip("needs the QP controller")
     env = dict(os.environ, QPCTL_EXAMPLE_DURATION=str(duration), MPLBACKEND="Agg")

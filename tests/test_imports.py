@@ -39,7 +39,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("formulation and solvers", ("qpctl.formulation", "qpctl.solvers", "qpctl.outcome", "qpctl.fallbacks",
                                  "qpctl.warmup")),
     ("controllers", ("qpctl.controllers",)),
-    ("simulation", ("qpctl.simulation",)),
+    ("simulation", ("qpctl.simulation", "qpctl.scenes")),
     ("adapters", ("qpctl.adapters",)),
     ("scenario", ("qpctl.scenario",)),
     ("run", ("qpctl.run", "qpctl.plots")),

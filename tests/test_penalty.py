@@ -15,6 +15,7 @@ import pytest
 
 from qpctl.bench.scenes import planar_scene
 from qpctl.controllers.factory import make_controller
+from qpctl.controllers.qp_compiled import CompiledTick
 from qpctl.qp import Problem, penalty_is_exact
 from qpctl.run import simulate
 from qpctl.scenario import Scenario
@@ -123,6 +124,12 @@ def test_osqp_hard_first_gives_the_relaxed_answer(path):
     assert refused >= 20, refused
 
 
+def one_call_hard_first(ctrl) -> bool:
+    """Whether the controller's ticks run in one kernel call on DAQP's C API with the task hard first."""
+    path = ctrl.qp_path()
+    return isinstance(path, CompiledTick) and path.native_args is not None and path.relax.hard_first(True)
+
+
 def test_daqp_native_hard_first_gives_the_relaxed_answer():
     """DAQP's default tick (task_relaxation "auto") solves the task hard first, with no slack
     variables, and keeps that answer only where DAQP's own multipliers say the relaxed QP's is the
@@ -135,7 +142,7 @@ def test_daqp_native_hard_first_gives_the_relaxed_answer():
     auto = scene.controller("qp", "daqp")
     always = make_controller(dict(scene.controller_cfg, kind="qp", solver="daqp", task_relaxation="always"),
                              scene.robot, scene.path, list(scene.obstacles), scene.gains)
-    assert auto._native_hard_first(auto.workspace()) and not always._native_hard_first(always.workspace())
+    assert one_call_hard_first(auto) and not one_call_hard_first(always)
     kept = relaxed = refused = 0
     for k in range(1300, 1500):
         a = auto.step(run.q[k], run.v[k], float(run.t[k]))
@@ -180,14 +187,14 @@ def test_hard_first_path_follows_a_swapped_solver():
     scene = planar_scene(3)
     ctrl = scene.controller("qp", "daqp")
     q, v = scene.q0, np.zeros(3)
-    assert ctrl.step(q, v, 0.01).info["solver"] == "daqp" and ctrl._hf is not None
+    assert ctrl.step(q, v, 0.01).info["solver"] == "daqp" and one_call_hard_first(ctrl)
     ctrl.set_solver("proxqp")
     assert ctrl.step(q, v, 0.02).info["solver"] == "proxqp"
     ctrl.set_solver("daqp")
     out = ctrl.step(q, v, 0.03)
-    assert out.info["solver"] == "daqp" and not out.info.get("relaxed") and ctrl._hf is not None
+    assert out.info["solver"] == "daqp" and not out.info.get("relaxed") and one_call_hard_first(ctrl)
     old = ctrl.workspace()
     ctrl.remove_constraint("self_collision")  # a new workspace: looked up again
     out = ctrl.step(q, v, 0.04)
-    assert ctrl.workspace() is not old and ctrl._hf_ws is ctrl.workspace() and ctrl._hf is not None
+    assert ctrl.workspace() is not old and ctrl.qp_path().ws is ctrl.workspace() and one_call_hard_first(ctrl)
     assert out.info["solver"] == "daqp" and not out.info.get("relaxed")

@@ -6,8 +6,9 @@
 * :data:`SIMULATORS` — the registry behind ``--sim`` / ``sim.simulator``: a new simulator is one
   module with a :class:`SimulatorBase` subclass and one line here.
 * :class:`JointMap` — the simulator's joint order ↔ the model's (``robot.joint_names``), by name.
-* :mod:`qpctl.adapters.mujoco` (``pip install 'qpctl[mujoco]'``) and :mod:`qpctl.adapters.pybullet`
-  (``pip install 'qpctl[pybullet]'``), imported on demand: optional dependencies.
+* :mod:`qpctl.adapters.mujoco` (``pip install 'qpctl[mujoco]'``), :mod:`qpctl.adapters.pybullet`
+  (``pip install 'qpctl[pybullet]'``) and :mod:`qpctl.adapters.drake` (``pip install 'qpctl[drake]'``),
+  imported on demand: optional dependencies.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ SIMULATORS: dict[str, tuple[str, str, str | None]] = {
     "builtin": ("qpctl.simulation.simulator", "Simulator", None),
     "mujoco": ("qpctl.adapters.mujoco", "MujocoSimulator", "mujoco"),
     "pybullet": ("qpctl.adapters.pybullet", "PybulletSimulator", "pybullet"),
+    "drake": ("qpctl.adapters.drake", "DrakeSimulator", "drake"),
 }
 
 

@@ -12,13 +12,20 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pinocchio as pin
 
+from qpctl.errors import ConfigError
 from qpctl.robot.model import RobotModel
 
+if TYPE_CHECKING:
+    from qpctl.simulation.loop import SimulatorBase
+
 ROUND_OFF = 1e-9  # relative difference below which two models are the same model
+FORWARD_TOLERANCE = 1e-9  # relative q̈ difference above which a simulator's forward dynamics are reported
+Terms = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
 @dataclass(frozen=True)
@@ -57,8 +64,7 @@ def random_states(robot: RobotModel, count: int = 5, seed: int = 0) -> list[tupl
     return [(rng.uniform(lo, hi), rng.uniform(-1.0, 1.0, robot.nv)) for _ in range(count)]
 
 
-def check_dynamics(robot: RobotModel, terms: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]],
-                   count: int = 5, seed: int = 0) -> DynamicsCheck:
+def check_dynamics(robot: RobotModel, terms: Terms, count: int = 5, seed: int = 0) -> DynamicsCheck:
     """Compare ``terms(q, v) → (M (n, n), N (n,))`` of a simulator (controller's joint order) with
     Pinocchio's CRBA and ``nonLinearEffects`` on ``count`` seeded random states."""
     data = robot.model.createData()
@@ -75,3 +81,40 @@ def check_dynamics(robot: RobotModel, terms: Callable[[np.ndarray, np.ndarray], 
         b_abs = max(b_abs, float(np.max(np.abs(N_sim - N))))
         b_ref = max(b_ref, float(np.max(np.abs(N))))
     return DynamicsCheck(m_abs, m_abs / m_ref, b_abs, b_abs / b_ref, len(states))
+
+
+def forward_difference(sim: SimulatorBase) -> float:
+    """Largest relative difference between a simulator's q̈ — its first step's Δv/dt from each of
+    :func:`random_states`, τ = 0, through its own reset/apply/step/read — and Pinocchio's ABA."""
+    robot = sim.robot
+    data = robot.model.createData()
+    worst = 0.0
+    for q, v in random_states(robot):
+        sim.reset(q, v)
+        sim.apply(np.zeros(robot.nv))
+        sim.step(0.0)
+        a_sim = (sim.read()[1] - v) / sim.dt
+        a = pin.aba(robot.model, data, q, v, np.zeros(robot.nv))
+        worst = max(worst, float(np.max(np.abs(a_sim - a)) / max(np.max(np.abs(a)), 1.0)))
+    return worst
+
+
+def check_simulator(sim: SimulatorBase, terms: Terms, what: str, *, by_order: bool) -> tuple[DynamicsCheck, float]:
+    """The start-up checks of an adapter that loaded a model: :func:`check_dynamics` and
+    :func:`forward_difference`, their sentences added to ``sim.notes`` when they differ (or the joints
+    were matched by order); ``what`` names the model ("the PyBullet model").
+
+    Raises:
+        ConfigError (``sim.joint_names``): joints matched by order whose dynamics differ.
+    """
+    dynamics = check_dynamics(sim.robot, terms)
+    if by_order and not dynamics.same:
+        raise ConfigError("joints matched by order, but " + dynamics.sentence(what)
+                          + "; name the joints with sim.joint_names (or fix the model)", key="sim.joint_names")
+    if not dynamics.same or by_order:
+        sim.notes.append(dynamics.sentence(what))
+    forward = forward_difference(sim)
+    if forward > FORWARD_TOLERANCE:
+        sim.notes.append(f"{what}'s forward dynamics (one step from {len(random_states(sim.robot))} random states, "
+                         f"τ = 0) differ from Pinocchio's ABA by {forward:.2g} relative in q̈")
+    return dynamics, forward

@@ -204,6 +204,15 @@ def build_model(robot: RobotModel, obstacles: Sequence[Obstacle] = (), **kwargs:
         raise ConfigError(f"MuJoCo rejected the generated model of {robot.name}: {exc}", key="robot") from exc
 
 
+def scene_caster(camera: Any) -> Any:
+    """A depth camera's (:class:`~qpctl.simulation.camera.DepthCamera`) ``mj_multiRay`` caster on a
+    MuJoCo model of its own scene (:func:`build_model`: the robot, the obstacles and the scenery)."""
+    from qpctl.adapters.mujoco_camera import MujocoCaster
+
+    model = build_model(camera.robot, [*camera.obstacles, *camera.scenery])
+    return MujocoCaster(model, MujocoJoints.for_robot(model, camera.robot), camera)
+
+
 def full_inertia(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
     """Dense joint-space inertia M(q) (nv, nv) [kg·m²] of the last ``mj_forward``/``mj_step``."""
     M = np.zeros((model.nv, model.nv))
@@ -489,6 +498,13 @@ class MujocoSimulator(SimulatorBase):
         return cls(controller, dt=sim["dt"], duration=sim["duration"], integrator=sim["integrator"],
                    progress=progress, model=model, joint_names=sim["joint_names"],
                    obstacles=scenario.build_obstacles(), scenery=scenario.scenery())
+
+    def ray_caster(self, camera: Any) -> Any:
+        """A depth camera's caster in this simulator's live model (``mujoco.mj_multiRay``;
+        :class:`qpctl.adapters.mujoco_camera.MujocoCaster`)."""
+        from qpctl.adapters.mujoco_camera import MujocoCaster
+
+        return MujocoCaster(self.model, self.joints, camera, prefix=self.geom_prefix)
 
     def _match_joints(self, model: mujoco.MjModel, joint_names: Sequence[str] | None,
                       allow_extra: bool) -> MujocoJoints:

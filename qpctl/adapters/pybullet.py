@@ -35,9 +35,7 @@ difference above 1e-9 relative is reported (it found the joint damping above).
 from __future__ import annotations
 
 import contextlib
-import re
 import tempfile
-import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -46,11 +44,13 @@ import numpy as np
 import pinocchio as pin
 
 from qpctl.adapters.joint_map import JointMap
-from qpctl.adapters.model_check import DynamicsCheck, check_dynamics, random_states
+from qpctl.adapters.model_check import DynamicsCheck, check_simulator
+from qpctl.adapters.urdf import prepare_urdf, robot_urdf, urdf_joints
 from qpctl.controllers.base import Controller
 from qpctl.errors import ConfigError, SimulationError
-from qpctl.robot.model import RobotModel
 from qpctl.simulation.loop import SimulatorBase
+
+__all__ = ["PybulletSimulator", "prepare_urdf", "robot_urdf"]  # the URDF writers live in qpctl.adapters.urdf
 
 
 def _import_quietly() -> Any:
@@ -76,84 +76,6 @@ try:
 except ImportError as exc:  # pragma: no cover - exercised only without the extra
     raise ImportError("the PyBullet adapter needs PyBullet: pip install 'qpctl[pybullet]' (or pip install "
                       "pybullet)") from exc
-
-FORWARD_TOLERANCE = 1e-9  # relative q̈ difference above which the forward dynamics are reported
-_AXES = {"X": (1.0, 0.0, 0.0), "Y": (0.0, 1.0, 0.0), "Z": (0.0, 0.0, 1.0)}
-
-
-def _fmt(values: Sequence[float] | np.ndarray) -> str:
-    return " ".join(f"{float(v):.17g}" for v in np.asarray(values, float).reshape(-1))
-
-
-def _joint_type_axis(joint: Any) -> tuple[str, np.ndarray]:
-    kind = joint.shortname()
-    for k, axis in _AXES.items():
-        if kind == f"JointModelR{k}":
-            return "continuous", np.array(axis)
-        if kind == f"JointModelP{k}":
-            return "prismatic", np.array(axis)
-    if kind == "JointModelRevoluteUnaligned":
-        return "continuous", np.asarray(joint.extract().axis, float)
-    if kind == "JointModelPrismaticUnaligned":
-        return "prismatic", np.asarray(joint.extract().axis, float)
-    raise ConfigError(f"joint type {kind} has no URDF counterpart here (revolute and prismatic only)", key="robot")
-
-
-def robot_urdf(robot: RobotModel) -> str:
-    """URDF text of ``robot``'s Pinocchio model: one link per joint with Pinocchio's placement, mass,
-    centre of mass and rotational inertia; joints named ``robot.joint_names``, continuous (revolute
-    without stops) or prismatic without limits; no visuals, collisions, damping or friction."""
-    model = robot.model
-    root = ET.Element("robot", {"name": robot.name})
-    base = ET.SubElement(ET.SubElement(root, "link", {"name": "qpctl_base"}), "inertial")
-    ET.SubElement(base, "mass", {"value": "0"})  # a fixed base: its mass plays no part
-    ET.SubElement(base, "inertia", {"ixx": "0", "ixy": "0", "ixz": "0", "iyy": "0", "iyz": "0", "izz": "0"})
-    link_names = {0: "qpctl_base"}
-    for j in range(1, model.njoints):
-        name = f"qpctl_link{j}"
-        link_names[j] = name
-        link = ET.SubElement(root, "link", {"name": name})
-        inertia = model.inertias[j]
-        if not inertia.mass > 0:
-            raise ConfigError(f"joint {model.names[j]} moves a body without mass; PyBullet cannot simulate it",
-                              key="robot")
-        inertial = ET.SubElement(link, "inertial")
-        ET.SubElement(inertial, "origin", {"xyz": _fmt(inertia.lever), "rpy": "0 0 0"})
-        ET.SubElement(inertial, "mass", {"value": f"{inertia.mass:.17g}"})
-        ic = inertia.inertia
-        ET.SubElement(inertial, "inertia", {k: f"{ic[a, b]:.17g}" for k, (a, b) in {
-            "ixx": (0, 0), "ixy": (0, 1), "ixz": (0, 2), "iyy": (1, 1), "iyz": (1, 2), "izz": (2, 2)}.items()})
-        jtype, axis = _joint_type_axis(model.joints[j])
-        joint = ET.SubElement(root, "joint", {"name": robot.joint_names[j - 1], "type": jtype})
-        placement = model.jointPlacements[j]
-        ET.SubElement(joint, "origin", {"xyz": _fmt(placement.translation),
-                                        "rpy": _fmt(pin.rpy.matrixToRpy(placement.rotation))})
-        ET.SubElement(joint, "parent", {"link": link_names[int(model.parents[j])]})
-        ET.SubElement(joint, "child", {"link": name})
-        ET.SubElement(joint, "axis", {"xyz": _fmt(axis)})
-        if jtype == "prismatic":
-            ET.SubElement(joint, "limit", {"lower": "-1e9", "upper": "1e9", "effort": "0", "velocity": "0"})
-    ET.indent(root)
-    return ET.tostring(root, encoding="unicode")
-
-
-def prepare_urdf(text: str, joint_names: Sequence[str], *, joint_limits: bool = False) -> str:
-    """A URDF made fit for a torque-controlled run: no ``<visual>``/``<collision>`` (nor their meshes),
-    no ``<mimic>``; movable joints not in ``joint_names`` fixed; ``joint_names``' revolute joints
-    continuous unless ``joint_limits``."""
-    text = re.sub(r"<(visual|collision)\b.*?</\1>", "", text, flags=re.DOTALL)
-    text = re.sub(r"<(visual|collision)\b[^>]*/>", "", text)
-    text = re.sub(r"<mimic\b[^>]*/>", "", text)
-    root = ET.fromstring(text)
-    keep = set(joint_names)
-    for joint in root.iter("joint"):
-        kind, name = joint.get("type"), joint.get("name")
-        if kind in ("revolute", "continuous", "prismatic") and name not in keep:
-            joint.set("type", "fixed")
-        elif kind == "revolute" and not joint_limits:
-            joint.set("type", "continuous")
-    return ET.tostring(root, encoding="unicode")
-
 
 class PybulletSimulator(SimulatorBase):
     """Runs a controller in PyBullet and records the same trajectory as the built-in simulator.
@@ -195,30 +117,12 @@ class PybulletSimulator(SimulatorBase):
             text, source = robot.urdf.read_text(), robot.urdf
         else:
             text, source = robot_urdf(robot), None
-        names = list(joint_names) if joint_names is not None else None
-        if names is not None and len(names) != robot.nv:
-            raise ConfigError(f"needs {robot.nv} names (the URDF's names of {', '.join(robot.joint_names)}), "
-                              f"got {len(names)}", key="sim.joint_names")
-        try:
-            declared = [(j.get("name"), j.get("type")) for j in ET.fromstring(text).iter("joint")]
-        except ET.ParseError as exc:
-            raise ConfigError(f"not a readable URDF ({source}): {exc}", key="sim.model") from None
-        by_order = False
-        if names is None:
-            movable = [n for n, k in declared if k in ("revolute", "continuous", "prismatic")]
-            if own and not any(n in movable for n in robot.joint_names):
-                if len(movable) != robot.nv:
-                    raise ConfigError(f"cannot match joints by order: the URDF has {len(movable)} movable joints "
-                                      f"({', '.join(str(n) for n in movable)}), the robot {robot.nv}; name them "
-                                      "with sim.joint_names", key="sim.joint_names")
-                names, by_order = [str(n) for n in movable], True
-                self.notes.append("joints matched by order: " + ", ".join(
-                    f"{a} → {b}" for a, b in zip(robot.joint_names, names)))
-            else:
-                names = list(robot.joint_names)
-        self.joint_names = tuple(names)
-        self._declared_dynamics = {str(j.get("name")): dyn.attrib for j in ET.fromstring(text).iter("joint")
-                                   if (dyn := j.find("dynamics")) is not None}
+        joints = urdf_joints(text, robot, joint_names, own=own, source=source)
+        names, by_order = list(joints.names), joints.by_order
+        if by_order:
+            self.notes.append(joints.order_note(robot))
+        self.joint_names = joints.names
+        self._joints = joints
         self.client = pybullet.connect(pybullet.DIRECT)
         try:
             self._load(prepare_urdf(text, names, joint_limits=joint_limits), source)
@@ -255,11 +159,8 @@ class PybulletSimulator(SimulatorBase):
             pybullet.changeDynamics(body, link, linearDamping=0.0, angularDamping=0.0, jointDamping=0.0,
                                     physicsClientId=c)
             pybullet.changeDynamics(body, link, maxJointVelocity=1e6, physicsClientId=c)
-        damping = {name: float(d.get("damping", 0)) for name, d in self._declared_dynamics.items()
-                   if name in self.joint_names and float(d.get("damping", 0) or 0) != 0}
-        if damping:
-            self.notes.append("the URDF's joint damping set to 0, as in the controller's model (Pinocchio does not "
-                              "read it): " + ", ".join(f"{k} {v:g}" for k, v in damping.items()) + " N·m·s/rad")
+        if self._joints.damping:
+            self.notes.append(self._joints.damping_note())
         pybullet.setJointMotorControlArray(body, movable, pybullet.VELOCITY_CONTROL, forces=[0.0] * len(movable),
                                            physicsClientId=c)
 
@@ -275,29 +176,8 @@ class PybulletSimulator(SimulatorBase):
         return M[np.ix_(idx, idx)], b[idx]
 
     def _check_model(self, by_order: bool) -> None:
-        self.dynamics: DynamicsCheck = check_dynamics(self.robot, self._terms)
-        if by_order and not self.dynamics.same:
-            raise ConfigError("joints matched by order, but " + self.dynamics.sentence("the PyBullet model")
-                              + "; name the joints with sim.joint_names (or fix the model)", key="sim.joint_names")
-        if not self.dynamics.same or by_order:
-            self.notes.append(self.dynamics.sentence("the PyBullet model"))
-        self.forward_rel = self._forward_check()
-        if self.forward_rel > FORWARD_TOLERANCE:
-            self.notes.append(f"PyBullet's forward dynamics (one step from {len(random_states(self.robot))} random "
-                              f"states, τ = 0) differ from Pinocchio's ABA by {self.forward_rel:.2g} relative in q̈")
-
-    def _forward_check(self) -> float:
-        """Largest relative difference of PyBullet's q̈ (its first step's Δv/dt, τ = 0) and ABA's."""
-        data = self.robot.model.createData()
-        worst = 0.0
-        for q, v in random_states(self.robot):
-            self.reset(q, v)
-            self.apply(np.zeros(self.robot.nv))
-            pybullet.stepSimulation(physicsClientId=self.client)
-            a_sim = (self.read()[1] - v) / self.dt
-            a = pin.aba(self.robot.model, data, q, v, np.zeros(self.robot.nv))
-            worst = max(worst, float(np.max(np.abs(a_sim - a)) / max(np.max(np.abs(a)), 1.0)))
-        return worst
+        self.dynamics: DynamicsCheck
+        self.dynamics, self.forward_rel = check_simulator(self, self._terms, "the PyBullet model", by_order=by_order)
 
     def _place_obstacles(self) -> None:
         c = self.client

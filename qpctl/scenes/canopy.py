@@ -27,7 +27,7 @@ clearance and the soft-contact metrics over a few hundred of them then stay clos
 (python-fcl would take ~10 µs a disc–link pair). A draw that does not fit (after 200 tries for each
 shape) is left out, and the canopy's counts say so.
 
-:func:`depth_canopies` gives the packaged ``panda_canopy_depth`` scenario under 20 seeds.
+:func:`qpctl.scenario.depth_canopies` gives the packaged ``panda_canopy_depth`` scenario under 20 seeds.
 """
 
 from __future__ import annotations
@@ -45,7 +45,7 @@ from qpctl.config import check_fields, setting
 from qpctl.errors import ConfigError
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels.geometry import capsule_pair
-from qpctl.robot.model import RobotModel
+from qpctl.robot.model import RobotModel, arm_reach
 
 WIRE_RADIUS = 0.0015  # [m] a 3 mm trellis wire
 TRIES = 200  # draws per shape before it is left out
@@ -209,8 +209,6 @@ def reach(robot: RobotModel, target: np.ndarray, q_start: np.ndarray, iterations
 def _fruit_reach(robot: RobotModel, fruit: np.ndarray, q0: np.ndarray, row: list[tuple[str, Capsule]], d_safe: float,
                  rng: np.random.Generator) -> tuple[np.ndarray | None, str]:
     """(a configuration reaching the fruit clear of the row, "") or (None or the best one, the reason not)."""
-    from qpctl.scenario import arm_reach
-
     bound = arm_reach(robot)
     if bound is not None:
         centre, radius = bound
@@ -376,11 +374,3 @@ def generate_canopy(config: CanopyConfig, robot: RobotModel, q0: np.ndarray, *, 
             break
     return Canopy(config, row + branches + leaves, fruits, waypoints)
 
-
-def depth_canopies(count: int = 20, first_seed: int = 1) -> list[Any]:
-    """The packaged ``panda_canopy_depth`` scenario with ``canopy.seed`` = first_seed, first_seed + 1, …
-    (``count`` of them; :class:`~qpctl.scenario.Scenario`, validated: each grows a reachable fruit)."""
-    from qpctl.scenario import Scenario
-
-    return [Scenario.load("panda_canopy_depth", overrides=[f"canopy.seed={s}"])
-            for s in range(first_seed, first_seed + count)]

@@ -5,9 +5,9 @@ ones included), the shapes only a camera sees (``scenery``: the fruits of a cano
 own link capsules at q, from a camera fixed in the world or on a robot frame (the wrist), and hands
 back a :class:`~qpctl.perception.frames.DepthFrame` — :meth:`DepthCamera.capture` ``(q, t)``. Two
 casters do the geometry, held to each other and to a python-fcl reference in the tests:
-:class:`NumbaCaster` (:mod:`qpctl.kernels.raycast`, the scene's primitives) and :class:`MujocoCaster`
-(``mujoco.mj_multiRay`` in a MuJoCo model: the MuJoCo simulator's live one, whose user-supplied meshes
-it sees too).
+:class:`NumbaCaster` (:mod:`qpctl.kernels.raycast`, the scene's primitives) and
+:class:`~qpctl.adapters.mujoco_camera.MujocoCaster` (``mujoco.mj_multiRay`` in a MuJoCo model: the
+MuJoCo simulator's live one, whose user-supplied meshes it sees too; :meth:`DepthCamera.use_mujoco`).
 
 **The noise model** (``noise = true``), on the true depth z of each pixel, in this order:
 
@@ -252,118 +252,6 @@ class NumbaCaster:
         return Hits(depth, hit, cos)
 
 
-class MujocoCaster:
-    """``mujoco.mj_multiRay`` in a MuJoCo model holding the camera's shapes: the MuJoCo simulator's
-    live model (:meth:`for_simulator`), or one built from the camera's scene (:meth:`for_camera`).
-
-    It keeps its own ``MjData``: the joints are set to q, the moving obstacles' mocap bodies to their
-    place at t, and ``mj_kinematics`` places the geoms. Geoms are matched to the camera's shapes by
-    name (the obstacles' and scenery's as :func:`qpctl.adapters.mujoco.robot_mjcf` and
-    :func:`~qpctl.adapters.mujoco.load_user_model` name them, the link capsules ``capsule{k}_…``); a
-    geom on a body the robot's joints move that is none of those (a user model's meshes) is "robot",
-    any other "other" (a table, a floor). The camera's shapes that hold its origin are excluded (moved
-    to geom group 5 for the call, so a user's own group-5 geoms are not seen either).
-    """
-
-    def __init__(self, model: Any, joints: Any, camera: DepthCamera, *, prefix: str = "") -> None:
-        import mujoco
-
-        self.model = model
-        self.data = mujoco.MjData(model)
-        self.joints = joints
-        names = [model.geom(g).name for g in range(model.ngeom)]
-        index = {n: g for g, n in enumerate(names)}
-        robot_bodies = self._robot_bodies(model, joints)
-        self.geom_to_shape = np.full(model.ngeom, camera.id_other, np.int32)
-        for g in range(model.ngeom):
-            if int(model.geom_bodyid[g]) in robot_bodies:
-                self.geom_to_shape[g] = camera.id_robot
-        self.shape_geom = np.full(len(camera.visible), -1, np.int64)  # the camera's shape → its geom
-        for i, obs in enumerate([*camera.obstacles, *camera.scenery]):
-            base = prefix + (obs.name or f"obstacle{i}")
-            g = index.get(f"{base}_geom" if obs.moving else base, -1)
-            if g >= 0:
-                self.geom_to_shape[g] = i
-                self.shape_geom[i] = g
-        n_before = len(camera.obstacles) + len(camera.scenery)
-        for k, cap in enumerate(camera.robot.capsules):
-            g = index.get(f"capsule{k}_{cap.name}", -1)
-            if g >= 0:
-                self.geom_to_shape[g] = n_before + k
-                self.shape_geom[n_before + k] = g
-        self.mocap = []
-        for obs in camera.obstacles:
-            if obs.moving:
-                bid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, prefix + obs.name)
-                if bid >= 0 and model.body_mocapid[bid] >= 0:
-                    self.mocap.append((int(model.body_mocapid[bid]), obs))
-        H, W = camera.intrinsics.height, camera.intrinsics.width
-        self._geomid = np.zeros(H * W, np.int32)
-        self._dist = np.zeros(H * W)
-        self._normal = np.zeros(3 * H * W)
-        self._dirs = np.zeros((H * W, 3))
-
-    @staticmethod
-    def _robot_bodies(model: Any, joints: Any) -> set[int]:
-        """The bodies the robot's joints move (their subtrees)."""
-        moved = {int(model.jnt_bodyid[j]) for j in joints.jnt_ids}
-        out = set()
-        for b in range(model.nbody):
-            a = b
-            while a > 0:
-                if a in moved:
-                    out.add(b)
-                    break
-                a = int(model.body_parentid[a])
-        return out
-
-    @classmethod
-    def for_camera(cls, camera: DepthCamera) -> MujocoCaster:
-        """A MuJoCo model of the camera's scene (:func:`qpctl.adapters.mujoco.build_model`: the robot,
-        its link capsules, the obstacles and the scenery as geoms)."""
-        from qpctl.adapters.mujoco import MujocoJoints, build_model
-
-        model = build_model(camera.robot, [*camera.obstacles, *camera.scenery])
-        return cls(model, MujocoJoints.for_robot(model, camera.robot), camera)
-
-    @classmethod
-    def for_simulator(cls, simulator: Any, camera: DepthCamera) -> MujocoCaster:
-        """The MuJoCo simulator's live model (its generated scene or the user's own model)."""
-        return cls(simulator.model, simulator.joints, camera, prefix=getattr(simulator, "geom_prefix", ""))
-
-    def cast(self, camera: DepthCamera, pose: np.ndarray, q: np.ndarray, t: float) -> Hits:
-        import mujoco
-
-        model, data = self.model, self.data
-        self.joints.write_state(data, q, np.zeros(len(q)))
-        for mocap_id, obs in self.mocap:
-            data.mocap_pos[mocap_id] = obs.position_at(t)
-        mujoco.mj_kinematics(model, data)
-        origin = np.ascontiguousarray(pose[:3, 3])
-        dirs = self._dirs
-        K.rotate_rays(camera.rays, np.ascontiguousarray(pose[:3, :3]), dirs)  # world directions, optical z = 1
-        inside = np.zeros(len(camera.visible), np.bool_)
-        scene = camera.scene
-        K.contains_point(scene.kind, scene.centre, scene.axes, scene.size, origin, inside)
-        hidden = self.shape_geom[(inside | ~camera.visible) & (self.shape_geom >= 0)]
-        groups = model.geom_group[hidden].copy()
-        model.geom_group[hidden] = 5
-        try:
-            N = len(dirs)
-            far = camera.config.range_max * float(np.sqrt((dirs * dirs).sum(axis=1).max()))
-            mujoco.mj_multiRay(model, data, origin, dirs.reshape(-1), np.array([1, 1, 1, 1, 1, 0], np.uint8), 1, -1,
-                               self._geomid, self._dist, self._normal, N, far)
-        finally:
-            model.geom_group[hidden] = groups
-        H, W = camera.intrinsics.height, camera.intrinsics.width
-        found = (self._geomid >= 0) & (self._dist >= 0) & (self._dist <= camera.config.range_max)
-        depth = np.where(found, self._dist, np.inf).reshape(H, W)
-        hit = np.where(found, self.geom_to_shape[np.maximum(self._geomid, 0)], -1).astype(np.int32).reshape(H, W)
-        normal = self._normal.reshape(-1, 3)
-        cos = np.abs((normal * dirs).sum(axis=1)) / np.sqrt((dirs * dirs).sum(axis=1))
-        return Hits(depth, hit, np.where(found, cos, 0.0).reshape(H, W))
-
-
 class DepthCamera:
     """A simulated depth camera (module docstring).
 
@@ -372,7 +260,7 @@ class DepthCamera:
         robot: the robot whose link capsules it sees, and whose frame a ``mount`` may name.
         obstacles: the world's obstacles (the true ones: a simulator's, ``perceived`` included).
         scenery: shapes only the camera sees (a canopy's fruits): in the image, in no clearance.
-        caster: what renders (:class:`NumbaCaster` by default; :class:`MujocoCaster`).
+        caster: what renders (:class:`NumbaCaster` by default; a simulator's own, :meth:`use_mujoco`).
 
     Attributes:
         intrinsics: the pinhole intrinsics of its images.
@@ -420,10 +308,10 @@ class DepthCamera:
                                      np.ones(k.width * k.height)])  # optical frame, z = 1
         self.caster: Caster = caster if caster is not None else NumbaCaster()
 
-    def use_mujoco(self, simulator: Any = None) -> DepthCamera:
-        """Cast with ``mujoco.mj_multiRay``: in the MuJoCo simulator's live model, or (None) in a
-        MuJoCo model built from this camera's scene; returns the camera."""
-        self.caster = MujocoCaster.for_camera(self) if simulator is None else MujocoCaster.for_simulator(simulator, self)
+    def use_mujoco(self, simulator: Any) -> DepthCamera:
+        """Cast with ``mujoco.mj_multiRay`` in the MuJoCo simulator's live model (its ``ray_caster``,
+        :class:`~qpctl.adapters.mujoco_camera.MujocoCaster`); returns the camera."""
+        self.caster = simulator.ray_caster(self)
         return self
 
     # -- geometry ---------------------------------------------------------------------------------
@@ -505,8 +393,12 @@ class DepthCamera:
         robot = robot if robot is not None else scenario.build_robot()
         obstacles = simulator.obstacles if simulator is not None else scenario.build_obstacles()
         camera = cls(cfg, robot, obstacles, scenery=scenario.scenery())
-        mujoco_sim = simulator is not None and getattr(simulator, "name", "") == "mujoco"
-        if cfg.caster == "mujoco" or (cfg.caster == "auto" and mujoco_sim):
-            camera.use_mujoco(simulator if mujoco_sim else None)
+        casts = simulator is not None and hasattr(simulator, "ray_caster")  # a MuJoCo simulator
+        if cfg.caster == "mujoco" and not casts:
+            raise ConfigError('"mujoco" casts in the MuJoCo simulator\'s model: run it there (sim.simulator = '
+                              '"mujoco", or --sim mujoco), or use "auto" or "numba"', source=scenario.source,
+                              key="camera.caster")
+        if casts and cfg.caster != "numba":
+            camera.use_mujoco(simulator)
         return camera
 

@@ -1,0 +1,380 @@
+"""The QP controller's compiled path: the standard tasks and constraints, on the tick's kernels.
+
+The kernels write the cost and rows in place into DAQP's layout (:class:`qpctl.tick.QPBuffers`,
+one layout with the task's slack and one without) and check the answer. Two ways through a tick:
+
+* **one kernel call** on DAQP's C API (no tick budget; :func:`qpctl.kernels.tick.tick_qp_native_hard_first`):
+  the state, the law's terms, the rows, DAQP's solve and the check — with the task hard first where
+  :class:`~qpctl.controllers.relaxation.TaskRelaxation` says so, the relaxed QP otherwise;
+* **stage by stage** (a tick budget, another solver, or DAQP without its C API): the state, then each
+  QP the relaxation policy asks for, its rows built by a kernel, solved within what is left of the
+  budget (the other solvers through a :class:`~qpctl.qp.Problem` of views onto the same arrays) and
+  checked by a kernel.
+
+A failed solve goes to :class:`~qpctl.controllers.qp_failure.Failures` on snapshots of the tick.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from qpctl.constraints.constraints import (
+    Constraint,
+    JointLimit,
+    ObstacleBarrier,
+    SelfCollisionBarrier,
+    TorqueLimit,
+)
+from qpctl.controllers.base import RecordOutput, TickStatus, fast_state
+from qpctl.controllers.qp_failure import Failures
+from qpctl.controllers.relaxation import REFUSALS, TaskRelaxation
+from qpctl.errors import ConfigError, InvalidStateError
+from qpctl.fallbacks import FallbackContext
+from qpctl.kernels import codes
+from qpctl.kernels import tick as K
+from qpctl.law import LawGains
+from qpctl.outcome import SOLUTION_RTOL, SolveOutcome, checked_solve, solve_status
+from qpctl.qp import Problem, Solution
+from qpctl.solvers.base import QPSolver
+from qpctl.solvers.daqp_ import STATUS as DAQP_STATUS
+from qpctl.solvers.daqp_ import DAQPSolver
+from qpctl.tasks.tasks import AccelerationTask, DampingTask, EndEffectorTask, PostureTask, Task
+from qpctl.tick import QPBuffers, QPSpec, Workspace
+
+
+def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: int) -> QPSpec | None:
+    """The compiled assembly's description of these tasks and constraints, or None when they are not
+    exactly the standard ones (an AccelerationTask, an EndEffectorTask, at most one PostureTask and
+    one DampingTask; at most one TorqueLimit, JointLimit, ObstacleBarrier, SelfCollisionBarrier):
+    those go through the Python formulation (:mod:`qpctl.controllers.qp_reference`)."""
+    kinds = [type(t) for t in tasks]
+    if kinds.count(AccelerationTask) != 1 or kinds.count(EndEffectorTask) != 1:
+        return None
+    if kinds.count(PostureTask) > 1 or kinds.count(DampingTask) > 1:
+        return None
+    if len(kinds) != 2 + kinds.count(PostureTask) + kinds.count(DampingTask):
+        return None
+    ckinds = [type(c) for c in constraints]
+    if any(ckinds.count(k) > 1 for k in ckinds) or not all(
+            k in (TorqueLimit, JointLimit, ObstacleBarrier, SelfCollisionBarrier) for k in ckinds):
+        return None
+    acc = next(t for t in tasks if isinstance(t, AccelerationTask))
+    ee = next(t for t in tasks if isinstance(t, EndEffectorTask))
+    post = next((t for t in tasks if isinstance(t, PostureTask)), None)
+    damp = next((t for t in tasks if isinstance(t, DampingTask)), None)
+    order = [t for t in tasks if isinstance(t, (PostureTask, DampingTask))]
+    if len(order) == 2 and isinstance(order[0], DampingTask):  # the kernel adds the posture first
+        return None
+    if post is not None and post.q_ref.shape != (n,):
+        raise ConfigError(f"q_ref has {post.q_ref.size} entries, the robot {n}", key="PostureTask.q_ref")
+    torque = next((c for c in constraints if isinstance(c, TorqueLimit)), None)
+    joint = next((c for c in constraints if isinstance(c, JointLimit)), None)
+    barrier = next((c for c in constraints if isinstance(c, ObstacleBarrier)), None)
+    return QPSpec(
+        acc_weight=acc.weight, slack_l1=ee.slack_l1, slack_l2=ee.slack_l2,
+        posture=None if post is None else (post.q_ref, post.weight, post.kp, post.kd),
+        damping=None if damp is None else (damp.weight, damp.gain),
+        rows=[(c.name, c.rows) for c in constraints if c.rows],
+        torque=torque,
+        joint_limits=None if joint is None else (joint.q_min, joint.q_max, joint.v_max, joint.k0, joint.k1, joint.kv,
+                                                 joint.qdd_max),
+        barrier=None if barrier is None else (barrier.rows, barrier.k0, barrier.k1, barrier.drift == "rigid"),
+        row_names=[c.name for c in constraints for _ in range(c.rows)],
+        row_kinds=[c.kind for c in constraints for _ in range(c.rows)],
+        self_barrier=next(((c.k0, c.k1, c.d_safe) for c in constraints if isinstance(c, SelfCollisionBarrier)), None),
+        task_weights=ee.weights,
+    )
+
+
+class QPOutput(RecordOutput):
+    """A compiled QP tick's output: the record, and the solver's word; ``info`` built on first access
+    (status — the solver's word — and ``solve_status`` (:class:`~qpctl.outcome.SolveStatus`),
+    iterations, solver, stage timings [µs], slack norm, active rows, and the fallback's entries when
+    one produced the torque); :attr:`outcome` the solve as a typed record."""
+
+    def __init__(self, rec: np.ndarray, layout: Any, extra: dict[str, Any], compute_us: float,
+                 stages: tuple[float, float, float, float], solved: bool) -> None:
+        super().__init__(rec, layout, extra, compute_us, stages)
+        self._solved = solved
+
+    @property
+    def status(self) -> TickStatus:  # type: ignore[override]
+        return TickStatus.SOLVED if self._solved else TickStatus.FALLBACK
+
+    @property
+    def iterations(self) -> int:
+        return int(self._extra["iterations"]) if self._extra else 0
+
+    @property
+    def outcome(self) -> SolveOutcome:
+        """The tick's solve (the last attempt's word; x is not kept on the compiled path:
+        :attr:`QPController.last_outcome` has it)."""
+        info = self.info
+        return SolveOutcome(info["solve_status"], info["status"], int(info["iterations"]), info["solver"],
+                            float(info.get("solve_us", 0.0)))
+
+    def _decode(self, info: dict[str, Any]) -> None:
+        r, s = self._rec, self._layout.scalars
+        info["solve_status"] = solve_status(info["status"])
+        if r[s + codes.R_DROPPED]:
+            info["pairs_dropped"] = int(r[s + codes.R_DROPPED])
+        if not self._solved:
+            return
+        if r[s + codes.R_CLIPPED]:
+            info["clipped"] = float(r[s + codes.R_CLIPPED])
+        if r[s + codes.R_RATE_HITS]:
+            info["rate_limited"] = int(r[s + codes.R_RATE_HITS])
+        info["slack_norm"] = float(r[s + codes.R_SLACK])
+        info["active"] = int(r[s + codes.R_ACTIVE])
+        mask = int(r[s + codes.R_ACTIVE_MASK])
+        info["active_rows"] = [name for bit, name in ((1, "obstacles"), (0, "torque_limits")) if mask >> bit & 1]
+
+
+def daqp_word(flag: int) -> str:
+    return DAQP_STATUS.get(int(flag), f"exitflag {int(flag)}")
+
+
+class _Layout:
+    """One of the QP's layouts (the task hard, or relaxed) and the solver that solves it; the last
+    answer as (x or None, status, iterations, solver)."""
+
+    def __init__(self, ws: Workspace, buf: QPBuffers, solver: QPSolver) -> None:
+        self.ws, self.buf, self.solver = ws, buf, solver
+        self.nat = solver.native(buf) if type(solver) is DAQPSolver else None
+        self.last: tuple[np.ndarray | None, str, int, str] = (None, "", 0, solver.name)
+
+    def native_outcome(self, code: int) -> tuple[int, str, int]:
+        """(code, status, iterations) of the native kernel's solve of this layout; a failed or rejected
+        solve frees DAQP's workspace, so the next tick starts cold rather than from a failed working set
+        (warm-started from one, DAQP was seen to report "solved" with the rows broken on every later tick
+        of an infeasible stretch, where a cold start reports it infeasible)."""
+        nat = self.nat
+        assert nat is not None
+        iters = int(nat.flag[1])
+        if code == 0:
+            self.last = (nat.x, "solved", iters, self.solver.name)
+            return 0, "solved", iters
+        if code in (1, 2):
+            status = "nonfinite_problem"
+        elif code == 4:  # DAQP said solved, the answer breaks a hard row: its working set is no warm start
+            status = "inaccurate" if np.isfinite(nat.x).all() else "nonfinite_solution"
+            nat.free()
+        else:
+            status = daqp_word(nat.flag[0])
+            nat.free()
+        self.last = (None, status, iters, self.solver.name)
+        return code if code in (1, 2) else 3, status, iters
+
+    def solve(self, deadline: float, *, terms_done: bool, l1: float | None = None) -> tuple[int, str, int]:
+        """The law's terms (unless ``terms_done``) and this layout's rows, solved within what is left of
+        the budget, judged as a hard answer when ``l1`` (the task's ℓ₁ weight) is given
+        (:meth:`TaskRelaxation.judge`), then checked (:func:`qpctl.kernels.finish.qp_finish` writes τ,
+        q̈ and the record when it holds); build and solve times [µs] into the record (added to an
+        earlier attempt's when ``terms_done``). Returns (code, status, iterations), code 0: solved and
+        accepted; 1: M not positive definite; 2: non-finite problem; 3: failed, timed out or refused."""
+        ws, buf, solver, nat = self.ws, self.buf, self.solver, self.nat
+        rec, s = ws.rec, ws.layout.scalars
+        left_us = math.inf
+        if deadline != math.inf:
+            left_us = (deadline - time.perf_counter()) * 1e6
+            if nat is not None:
+                nat.set_time_limit(max(left_us * 1e-6, 1e-9))
+            else:
+                solver.set_time_limit(max(left_us, 0.0))
+        build0, solve0 = (rec[s + codes.R_BUILD_US], rec[s + codes.R_SOLVE_US]) if terms_done else (0.0, 0.0)
+        t0 = time.perf_counter()
+        code = (K.qp_rebuild if terms_done else K.qp_terms_and_build)(ws.work, buf.H, buf.f, buf.rows, buf.bu, buf.bl)
+        t1 = time.perf_counter()
+        rec[s + codes.R_BUILD_US], rec[s + codes.R_SOLVE_US] = build0 + (t1 - t0) * 1e6, solve0
+        if code or left_us <= 0:
+            status = "nonfinite_problem" if code else "time_limit"
+            self.last = (None, status, 0, solver.name)
+            return code or 3, status, 0
+        x: np.ndarray | None
+        if nat is not None:
+            flag = 1 if nat.ready else nat.setup()
+            if flag < 0:  # DAQP could not even set the QP up (its exit flag says why)
+                nat.flag[0], nat.flag[1] = flag, 0
+            elif K.native_solve(*nat.addresses, nat.flag) <= 0:
+                nat.free()
+            x, status, iters = (nat.x, "solved", int(nat.flag[1])) if nat.flag[0] > 0 else (None, daqp_word(nat.flag[0]),
+                                                                                           int(nat.flag[1]))
+        elif type(solver) is DAQPSolver:
+            x, status, iters = solver.solve_buffers(buf.H, buf.f, buf.rows, buf.bu, buf.bl, buf.sense)
+        else:
+            sol = checked_solve(solver, buf.problem, deadline, check=False)
+            x, status, iters = (sol.x if sol.found else None), sol.status, sol.iterations
+        if x is not None and l1 is not None and np.isfinite(x).all():
+            refusal = TaskRelaxation.judge(buf.problem, x, l1, SOLUTION_RTOL)
+            if refusal:  # feasible, the hard QP's optimum, but not the relaxed QP's
+                status, x = refusal, None
+        if x is not None and not K.qp_finish(ws.work, x, buf.rows, buf.bu, buf.bl, SOLUTION_RTOL):
+            # The solver's own test runs on its scaled problem: a row it scaled up (say nᵀJ_p ≈ 1e-5
+            # at a link's fixed base) can be violated by m/s² in our units while it reports "solved".
+            status = "inaccurate" if np.isfinite(x).all() else "nonfinite_solution"
+            x = None
+            if nat is not None:
+                nat.free()
+        rec[s + codes.R_SOLVE_US] = solve0 + (time.perf_counter() - t1) * 1e6
+        if x is not None:
+            rec[s + codes.R_ITERATIONS] = iters
+        self.last = (x, status, iters, solver.name)
+        return (0 if x is not None else 3), status, iters
+
+
+class CompiledTick:
+    """The QP tick on the kernels (module docstring). ``solvers``: the hard layout's and the relaxed
+    one's (warm starts of their own); ``mode``: ``controller.task_relaxation``; ``budget_us()``: the
+    tick budget [µs] (0: none); ``state(q, v, t)`` runs the tick's state in Python (the controller's,
+    with J̇ for the law when it needs it); ``bad_state`` raises the state's error."""
+
+    def __init__(self, ws: Workspace, solvers: tuple[QPSolver, QPSolver], mode: str, budget_us: Callable[[], float],
+                 gains: LawGains, failures: Failures, state: Callable[[np.ndarray, np.ndarray, float], Any],
+                 bad_state: Callable[[np.ndarray, np.ndarray, float], None]) -> None:
+        assert ws.spec is not None and ws.hard is not None and ws.relaxed is not None
+        self.ws, self.gains, self.failures, self.budget_us = ws, gains, failures, budget_us
+        self._state, self._bad_state = state, bad_state
+        slack = ws.relaxed.relaxed  # without a slack the relaxed layout is the hard one
+        self.hard = _Layout(ws, ws.hard, solvers[0])
+        self.relaxed = _Layout(ws, ws.relaxed, solvers[1])
+        native = self.relaxed.nat is not None and self.hard.nat is not None
+        self.relax = TaskRelaxation(mode if slack else "always", solvers[1].name, native)
+        self.native_args: tuple[Any, ...] | None = None  # the one-call kernel's arguments after the state
+        if native:
+            nh, nr = self.hard.nat, self.relaxed.nat
+            assert nh is not None and nr is not None
+            self.native_args = (*nh.kernel_args, nh.lam, *nr.kernel_args, SOLUTION_RTOL, float(ws.spec.slack_l1))
+        self.last_problem: Problem | None = None
+        self.last: tuple[np.ndarray | None, str, int, str] | Solution | None = None
+
+    def reset(self) -> None:
+        self.relax.reset()
+
+    def step(self, q: np.ndarray, v: np.ndarray, t: float, start: float) -> QPOutput:
+        """One tick (module docstring); ``start``: when the controller's step began (the budget's
+        clock, and ``compute_us``'s)."""
+        q, v, t = fast_state(q, v, t, self.ws.n)
+        budget = self.budget_us()
+        one_call = self.native_args is not None and budget <= 0
+        relax = self.relax
+        hard_first, try_hard = relax.hard_first(one_call), relax.try_hard(one_call)
+        relaxed_iters: int | None = None
+        deadline = start + budget * 1e-6 if budget > 0 else math.inf
+        if one_call:
+            code, hard, stages = self._native(q, v, t, try_hard)
+            used_hard = hard == 0
+            lay = self.hard if used_hard else self.relaxed
+            code, status, iters = lay.native_outcome(code)
+            refusal = "" if hard <= 0 else REFUSALS.get(hard) or daqp_word(self.hard.nat.flag[0])  # type: ignore[union-attr]
+        else:
+            self._state(q, v, t)
+            stages = (self.ws.pin_s, self.ws.state_s, -1.0, -1.0)
+            lay, refusal = (self.hard if try_hard else self.relaxed), ""
+            code, status, iters = lay.solve(deadline, terms_done=False,
+                                            l1=float(self.ws.spec.slack_l1) if try_hard else None)  # type: ignore[union-attr]
+            used_hard = try_hard and code == 0
+            if try_hard and code == 3:  # the task conflicts with the hard rows, or its answer was refused: relax
+                refusal, lay = status, self.relaxed
+                code, status, relaxed_iters = lay.solve(deadline, terms_done=True)
+        if code == 1:
+            raise InvalidStateError(f"the inertia matrix is not positive definite at q={q.tolist()}")
+        ws = self.ws
+        extra: dict[str, Any] = {"status": status, "iterations": iters, "solver": lay.solver.name}
+        relax.report(extra, hard_first, used_hard, refusal, relaxed_iters)
+        self.last_problem, self.last = lay.buf.problem, lay.last
+        if status == "time_limit":
+            extra["budget_exhausted"] = True
+        ok = code == 0
+        relax.after(one_call, used_hard, ok, float(ws.rec[ws.layout.scalars + codes.R_SLACK]))
+        if not ok:
+            self._fall_back(lay.buf, status, extra, deadline)
+        return QPOutput(ws.rec.copy(), ws.layout, extra, (time.perf_counter() - start) * 1e6, stages, ok)
+
+    def _native(self, q: np.ndarray, v: np.ndarray, t: float,
+                try_hard: bool) -> tuple[int, int, tuple[float, float, float, float]]:
+        """The tick on DAQP's C API: one kernel call when both DAQP workspaces are set up and the state
+        needs no Python; else the state, DAQP's set-up (:meth:`_setup`) and the same kernel after it.
+        Returns (code, hard, stages): the kernel's code and what became of the hard QP (−1 not tried,
+        0 used, 3 DAQP failed, 4 rejected by the check of its rows, 7 not the relaxed QP's answer)."""
+        ws, args = self.ws, self.native_args
+        assert args is not None
+        nat_h, nat_r = self.hard.nat, self.relaxed.nat
+        assert nat_h is not None and nat_r is not None
+        if ws.fast and nat_r.ready and (nat_h.ready or not try_hard):
+            t0 = time.perf_counter()
+            pin.computeAllTerms(ws.model, ws.data, q, v)
+            t1 = time.perf_counter()
+            code, hard = K.tick_qp_native_hard_first(ws.work, q, v, t, *args, try_hard)
+            if code == codes.STATE_PYTHON:
+                ws.finish_state(q, v, t)
+                code, hard = K.qp_tick_native_hard_first(ws.work, *args, try_hard)
+            if code < 0:
+                self._bad_state(q, v, t)
+            stages = (t1 - t0, -1.0, -1.0, -1.0)
+        else:
+            self._state(q, v, t)
+            code, hard_ready = self._setup(try_hard)
+            hard = -1
+            if code == 0:
+                code, hard = K.qp_tick_native_hard_first(ws.work, *args, try_hard and hard_ready)
+            if try_hard and not hard_ready:
+                hard = 3  # DAQP could not set the hard QP up (its exit flag in nat_h.flag)
+            stages = (ws.pin_s, ws.state_s, -1.0, -1.0)  # the set-up is in "other"
+        if hard in (3, 4):
+            nat_h.free()  # a failed or rejected working set is no warm start: cold the next time it is tried
+        return code, hard, stages
+
+    def _setup(self, try_hard: bool) -> tuple[int, bool]:
+        """DAQP's workspaces set up where they are not (the first tick, and after a failure freed one):
+        each QP's arrays written from this tick's state, then DAQP's set-up on them. Returns (code,
+        whether the hard QP is ready): code as :meth:`_Layout.solve`'s (0: both go to the kernel)."""
+        ws, hb, rb = self.ws, self.hard.buf, self.relaxed.buf
+        nat_h, nat_r = self.hard.nat, self.relaxed.nat
+        assert nat_h is not None and nat_r is not None
+        terms_done = False
+        if try_hard and not nat_h.ready:
+            code = K.qp_terms_and_build(ws.work, hb.H, hb.f, hb.rows, hb.bu, hb.bl)
+            if code:
+                return code, False
+            terms_done = True
+            flag = nat_h.setup()
+            if flag < 0:
+                nat_h.flag[0] = flag
+        if not nat_r.ready:
+            code = (K.qp_rebuild if terms_done else K.qp_terms_and_build)(ws.work, rb.H, rb.f, rb.rows, rb.bu, rb.bl)
+            if code:
+                return code, nat_h.ready
+            flag = nat_r.setup()
+            if flag < 0:  # DAQP could not even set the relaxed QP up (its exit flag says why)
+                nat_r.flag[0], nat_r.flag[1] = flag, 0
+                return 3, nat_h.ready
+        return 0, nat_h.ready
+
+    def _fall_back(self, buf: QPBuffers, status: str, info: dict[str, Any], deadline: float) -> None:
+        """The solve failed: strict mode raises; else the fallback chain on snapshots of the tick (the
+        rare path, in Python); the torque it settles on goes into the workspace's record."""
+        ws = self.ws
+        self.failures.raise_if_strict(buf.problem, status, info, None)
+        t0 = time.perf_counter()
+        state, terms = ws.snapshot(), ws.terms()
+        relaxed = self.relaxed.buf
+
+        def build_relaxed() -> Problem:
+            K.qp_build(ws.work, relaxed.H, relaxed.f, relaxed.rows, relaxed.bu, relaxed.bl)
+            return relaxed.problem
+
+        ctx = FallbackContext(state, terms, self.gains, buf.problem, self.failures.window(state.t), deadline,
+                              None if buf.relaxed else build_relaxed)
+        tau, qdd, problem, sol = self.failures.fall_back(ctx, None, status, info)
+        self.last_problem = problem
+        if sol is not None:
+            self.last = sol
+        ws.qdd[:], ws.tau[:] = qdd, tau
+        K.write_record(ws.work, terms.singular)
+        info["fallback_us"] = (time.perf_counter() - t0) * 1e6  # the snapshot included
