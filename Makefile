@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: all env demo test soak robust bench bench-quick harvest simulators robots sweep-small sweep-1k sweep-throughput lint clean
+.PHONY: all env demo test soak robust bench bench-quick perception perception-canopies harvest simulators camera robots sweep-small sweep-1k sweep-throughput lint clean
 
 all: test
 
@@ -37,6 +37,14 @@ bench: $(STAMP)
 bench-quick: $(STAMP)
 	MPLBACKEND=Agg $(VENV)/bin/qpctl bench --quick --out results/bench-quick
 
+# The depth map (docs/perception.md): frame → field on recorded 640×480 frames, EDT backends, field queries,
+# the tick beside the map worker; and the closed loop on panda_canopy_depth under 20 canopy seeds.
+perception: $(STAMP)
+	MPLBACKEND=Agg $(PY) -m benchmarks.perception --out results/perception
+
+perception-canopies: $(STAMP)
+	MPLBACKEND=Agg $(PY) -m benchmarks.perception --canopies 20 --out results/perception-canopies
+
 # The harvesting scenario under every law, approach and pose tasks: results/harvest/harvest.md (docs/harvesting.md).
 harvest: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks.harvest --out results/harvest
@@ -48,6 +56,10 @@ simulators: $(STAMP)
 # example-robot-data's arms with fitted capsules, their SRDF and a QP reach: results/robots/robots.md (docs/robots.md).
 robots: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks.robots --out results/robots
+
+# The simulated depth camera: the kernel against mj_multiRay on panda_canopy_depth, and a frame's figure (docs/camera.md).
+camera: $(STAMP)
+	MPLBACKEND=Agg $(PY) -m benchmarks.camera --out results/camera
 
 # Sweeps (docs/sweeps.md). The packaged canopy_small (40 runs) and canopy_1k (1,000 runs) specs; rerunning
 # a target resumes the sweep in its folder. sweep-throughput makes the runs/min table of docs/sweeps.md.

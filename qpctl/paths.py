@@ -44,14 +44,15 @@ class PathConfig:
     """The ``[path]`` keys of a scenario (each declared here once; :func:`qpctl.config.schema_of`).
 
     start [m]: the first point (None: the task point at q0); waypoints [m]: the points after it
-    (required). duration [s] (shared by segment length) or durations [s] (per segment): one of them.
+    (required, unless a ``[canopy]`` gives them: its reachable fruits). duration [s] (shared by
+    segment length) or durations [s] (per segment): one of them.
     start_time [s], dwell [s]: when the path starts, the pause at each waypoint.
     orientations: a pose task's quaternions (x, y, z, w) at each waypoint; approach: an approach task's
     world directions at each waypoint; start_orientation: the first (None: the task frame's at q0).
     """
 
     start: list[float] | None = None
-    waypoints: list[list[float]]
+    waypoints: list[list[float]] | None = None
     duration: float | None = None
     durations: list[float] | None = None
     start_time: float = 0.0

@@ -30,6 +30,7 @@ class RunResult:
     controller: Controller
     trajectory: Trajectory
     metrics: dict[str, Any]
+    perception: Any = None  # the depth map's loop (qpctl.perception.closed_loop.MapLoop), with a [camera]
 
 
 def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None = None,
@@ -51,8 +52,11 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
                           "use the built-in one", source=scenario.source, key="faults")
     robot = scenario.build_robot()
     truth = scenario.build_obstacles()
-    seen = faults.perceived(truth, robot.task_axes) if faults.active else None
+    sees = scenario.camera_config().enabled  # a depth camera: the perceived obstacles reach the QP by its map
+    known = [o for o in truth if not o.perceived]
+    seen = faults.perceived(known, robot.task_axes) if faults.active else (known if len(known) < len(truth) else None)
     controller = scenario.build_controller(kind, solver, robot=robot, obstacles=seen)
+    judged = [o for o in truth if o.material != "soft"]  # min_clearance: to the true rigid geometry
     q0 = scenario.q0(controller.robot)
     from qpctl.adapters import simulator_class
     from qpctl.errors import ConfigError
@@ -63,7 +67,8 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
         if which == "builtin":
             sim = Simulator.from_scenario(controller, scenario, progress=progress,
                                           faults=faults if faults.active else None,
-                                          obstacles=truth if faults.active else None)
+                                          obstacles=judged if (faults.active or seen is not None
+                                                               or len(judged) < len(truth)) else None)
         else:
             sim = cls.from_scenario(controller, scenario, progress=progress)
     except ConfigError as exc:  # name the scenario file beside the key
@@ -71,6 +76,7 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
             raise
         raise ConfigError(str(exc).split(": ", 1)[-1] if exc.key else str(exc), source=scenario.source,
                           key=exc.key) from None
+    loop = _perceive(scenario, controller, sim, truth) if sees else None
     traj = sim.run(q0)
     metrics: dict[str, Any] = {
         "scenario": scenario.name,
@@ -88,9 +94,35 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
         metrics["faults"] = {k: getattr(faults, k) for k in faults.kinds()} | {"seed": faults.seed}
         metrics.update(getattr(sim, "fault_counts", {}))
     metrics.update(sim.counts)
+    if loop is not None:
+        metrics.update(loop.metrics())
+        path = loop.path.path if loop.path is not None else controller.path
+        metrics["fruit_errors_mm"] = [float(np.min(np.linalg.norm(traj.x[:, :3] - p, axis=1)) * 1e3)
+                                      for p in path.points[1:]]
+    canopy = scenario.canopy()
+    if canopy is not None:  # what was grown, and each fruit's reachability (with the reason where not)
+        metrics["canopy"] = canopy.summary()
     if sim.notes:
         metrics["simulator_notes"] = list(sim.notes)
-    return RunResult(scenario, controller, traj, metrics)
+    return RunResult(scenario, controller, traj, metrics, loop)
+
+
+def _perceive(scenario: Scenario, controller: Controller, sim: SimulatorBase, truth: list[Any]) -> Any:
+    """The scenario's depth camera and map on the QP's rows (:func:`qpctl.perception.closed_loop.attach`);
+    a closed-form law reads no map: a note says it sees the known primitives only."""
+    if controller.kind != "qp":
+        sim.notes.append(f"the {controller.kind} law does not read the depth map: it sees only the known "
+                         "(not perceived) obstacles")
+        return None
+    from qpctl.perception.closed_loop import attach
+    from qpctl.simulation.camera import DepthCamera
+
+    camera = DepthCamera.from_scenario(scenario, controller.robot)  # the whole world: the leaves too
+    if sim.name == "mujoco" and camera.config.caster in ("auto", "mujoco"):
+        camera.use_mujoco(sim)
+    path = controller.path
+    targets = (np.asarray(path.points[1:], float), np.asarray(path.starts, float)) if hasattr(path, "starts") else None
+    return attach(controller, sim, scenario.perception_config(), camera=camera, world=truth, targets=targets)
 
 
 def scenario_as_run(result: RunResult) -> str:
@@ -120,6 +152,9 @@ def write_outputs(result: RunResult, out: Path, *, figures: bool = True, replay:
             label = f"{result.scenario.name}, {result.controller.kind}"
             write_figures(tmp, result.trajectory, segs, result.controller.obstacles, label,
                           tau_rate_max=result.controller.robot.tau_rate_max)
+            if result.perception is not None:  # the depth map's: a frame, a field slice, true vs believed
+                result.perception.write_figures(tmp, result.trajectory.t, result.trajectory.clearance,
+                                                float(result.scenario.data["controller"]["d_safe"]))
         if replay:
             from qpctl.replay import REPLAY_FILE, from_result, write_replay
 

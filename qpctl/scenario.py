@@ -30,8 +30,11 @@ from qpctl.errors import ConfigError
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.law import LawGains
 from qpctl.paths import PathConfig, PosePath, WaypointPath
+from qpctl.perception.config import PerceptionConfig
 from qpctl.robot.config import RobotConfig
 from qpctl.robot.model import RobotModel, arm_reach, load_robot
+from qpctl.scenes.canopy import Canopy, CanopyConfig, generate_canopy
+from qpctl.simulation.camera import CameraConfig
 from qpctl.simulation.faults import Faults, with_payload
 from qpctl.simulation.loop import SimConfig
 
@@ -57,7 +60,13 @@ SCHEMA: dict[str, Any] = {
     # every fault off (qpctl.simulation.faults)
     "faults": schema_of(Faults),
     "sim": schema_of(SimConfig),
+    "camera": schema_of(CameraConfig),  # a simulated depth camera (qpctl.simulation.camera); mount "": none
+    "canopy": schema_of(CanopyConfig),  # a seeded canopy (qpctl.scenes.canopy); seed unset: none
+    "perception": schema_of(PerceptionConfig),  # the depth map the QP reads with a [camera] (qpctl.perception)
 }
+
+# Tables that exist only when a key names them: a [camera] is its mount, a [canopy] its seed.
+NAMED_BY = {"camera": "mount", "canopy": "seed"}
 
 
 def _validate_table(raw: Any, schema: dict[str, Any], source: str, prefix: str) -> dict[str, Any]:
@@ -148,6 +157,13 @@ def packaged_scenarios() -> list[str]:
     return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
 
 
+def depth_canopies(count: int = 20, first_seed: int = 1) -> list[Scenario]:
+    """The packaged ``panda_canopy_depth`` with ``canopy.seed`` = first_seed, first_seed + 1, … (``count``
+    of them, each validated: each grows at least one reachable fruit; :mod:`qpctl.scenes.canopy`)."""
+    return [Scenario.load("panda_canopy_depth", overrides=[f"canopy.seed={s}"])
+            for s in range(first_seed, first_seed + count)]
+
+
 @dataclass
 class Scenario:
     """A validated scenario; ``data`` mirrors the TOML with every default filled in."""
@@ -155,6 +171,7 @@ class Scenario:
     data: dict[str, Any]
     source: str
     base_dir: Path | None = None  # where relative paths in it (robot.urdf) are resolved: the file's folder
+    _canopy: Canopy | None = dataclasses.field(default=None, init=False, repr=False, compare=False)
 
     @classmethod
     def load(cls, spec: str | Path, overrides: Sequence[str] = ()) -> Scenario:
@@ -183,6 +200,12 @@ class Scenario:
         resolved from ``base_dir`` (default: the working folder)."""
         raw = apply_overrides(raw, overrides) if overrides else raw
         data = _validate_table(raw, SCHEMA, source, "")
+        for table, key in NAMED_BY.items():  # a table set without the key that makes it exist (a table of
+            given = raw.get(table)  # defaults only, as a validated scenario written back to TOML gives, is fine)
+            if (isinstance(given, dict) and key not in given
+                    and any(v != SCHEMA[table][k][1] for k, v in given.items() if k in SCHEMA[table])):
+                raise ConfigError(f"missing value (the [{table}] table is written but its {key} is not given)",
+                                  source=source, key=f"{table}.{key}")
         from qpctl.controllers.factory import CONTROLLERS, unknown_kind
 
         if data["controller"]["kind"] not in CONTROLLERS:
@@ -213,6 +236,9 @@ class Scenario:
         path = self.data["path"]
         if path["duration"] is None and path["durations"] is None:
             raise self._err("path.duration", "missing value (give duration or durations)")
+        if path["waypoints"] is None and self.data["canopy"]["seed"] is None:
+            raise self._err("path.waypoints", "missing value (or name a [canopy], whose reachable fruits are the "
+                                              "waypoints)")
         from qpctl.adapters import SIMULATORS
 
         if sim["simulator"] not in SIMULATORS:
@@ -222,6 +248,10 @@ class Scenario:
         if sim["joint_names"] is not None and not sim["model"]:
             raise self._err("sim.joint_names", "names the joints of sim.model, which is not set")
         faults = self.faults()
+        try:
+            CanopyConfig.from_dict(self.data["canopy"])
+        except ConfigError as exc:
+            raise self._err(exc.key or "canopy", exc.message) from None
         try:
             self.gains()
         except ConfigError as exc:
@@ -239,6 +269,11 @@ class Scenario:
             raise self._err("sim.joint_names", f"needs {robot.nv} distinct names (the simulator's names of "
                             f"{', '.join(robot.joint_names)}, in that order), got {names}")
         q0 = self.q0(robot)
+        self._check_camera(robot)
+        self.perception_config()
+        if not self.camera_config().enabled and any(o.get("perceived") for o in self.data["obstacles"]):
+            raise self._err("camera.mount", "perceived obstacles are known to the controller only through a depth "
+                            "camera: give the [camera] a mount, or set perceived = false")
         self._check_reach(robot, self.build_path(robot, q0))
         self._check_start_clear(robot, obstacles, q0)
         sat = faults.torque_saturation
@@ -273,6 +308,50 @@ class Scenario:
         for key in ("tau_max", "v_max", "tau_rate_max", "qdd_max"):
             if r[key] is not None and not np.all(np.asarray(r[key], float) > 0):  # inf allowed, NaN not
                 raise self._err(f"robot.{key}", f"must be positive (inf: no limit), got {r[key]}")
+
+    def _check_camera(self, robot: RobotModel) -> None:
+        """The ``[camera]`` keys (CameraConfig's rules) and its mount frame on this robot."""
+        try:
+            cfg = self.camera_config()
+            if cfg.mount not in ("", "world"):
+                from qpctl.simulation.camera import DepthCamera
+
+                DepthCamera(cfg, robot)
+        except ConfigError as exc:
+            raise self._err(exc.key or "camera", exc.message) from None
+
+    def perception_config(self) -> PerceptionConfig:
+        """The scenario's ``[perception]`` (the depth map's settings; used where a ``[camera]`` is)."""
+        try:
+            return PerceptionConfig(**self.data["perception"])
+        except ConfigError as exc:
+            raise self._err(exc.key or "perception", exc.message) from None
+
+    def camera_config(self) -> CameraConfig:
+        """The scenario's ``[camera]`` (``mount`` "": none; :mod:`qpctl.simulation.camera`)."""
+        return CameraConfig.from_dict(self.data["camera"])
+
+    def scenery(self) -> list[Obstacle]:
+        """Shapes only a camera sees (a canopy's fruits): in its images, in no clearance."""
+        canopy = self.canopy()
+        return canopy.scenery() if canopy is not None else []
+
+    def canopy(self) -> Canopy | None:
+        """The scenario's seeded canopy (``[canopy]``, :mod:`qpctl.scenes.canopy`; None without a seed),
+        grown once in front of its robot at q0, its fruits hidden from the world camera if there is one."""
+        cfg = CanopyConfig.from_dict(self.data["canopy"])
+        if not cfg.enabled:
+            return None
+        if self._canopy is None:
+            robot = self.build_robot()
+            camera = self.camera_config()
+            eye = camera.mount_pose()[:3, 3] if camera.mount == "world" else None
+            try:
+                self._canopy = generate_canopy(cfg, robot, self.q0(robot), d_safe=self.data["controller"]["d_safe"],
+                                               viewpoint=eye)
+            except ConfigError as exc:
+                raise self._err(exc.key or "canopy", exc.message) from None
+        return self._canopy
 
     def _check_reach(self, robot: RobotModel, path: WaypointPath) -> None:
         """Every waypoint within the arm's reach (a sphere about its first joint; revolute arms only)."""
@@ -458,7 +537,12 @@ class Scenario:
             data = robot.model.createData()
             pin.framesForwardKinematics(robot.model, data, q0)
             start = data.oMf[robot.ee_frame_id].translation[list(robot.task_axes)].copy()
-        pts = [list(start)] + p["waypoints"]
+        waypoints = p["waypoints"]
+        if waypoints is None:  # a canopy's reachable fruits (_check_values made sure there is one)
+            canopy = self.canopy()
+            assert canopy is not None
+            waypoints = canopy.waypoints.tolist()
+        pts = [list(start)] + waypoints
         if any(len(w) != robot.m_position for w in pts):
             raise self._err("path.waypoints", f"each point needs {robot.m_position} coordinates for robot {robot.name}")
         timing = {"duration": p["duration"], "durations": p["durations"], "start_time": p["start_time"],
@@ -471,6 +555,7 @@ class Scenario:
             raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key) from None
 
     def build_obstacles(self) -> list[Obstacle]:
+        """The ``[[obstacles]]``, then a ``[canopy]``'s trunk, wires, branches and leaves."""
         out = []
         for i, o in enumerate(self.data["obstacles"]):
             kwargs = {k: v for k, v in o.items() if k != "area"}
@@ -480,7 +565,8 @@ class Scenario:
             except ConfigError as exc:
                 raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source,
                                   key=f"obstacles[{i}].{(exc.key or '').rsplit('.', 1)[-1]}") from None
-        return out
+        canopy = self.canopy()
+        return out + (copy.deepcopy(canopy.obstacles) if canopy is not None else [])  # fresh, as the others
 
     def faults(self) -> Faults:
         """The run's faults (``[faults]``, all off by default; :mod:`qpctl.simulation.faults`)."""

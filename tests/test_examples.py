@@ -22,6 +22,7 @@ CASES = [
     ("swap_solver.py", 0.05, "swapped a live controller to osqp", True),
     ("posture_task.py", 0.1, "with PostureTask", True),
     ("moving_obstacle.py", 0.1, "min clearance", True),
+    ("realsense_stream.py", 0.3, "maps built, min clearance", True),
 ]
 
 

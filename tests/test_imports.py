@@ -30,15 +30,16 @@ ROOT = Path(qpctl.__file__).resolve().parent
 #: formulation and solvers, the controllers, simulation, adapters, scenario, run, applications.
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("foundation", ("qpctl.errors", "qpctl.config", "qpctl.linalg", "qpctl.qp")),
-    ("world", ("qpctl.robot", "qpctl.geometry", "qpctl.paths", "qpctl.orientation", "qpctl.perception")),
+    ("world", ("qpctl.robot", "qpctl.geometry", "qpctl.paths", "qpctl.orientation")),
     ("state and kernels", ("qpctl.kernels", "qpctl.state")),
     ("law", ("qpctl.law", "qpctl.barrier_design")),
     ("tick", ("qpctl.tick", "qpctl.dynamics")),
     ("tasks and constraints", ("qpctl.tasks", "qpctl.constraints")),
+    ("perception", ("qpctl.perception",)),  # the depth map: frames → kernels → snapshot → the field's rows
     ("formulation and solvers", ("qpctl.formulation", "qpctl.solvers", "qpctl.outcome", "qpctl.fallbacks",
                                  "qpctl.warmup")),
     ("controllers", ("qpctl.controllers",)),
-    ("simulation", ("qpctl.simulation",)),
+    ("simulation", ("qpctl.simulation", "qpctl.scenes")),
     ("adapters", ("qpctl.adapters",)),
     ("scenario", ("qpctl.scenario",)),
     ("replay", ("qpctl.replay",)),

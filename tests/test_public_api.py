@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 PACKAGES = ["qpctl", "baselines", "qpctl.robot", "qpctl.geometry", "qpctl.simulation", "qpctl.controllers",
-            "qpctl.adapters", "qpctl.solvers", "qpctl.tasks", "qpctl.constraints", "qpctl.sweep"]
+            "qpctl.adapters", "qpctl.solvers", "qpctl.tasks", "qpctl.constraints", "qpctl.sweep",
+            "qpctl.scenes"]
 
 
 @pytest.mark.parametrize("package", PACKAGES)

@@ -159,11 +159,18 @@ def test_an_unregistered_controller_kind_is_an_error():
 def test_every_key_is_one_dataclass_field_and_its_default_is_the_fields():
     from qpctl.paths import PathConfig
     from qpctl.robot.config import RobotConfig
+    from qpctl.simulation.camera import CameraConfig
     from qpctl.simulation.faults import Faults
     from qpctl.simulation.loop import SimConfig
 
     tables = {"robot": (RobotConfig,), "path": (PathConfig,), "controller": (ControllerConfig, LawGains, QPConfig),
               "faults": (Faults,), "sim": (SimConfig,)}
+    from qpctl.scenes.canopy import CanopyConfig
+
+    tables["camera"], tables["canopy"] = (CameraConfig,), (CanopyConfig,)
+    from qpctl.perception.config import PerceptionConfig
+
+    tables["perception"] = (PerceptionConfig,)
     assert sorted(tables) == sorted(k for k, v in SCHEMA.items() if isinstance(v, dict) and k != "obstacles")
     for table, classes in tables.items():
         fields = [f for c in classes for f in dataclasses.fields(c) if f.name != "obstacle_v_ref"]

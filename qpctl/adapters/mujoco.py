@@ -204,6 +204,15 @@ def build_model(robot: RobotModel, obstacles: Sequence[Obstacle] = (), **kwargs:
         raise ConfigError(f"MuJoCo rejected the generated model of {robot.name}: {exc}", key="robot") from exc
 
 
+def scene_caster(camera: Any) -> Any:
+    """A depth camera's (:class:`~qpctl.simulation.camera.DepthCamera`) ``mj_multiRay`` caster on a
+    MuJoCo model of its own scene (:func:`build_model`: the robot, the obstacles and the scenery)."""
+    from qpctl.adapters.mujoco_camera import MujocoCaster
+
+    model = build_model(camera.robot, [*camera.obstacles, *camera.scenery])
+    return MujocoCaster(model, MujocoJoints.for_robot(model, camera.robot), camera)
+
+
 def full_inertia(model: mujoco.MjModel, data: mujoco.MjData) -> np.ndarray:
     """Dense joint-space inertia M(q) (nv, nv) [kg·m²] of the last ``mj_forward``/``mj_step``."""
     M = np.zeros((model.nv, model.nv))
@@ -456,6 +465,8 @@ class MujocoSimulator(SimulatorBase):
             controller's order (default: ``robot.joint_names``; if the model has none of those names,
             its joints are taken in order, which must then pass the dynamics check).
         allow_extra_joints: with ``model``, leave joints the robot does not have undriven.
+        obstacles: the true obstacles, where they differ from the controller's map (perceived ones).
+        scenery: shapes only a camera sees (a canopy's fruits): geoms in the model, in no clearance.
     """
 
     name = "mujoco"
@@ -463,20 +474,21 @@ class MujocoSimulator(SimulatorBase):
     def __init__(self, controller: Controller, *, dt: float = 1e-3, duration: float = 5.0,
                  integrator: str = "rk4", progress: bool = False, joint_limits: bool = False,
                  model: mujoco.MjModel | str | Path | None = None, joint_names: Sequence[str] | None = None,
-                 allow_extra_joints: bool = False) -> None:
-        super().__init__(controller, dt=dt, duration=duration, progress=progress)
+                 allow_extra_joints: bool = False, obstacles: Sequence[Obstacle] | None = None,
+                 scenery: Sequence[Obstacle] = ()) -> None:
+        super().__init__(controller, dt=dt, duration=duration, progress=progress, obstacles=obstacles)
         if integrator not in INTEGRATORS:
             raise ConfigError(f"unknown MuJoCo integrator {integrator!r}; one of {', '.join(INTEGRATORS)}",
                               key="sim.integrator")
         own = model is not None
         prefix = ""
         mj: mujoco.MjModel
+        shown = [*self.obstacles, *scenery]  # scenery after the obstacles: geoms a camera sees
         if model is None:
-            mj = build_model(self.robot, self.obstacles, timestep=self.dt, integrator=integrator,
-                             joint_limits=joint_limits)
+            mj = build_model(self.robot, shown, timestep=self.dt, integrator=integrator, joint_limits=joint_limits)
         else:
             if isinstance(model, (str, Path)):
-                mj = load_user_model(model, self.obstacles, motor_joints=joint_names or self.robot.joint_names,
+                mj = load_user_model(model, shown, motor_joints=joint_names or self.robot.joint_names,
                                      notes=self.notes)
                 prefix = "qpctl_"
             else:
@@ -487,6 +499,7 @@ class MujocoSimulator(SimulatorBase):
             if not joint_limits:
                 mj.opt.disableflags |= int(mujoco.mjtDisableBit.mjDSBL_LIMIT)
         self.model: mujoco.MjModel = mj
+        self.geom_prefix = prefix  # of the obstacles' geom and body names (a user's model: "qpctl_")
         model = mj
         self.data = mujoco.MjData(model)
         self.joints = self._match_joints(model, joint_names, allow_extra_joints) if own else \
@@ -507,11 +520,20 @@ class MujocoSimulator(SimulatorBase):
     def from_scenario(cls, controller: Controller, scenario: Any, *, progress: bool = False) -> MujocoSimulator:
         """MuJoCo for the scenario's ``[sim]``: ``dt``, ``duration``, ``integrator``, and the user's
         ``model`` (relative to the scenario file's folder) with its ``joint_names`` — by default, for an
-        MJCF robot (``robot.kind = "mjcf"``), the robot's own file."""
+        MJCF robot (``robot.kind = "mjcf"``), the robot's own file; the scenario's obstacles (perceived ones
+        too) and scenery (a canopy's fruits) in the model."""
         sim = scenario.data["sim"]
         model = scenario.resolve(sim["model"]) if sim["model"] else controller.robot.mjcf  # an MJCF robot's own file
         return cls(controller, dt=sim["dt"], duration=sim["duration"], integrator=sim["integrator"],
-                   progress=progress, model=model, joint_names=sim["joint_names"])
+                   progress=progress, model=model, joint_names=sim["joint_names"],
+                   obstacles=scenario.build_obstacles(), scenery=scenario.scenery())
+
+    def ray_caster(self, camera: Any) -> Any:
+        """A depth camera's caster in this simulator's live model (``mujoco.mj_multiRay``;
+        :class:`qpctl.adapters.mujoco_camera.MujocoCaster`)."""
+        from qpctl.adapters.mujoco_camera import MujocoCaster
+
+        return MujocoCaster(self.model, self.joints, camera, prefix=self.geom_prefix)
 
     def _match_joints(self, model: mujoco.MjModel, joint_names: Sequence[str] | None,
                       allow_extra: bool) -> MujocoJoints:

@@ -33,6 +33,7 @@ from qpctl.law import LawGains
 from qpctl.paths import WaypointPath
 from qpctl.robot.model import RobotModel, panda, planar_arm
 from qpctl.scenario import Scenario
+from qpctl.scenes.canopy import link_capsules as _link_segments  # the link capsules' axes at q
 
 #: Canopy block in front of the Panda (world frame, [m]): x depth, y width, z height.
 CANOPY_LO = np.array([0.35, -0.35, 0.15])
@@ -110,12 +111,6 @@ def _segment_distance(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> float:
     ab = b - a
     s = float(np.clip((p - a) @ ab / max(float(ab @ ab), 1e-300), 0.0, 1.0))
     return float(np.linalg.norm(a + s * ab - p))
-
-
-def _link_segments(robot: RobotModel, q: np.ndarray) -> list[tuple[np.ndarray, np.ndarray, float]]:
-    data = robot.model.createData()
-    pin.forwardKinematics(robot.model, data, q)
-    return [(data.oMi[c.joint_id].act(c.p0), data.oMi[c.joint_id].act(c.p1), c.radius) for c in robot.capsules]
 
 
 def _ee_position(robot: RobotModel, q: np.ndarray) -> np.ndarray:

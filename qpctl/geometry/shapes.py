@@ -104,7 +104,8 @@ class Sphere(Shape):
 
 
 class Box(Shape):
-    """``size`` = full extents (x, y, z), axis-aligned."""
+    """``size`` = full extents (x, y, z) along the box's own axes: the world's, turned by the rotation
+    taking z onto ``axis`` (default z: axis-aligned), as python-fcl places every shape."""
 
     name = "box"
 
@@ -125,7 +126,7 @@ class Box(Shape):
 
     def mujoco_geom(self, obs: Obstacle) -> Geom:
         assert obs.size is not None
-        return Geom("box", tuple(float(s) / 2 for s in obs.size))
+        return Geom("box", tuple(float(s) / 2 for s in obs.size), _axis_rotation(obs))
 
     def patch(self, obs: Obstacle, centre: np.ndarray, **style: Any) -> Any:
         import matplotlib.pyplot as plt

@@ -93,6 +93,7 @@ class SimulatorBase(ABC):
         self.notes: list[str] = []
         self.counts: dict[str, int] = {}
         self._world: WorldClearance | None = None
+        self.hooks: list[Any] = []  # objects with before(t, q, v) and after(k, t, q, v), called each tick
 
     @classmethod
     def from_scenario(cls, controller: Controller, scenario: Any, *, progress: bool = False) -> SimulatorBase:
@@ -189,6 +190,8 @@ def record_run(sim: SimulatorBase) -> Trajectory:
         t = k * dt
         q, v = sim.read()
         qm, vm = sim.measure(q, v)
+        for h in sim.hooks:  # e.g. a depth camera and its map (qpctl.perception.closed_loop)
+            h.before(t, qm, vm)
         out = ctrl.step(qm, vm, t)
         if not np.all(np.isfinite(out.tau)):
             raise SimulationError(f"controller {ctrl.kind} returned non-finite torque at t = {t:.4f} s")
@@ -207,6 +210,8 @@ def record_run(sim: SimulatorBase) -> Trajectory:
         tick_us[k] = out.compute_us
         singular[k] = out.singular
         infos.append(out.info)
+        for h in sim.hooks:
+            h.after(k, t, qm, vm)
         if k + 1 < steps:
             sim.apply(tau)
             sim.step(t)

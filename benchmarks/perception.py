@@ -1,0 +1,342 @@
+"""The depth map's costs on the same recorded frames (issue 21's targets; docs/perception.md).
+
+    python -m benchmarks.perception [--quick] [--out results/perception]
+    python -m benchmarks.perception --canopies 20 [--duration S] [--out results/perception-canopies]
+
+1. **Frame to field**: 640×480 frames of a seeded canopy (300 soft leaves, 12 rigid branches, depth
+   noise σ = 1 mm·z²), recorded once into ``frames.npz``; each goes through the whole pipeline
+   (filtering, back-projection, the Panda's self-filter, voxels, clearing, decay, the EDT and its
+   gradient for both channels) at 2 cm over a 1.6 × 1.2 × 1.0 m box, and at 1 cm over a 0.4 m box
+   around the hand. Stage times from the pipeline's own clocks; one thread.
+2. **Distance transforms** on the same occupancy: qpctl's numba EDT, scipy's ``distance_transform_edt``
+   and the ``edt`` package (where installed), interleaved.
+3. **Field queries**: :func:`qpctl.kernels.field.field_pairs` for the Panda's capsules, both channels.
+4. **The tick beside the worker**: the Panda's QP tick on a closed-loop run of ``panda_spheres``,
+   in alternating stretches with the map worker idle and with it fed frames at 30 Hz; p99 ratio.
+
+5. With ``--canopies N``: the closed loop on ``panda_canopy_depth`` under canopy seeds 1..N (the
+   camera's noise on): collisions, true rigid and soft clearances, soft contact speeds, fruits
+   reached, map costs and latency, phantom rows (``canopies.json``, ``canopies.md``).
+
+Writes ``perception.json`` and ``perception.md`` (the tables of docs/perception.md) in --out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numba import njit
+from scipy import ndimage
+
+from qpctl.kernels import edt as KE
+from qpctl.kernels import field as KF
+from qpctl.perception import DepthFrame, DepthMap, Intrinsics, MapWorker, PerceptionConfig
+from qpctl.perception.synthetic import canopy, look_at, render
+from qpctl.robot.model import panda
+
+K640 = Intrinsics.from_fov(640, 480, 58.0)  # a RealSense D435-like depth stream
+EYE = look_at([-0.35, 0.05, 0.75], [0.55, 0.0, 0.45])
+BOX_2CM = PerceptionConfig(voxel=0.02, bounds_min=[-0.3, -0.6, 0.0], bounds_max=[1.3, 0.6, 1.0], truncation=0.3)
+
+
+def hand_box(robot: Any) -> PerceptionConfig:
+    """1 cm voxels in a 0.4 m cube about the hand at the home pose."""
+    import pinocchio as pin
+
+    data = robot.model.createData()
+    pin.framesForwardKinematics(robot.model, data, robot.q_home)
+    p = data.oMf[robot.ee_frame_id].translation
+    return PerceptionConfig(voxel=0.01, bounds_min=list(p - 0.2), bounds_max=list(p + 0.2), truncation=0.15)
+
+
+def record_frames(path: Path, n: int, seed: int = 7) -> list[DepthFrame]:
+    """``n`` noisy frames of one canopy, 1/30 s apart (made once, then read back)."""
+    if path.exists():
+        z = np.load(path)
+        if z["depth"].shape[0] >= n:
+            return [DepthFrame(z["depth"][i], K640, z["pose"], float(z["stamp"][i]), labels=z["labels"][i])
+                    for i in range(n)]
+    scene = canopy(seed)
+    rng = np.random.default_rng(seed)
+    frames = [render(EYE, scene, K640, stamp=i / 30.0, labelled=True, noise=0.001, rng=rng) for i in range(n)]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, depth=np.stack([f.depth.astype(np.float32) for f in frames]),
+                        labels=np.stack([f.labels for f in frames]), pose=EYE,
+                        stamp=np.array([f.stamp for f in frames]))
+    return record_frames(path, n, seed)
+
+
+def _stats(v: list[float] | np.ndarray) -> dict[str, float]:
+    a = np.asarray(v, float)
+    return {"median": float(np.median(a)), "p99": float(np.percentile(a, 99)), "max": float(a.max())}
+
+
+def frame_to_field(frames: list[DepthFrame], cfg: PerceptionConfig, robot: Any) -> dict[str, Any]:
+    m = DepthMap(cfg, robot)
+    m.record(0.0, robot.q_home)
+    m.update(frames[0])  # compile / load the kernels
+    total, integrate, field, cpu = [], [], [], []
+    for f in frames[1:]:
+        c0 = time.thread_time()
+        t0 = time.perf_counter()
+        rep = m.integrate(f)
+        t1 = time.perf_counter()
+        snap = m.snapshot(started=t0)
+        t2 = time.perf_counter()
+        cpu.append((time.thread_time() - c0) * 1e3)
+        total.append((t2 - t0) * 1e3)
+        integrate.append((t1 - t0) * 1e3)
+        field.append((t2 - t1) * 1e3)
+    return {"grid": list(m.grid.shape), "voxel_m": cfg.voxel, "total_ms": _stats(total), "cpu_ms": _stats(cpu),
+            "integrate_ms": _stats(integrate), "field_ms": _stats(field), "occupied": list(snap.occupied),
+            "counts": rep.counts, "build_ms_reported": snap.build_ms}
+
+
+def transforms(m: DepthMap, reps: int) -> dict[str, Any]:
+    occ = m._occupied[1] | m._occupied[0]
+    work = np.empty(occ.shape)
+    dist = np.empty(occ.shape, np.float32)
+    fns = {"qpctl numba (FH)": lambda: KE.distance_field(occ, m.grid.voxel, m.config.truncation, work, dist),
+           "scipy distance_transform_edt": lambda: ndimage.distance_transform_edt(~occ)}
+    try:
+        import edt  # type: ignore[import-not-found]
+
+        fns["edt package"] = lambda: edt.edt(~occ, parallel=1)
+    except ImportError:
+        pass
+    for f in fns.values():
+        f()
+    times: dict[str, list[float]] = {k: [] for k in fns}
+    cpu: dict[str, list[float]] = {k: [] for k in fns}
+    for r in range(reps):
+        order = list(fns)[r % len(fns):] + list(fns)[:r % len(fns)]
+        for k in order:
+            c0 = time.thread_time()
+            t0 = time.perf_counter()
+            fns[k]()
+            times[k].append((time.perf_counter() - t0) * 1e3)
+            cpu[k].append((time.thread_time() - c0) * 1e3)
+    return {"grid": list(occ.shape), "occupied": int(occ.sum()), "ms": {k: _stats(v) for k, v in times.items()},
+            "cpu_ms": {k: _stats(v) for k, v in cpu.items()}}
+
+
+@njit(cache=True)
+def _repeat_field_pairs(reps: int, segs: np.ndarray, radii: np.ndarray, dist: np.ndarray, grad: np.ndarray,
+                        origin: np.ndarray, voxel: float, trunc: float, samples: int, rows: int, ds: np.ndarray,
+                        out_d: np.ndarray, out_n: np.ndarray, out_p: np.ndarray, out_s: np.ndarray) -> None:
+    """Both channels' field pairs ``reps`` times inside compiled code (as the tick calls them: no
+    Python dispatch per call)."""
+    for _ in range(reps):
+        for ch in range(2):
+            KF.field_pairs(segs, radii, dist[ch], grad[ch], origin, voxel, trunc, samples, rows, True, ds,
+                           out_d, out_n, out_p, out_s)
+
+
+def field_queries(m: DepthMap, robot: Any, reps: int) -> dict[str, Any]:
+    snap = m.snapshot()
+    segs, radii = m.self_filter.segments(robot.q_home), np.array([c.radius for c in robot.capsules])  # type: ignore[union-attr]
+    cfg = m.config
+    L, S, R = len(segs), cfg.samples, cfg.rows_per_link
+    out = (np.empty(L * R), np.empty((L * R, 3)), np.empty((L * R, 3)), np.empty(L * R))
+    ds = np.empty(S)
+    args = (snap.grid.origin, snap.grid.voxel, snap.truncation, S, R, True, ds)
+    for _ in range(3):
+        for ch in range(2):
+            KF.field_pairs(segs, radii, snap.dist[ch], snap.grad[ch], *args, *out)
+    us = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        for ch in range(2):
+            KF.field_pairs(segs, radii, snap.dist[ch], snap.grad[ch], *args, *out)
+        us.append((time.perf_counter() - t0) * 1e6)
+    inner, inner_cpu = [], []
+    block = 100
+    _repeat_field_pairs(1, segs, radii, snap.dist, snap.grad, *args[:5], ds, *out)
+    for _ in range(max(reps // block, 5)):
+        c0 = time.thread_time()
+        t0 = time.perf_counter()
+        _repeat_field_pairs(block, segs, radii, snap.dist, snap.grad, *args[:5], ds, *out)
+        inner.append((time.perf_counter() - t0) * 1e6 / block)
+        inner_cpu.append((time.thread_time() - c0) * 1e6 / block)
+    active = int(np.sum(out[0] < snap.truncation - np.repeat(radii, R)))
+    return {"links": L, "samples": S, "rows_per_link": R, "channels": 2, "us_from_python": _stats(us),
+            "us": _stats(inner), "cpu_us": _stats(inner_cpu), "active_rows_last_channel": active}
+
+
+def tick_beside_worker(frames: list[DepthFrame], robot: Any, stretches: int, seconds: float) -> dict[str, Any]:
+    """The QP tick's wall time, alternating stretches with the worker idle and fed at 30 Hz."""
+    from qpctl import Scenario, simulate
+
+    scen = Scenario.load("panda_spheres")
+    run = simulate(scen, kind="qp")
+    traj = run.trajectory
+    ctrl = scen.build_controller("qp")
+    ctrl.warmup()
+    m = DepthMap(BOX_2CM, robot)
+    m.record(0.0, robot.q_home)
+    worker = MapWorker(m).start()
+    feeding = threading.Event()
+    stop = threading.Event()
+
+    def feed() -> None:
+        k = 0
+        next_t = time.perf_counter()
+        while not stop.is_set():
+            if feeding.is_set():
+                f = frames[k % len(frames)]
+                worker.submit(DepthFrame(f.depth, f.intrinsics, f.pose, 1000.0 + k / 30.0, labels=f.labels))
+                k += 1
+            next_t += 1 / 30.0
+            time.sleep(max(0.0, next_t - time.perf_counter()))
+
+    feeder = threading.Thread(target=feed, daemon=True)
+    feeder.start()
+    times: dict[str, list[float]] = {"worker idle": [], "worker at 30 Hz": []}
+    T = len(traj.t)
+    k = 0
+    try:
+        for s in range(2 * stretches):
+            on = s % 2 == 1
+            (feeding.set if on else feeding.clear)()
+            if not on:
+                worker.wait_idle()
+            end = time.perf_counter() + seconds
+            label = "worker at 30 Hz" if on else "worker idle"
+            while time.perf_counter() < end:
+                i = k % T
+                t0 = time.perf_counter()
+                ctrl.torque(traj.q[i], traj.v[i], float(traj.t[i]))
+                times[label].append((time.perf_counter() - t0) * 1e6)
+                k += 1
+                if i == T - 1:
+                    ctrl.reset()
+    finally:
+        stop.set()
+        feeder.join()
+        worker.stop()
+    out = {k: _stats(v) for k, v in times.items()}
+    return {"ticks": {k: len(v) for k, v in times.items()}, "us": out, "frames_built": worker.built,
+            "frames_dropped": worker.dropped,
+            "p99_ratio": out["worker at 30 Hz"]["p99"] / out["worker idle"]["p99"],
+            "median_ratio": out["worker at 30 Hz"]["median"] / out["worker idle"]["median"]}
+
+
+CLOSED_LOOP_KEYS = ("collided", "min_clearance", "min_soft_clearance", "soft_contact_max_speed",
+                    "soft_contact_max_approach_speed", "map_min_clearance", "map_age_ms_max", "map_update_cpu_ms_median",
+                    "map_update_cpu_ms_p99", "map_latency_ms_p99", "phantom_rows", "phantom_rows_checked",
+                    "stale_stop_ticks", "tick_us_median", "fruit_errors_mm")
+
+
+def closed_loops(seeds: list[int], duration: float | None = None) -> list[dict[str, Any]]:
+    """``panda_canopy_depth`` under each canopy seed (seed 1 is the packaged scenario), noise on: the
+    closed-loop metrics of issue 21's targets, and the canopy's unreachable fruits with their reasons."""
+    from qpctl import Scenario
+    from qpctl.run import simulate
+
+    out = []
+    for seed in seeds:
+        extra = [f"sim.duration={duration}"] if duration else []
+        scen = Scenario.load("panda_canopy_depth", overrides=[f"canopy.seed={seed}", *extra])
+        t0 = time.perf_counter()
+        m = simulate(scen).metrics
+        row = {"seed": seed, "wall_s": time.perf_counter() - t0, "d_safe": float(scen.data["controller"]["d_safe"]),
+               "voxel": scen.perception_config().voxel, "soft_speed": scen.perception_config().soft_speed}
+        row.update({k: m.get(k) for k in CLOSED_LOOP_KEYS})
+        canopy = m.get("canopy", {})
+        row["unreachable"] = [f.get("reason", "") for f in canopy.get("fruits", []) if not f.get("reachable", True)]
+        out.append(row)
+        print(json.dumps(row, default=str), flush=True)
+    return out
+
+
+def closed_loop_markdown(rows: list[dict[str, Any]]) -> str:
+    lines = [("| seed | collided | min clearance [m] | ≥ d_safe − voxel | min soft clearance [m] | soft contact speed "
+             "[m/s] (into the leaf) | fruits within 5 mm | map p99 [ms CPU] | stamp → rows p99 [ms] | phantom rows |"),
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        errs = r["fruit_errors_mm"] or []
+        ok = r["min_clearance"] >= r["d_safe"] - r["voxel"]
+        lines.append(f"| {r['seed']} | {r['collided']} | {r['min_clearance']:.3f} | {'yes' if ok else 'NO'} | "
+                     f"{r['min_soft_clearance']:.3f} | {r['soft_contact_max_speed']:.2f} "
+                     f"({r['soft_contact_max_approach_speed']:.2f}) | {sum(e <= 5.0 for e in errs)} of {len(errs)} | "
+                     f"{r['map_update_cpu_ms_p99']:.1f} | {r['map_latency_ms_p99']:.1f} | "
+                     f"{r['phantom_rows']} of {r['phantom_rows_checked']} |")
+    return "\n".join(lines) + "\n"
+
+
+def markdown(res: dict[str, Any]) -> str:
+    lines = [f"Machine: {res['machine']}; load before: {res['load_before']}, after: {res['load_after']}.", ""]
+    lines += [("| frame → field (640×480) | grid | wall median [ms] | wall p99 [ms] | CPU median [ms] | CPU p99 [ms] "
+              "| integrate median [ms] | field median [ms] |"), "|---|---|---|---|---|---|---|---|"]
+    for name in ("2 cm, 1.6×1.2×1.0 m", "1 cm, 0.4 m about the hand"):
+        r = res["frame_to_field"][name]
+        lines.append(f"| {name} | {'×'.join(map(str, r['grid']))} | {r['total_ms']['median']:.1f} | "
+                     f"{r['total_ms']['p99']:.1f} | {r['cpu_ms']['median']:.1f} | {r['cpu_ms']['p99']:.1f} | "
+                     f"{r['integrate_ms']['median']:.1f} | {r['field_ms']['median']:.1f} |")
+    tr = res["transforms"]
+    lines += ["", (f"| distance transform ({'×'.join(map(str, tr['grid']))}, {tr['occupied']} occupied) | wall median [ms] "
+              "| wall p99 [ms] | CPU median [ms] |"), "|---|---|---|---|"]
+    lines += [f"| {k} | {v['median']:.2f} | {v['p99']:.2f} | {tr['cpu_ms'][k]['median']:.2f} |"
+              for k, v in tr["ms"].items()]
+    fq = res["field_queries"]
+    lines += ["", (f"Field queries: {fq['links']} links × {fq['samples']} samples × {fq['channels']} channels, "
+              f"{fq['rows_per_link']} rows per link, inside compiled code as the tick calls them: median "
+              f"{fq['us']['median']:.2f} µs wall (CPU {fq['cpu_us']['median']:.2f} µs), p99 {fq['us']['p99']:.2f} µs (called from Python: median "
+              f"{fq['us_from_python']['median']:.2f} µs, the call's dispatch included).")]
+    if "tick_beside_worker" in res:
+        tb = res["tick_beside_worker"]
+        lines += ["", "| Panda QP tick (panda_spheres run) | ticks | median [µs] | p99 [µs] |", "|---|---|---|---|"]
+        lines += [f"| {k} | {tb['ticks'][k]} | {v['median']:.1f} | {v['p99']:.1f} |" for k, v in tb["us"].items()]
+        lines += ["", (f"p99 ratio {tb['p99_ratio']:.2f}, median ratio {tb['median_ratio']:.2f}; "
+                  f"{tb['frames_built']} frames built, {tb['frames_dropped']} dropped.")]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true", help="fewer frames and shorter stretches")
+    ap.add_argument("--out", default="results/perception")
+    ap.add_argument("--canopies", type=int, default=0,
+                    help="instead: closed loops on panda_canopy_depth under canopy seeds 1..N")
+    ap.add_argument("--duration", type=float, default=None, help="with --canopies: simulated seconds")
+    args = ap.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.canopies:
+        rows = closed_loops(list(range(1, args.canopies + 1)), args.duration)
+        (out / "canopies.json").write_text(json.dumps(rows, indent=2, default=str))
+        md = f"Load before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}\n\n" + closed_loop_markdown(rows)
+        (out / "canopies.md").write_text(md)
+        print(md)
+        return {"canopies": rows}
+    robot = panda()
+    n = 12 if args.quick else 61
+    res: dict[str, Any] = {"machine": f"{os.cpu_count()} cores, {os.uname().machine}",
+                           "load_before": " ".join(f"{x:.2f}" for x in os.getloadavg())}
+    frames = record_frames(out / "frames.npz", n)
+    res["frame_to_field"] = {"2 cm, 1.6×1.2×1.0 m": frame_to_field(frames, BOX_2CM, robot),
+                             "1 cm, 0.4 m about the hand": frame_to_field(frames, hand_box(robot), robot)}
+    m = DepthMap(BOX_2CM, robot)
+    m.record(0.0, robot.q_home)
+    for f in frames[:3]:
+        m.update(f)
+    res["transforms"] = transforms(m, 5 if args.quick else 21)
+    res["field_queries"] = field_queries(m, robot, 2000 if args.quick else 20000)
+    res["tick_beside_worker"] = tick_beside_worker(frames, robot, 2 if args.quick else 4, 1.0 if args.quick else 3.0)
+    res["load_after"] = " ".join(f"{x:.2f}" for x in os.getloadavg())
+    (out / "perception.json").write_text(json.dumps(res, indent=2))
+    md = markdown(res)
+    (out / "perception.md").write_text(md)
+    print(md)
+    return res
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,209 @@
+"""Compiled lookups in the depth map's distance field: the tick's link–field pairs.
+
+The field is sampled at the voxel centres c_ijk = origin + (i + ½, j + ½, k + ½)·voxel: ``dist``
+(nx, ny, nz) [m] and its central-difference gradient ``grad`` (nx, ny, nz, 3), both float32
+(:mod:`qpctl.kernels.edt`). :func:`trilinear` interpolates both at a point; outside the map's bounds
+the field is its truncation (nothing known, no row).
+
+:func:`field_pairs` samples points along each link capsule's axis, keeps the nearest one or two
+(the global minimum and the lowest other local minimum at least two samples away), and writes them
+as pairs shaped like the primitives' (:mod:`qpctl.kernels.geometry`): signed distance d = field − r
+[m] (r the capsule's radius), unit normal n (the field's gradient, pointing away from the obstacle)
+and the witness point on the link's surface, axis point − r n [m].
+
+Smooth rows (``smooth=True``, the default): the sample of the minimum is refined by the parabola
+through it and its neighbours (its axis parameter then moves continuously as the link moves, rather
+than jumping from sample to sample), and the normal is the trilinear interpolation of the gradient
+grid (continuous across voxel faces). Without it: the best sample as it is, and the analytic
+gradient of the trilinear distance, which jumps at every voxel face; ``benchmarks/perception.py``
+measures the difference in |τ̇|.
+
+References: :func:`qpctl.perception.reference.field_pairs` (scipy's ``map_coordinates``) and finite
+differences, in ``tests/test_field.py``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+
+@njit(cache=True, nogil=True, inline="always")
+def cell(nx: int, ny: int, nz: int, origin: np.ndarray, voxel: float, x: float, y: float, z: float
+         ) -> tuple[bool, int, int, int, int, int, int, float, float, float]:
+    """The lattice cell of voxel centres around (x, y, z) [m]: (inside the bounds, i, j, k, i+1, j+1,
+    k+1, tx, ty, tz), the centres clamped to the outermost ones within the bounds."""
+    fx = (x - origin[0]) / voxel
+    fy = (y - origin[1]) / voxel
+    fz = (z - origin[2]) / voxel
+    inside = 0.0 <= fx <= nx and 0.0 <= fy <= ny and 0.0 <= fz <= nz
+    fx = min(max(fx - 0.5, 0.0), nx - 1.0)
+    fy = min(max(fy - 0.5, 0.0), ny - 1.0)
+    fz = min(max(fz - 0.5, 0.0), nz - 1.0)
+    i = min(int(fx), nx - 2) if nx > 1 else 0
+    j = min(int(fy), ny - 2) if ny > 1 else 0
+    k = min(int(fz), nz - 2) if nz > 1 else 0
+    return (inside, i, j, k, min(i + 1, nx - 1), min(j + 1, ny - 1), min(k + 1, nz - 1), fx - i, fy - j,
+            fz - k)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def trilinear(dist: np.ndarray, grad: np.ndarray, origin: np.ndarray, voxel: float, truncation: float,
+              x: float, y: float, z: float, smooth: bool, out: np.ndarray) -> float:
+    """The field at (x, y, z) [m]: returns the distance [m] and writes its gradient to ``out`` (3,):
+    the interpolated gradient grid (``smooth``) or the trilinear interpolant's own gradient. Outside
+    the bounds: ``truncation`` and a zero gradient; within them, the centres' lattice is clamped to
+    the outermost centres."""
+    nx, ny, nz = dist.shape
+    inside, i, j, k, i1, j1, k1, tx, ty, tz = cell(nx, ny, nz, origin, voxel, x, y, z)
+    if not inside:
+        out[0] = 0.0
+        out[1] = 0.0
+        out[2] = 0.0
+        return truncation
+    d000, d100, d010, d110 = dist[i, j, k], dist[i1, j, k], dist[i, j1, k], dist[i1, j1, k]
+    d001, d101, d011, d111 = dist[i, j, k1], dist[i1, j, k1], dist[i, j1, k1], dist[i1, j1, k1]
+    # along x, then y, then z
+    d00 = d000 + tx * (d100 - d000)
+    d10 = d010 + tx * (d110 - d010)
+    d01 = d001 + tx * (d101 - d001)
+    d11 = d011 + tx * (d111 - d011)
+    d0 = d00 + ty * (d10 - d00)
+    d1 = d01 + ty * (d11 - d01)
+    d = d0 + tz * (d1 - d0)
+    if smooth:
+        for a in range(3):
+            g000, g100, g010, g110 = grad[i, j, k, a], grad[i1, j, k, a], grad[i, j1, k, a], grad[i1, j1, k, a]
+            g001, g101, g011, g111 = grad[i, j, k1, a], grad[i1, j, k1, a], grad[i, j1, k1, a], grad[i1, j1, k1, a]
+            g00 = g000 + tx * (g100 - g000)
+            g10 = g010 + tx * (g110 - g010)
+            g01 = g001 + tx * (g101 - g001)
+            g11 = g011 + tx * (g111 - g011)
+            g0 = g00 + ty * (g10 - g00)
+            g1 = g01 + ty * (g11 - g01)
+            out[a] = g0 + tz * (g1 - g0)
+    else:
+        # ∂/∂t of the trilinear form, divided by the voxel (zero along an axis of one voxel)
+        ex = 0.0 if i1 == i else 1.0
+        ey = 0.0 if j1 == j else 1.0
+        ez = 0.0 if k1 == k else 1.0
+        ddx = (1 - tz) * ((1 - ty) * (d100 - d000) + ty * (d110 - d010)) + tz * ((1 - ty) * (d101 - d001)
+                                                                               + ty * (d111 - d011))
+        ddy = (1 - tz) * (d10 - d00) + tz * (d11 - d01)
+        ddz = d1 - d0
+        out[0] = ex * ddx / voxel
+        out[1] = ey * ddy / voxel
+        out[2] = ez * ddz / voxel
+    return d
+
+
+@njit(cache=True, nogil=True, inline="always")
+def trilinear_distance(dist: np.ndarray, origin: np.ndarray, voxel: float, truncation: float, x: float, y: float,
+                       z: float) -> float:
+    """:func:`trilinear`'s distance alone [m] (the samples along a link need no gradient)."""
+    nx, ny, nz = dist.shape
+    inside, i, j, k, i1, j1, k1, tx, ty, tz = cell(nx, ny, nz, origin, voxel, x, y, z)
+    if not inside:
+        return truncation
+    d00 = dist[i, j, k] + tx * (dist[i1, j, k] - dist[i, j, k])
+    d10 = dist[i, j1, k] + tx * (dist[i1, j1, k] - dist[i, j1, k])
+    d01 = dist[i, j, k1] + tx * (dist[i1, j, k1] - dist[i, j, k1])
+    d11 = dist[i, j1, k1] + tx * (dist[i1, j1, k1] - dist[i, j1, k1])
+    d0 = d00 + ty * (d10 - d00)
+    d1 = d01 + ty * (d11 - d01)
+    return d0 + tz * (d1 - d0)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _refine(ds: np.ndarray, j: int, samples: int, smooth: bool) -> float:
+    """The axis parameter s ∈ [0, 1] of the minimum near sample j (the parabola's vertex, smooth)."""
+    s = j / (samples - 1.0)
+    if not smooth or j == 0 or j == samples - 1:
+        return s
+    a, b, c = ds[j - 1], ds[j], ds[j + 1]
+    curv = a - 2.0 * b + c
+    if curv <= 0.0:
+        return s
+    delta = min(max(0.5 * (a - c) / curv, -0.5), 0.5)
+    return (j + delta) / (samples - 1.0)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pair(segments: np.ndarray, radii: np.ndarray, l: int, s: float, dist: np.ndarray, grad: np.ndarray,
+          origin: np.ndarray, voxel: float, truncation: float, smooth: bool, g: np.ndarray, row: int,
+          out_d: np.ndarray, out_n: np.ndarray, out_p: np.ndarray, out_s: np.ndarray) -> None:
+    ax, ay, az = segments[l, 0, 0], segments[l, 0, 1], segments[l, 0, 2]
+    px = ax + s * (segments[l, 1, 0] - ax)
+    py = ay + s * (segments[l, 1, 1] - ay)
+    pz = az + s * (segments[l, 1, 2] - az)
+    d = trilinear(dist, grad, origin, voxel, truncation, px, py, pz, smooth, g)
+    gn = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+    r = radii[l]
+    out_s[row] = s
+    if d >= truncation or gn < 1e-9:  # nothing within the truncation: an inactive row
+        out_d[row] = truncation - r
+        out_n[row, 0] = 0.0
+        out_n[row, 1] = 0.0
+        out_n[row, 2] = 0.0
+        out_p[row, 0], out_p[row, 1], out_p[row, 2] = px, py, pz
+        return
+    nx, ny, nz = g[0] / gn, g[1] / gn, g[2] / gn
+    out_d[row] = d - r
+    out_n[row, 0], out_n[row, 1], out_n[row, 2] = nx, ny, nz
+    out_p[row, 0], out_p[row, 1], out_p[row, 2] = px - r * nx, py - r * ny, pz - r * nz
+
+
+@njit(cache=True, nogil=True)
+def field_pairs(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, grad: np.ndarray,
+                origin: np.ndarray, voxel: float, truncation: float, samples: int, rows: int, smooth: bool,
+                ds: np.ndarray, out_d: np.ndarray, out_n: np.ndarray, out_p: np.ndarray,
+                out_s: np.ndarray) -> None:
+    """The link–field pairs of one channel: for link l (``segments`` (L, 2, 3) [m], ``radii`` (L,)),
+    rows l·rows … l·rows + rows − 1 of ``out_d`` (L·rows,) distance [m], ``out_n`` (L·rows, 3) unit
+    normal (zero for an inactive row: distance = truncation − r), ``out_p`` (L·rows, 3) witness point
+    on the link [m] and ``out_s`` its axis parameter. ``ds`` (samples,) is scratch."""
+    g = np.empty(3)
+    for l in range(segments.shape[0]):
+        ax, ay, az = segments[l, 0, 0], segments[l, 0, 1], segments[l, 0, 2]
+        ux, uy, uz = segments[l, 1, 0] - ax, segments[l, 1, 1] - ay, segments[l, 1, 2] - az
+        # the field is 1-Lipschitz: nothing within the truncation anywhere on the axis when the
+        # axis's midpoint is farther than the truncation plus half the axis (one lookup, no rows)
+        half = 0.5 * math.sqrt(ux * ux + uy * uy + uz * uz)
+        if trilinear_distance(dist, origin, voxel, truncation, ax + 0.5 * ux, ay + 0.5 * uy,
+                              az + 0.5 * uz) >= truncation + half:
+            for r in range(rows):
+                row = l * rows + r
+                out_d[row] = truncation - radii[l]
+                out_s[row] = 0.5
+                out_n[row, :] = 0.0
+                out_p[row, 0], out_p[row, 1], out_p[row, 2] = ax + 0.5 * ux, ay + 0.5 * uy, az + 0.5 * uz
+            continue
+        best = 0
+        for j in range(samples):
+            f = j / (samples - 1.0)
+            ds[j] = trilinear_distance(dist, origin, voxel, truncation, ax + f * ux, ay + f * uy, az + f * uz)
+            if ds[j] < ds[best]:
+                best = j
+        _pair(segments, radii, l, _refine(ds, best, samples, smooth), dist, grad, origin, voxel, truncation,
+              smooth, g, l * rows, out_d, out_n, out_p, out_s)
+        if rows < 2:
+            continue
+        second = -1
+        for j in range(samples):
+            if abs(j - best) < 2 or ds[j] >= truncation:
+                continue
+            if (j > 0 and ds[j - 1] < ds[j]) or (j < samples - 1 and ds[j + 1] < ds[j]):
+                continue  # not a local minimum
+            if second < 0 or ds[j] < ds[second]:
+                second = j
+        if second < 0:  # one minimum only: the second row repeats the first's point, inactive
+            row = l * rows + 1
+            out_d[row] = truncation - radii[l]
+            out_s[row] = out_s[l * rows]
+            out_n[row, :] = 0.0
+            out_p[row, :] = out_p[l * rows, :]
+        else:
+            _pair(segments, radii, l, _refine(ds, second, samples, smooth), dist, grad, origin, voxel,
+                  truncation, smooth, g, l * rows + 1, out_d, out_n, out_p, out_s)

@@ -1,0 +1,200 @@
+"""The perception pipeline: depth frames and point clouds → a robot-local voxel map → a distance field.
+
+DESIGN.md §6. :class:`DepthMap` holds the map's state (per channel and voxel, the stamp at which
+the voxel was last seen occupied) and turns each frame into it (:meth:`DepthMap.integrate`):
+
+1. filtering: no-return pixels (NaN, ±inf, 0, negative) and returns outside [min_range, max_range]
+   are dropped and counted; so are *flying pixels*: a pixel with a 4-neighbour nearer than it by more
+   than ``flying_pixel`` × its depth lies behind a depth edge, where a sensor's footprint straddling
+   two surfaces reports a mixed depth on neither (the edge's near side is kept; its far side loses a
+   pixel, seen elsewhere);
+2. back-projection through the pinhole intrinsics and the camera's pose;
+3. self-filtering: points within the robot's capsules at the frame's stamp, inflated by
+   ``self_margin`` (:mod:`qpctl.perception.self_filter`), or within ``target_radius`` of the grasp
+   target, are dropped; so are points outside the map's bounds;
+4. the rest stamp their voxel, in the soft channel where labelled soft, the rigid one otherwise —
+   from a depth image, once ``min_points`` pixels of the frame fall in it (a lone return in free
+   space is the noise's tail); a cloud's points count one each (a cloud is taken as filtered); a
+   soft voxel seen in a depth image fills ``soft_depth`` behind it along the ray (a leaf's body);
+5. free-space clearing: a voxel seen before whose centre projects into this image in front of its
+   pixel's return by more than √3/2 voxel + ``depth_noise`` is freed (a cloud with a sensor origin:
+   the voxels along each ray);
+
+and :meth:`DepthMap.snapshot` applies the decay (a voxel not seen for ``decay`` seconds is forgotten)
+and computes the truncated Euclidean distance field and its gradient per channel
+(:mod:`qpctl.kernels.edt`) into an immutable :class:`~qpctl.perception.snapshot.MapSnapshot`.
+
+All the per-pixel and per-voxel work is in ``nogil`` kernels (:mod:`qpctl.kernels.depth`).
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from qpctl.errors import PerceptionError
+from qpctl.kernels import depth as KD
+from qpctl.kernels import edt as KE
+from qpctl.perception.config import SQRT3_2, PerceptionConfig
+from qpctl.perception.frames import DepthFrame, PointCloud
+from qpctl.perception.self_filter import JointHistory, SelfFilter
+from qpctl.perception.snapshot import MapSnapshot, VoxelGrid
+from qpctl.robot.model import RobotModel
+
+Frame = DepthFrame | PointCloud
+
+
+@dataclass(frozen=True)
+class FrameReport:
+    """What one frame did to the map: its pixels or points by fate (:data:`qpctl.kernels.depth.STATUS_NAMES`),
+    the voxels it cleared, and the time [ms] it took to integrate."""
+
+    stamp: float
+    counts: dict[str, int]
+    cleared: int
+    integrate_ms: float
+    status: np.ndarray = field(repr=False)  # per pixel (H×W) or point (N,): a status code each
+
+    @property
+    def dropped(self) -> int:
+        """Pixels or points that did not become obstacles (everything but ``kept``)."""
+        return sum(v for k, v in self.counts.items() if k != "kept")
+
+
+class DepthMap:
+    """A robot-local voxel map with rigid and soft channels, built from depth frames and point clouds.
+
+    Args:
+        config: the ``[perception]`` settings.
+        robot: the robot whose capsules are self-filtered (None: no self-filter).
+        history: the joint positions at the frames' stamps (:meth:`record` fills it); one of its own
+            when None.
+    """
+
+    def __init__(self, config: PerceptionConfig | None = None, robot: RobotModel | None = None,
+                 history: JointHistory | None = None) -> None:
+        self.config = config or PerceptionConfig()
+        c = self.config
+        self.grid = VoxelGrid.from_bounds(c.bounds_min, c.bounds_max, c.voxel)
+        nx, ny, nz = self.grid.shape
+        self.last = np.full((2, nx, ny, nz), -np.inf)  # per channel, the stamp each voxel was last seen [s]
+        self._occupied = np.zeros((2, nx, ny, nz), bool)
+        self._hits = np.zeros((2, nx, ny, nz), np.uint16)
+        self._work = np.empty((nx, ny, nz))
+        self.robot = robot
+        self.self_filter = SelfFilter(robot, c.self_margin) if robot is not None else None
+        self.history = history if history is not None else (JointHistory(robot.nv) if robot is not None else None)
+        self.target: np.ndarray | None = None
+        self.stamp = -math.inf  # the newest frame's
+        self.frames = 0
+        self.last_report: FrameReport | None = None
+        self._lock = threading.Lock()  # one frame at a time (a worker and a user may both call)
+        self._no_capsules = (np.zeros((0, 2, 3)), np.zeros(0))
+
+    # -- what the controller tells the map --------------------------------------------------------
+    def record(self, t: float, q: np.ndarray) -> None:
+        """The robot's joint positions q [rad] at time t [s] (for the self-filter at a frame's stamp)."""
+        if self.history is not None:
+            self.history.record(t, q)
+
+    def set_target(self, target: np.ndarray | None) -> None:
+        """The grasp target [m] (base frame): nothing within ``target_radius`` of it is an obstacle (None: none)."""
+        if target is None:
+            self.target = None
+            return
+        p = np.asarray(target, float).reshape(-1)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise PerceptionError(f"the grasp target must be 3 finite numbers [m], got {target!r}")
+        self.target = p
+
+    def capsules_at(self, stamp: float) -> tuple[np.ndarray, np.ndarray]:
+        """The robot's inflated capsules (segments (L, 2, 3), radii (L,)) [m] at ``stamp`` [s]."""
+        if self.self_filter is None or self.history is None:
+            return self._no_capsules
+        q = self.history.at(stamp)
+        if q is None:
+            return self._no_capsules
+        return self.self_filter.segments(q), self.self_filter.radii
+
+    # -- frames -------------------------------------------------------------------------------------
+    def integrate(self, frame: Frame) -> FrameReport:
+        """Add one frame to the map (module docstring, steps 1–5). :class:`PerceptionError` when its
+        stamp is older than the last frame's."""
+        if not isinstance(frame, (DepthFrame, PointCloud)):
+            raise PerceptionError(f"a frame is a DepthFrame or a PointCloud, got {type(frame).__name__}")
+        with self._lock:
+            if frame.stamp < self.stamp:
+                raise PerceptionError(f"frame stamps went backwards: {frame.stamp} s after {self.stamp} s")
+            start = time.perf_counter()
+            c, g = self.config, self.grid
+            segs, radii = self.capsules_at(frame.stamp)
+            target = self.target if self.target is not None else np.zeros(3)
+            target_r = c.target_radius if self.target is not None else 0.0
+            counts = np.zeros(len(KD.STATUS_NAMES), np.int64)
+            margin = SQRT3_2 * c.voxel + c.depth_noise
+            if isinstance(frame, DepthFrame):
+                K = frame.intrinsics
+                depth = frame.depth
+                scale = float(frame.depth_scale)
+                if depth.dtype == np.float16:
+                    depth = depth.astype(np.float32)
+                labels = frame.labels if frame.labels is not None else np.zeros((0, 0), np.uint8)
+                status: np.ndarray = np.empty(depth.shape, np.uint8)
+                KD.integrate_depth(depth, scale, labels, K.fx, K.fy, K.cx, K.cy, frame.pose, c.min_range,
+                                   c.max_range, c.flying_pixel, segs, radii, target, target_r, g.origin, g.voxel,
+                                   self.last, frame.stamp, status, counts, self._hits, c.min_points,
+                                   c.soft_depth)
+                cleared = KD.clear_depth(depth, scale, status, K.fx, K.fy, K.cx, K.cy, frame.pose, margin,
+                                         g.origin, g.voxel, self.last, frame.stamp)
+            else:
+                point_labels = frame.labels if frame.labels is not None else np.zeros(0, np.uint8)
+                status = np.empty(frame.points.shape[0], np.uint8)
+                KD.integrate_points(frame.points, point_labels, segs, radii, target, target_r, g.origin, g.voxel,
+                                    self.last, frame.stamp, status, counts)
+                cleared = 0
+                if frame.origin is not None:
+                    cleared = KD.clear_rays(frame.points, status, frame.origin, margin, g.origin, g.voxel,
+                                            self.last, frame.stamp)
+            self.stamp = frame.stamp
+            self.frames += 1
+            report = FrameReport(frame.stamp, dict(zip(KD.STATUS_NAMES, (int(n) for n in counts), strict=True)),
+                                 int(cleared), (time.perf_counter() - start) * 1e3, status)
+            self.last_report = report
+            return report
+
+    def snapshot(self, now: float | None = None, *, started: float | None = None) -> MapSnapshot:
+        """The distance field of the map as it is (after the decay at ``now`` [s], default the newest
+        frame's stamp), as an immutable snapshot. ``started`` (``time.perf_counter()``) is when the
+        newest frame arrived: the snapshot's ``build_ms`` counts from it (default: this call)."""
+        with self._lock:
+            t0 = time.perf_counter() if started is None else started
+            c = self.config
+            now = self.stamp if now is None else float(now)
+            KD.occupancy(self.last, now, c.decay, self._occupied)
+            nx, ny, nz = self.grid.shape
+            dist = np.empty((2, nx, ny, nz), np.float32)
+            grad = np.empty((2, nx, ny, nz, 3), np.float32)
+            occupied = [0, 0]
+            for ch in range(2):
+                occupied[ch] = int(KE.distance_field(self._occupied[ch], c.voxel, c.truncation, self._work, dist[ch]))
+                if occupied[ch]:
+                    KE.gradient(dist[ch], c.voxel, grad[ch])
+                else:
+                    grad[ch] = 0.0
+            counts = dict(self.last_report.counts) if self.last_report is not None else {}
+            return MapSnapshot(self.grid, c.truncation, dist, grad, self.stamp, (time.perf_counter() - t0) * 1e3,
+                               (occupied[0], occupied[1]), self.frames, counts)
+
+    def update(self, frame: Frame) -> MapSnapshot:
+        """:meth:`integrate` the frame, then :meth:`snapshot`: the map with it, timed from the call."""
+        start = time.perf_counter()
+        self.integrate(frame)
+        return self.snapshot(started=start)
+
+    def occupied_centres(self, channel: int = 0) -> np.ndarray:
+        """(k, 3) centres [m] of the voxels occupied in ``channel`` at the last snapshot."""
+        return self.grid.centres(np.argwhere(self._occupied[channel]))

@@ -1,0 +1,158 @@
+"""The depth map's barrier rows: the field's pairs, shaped like the primitives' rows.
+
+For each link capsule and channel, :func:`qpctl.kernels.field.field_pairs` gives the nearest one or
+two points of the field (distance d [m] from the capsule's surface, unit normal n away from the
+obstacle, witness point p on the link). Each becomes a row on q̈ of the form of
+:class:`~qpctl.constraints.ObstacleBarrier`'s, with the static map's ḣ = nᵀJ_p q̇ and the
+rigid-point drift ḧ = nᵀ(J_p q̈ + J̇_p q̇):
+
+* **rigid** (stems, branches; unlabeled points too): ḧ + k₁ḣ + k₀h ≥ 0 with h = d − m,
+  m = d_safe + √3/2·voxel + depth noise (:meth:`PerceptionConfig.rigid_margin`): the voxel's centre
+  may be √3/2 voxel from the surface it stands for, and the surface itself off by the noise;
+* **soft** (leaves): ḧ + k₁(ḣ + v_s) + k₀ max(d, 0) ≥ 0, v_s = ``soft_speed``: far from a leaf it
+  is the rigid row without the margin, at contact and inside it asks only ḣ ≥ −v_s — a link may
+  pass through a leaf, no faster than v_s along the field's normal.
+
+A row is active where d is within the controller's influence distance, inactive (−inf bound)
+elsewhere; the number of rows is fixed (2 channels × links × ``rows_per_link``).
+
+:class:`FieldBarrier` is the constraint on the Python path (:class:`~qpctl.formulation.Formulation`):
+the reference the compiled rows are held to. Its point Jacobians and drifts come from Pinocchio's
+joint Jacobians and their time variation, shifted to the witness points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pinocchio as pin
+
+from qpctl.constraints.constraints import BARRIER, Constraint
+from qpctl.kernels import field as KF
+from qpctl.law import LawTerms
+from qpctl.perception.config import PerceptionConfig
+from qpctl.perception.snapshot import MapSnapshot
+from qpctl.qp import Inequality
+from qpctl.robot.model import RobotModel
+from qpctl.state import TickState
+
+
+@dataclass(frozen=True)
+class FieldPairs:
+    """The field's pairs at one tick (R = 2 channels × L links × rows_per_link rows; channel-major):
+    ``distance`` (R,) [m] from the capsule's surface, ``normal`` (R, 3), ``point`` (R, 3) on the link
+    [m], ``link`` (R,) capsule index, ``soft`` (R,) bool, ``active`` (R,) bool (within the cutoff)."""
+
+    distance: np.ndarray
+    normal: np.ndarray
+    point: np.ndarray
+    link: np.ndarray
+    soft: np.ndarray
+    active: np.ndarray
+
+    def obstacle_points(self) -> np.ndarray:
+        """(R, 3) where each row believes the obstacle is [m]: the witness point moved by d along −n."""
+        return self.point - self.distance[:, None] * self.normal
+
+
+def field_pairs(snapshot: MapSnapshot, segments: np.ndarray, radii: np.ndarray, config: PerceptionConfig,
+                cutoff: float, *, smooth: bool = True) -> FieldPairs:
+    """Both channels' pairs for the link capsules (``segments`` (L, 2, 3) [m], ``radii`` (L,) [m]);
+    a pair is active when its distance is below ``cutoff`` [m]."""
+    L, R, S = len(segments), config.rows_per_link, config.samples
+    out_d, out_n, out_p = np.empty(2 * L * R), np.empty((2 * L * R, 3)), np.empty((2 * L * R, 3))
+    s, ds = np.empty(L * R), np.empty(S)
+    g = snapshot.grid
+    for ch in range(2):
+        sl = slice(ch * L * R, (ch + 1) * L * R)
+        KF.field_pairs(np.ascontiguousarray(segments, float), np.ascontiguousarray(radii, float),
+                       snapshot.dist[ch], snapshot.grad[ch], g.origin, g.voxel, snapshot.truncation, S, R, smooth,
+                       ds, out_d[sl], out_n[sl], out_p[sl], s)
+    link = np.tile(np.repeat(np.arange(L), R), 2)
+    soft = np.repeat([False, True], L * R)
+    active = (out_d < cutoff) & np.any(out_n != 0.0, axis=1)
+    return FieldPairs(out_d, out_n, out_p, link, soft, active)
+
+
+class FieldBarrier(Constraint):
+    """The map's rows (module docstring) for a controller reading ``source`` — a
+    :class:`~qpctl.perception.Perception` or anything with a ``snapshot`` attribute.
+
+    Args:
+        source: where the newest :class:`MapSnapshot` is read, every tick.
+        robot: the robot (its capsules and Pinocchio model).
+        config: the ``[perception]`` settings (margins, samples, rows per link, ``soft_speed``).
+        d_safe [m], cutoff [m] (the influence distance), k0 [1/s²], k1 [1/s]: as the obstacle barrier's.
+    """
+
+    name = "field"
+    kind = BARRIER
+
+    def __init__(self, source: object, robot: RobotModel, config: PerceptionConfig, *, d_safe: float,
+                 cutoff: float, k0: float = 400.0, k1: float = 40.0) -> None:
+        self.source = source
+        self.robot = robot
+        self.config = config
+        self.margin = config.rigid_margin(d_safe)
+        self.cutoff = float(cutoff)
+        self.k0, self.k1 = float(k0), float(k1)
+        self.radii = np.array([c.radius for c in robot.capsules], float)
+        self.joints = np.array([c.joint_id for c in robot.capsules], int)
+        self.rows = 2 * len(robot.capsules) * config.rows_per_link
+        self._data = robot.model.createData()
+        self.last: FieldPairs | None = None  # the last tick's pairs (for metrics and figures)
+
+    def segments(self, q: np.ndarray) -> np.ndarray:
+        """(L, 2, 3) the capsules' axes [m] at q [rad] (Pinocchio's forward kinematics)."""
+        pin.forwardKinematics(self.robot.model, self._data, np.asarray(q, float))
+        return np.array([[self._data.oMi[c.joint_id].act(c.p0), self._data.oMi[c.joint_id].act(c.p1)]
+                         for c in self.robot.capsules])
+
+    def jacobians(self, q: np.ndarray, v: np.ndarray, links: np.ndarray, points: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray]:
+        """(k, 3, n) Jacobians and (k, 3) drifts J̇_p q̇ [m/s²] of ``points`` (k, 3) [m] fixed on the
+        capsules' bodies ``links`` (k,), at (q, v): Pinocchio's joint Jacobians and time variations
+        (LOCAL_WORLD_ALIGNED), shifted from the joint's origin o to p: J_p = J_v − [p − o]× J_ω,
+        J̇_p q̇ = J̇_v q̇ + (J̇_ω q̇) × r + ω × (ω × r), r = p − o."""
+        model, data = self.robot.model, self._data
+        pin.computeJointJacobiansTimeVariation(model, data, q, v)  # also the placements and J
+        joints = self.joints[links]
+        J6 = np.empty((len(links), 6, model.nv))
+        dJ6 = np.empty((len(links), 6, model.nv))
+        origin = np.empty((len(links), 3))
+        for j in np.unique(joints):  # once per body, not per pair
+            at = joints == j
+            J6[at] = pin.getJointJacobian(model, data, int(j), pin.LOCAL_WORLD_ALIGNED)
+            dJ6[at] = pin.getJointJacobianTimeVariation(model, data, int(j), pin.LOCAL_WORLD_ALIGNED)
+            origin[at] = data.oMi[int(j)].translation
+        r = points - origin
+        Jw = J6[:, 3:]
+        J = J6[:, :3] - np.cross(r[:, :, None], Jw, axis=1)  # column-wise r × J_ω
+        w = Jw @ v
+        a = dJ6[:, :3] @ v + np.cross(dJ6[:, 3:] @ v, r) + np.cross(w, np.cross(w, r))
+        return J, a
+
+    def compute(self, state: TickState, terms: LawTerms) -> Inequality:
+        n = state.n
+        C = np.zeros((self.rows, n))
+        lower = np.full(self.rows, -np.inf)
+        upper = np.full(self.rows, np.inf)
+        snap: MapSnapshot = self.source.snapshot  # type: ignore[attr-defined]
+        pairs = field_pairs(snap, state.segments, self.radii, self.config, self.cutoff)
+        self.last = pairs
+        idx = np.flatnonzero(pairs.active)
+        if idx.size == 0:
+            return Inequality(C, lower, upper)
+        J, drift = self.jacobians(state.q, state.v, pairs.link[idx], pairs.point[idx])
+        nrm = pairs.normal[idx]
+        rows = np.einsum("ri,rin->rn", nrm, J)
+        hdot = rows @ state.v
+        d = pairs.distance[idx]
+        soft = pairs.soft[idx]
+        vs = self.config.soft_speed
+        rhs = np.where(soft, -self.k1 * (hdot + vs) - self.k0 * np.maximum(d, 0.0),
+                       -self.k1 * hdot - self.k0 * (d - self.margin)) - np.einsum("ri,ri->r", nrm, drift)
+        C[idx] = rows
+        lower[idx] = rhs
+        return Inequality(C, lower, upper)

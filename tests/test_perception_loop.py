@@ -1,0 +1,152 @@
+"""The field's rows and the closed loop: point Jacobians and drifts against finite differences, the
+rows against their definition, and a short Panda run that sees its obstacles only through a simulated
+depth camera (qpctl.perception.rows, .closed_loop; issue 21, items 3, 4 and 7)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from qpctl import Scenario
+from qpctl.dynamics import Dynamics
+from qpctl.perception import Perception, PerceptionConfig, PointCloud
+from qpctl.perception.closed_loop import attach
+from qpctl.perception.rows import FieldBarrier, field_pairs
+from qpctl.simulation.camera import CameraConfig, DepthCamera
+from qpctl.simulation.simulator import Simulator
+
+CFG = PerceptionConfig(voxel=0.02, bounds_min=[-0.3, -0.6, 0.0], bounds_max=[1.1, 0.6, 1.1], truncation=0.3,
+                       depth_noise=0.025)  # 3σ of the camera at 1.3 m (σ = 0.5 mm + 4.2 mm·z²)
+
+
+def _sphere_cloud(centre: list[float], radius: float, n: int = 4000, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    return np.asarray(centre) + radius * d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def test_witness_point_jacobian_and_drift_match_finite_differences(panda_robot, rng: np.random.Generator) -> None:
+    p = Perception(CFG)
+    bar = FieldBarrier(p, panda_robot, CFG, d_safe=0.05, cutoff=0.3)
+    model = panda_robot.model
+    data = model.createData()
+    h = 1e-6
+    for _ in range(5):
+        q = rng.uniform(panda_robot.q_min, panda_robot.q_max)
+        v = rng.uniform(-1, 1, 7)
+        links = np.arange(len(panda_robot.capsules))
+        pin.forwardKinematics(model, data, q)
+        # a point fixed on each link's body (its capsule's p1 shifted off the axis)
+        local = [np.asarray(c.p1) + [0.01, -0.02, 0.03] for c in panda_robot.capsules]
+        pts = np.array([data.oMi[c.joint_id].act(x) for c, x in zip(panda_robot.capsules, local, strict=True)])
+        J, a = bar.jacobians(q, v, links, pts)
+
+        def points(qq: np.ndarray, local: list[np.ndarray] = local) -> np.ndarray:
+            pin.forwardKinematics(model, data, qq)
+            return np.array([data.oMi[c.joint_id].act(x) for c, x in zip(panda_robot.capsules, local, strict=True)])
+
+        # ṗ = J_p q̇ and p̈ at q̈ = 0 = J̇_p q̇, by central differences along q(t) = q + v t
+        p_plus, p_minus, p_0 = points(q + h * v), points(q - h * v), points(q)
+        assert np.einsum("kin,n->ki", J, v) == pytest.approx((p_plus - p_minus) / (2 * h), abs=1e-6)
+        hh = 1e-4
+        acc = (points(q + hh * v) - 2 * p_0 + points(q - hh * v)) / hh ** 2
+        assert a == pytest.approx(acc, abs=1e-4)
+
+
+def test_rows_are_the_barrier_of_the_field_distance(panda_robot) -> None:
+    """A static map of a sphere beside the forearm: each active rigid row is n^T J_p (J_p the witness
+    point's Jacobian) and its bound −k1 ḣ − k0 (d − margin) − n^T J̇_p q̇; ḣ = row·q̇ matches the rate
+    of change of the pair's distance along the motion."""
+    robot = panda_robot
+    q = robot.q_home.copy()
+    seg = Dynamics(robot).compute(q, np.zeros(7)).segments
+    mid = 0.5 * (seg[3, 0] + seg[3, 1])
+    centre = mid + [0.0, 0.18, 0.0]
+    p = Perception(CFG)
+    p.submit(PointCloud(_sphere_cloud(list(centre), 0.05), 0.0))
+    bar = FieldBarrier(p, robot, CFG, d_safe=0.05, cutoff=0.3, k0=400.0, k1=40.0)
+    dyn = Dynamics(robot)
+    v = np.array([0.1, -0.2, 0.3, 0.2, -0.1, 0.2, 0.1])
+    st = dyn.compute(q, v, 0.0)
+    ineq = bar.compute(st, None)  # type: ignore[arg-type]
+    pairs = bar.last
+    assert pairs is not None
+    rigid = np.flatnonzero(pairs.active & ~pairs.soft)
+    assert rigid.size >= 2 and not (pairs.active & pairs.soft).any()
+    J, a = bar.jacobians(q, v, pairs.link[rigid], pairs.point[rigid])
+    rows = np.einsum("ri,rin->rn", pairs.normal[rigid], J)
+    hdot = rows @ v
+    expect = -40.0 * hdot - 400.0 * (pairs.distance[rigid] - CFG.rigid_margin(0.05)) - np.einsum(
+        "ri,ri->r", pairs.normal[rigid], a)
+    assert ineq.C[rigid] == pytest.approx(rows) and ineq.lower[rigid] == pytest.approx(expect)
+    assert np.all(np.isinf(ineq.lower[~pairs.active])) and not ineq.C[~pairs.active].any()
+    # ḣ: the rate of change of the pairs' distances along q + v t (pairs clear of the voxels, where
+    # the field is a distance; a link inside the map's occupied voxels has no gradient to speak of)
+    clear = pairs.distance[rigid] > 2 * CFG.voxel
+    assert clear.sum() >= 2
+    h = 1e-4
+    d = [field_pairs(p.snapshot, dyn.compute(q + s * v, v).segments, bar.radii, CFG, 0.3).distance[rigid]
+         for s in (-h, h)]
+    assert ((d[1] - d[0]) / (2 * h))[clear] == pytest.approx(hdot[clear], rel=0.05, abs=2e-3)
+
+
+def test_soft_rows_cap_the_approach_speed_not_the_distance(panda_robot) -> None:
+    robot = panda_robot
+    q = robot.q_home.copy()
+    seg = Dynamics(robot).compute(q, np.zeros(7)).segments
+    tip = seg[-1, 1]
+    p = Perception(CFG)
+    p.submit(PointCloud(_sphere_cloud(list(tip + [0.0, 0.0, -0.1]), 0.04), 0.0,
+                        labels=np.full(4000, 2, np.uint8)))
+    bar = FieldBarrier(p, robot, CFG, d_safe=0.05, cutoff=0.3)
+    st = Dynamics(robot).compute(q, np.zeros(7), 0.0)
+    ineq = bar.compute(st, None)  # type: ignore[arg-type]
+    pairs = bar.last
+    assert pairs is not None
+    soft = np.flatnonzero(pairs.active & pairs.soft)
+    assert soft.size and not (pairs.active & ~pairs.soft).any()
+    # at rest: −k1 v_s − k0 max(d, 0) (no margin: contact is allowed at v_s)
+    expect = -40.0 * CFG.soft_speed - 400.0 * np.maximum(pairs.distance[soft], 0.0)
+    assert ineq.lower[soft] == pytest.approx(expect, abs=1e-9)
+
+
+def _camera_scene() -> tuple[Scenario, list, DepthCamera]:
+    scen = Scenario.load("panda_spheres", overrides=["sim.duration=0.8"])
+    robot = scen.build_robot()
+    world = scen.build_obstacles()
+    cam = DepthCamera(CameraConfig(mount="world", position=[1.6, 0.0, 0.9], look_at=[0.45, 0.0, 0.5], width=320,
+                                   height=240, fov_y=70.0), robot, world)
+    return scen, world, cam
+
+
+def test_a_short_run_sees_its_obstacles_only_through_the_camera() -> None:
+    scen, world, cam = _camera_scene()
+    robot = cam.robot
+    ctrl = scen.build_controller("qp", robot=robot, obstacles=[])  # no primitive: the map only
+    sim = Simulator(ctrl, dt=1e-3, duration=0.8, obstacles=world)
+    loop = attach(ctrl, sim, CFG, camera=cam, world=world)
+    traj = sim.run(scen.q0(robot))
+    m = loop.metrics()
+    assert m["map_frames"] == 25  # 30 Hz from 0 to 0.8 s
+    assert math.isfinite(m["map_min_clearance"]) and m["map_update_ms_p99"] > 0
+    assert m["map_latency_ms_p99"] >= m["map_update_cpu_ms_median"] - 1.0  # at least its build time
+    # the first frames' map arrives after its build time: the policy held the arm until then
+    assert loop.stop_ticks >= 1
+    d_safe = float(scen.data["controller"]["d_safe"])
+    assert traj.clearance.min() >= d_safe - CFG.voxel
+    assert m["phantom_rows_checked"] > 0
+
+
+@pytest.mark.xfail(strict=True, reason="phantom rows: 0 of 353 before merging camera's latest caster and house "
+                   "step 3, 87-138 of ~480 (19-28 %) after; not yet understood (docs/perception.md)")
+def test_few_rows_come_from_what_is_not_there() -> None:
+    scen, world, cam = _camera_scene()
+    ctrl = scen.build_controller("qp", robot=cam.robot, obstacles=[])
+    sim = Simulator(ctrl, dt=1e-3, duration=0.8, obstacles=world)
+    loop = attach(ctrl, sim, CFG, camera=cam, world=world)
+    sim.run(scen.q0(cam.robot))
+    m = loop.metrics()
+    assert m["phantom_rows"] <= 0.05 * m["phantom_rows_checked"]
