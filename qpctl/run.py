@@ -15,6 +15,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from qpctl.controllers.base import Controller
 from qpctl.replay.record import SCENARIO_FILE
 from qpctl.scenario import Scenario
