@@ -45,6 +45,9 @@ class PerceptionConfig:
     soft_speed: float = setting(0.05, valid="nonnegative", unit="m/s")  # the fastest a link may pass through a leaf [m/s]
     stale_slow: float = setting(0.15, valid="seconds", unit="s")  # a map older than this slows the task [s]
     stale_stop: float = setting(0.5, valid="seconds", unit="s")  # older than this, the arm stops [s]
+    latency: float = setting(0.03, valid="nonnegative", unit="s")  # in a simulated loop, a frame's map reaches
+    #                                  the rows this long after its stamp [s]: fixed, so a run is the same on
+    #                                  every machine (the build's measured cost is reported beside it)
 
     def __post_init__(self) -> None:
         check_fields(self, "perception")
