@@ -123,7 +123,7 @@ def _camera_scene() -> tuple[Scenario, list, DepthCamera]:
     return scen, world, cam
 
 
-def test_a_short_run_sees_its_obstacles_only_through_the_camera() -> None:
+def test_a_short_run_sees_its_obstacles_only_through_the_camera(tmp_path) -> None:
     scen, world, cam = _camera_scene()
     robot = cam.robot
     ctrl = scen.build_controller("qp", robot=robot, obstacles=[])  # no primitive: the map only
@@ -140,6 +140,9 @@ def test_a_short_run_sees_its_obstacles_only_through_the_camera() -> None:
     d_safe = float(scen.data["controller"]["d_safe"])
     assert traj.clearance.min() >= d_safe - CFG.voxel
     assert m["phantom_rows_checked"] > 0
+    files = loop.write_figures(tmp_path, traj.t, traj.clearance, d_safe)  # the run's three figures
+    assert [f.name for f in files] == ["depth_frame.png", "field_slice.png", "clearance_true_vs_map.png"]
+    assert all(f.stat().st_size > 10_000 for f in files)
 
 
 def test_the_closed_loop_is_the_same_run_however_long_the_map_takes() -> None:
