@@ -523,9 +523,9 @@ class Scenario:
         outside = np.flatnonzero((q < robot.q_min) | (q > robot.q_max))
         if outside.size:
             i = int(outside[0])
-            raise self._err("robot.q0", f"joint {robot.joint_names[i]} = {q[i]} is outside its limits "
+            raise self._err("robot.q0", f"joint {robot.dof_names[i]} = {q[i]} is outside its limits "
                             f"[{robot.q_min[i]}, {robot.q_max[i]}]")
-        return q
+        return robot.configuration(q)  # one angle per continuous joint, x, y, θ per planar one → Pinocchio's q
 
     def build_path(self, robot: RobotModel, q0: np.ndarray) -> WaypointPath:
         p = self.data["path"]
