@@ -59,7 +59,7 @@ class TickState:
 
     @property
     def n(self) -> int:
-        return int(self.q.shape[0])
+        return int(self.v.shape[0])  # degrees of freedom (q has nq entries, more with continuous joints)
 
     def jdot(self) -> np.ndarray:
         """J̇ (m, n) of the task point: in the states of :meth:`Dynamics.compute`, and in a controller's

@@ -169,7 +169,7 @@ class PybulletSimulator(SimulatorBase):
         """PyBullet's M(q) [kg·m²] and bias forces [N·m] in the controller's joint order."""
         c, n = self.client, self._n_dof
         qs, vs = np.zeros(n), np.zeros(n)
-        qs[self._dof_order], vs[self._dof_order] = q, v
+        qs[self._dof_order], vs[self._dof_order] = self.robot.angles(q), v
         M = np.asarray(pybullet.calculateMassMatrix(self.body, qs.tolist(), physicsClientId=c))
         b = np.asarray(pybullet.calculateInverseDynamics(self.body, qs.tolist(), vs.tolist(), [0.0] * n,
                                                          physicsClientId=c))
