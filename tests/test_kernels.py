@@ -1069,6 +1069,40 @@ def test_qp_assembly_equals_formulation(key):
     assert active >= 4, active
 
 
+@pytest.mark.parametrize("key", ["panda_canopy", "paper-posture-limits"])
+def test_compiled_joint_bounds_outside_the_limits(key):
+    """States outside the joint limits (issue 22's guard: no state of the test above lies there):
+    positions up to 1.5 rad beyond either limit, speeds up to 3 × v_max. The compiled bounds on q̈ (the
+    problem's lb, ub after ctrl.step) equal JointLimit.compute to 1e-12, lie within ±q̈_max with
+    lb ≤ ub; and (independently of both) a joint far below q_min at rest, where the position barrier
+    asks k₀·1.5 rad ≫ q̈_max, gets lb = ub = +q̈_max (above q_max: −q̈_max)."""
+    rng = np.random.default_rng(SEED + 63)
+    ctrl = qp_controller(key)
+    robot, n = ctrl.robot, ctrl.robot.nv
+    limit = next(c for c in ctrl.constraints if c.name == "joint_limits")
+    qdd = np.broadcast_to(np.inf if robot.qdd_max is None else robot.qdd_max, (n,))
+    lo = np.where(np.isfinite(robot.q_min), robot.q_min, -np.pi)
+    hi = np.where(np.isfinite(robot.q_max), robot.q_max, np.pi)
+    vmax = np.where(np.isfinite(robot.v_max), robot.v_max, 2.0)
+    for k in range(12):
+        q, v = rng.uniform(lo, hi), rng.uniform(-3, 3, n) * vmax
+        out = rng.random(n) < 0.5
+        side = rng.random(n) < 0.5
+        q = np.where(out & side, lo - rng.uniform(0.1, 1.5, n), np.where(out, hi + rng.uniform(0.1, 1.5, n), q))
+        if k < 2:  # every joint 1.5 rad beyond one limit, at rest
+            q, v = (lo - 1.5 if k == 0 else hi + 1.5), np.zeros(n)
+        ctrl.step(q, v, 0.1)
+        lb, ub = np.array(ctrl.last_problem.lb[:n]), np.array(ctrl.last_problem.ub[:n])
+        want = limit.compute(ctrl.dynamics.compute(q, v, 0.1), None)  # type: ignore[arg-type]
+        where = f"{key} at q={q.tolist()}, v={v.tolist()}"
+        assert_close(lb, want.lower, 1e-12, f"lb, {where}")
+        assert_close(ub, want.upper, 1e-12, f"ub, {where}")
+        assert np.all(lb <= ub) and np.all(lb >= -qdd) and np.all(ub <= qdd), where
+        if k < 2 and np.isfinite(robot.q_min).all() and np.isfinite(qdd).all():
+            edge = qdd if k == 0 else -qdd
+            assert np.array_equal(lb, edge) and np.array_equal(ub, edge), where
+
+
 def test_qp_rigid_and_exact_barrier_drift_differ():
     """The two barrier drifts give different obstacle rows at the same moving state (so each of the
     comparisons above checks the one its setting asks for)."""

@@ -123,7 +123,7 @@ def _camera_scene() -> tuple[Scenario, list, DepthCamera]:
     return scen, world, cam
 
 
-def test_a_short_run_sees_its_obstacles_only_through_the_camera() -> None:
+def test_a_short_run_sees_its_obstacles_only_through_the_camera(tmp_path) -> None:
     scen, world, cam = _camera_scene()
     robot = cam.robot
     ctrl = scen.build_controller("qp", robot=robot, obstacles=[])  # no primitive: the map only
@@ -140,6 +140,9 @@ def test_a_short_run_sees_its_obstacles_only_through_the_camera() -> None:
     d_safe = float(scen.data["controller"]["d_safe"])
     assert traj.clearance.min() >= d_safe - CFG.voxel
     assert m["phantom_rows_checked"] > 0
+    files = loop.write_figures(tmp_path, traj.t, traj.clearance, d_safe)  # the run's three figures
+    assert [f.name for f in files] == ["depth_frame.png", "field_slice.png", "clearance_true_vs_map.png"]
+    assert all(f.stat().st_size > 10_000 for f in files)
 
 
 def test_the_closed_loop_is_the_same_run_however_long_the_map_takes() -> None:
@@ -175,13 +178,16 @@ def test_the_closed_loop_is_the_same_run_however_long_the_map_takes() -> None:
     assert first[1] - first[0] == 30  # ticks of 1 ms
 
 
-@pytest.mark.xfail(strict=False, reason="flaky, being fixed (issue 21, second round): phantom rows: 0 of 353 before merging camera's latest caster and house "
-                   "step 3, 87-138 of ~480 (19-28 %) after; not yet understood (docs/perception.md)")
 def test_few_rows_come_from_what_is_not_there() -> None:
+    """Rows from what is not there: flying pixels at the robot's and the spheres' silhouettes whose
+    neighbours across the edge are flying too or lost to grazing dropouts pass the 4-neighbour test
+    (6 of 364 checked rows with it alone, 19-28 % before the map's latency was fixed); the 8-neighbour
+    support test removes them."""
     scen, world, cam = _camera_scene()
     ctrl = scen.build_controller("qp", robot=cam.robot, obstacles=[])
     sim = Simulator(ctrl, dt=1e-3, duration=0.8, obstacles=world)
     loop = attach(ctrl, sim, CFG, camera=cam, world=world)
     sim.run(scen.q0(cam.robot))
     m = loop.metrics()
-    assert m["phantom_rows"] <= 0.05 * m["phantom_rows_checked"]
+    assert m["phantom_rows_checked"] >= 200
+    assert m["phantom_rows"] <= 0.01 * m["phantom_rows_checked"]

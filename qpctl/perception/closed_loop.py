@@ -275,7 +275,7 @@ def attach(controller: Any, simulator: Any, config: Any, *, camera: Any = None, 
     if time_scaled:
         scaled = TimeScaledPath(controller.path)
         controller.path = scaled
-    controller._ws = None  # rebuilt on the next tick: the Python path, the path read in Python
+    controller._ws = None  # rebuilt on the next tick: the field's rows compiled, the path read in Python
     controller.warm = False
     rigid = [o for o in world if o.material != "soft"]
     soft = [o for o in world if o.material == "soft"]
