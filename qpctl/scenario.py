@@ -411,7 +411,7 @@ class Scenario:
             a, b = (robot.capsules[i].name for i in pairs[k])
             how = f"overlap by {-gaps[k]:.4f} m" if gaps[k] < 0 else f"are {gaps[k]:.4f} m apart"
             raise self._err("robot.q0", f"links {a!r} and {b!r} {how} at the start configuration "
-                            f"{np.round(q0, 4).tolist()}, within controller.self_d_safe = {c['self_d_safe']} m "
+                            f"{np.round(robot.angles(q0), 4).tolist()}, within controller.self_d_safe = {c['self_d_safe']} m "
                             "(the self-collision rows would be violated from the first tick)")
 
     @property
@@ -550,9 +550,9 @@ class Scenario:
         outside = np.flatnonzero((q < robot.q_min) | (q > robot.q_max))
         if outside.size:
             i = int(outside[0])
-            raise self._err("robot.q0", f"joint {robot.joint_names[i]} = {q[i]} is outside its limits "
+            raise self._err("robot.q0", f"joint {robot.dof_names[i]} = {q[i]} is outside its limits "
                             f"[{robot.q_min[i]}, {robot.q_max[i]}]")
-        return q
+        return robot.configuration(q)  # one angle per continuous joint, x, y, θ per planar one → Pinocchio's q
 
     def build_path(self, robot: RobotModel, q0: np.ndarray) -> WaypointPath:
         p = self.data["path"]
