@@ -248,7 +248,12 @@ class Workspace:
         self.ee_joint = int(frame.parentJoint)
         self.ee_local = np.array(frame.placement.translation, float)
         self.ee_support = _supports(model, self.ee_joint)
-        self.axes = np.array(robot.task_axes, dtype=np.int64)
+        # every task frame (several arms: robot.task_frames), its rows along task_axes stacked in order
+        self.axes = np.tile(np.array(robot.task_axes, dtype=np.int64), len(robot.frames))
+        tk = [model.frames[f] for f in robot.task_frame_ids]
+        self.tk_joint = np.array([int(f.parentJoint) for f in tk], dtype=np.int64)
+        self.tk_local = np.array([f.placement.translation for f in tk], float).reshape(len(tk), 3)
+        self.tk_support = np.array([_supports(model, int(f.parentJoint)) for f in tk]).reshape(len(tk), n)
         self.ee_rot = robot.ee_rotation
         if robot.orientation == "pose":
             self.ori_rows = np.array(robot.orientation_axes, dtype=np.int64)
