@@ -5,10 +5,12 @@ views (``computeAllTerms`` refreshes them in place), allocates every array the k
 :mod:`qpctl.kernels.tick` write (rigid-body terms, link–obstacle pairs at their full capacity,
 law terms, the QP in DAQP's layout, the output record), and runs a tick as a handful of calls:
 
-    computeAllTerms → kernels.state → [python-fcl for boxes and cylinders] → law kernel → [solve]
+    computeAllTerms → kernels.state → [python-fcl for other shapes] → law kernel → [solve]
 
-Obstacles without a closed form (boxes, cylinders) are the only per-pair Python work: python-fcl's
-queries and the look-ahead difference of their barrier drift. Everything the kernels compute has a
+Spheres, capsules, boxes and cylinders are in closed form in the kernels. Obstacles of any other
+shape (a mesh, a shape a user registers) are the only per-pair Python work: python-fcl's queries and
+the look-ahead difference of their barrier drift (and of capsule pairs whose axes meet or run
+parallel). Everything the kernels compute has a
 reference implementation elsewhere in the package (:class:`qpctl.dynamics.Dynamics`'s Pinocchio and
 python-fcl path, :mod:`qpctl.law`, :class:`qpctl.formulation.Formulation`) that the tests compare.
 """
@@ -27,6 +29,7 @@ import pinocchio as pin
 
 from qpctl.errors import ConfigError
 from qpctl.geometry.distance import DistanceEngine, PairSet
+from qpctl.geometry.frames import rotation_z_to
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels import codes
 from qpctl.kernels import tick as K
@@ -71,6 +74,39 @@ def bind_pinocchio(model: pin.Model, data: pin.Data) -> dict[str, np.ndarray]:
         if views[name].flags["OWNDATA"] or not views[name].flags["C_CONTIGUOUS"]:
             raise RuntimeError(f"pin.Data's {name} is not a contiguous view in this Pinocchio build")
     return views
+
+
+#: The obstacle shapes the kernels compute in closed form; every other shape is python-fcl's (KIND_FCL).
+KINDS = {"sphere": codes.KIND_SPHERE, "capsule": codes.KIND_CAPSULE, "box": codes.KIND_BOX,
+         "cylinder": codes.KIND_CYLINDER}
+
+
+def _half_extents(obstacle: Obstacle) -> tuple[float, float, float]:
+    """A box's half extents, a cylinder's (radius, radius, half length) [m]; zeros for other shapes."""
+    if obstacle.shape == "box" and obstacle.size is not None:
+        hx, hy, hz = (0.5 * float(s) for s in obstacle.size)
+        return hx, hy, hz
+    if obstacle.shape == "cylinder":
+        return obstacle.radius, obstacle.radius, 0.5 * obstacle.length
+    return 0.0, 0.0, 0.0
+
+
+def _bounding_capsule(obstacle: Obstacle, rot: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, float]:
+    """(axis vector s [m], radius [m]) of the capsule the kernels compute for this obstacle: a
+    capsule's own; a sphere's (s = 0); for a box or cylinder the capsule that contains it (about its
+    longest axis, the cross radius), whose distance bounds the exact one from below (the pair loop's
+    cheap test before :mod:`qpctl.kernels.solids`); zero for python-fcl's shapes."""
+    if obstacle.shape == "capsule":
+        return obstacle.length * obstacle.axis / np.linalg.norm(obstacle.axis), obstacle.radius
+    if obstacle.shape == "sphere":
+        return np.zeros(3), obstacle.radius
+    if obstacle.shape == "cylinder":
+        return 2.0 * half[2] * rot[:, 2], float(half[0])
+    if obstacle.shape == "box":
+        k = int(np.argmax(half))
+        others = [half[c] for c in range(3) if c != k]
+        return 2.0 * half[k] * rot[:, k], float(np.hypot(*others))
+    return np.zeros(3), 0.0
 
 
 def _supports(model: pin.Model, joint: int) -> np.ndarray:
@@ -240,12 +276,13 @@ class Workspace:
         self.sc_hdot, self.sc_drift = np.zeros(P), np.zeros(P)
         m_p = robot.m_position
         # scene
-        kinds = {"sphere": codes.KIND_SPHERE, "capsule": codes.KIND_CAPSULE}
-        self.ob_kind = np.array([kinds.get(o.shape, codes.KIND_FCL) for o in self.obstacles], dtype=np.int64)
-        self.ob_radius = np.array([o.radius for o in self.obstacles], float)
+        self.ob_kind = np.array([KINDS.get(o.shape, codes.KIND_FCL) for o in self.obstacles], dtype=np.int64)
         self.ob_bound = np.array([o.bounding_radius() for o in self.obstacles], float)
-        self.ob_axis = np.array([o.length * o.axis / np.linalg.norm(o.axis) if o.shape == "capsule" else np.zeros(3)
-                                 for o in self.obstacles], float).reshape(O, 3)
+        self.ob_rot = np.array([rotation_z_to(o.axis) for o in self.obstacles], float).reshape(O, 3, 3)
+        self.ob_half = np.array([_half_extents(o) for o in self.obstacles], float).reshape(O, 3)
+        capsules = [_bounding_capsule(o, R, h) for o, R, h in zip(self.obstacles, self.ob_rot, self.ob_half)]
+        self.ob_axis = np.array([c[0] for c in capsules], float).reshape(O, 3)
+        self.ob_radius = np.array([c[1] for c in capsules], float)
         self.ob_pos0 = np.array([o.position for o in self.obstacles], float).reshape(O, 3)
         self.ob_vel0 = np.array([o.velocity for o in self.obstacles], float).reshape(O, 3)
         self.ob_amp = np.array([o.amplitude for o in self.obstacles], float).reshape(O, 3)
@@ -585,7 +622,7 @@ class WorldClearance:
     def __init__(self, robot: RobotModel, obstacles: Sequence[Obstacle],
                  self_pairs: Sequence[tuple[int, int]] = ()) -> None:
         self.ws = Workspace(robot, obstacles, None, None, math.inf, self_pairs=self_pairs)
-        others = [o for o in obstacles if o.shape not in ("sphere", "capsule")]
+        others = [o for o in obstacles if o.shape not in KINDS]
         self._fcl = DistanceEngine(self.ws.cap_radius, others, broadphase=False) if others else None
         self.any = bool(obstacles)
         self.self_clearance = math.inf  # [m] between the self pairs' capsules, at the last call
