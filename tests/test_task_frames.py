@@ -99,6 +99,9 @@ def test_baxter_picks_two_fruits_at_once() -> None:
     result = simulate(scenario, progress=False)
     m, traj = result.metrics, result.trajectory
     assert not m["collided"] and m["min_clearance"] > 0.0
+    right = np.linalg.norm(traj.x[:, 3:] - traj.x_ref[:, 3:], axis=1)  # the second frame's rows
+    assert m["max_tracking_error_per_task"][1] == pytest.approx(right.max())
+    assert m["max_tracking_error"] >= max(m["max_tracking_error_per_task"])
     t_end = scenario.data["path"]["durations"][0] + scenario.data["path"]["dwell"]
     k = int(np.searchsorted(traj.t, t_end - 1e-9))
     data = robot.model.createData()
