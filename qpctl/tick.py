@@ -232,6 +232,11 @@ class Workspace:
         self.spec = spec
         n, m, L, O = model.nv, robot.m, len(robot.capsules), len(self.obstacles)
         self.n, self.m = n, m
+        # a configuration of nq ≠ nv entries (continuous, planar joints): the kernels read one coordinate
+        # per degree of freedom (joint_view), the posture's error comes from pin.difference
+        self.nq, self.lie = model.nq, robot.lie
+        self.q_config, self.q_angles = np.zeros(model.nq), np.zeros(n)
+        self.posture_config: np.ndarray | None = None
         f = self.__dict__
         f.update(bind_pinocchio(model, self.data))
         # robot
@@ -243,7 +248,12 @@ class Workspace:
         self.ee_joint = int(frame.parentJoint)
         self.ee_local = np.array(frame.placement.translation, float)
         self.ee_support = _supports(model, self.ee_joint)
-        self.axes = np.array(robot.task_axes, dtype=np.int64)
+        # every task frame (several arms: robot.task_frames), its rows along task_axes stacked in order
+        self.axes = np.tile(np.array(robot.task_axes, dtype=np.int64), len(robot.frames))
+        tk = [model.frames[f] for f in robot.task_frame_ids]
+        self.tk_joint = np.array([int(f.parentJoint) for f in tk], dtype=np.int64)
+        self.tk_local = np.array([f.placement.translation for f in tk], float).reshape(len(tk), 3)
+        self.tk_support = np.array([_supports(model, int(f.parentJoint)) for f in tk]).reshape(len(tk), n)
         self.ee_rot = robot.ee_rotation
         if robot.orientation == "pose":
             self.ori_rows = np.array(robot.orientation_axes, dtype=np.int64)
@@ -412,6 +422,8 @@ class Workspace:
         if spec.posture is not None:
             q_ref, w, kp, kd = spec.posture
             self.q_ref = np.asarray(q_ref, float).copy()
+            if self.lie:  # q_ref is a configuration; the kernel's (nv) is written each tick by joint_view
+                self.posture_config, self.q_ref = self.q_ref, np.zeros(self.n)
             ip[codes.IP_POSTURE] = 1
             fp[codes.FP_WPOST], fp[codes.FP_PKP], fp[codes.FP_PKD] = w, kp, kd
         if spec.damping is not None:
@@ -485,6 +497,18 @@ class Workspace:
         self.grid_items = np.array([j for c in cells for j in c], dtype=np.int64)
 
     # -- the tick -------------------------------------------------------------------------------
+    def joint_view(self, q: np.ndarray) -> np.ndarray:
+        """What the kernels take as q: ``q`` itself where nq == nv; else its angles (one per degree
+        of freedom, :meth:`RobotModel.angles`), with the posture target written so that the kernel's
+        q_ref − q is pin.difference(q, q_ref). Computed once per tick, before the state kernel."""
+        if not self.lie:
+            return q
+        self.q_config[:] = q
+        qa = self.robot.angles(q, out=self.q_angles)
+        if self.posture_config is not None:
+            self.q_ref[:] = qa + pin.difference(self.model, q, self.posture_config)
+        return qa
+
     def state(self, q: np.ndarray, v: np.ndarray, t: float) -> int:
         """computeAllTerms and the state kernel (and python-fcl's pairs, if any); −1 if the dynamics
         overflow at this state (or q, v are not finite), else 0. Records Pinocchio's and the kernel's wall
@@ -492,7 +516,7 @@ class Workspace:
         start = time.perf_counter()
         pin.computeAllTerms(self.model, self.data, q, v)
         mid = time.perf_counter()
-        status = K.state(self.work, q, v, t)
+        status = K.state(self.work, self.joint_view(q), v, t)
         if status != 0:
             if status < 0:
                 return -1
@@ -545,7 +569,7 @@ class Workspace:
         k = int(self.cnt[codes.CNT_PAIRS])
         idx = np.flatnonzero(self.pr_bok[:k] == 0)
         delta = self.drift_step
-        pin.forwardKinematics(self.model, data, q + delta * v, v)
+        pin.forwardKinematics(self.model, data, self.robot.integrate(q, delta * v), v)
         seg = np.empty_like(self.segments)
         for i, jid in enumerate(self.cap_joint.tolist()):
             seg[i, 0] = data.oMi[jid].act(self.cap_local[i, 0])
@@ -569,7 +593,8 @@ class Workspace:
                         self.pr_pl[:k].copy(), self.pr_po[:k].copy(), self.ob_v[self.pr_obs[:k]],
                         self.ob_a[self.pr_obs[:k]])
         bdrift = self.pr_bdrift[:k].copy() if self.ipar[codes.IP_BDRIFT] else None
-        return TickState(float(self.fpar[codes.FP_T]), self.q.copy(), self.v.copy(), self.M.copy(), self.N.copy(),
+        q = self.q_config if self.lie else self.q  # the configuration (the kernels hold its angles)
+        return TickState(float(self.fpar[codes.FP_T]), q.copy(), self.v.copy(), self.M.copy(), self.N.copy(),
                          self.x.copy(), self.xdot.copy(), self.J.copy(), self.drift.copy(), self.link_jac.copy(),
                          self.segments.copy(), pairs, self.pr_jac[:k].copy(), self.pr_drift[:k].copy(),
                          float(self.fpar[codes.FP_CLEARANCE]), _barrier_drift=bdrift,

@@ -76,13 +76,13 @@ class PaperController(Controller):
                 t0 = time.perf_counter()
                 pin.computeAllTerms(ws.model, ws.data, q, v)
                 t1 = time.perf_counter()
-                code = K.tick_closed_form(ws.work, q, v, t, self.weighted)
+                code = K.tick_closed_form(ws.work, ws.joint_view(q), v, t, self.weighted)
             except Exception:  # noqa: BLE001 — not two float64 arrays and a float: check, convert, once more
-                q, v, t = fast_state(q, v, t, self.n)  # InvalidStateError for what it cannot take
+                q, v, t = fast_state(q, v, t, self.n, self.robot.nq)  # InvalidStateError if it cannot
                 t0 = time.perf_counter()
                 pin.computeAllTerms(ws.model, ws.data, q, v)
                 t1 = time.perf_counter()
-                code = call_compiling(K.tick_closed_form, ws.work, q, v, t, self.weighted)
+                code = call_compiling(K.tick_closed_form, ws.work, ws.joint_view(q), v, t, self.weighted)
             lock_compilation(K.tick_closed_form)
             if code == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
@@ -90,10 +90,11 @@ class PaperController(Controller):
                 code = K.closed_form_tick(ws.work, self.weighted)
                 ws.rec[ws.layout.scalars + codes.R_BUILD_US] = (time.perf_counter() - t2) * 1e6
             elif code == codes.BAD_SHAPE:
-                raise InvalidStateError(f"q and v must have shape ({self.n},), got {np.shape(q)} and {np.shape(v)}")
+                raise InvalidStateError(f"q and v must have shapes ({self.robot.nq},) and ({self.n},), "
+                                        f"got {np.shape(q)} and {np.shape(v)}")
             stages = (t1 - t0, -1.0, -1.0, 0.0)
         else:
-            q, v, t = fast_state(q, v, t, self.n)
+            q, v, t = fast_state(q, v, t, self.n, self.robot.nq)
             self._state(q, v, t)
             mid = time.perf_counter()
             code = K.closed_form_tick(ws.work, self.weighted)

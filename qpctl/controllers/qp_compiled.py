@@ -84,7 +84,7 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
     order = [t for t in tasks if isinstance(t, (PostureTask, DampingTask))]
     if len(order) == 2 and isinstance(order[0], DampingTask):  # the kernel adds the posture first
         return None
-    if post is not None and post.q_ref.shape != (n,):
+    if post is not None and post.q_ref.shape != (n,):  # n: the configuration's entries (nq)
         raise ConfigError(f"q_ref has {post.q_ref.size} entries, the robot {n}", key="PostureTask.q_ref")
     torque = next((c for c in constraints if isinstance(c, TorqueLimit)), None)
     joint = next((c for c in constraints if isinstance(c, JointLimit)), None)
@@ -334,7 +334,7 @@ class CompiledTick:
             code, status, iters = lay.native_outcome(code)
             refusal = "" if hard <= 0 else REFUSALS.get(hard) or daqp_word(self.hard.nat.flag[0])  # type: ignore[union-attr]
         else:
-            q, v, t = fast_state(q, v, t, ws.n)
+            q, v, t = fast_state(q, v, t, ws.n, ws.nq)
             self._state(q, v, t)
             stages = (ws.pin_s, ws.state_s, -1.0, -1.0)
             lay, refusal = (self.hard if try_hard else self.relaxed), ""
@@ -374,24 +374,25 @@ class CompiledTick:
                 t0 = time.perf_counter()
                 pin.computeAllTerms(ws.model, ws.data, q, v)
                 t1 = time.perf_counter()
-                code, hard = K.tick_qp(ws.work, self.packed, q, v, t, try_hard)
+                code, hard = K.tick_qp(ws.work, self.packed, ws.joint_view(q), v, t, try_hard)
             except Exception:  # noqa: BLE001 — not two float64 arrays and a float: check, convert, once more
-                q, v, t = fast_state(q, v, t, ws.n)  # InvalidStateError for what it cannot take
+                q, v, t = fast_state(q, v, t, ws.n, ws.nq)  # InvalidStateError if it cannot
                 t0 = time.perf_counter()
                 pin.computeAllTerms(ws.model, ws.data, q, v)
                 t1 = time.perf_counter()
-                code, hard = call_compiling(K.tick_qp, ws.work, self.packed, q, v, t, try_hard)
+                code, hard = call_compiling(K.tick_qp, ws.work, self.packed, ws.joint_view(q), v, t, try_hard)
             lock_compilation(K.tick_qp)
             if code == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
                 code, hard = K.qp_tick_native_hard_first(ws.work, *self.native_args, try_hard)  # type: ignore[misc]
             elif code < 0:
                 if code == codes.BAD_SHAPE:
-                    raise InvalidStateError(f"q and v must have shape ({ws.n},), got {np.shape(q)} and {np.shape(v)}")
+                    raise InvalidStateError(f"q and v must have shapes ({ws.nq},) and ({ws.n},), "
+                                            f"got {np.shape(q)} and {np.shape(v)}")
                 self._bad_state(q, v, t)
             stages = (t1 - t0, -1.0, -1.0, -1.0)
         else:
-            q, v, t = fast_state(q, v, t, ws.n)
+            q, v, t = fast_state(q, v, t, ws.n, ws.nq)
             self._state(q, v, t)
             code, hard_ready = self._setup(try_hard)
             hard = -1

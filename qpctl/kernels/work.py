@@ -44,7 +44,10 @@ FIELDS = (
     "ee_joint",  # int: the task frame's parent joint
     "ee_local",  # (3,) task point in that joint's frame [m]
     "ee_support",  # (n,)
-    "axes",  # (m_p,) int: the world axes of the task's position rows
+    "axes",  # (m_p,) int: the world axes of the task's position rows (task_axes once per task frame)
+    "tk_joint",  # (F,) int: each task frame's parent joint (the first: ee_joint)
+    "tk_local",  # (F, 3) its task point in that joint's frame [m]
+    "tk_support",  # (F, n) 1 where joint k moves it
     "ee_rot",  # (3, 3) the task frame's rotation in its parent joint's frame
     "ori_rows",  # (m_o,) int: the orientation rows after the position rows, 0–2 a pose's world axis,
     #              3–4 an approach's row k = 1, 2 (qpctl.orientation)
