@@ -106,6 +106,26 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
     )
 
 
+_F64 = np.dtype(np.float64)
+
+
+def _entry_point(kernel: Any, ws: Any, packed: Any) -> Any:
+    """The compiled entry point of ``kernel`` for (these structrefs, float64 C arrays, a float, a bool),
+    which skips numba's typing of the arguments (~1 µs of the dispatch of the two structrefs); None
+    where this numba does not expose it. Only called on arguments checked to be those types: the
+    entry point unboxes without checking a dtype or a number of dimensions."""
+    try:
+        from numba import typeof
+        from numba.core import types
+
+        arr = types.Array(types.float64, 1, "C")
+        sig = (typeof(ws), typeof(packed), arr, arr, types.float64, types.boolean)
+        cres = kernel.overloads.get(sig)
+        return None if cres is None else cres.entry_point
+    except Exception:  # noqa: BLE001 — numba's internals moved: the dispatcher it is
+        return None
+
+
 class QPOutput(RecordOutput):
     """A compiled QP tick's output: the record, and the solver's word; ``info`` built on first access
     (status — the solver's word — and ``solve_status`` (:class:`~qpctl.outcome.SolveStatus`),
@@ -294,6 +314,7 @@ class CompiledTick:
         self.last_problem: Problem | None = None
         self.last: tuple[np.ndarray | None, str, int, str] | Solution | None = None
         self._out: QPOutput | None = None  # the last output, reused when nobody else holds it
+        self._entry: Any = None  # K.tick_qp's compiled entry point for these argument types (_entry_point)
 
     def reset(self) -> None:
         self.relax.reset()
@@ -374,7 +395,14 @@ class CompiledTick:
                 t0 = time.perf_counter()
                 pin.computeAllTerms(ws.model, ws.data, q, v)
                 t1 = time.perf_counter()
-                code, hard = K.tick_qp(ws.work, self.packed, ws.joint_view(q), v, t, try_hard)
+                qk = ws.joint_view(q)
+                entry = self._entry
+                if (entry is not None and type(qk) is np.ndarray and type(v) is np.ndarray and qk.dtype is _F64
+                        and v.dtype is _F64 and qk.ndim == 1 and v.ndim == 1 and qk.flags.c_contiguous
+                        and v.flags.c_contiguous):
+                    code, hard = entry(ws.work, self.packed, qk, v, t, try_hard)
+                else:
+                    code, hard = K.tick_qp(ws.work, self.packed, qk, v, t, try_hard)
             except Exception:  # noqa: BLE001 — not two float64 arrays and a float: check, convert, once more
                 q, v, t = fast_state(q, v, t, ws.n, ws.nq)  # InvalidStateError if it cannot
                 t0 = time.perf_counter()
@@ -382,6 +410,8 @@ class CompiledTick:
                 t1 = time.perf_counter()
                 code, hard = call_compiling(K.tick_qp, ws.work, self.packed, ws.joint_view(q), v, t, try_hard)
             lock_compilation(K.tick_qp)
+            if self._entry is None:
+                self._entry = _entry_point(K.tick_qp, ws.work, self.packed)
             if code == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
                 code, hard = K.qp_tick_native_hard_first(ws.work, *self.native_args, try_hard)  # type: ignore[misc]
