@@ -33,6 +33,7 @@ from qpctl.geometry.frames import rotation_z_to
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels import codes
 from qpctl.kernels import tick as K
+from qpctl.kernels.lie import joint_angles
 from qpctl.kernels.work import FIELDS, new_tick_work
 from qpctl.law import LawGains, LawTerms
 from qpctl.paths import PosePath, Reference, WaypointPath
@@ -504,7 +505,8 @@ class Workspace:
         if not self.lie:
             return q
         self.q_config[:] = q
-        qa = self.robot.angles(q, out=self.q_angles)
+        r, qa = self.robot, self.q_angles
+        joint_angles(q, r._plain_q, r._plain_v, r._rot_q, r._rot_v, qa)  # RobotModel.angles, compiled
         if self.posture_config is not None:
             self.q_ref[:] = qa + pin.difference(self.model, q, self.posture_config)
         return qa
