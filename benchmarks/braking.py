@@ -3,8 +3,10 @@ torque-rate limit: collisions, worst clearance and median RMS tracking per setti
 
     python -m benchmarks.braking --modes off,0.5,0.5r1.5 --scenes 12
 
-A mode is ``off`` (``controller.braking = "off"``) or ``SHARE[rREACH]`` (braking on with that
-``braking_share`` and, if given, ``braking_reach`` [m]). Scenes come from the soak's own generator
+A mode is ``off`` (``controller.braking = "off"``), ``SHARE[rREACH]`` (braking on with that
+``braking_share`` and, if given, ``braking_reach`` [m]), or ``backup`` (braking off, the controller
+behind :class:`qpctl.safety.BackupGuard`: its check's cost per checked tick and how often it
+intervenes are reported too). Scenes come from the soak's own generator
 (``tests/test_soak.py``: its seed, its validation, each scene's solver and fallback chain), in draw
 order, the first ``--scenes`` with a torque-rate limit and no moving obstacle. Prints one line per
 scene and a summary per mode; ``--out`` writes them as JSON too.
@@ -27,11 +29,13 @@ import test_soak as soak  # the soak's generator is the scenes' definition
 
 from qpctl import Scenario
 from qpctl.run import simulate
+from qpctl.safety import BackupGuard
+from qpctl.simulation import Simulator
 
 
 def controller_table(raw: dict[str, Any], mode: str) -> dict[str, Any]:
     c = dict(raw["controller"])
-    if mode == "off":
+    if mode in ("off", "backup"):
         c["braking"] = "off"
         return c
     share, _, reach = mode.partition("r")
@@ -59,16 +63,31 @@ def main(argv: list[str] | None = None) -> int:
             continue
         count += 1
         for m in modes:
-            tr = simulate(Scenario.from_dict({**raw, "controller": controller_table(raw, m)},
-                                             source=raw["name"])).trajectory
+            sc = Scenario.from_dict({**raw, "controller": controller_table(raw, m)}, source=raw["name"])
+            extra: dict[str, Any] = {}
+            if m == "backup":
+                guard = BackupGuard(sc.build_controller(), dt=raw["sim"]["dt"])
+                tr = Simulator(guard, dt=raw["sim"]["dt"], duration=raw["sim"]["duration"]).run(sc.q0(guard.robot))
+                us = np.array(guard.stats["check_us"]) if guard.stats["check_us"] else np.zeros(1)
+                extra = {"checked": guard.stats["checked"], "backup_ticks": guard.stats["backup"], "ticks": len(tr.t),
+                         "check_us_median": float(np.median(us)), "check_us_p99": float(np.percentile(us, 99))}
+            else:
+                tr = simulate(sc).trajectory
             rms = float(np.sqrt(np.mean(np.sum((tr.x - tr.x_ref) ** 2, axis=1))))
-            rows[m].append({"scene": raw["name"], "min_clearance": float(tr.clearance.min()), "rms_tracking": rms})
+            rows[m].append({"scene": raw["name"], "min_clearance": float(tr.clearance.min()), "rms_tracking": rms,
+                            **extra})
         print(raw["name"], [(m, round(rows[m][-1]["min_clearance"], 4)) for m in modes], flush=True)
     summary = {}
     for m in modes:
         cl = np.array([r["min_clearance"] for r in rows[m]])
         summary[m] = {"scenes": int(cl.size), "collide": int(np.sum(cl < 0)), "worst_clearance": float(cl.min()),
                       "median_rms_tracking": float(np.median([r["rms_tracking"] for r in rows[m]]))}
+        if m == "backup":
+            ticks = sum(r["ticks"] for r in rows[m])
+            summary[m].update(intervention_rate=sum(r["backup_ticks"] for r in rows[m]) / ticks,
+                              checked_rate=sum(r["checked"] for r in rows[m]) / ticks,
+                              check_us_median=float(np.median([r["check_us_median"] for r in rows[m]])),
+                              check_us_p99=float(max(r["check_us_p99"] for r in rows[m])))
         print(m, summary[m])
     print(f"{time.time() - t0:.0f} s")
     if args.out is not None:
