@@ -11,10 +11,12 @@
 2. **Distance transforms** on the same occupancy: qpctl's numba EDT, scipy's ``distance_transform_edt``
    and the ``edt`` package (where installed), interleaved.
 3. **Field queries**: :func:`qpctl.kernels.field.field_pairs` for the Panda's capsules, both channels.
-4. **The tick beside the worker**: the Panda's QP tick on a closed-loop run of ``panda_spheres``,
+4. **The tick with the field**: the Panda's compiled QP tick on a ``panda_spheres`` run's states (10
+   sphere primitives), without and with the canopy map's field rows, interleaved.
+5. **The tick beside the worker**: the Panda's QP tick on a closed-loop run of ``panda_spheres``,
    in alternating stretches with the map worker idle and with it fed frames at 30 Hz; p99 ratio.
 
-5. With ``--canopies N``: the closed loop on ``panda_canopy_depth`` under canopy seeds 1..N (the
+6. With ``--canopies N``: the closed loop on ``panda_canopy_depth`` under canopy seeds 1..N (the
    camera's noise on): collisions, true rigid and soft clearances, soft contact speeds, fruits
    reached, map costs and latency, phantom rows (``canopies.json``, ``canopies.md``).
 
@@ -228,6 +230,68 @@ def tick_beside_worker(frames: list[DepthFrame], robot: Any, stretches: int, sec
             "median_ratio": out["worker at 30 Hz"]["median"] / out["worker idle"]["median"]}
 
 
+class _Snapshot:
+    """A fixed map for a controller's field rows (what a Perception hands it)."""
+
+    def __init__(self, snapshot: Any) -> None:
+        self.snapshot = snapshot
+
+
+def tick_with_field(reps: int) -> dict[str, Any]:
+    """The Panda's compiled QP tick on the states of a ``panda_spheres`` run (its 10 sphere primitives),
+    without and with the field's rows, interleaved state by state (the order alternating): the map is
+    a cloud of 2,000 points on each of the scene's spheres (2 cm voxels over the box the run reaches,
+    so that the rows are active where the primitives' are), the states those of the closed loop with
+    both (so that the QP stays feasible for both); wall time of
+    ``step`` [µs] and the field rows active per tick."""
+    from qpctl import Scenario
+    from qpctl.perception import PointCloud
+    from qpctl.perception.rows import FieldBarrier
+    from qpctl.simulation.simulator import Simulator
+
+    scen = Scenario.load("panda_spheres")
+    rng = np.random.default_rng(0)
+    pts = []
+    for o in scen.build_obstacles():
+        d = rng.normal(size=(2000, 3))
+        pts.append(o.position + o.radius * d / np.linalg.norm(d, axis=1, keepdims=True))
+    cfg = PerceptionConfig(voxel=0.02, bounds_min=[-0.8, -0.8, -0.1], bounds_max=[0.8, 0.8, 1.2], truncation=0.3,
+                           depth_noise=0.0)
+    m = DepthMap(cfg)
+    m.integrate(PointCloud(np.concatenate(pts), 0.0))
+    plain, field = scen.build_controller("qp"), scen.build_controller("qp")
+    bar = FieldBarrier(_Snapshot(m.snapshot()), field.robot, cfg, d_safe=field.gains.d_safe, cutoff=field.cutoff,
+                       k0=field.config.barrier_k0, k1=field.config.barrier_k1)
+    field.add_constraint(bar)
+    assert field.workspace().spec is not None and field.workspace().spec.field is not None  # compiled
+    # the states: the closed loop with both the primitives' and the field's rows (feasible for both)
+    traj = Simulator(field, dt=1e-3, duration=float(scen.data["sim"]["duration"]), obstacles=scen.build_obstacles()
+                     ).run(scen.q0(field.robot))
+    plain.warmup()
+    field.warmup()
+    times: dict[str, list[float]] = {"primitives only": [], "primitives + field": []}
+    active: list[int] = []
+    fallbacks = 0
+    T = len(traj.t)
+    for k in range(reps):
+        i = k % T
+        q, v, t = traj.q[i], traj.v[i], float(traj.t[i])
+        if i == 0:
+            plain.reset()
+            field.reset()
+        for ctrl, label in ((plain, "primitives only"), (field, "primitives + field"))[:: 1 if k % 2 else -1]:
+            t0 = time.perf_counter()
+            out = ctrl.step(q, v, t)
+            times[label].append((time.perf_counter() - t0) * 1e6)
+            if ctrl is field:
+                active.append(int(bar.last.active.sum()) if bar.last is not None else 0)
+                fallbacks += "fallback" in out.info
+    st = {k: _stats(v) for k, v in times.items()}
+    return {"ticks": reps, "us": st, "field_rows": bar.rows, "active_rows_median": float(np.median(active)),
+            "ticks_with_field_rows": float(np.mean(np.asarray(active) > 0)), "fallbacks": fallbacks,
+            "median_ratio": st["primitives + field"]["median"] / st["primitives only"]["median"]}
+
+
 CLOSED_LOOP_KEYS = ("collided", "min_clearance", "min_soft_clearance", "soft_contact_max_speed",
                     "soft_contact_max_approach_speed", "map_min_clearance", "map_age_ms_max", "map_update_cpu_ms_median",
                     "map_update_cpu_ms_p99", "map_latency_ms_p99", "phantom_rows", "phantom_rows_checked",
@@ -290,6 +354,14 @@ def markdown(res: dict[str, Any]) -> str:
               f"{fq['rows_per_link']} rows per link, inside compiled code as the tick calls them: median "
               f"{fq['us']['median']:.2f} µs wall (CPU {fq['cpu_us']['median']:.2f} µs), p99 {fq['us']['p99']:.2f} µs (called from Python: median "
               f"{fq['us_from_python']['median']:.2f} µs, the call's dispatch included).")]
+    if "tick_with_field" in res:
+        tf = res["tick_with_field"]
+        lines += ["", f"| Panda compiled QP tick, {tf['ticks']} panda_spheres states, interleaved | median [µs] | p99 [µs] |",
+                  "|---|---|---|"]
+        lines += [f"| {k} | {v['median']:.1f} | {v['p99']:.1f} |" for k, v in tf["us"].items()]
+        lines += ["", (f"Median ratio {tf['median_ratio']:.2f}; {tf['field_rows']} field rows, a median of "
+                  f"{tf['active_rows_median']:.0f} active ({100 * tf['ticks_with_field_rows']:.0f} % of ticks with one); "
+                  f"{tf['fallbacks']} fallbacks.")]
     if "tick_beside_worker" in res:
         tb = res["tick_beside_worker"]
         lines += ["", "| Panda QP tick (panda_spheres run) | ticks | median [µs] | p99 [µs] |", "|---|---|---|---|"]
@@ -299,12 +371,18 @@ def markdown(res: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def markdown_tick(res: dict[str, Any]) -> str:
+    tf = res["tick_with_field"]
+    return json.dumps(tf, indent=1)
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="fewer frames and shorter stretches")
     ap.add_argument("--out", default="results/perception")
     ap.add_argument("--canopies", type=int, default=0,
                     help="instead: closed loops on panda_canopy_depth under canopy seeds 1..N")
+    ap.add_argument("--only-tick", action="store_true", help="only the frames' map and the tick with the field")
     ap.add_argument("--duration", type=float, default=None, help="with --canopies: simulated seconds")
     args = ap.parse_args(argv)
     out = Path(args.out)
@@ -320,6 +398,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     n = 12 if args.quick else 61
     res: dict[str, Any] = {"machine": f"{os.cpu_count()} cores, {os.uname().machine}",
                            "load_before": " ".join(f"{x:.2f}" for x in os.getloadavg())}
+    if args.only_tick:
+        res["tick_with_field"] = tick_with_field(20000)
+        print(markdown_tick(res))
+        return res
     frames = record_frames(out / "frames.npz", n)
     res["frame_to_field"] = {"2 cm, 1.6×1.2×1.0 m": frame_to_field(frames, BOX_2CM, robot),
                              "1 cm, 0.4 m about the hand": frame_to_field(frames, hand_box(robot), robot)}
@@ -329,6 +411,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         m.update(f)
     res["transforms"] = transforms(m, 5 if args.quick else 21)
     res["field_queries"] = field_queries(m, robot, 2000 if args.quick else 20000)
+    res["tick_with_field"] = tick_with_field(2000 if args.quick else 20000)
     res["tick_beside_worker"] = tick_beside_worker(frames, robot, 2 if args.quick else 4, 1.0 if args.quick else 3.0)
     res["load_after"] = " ".join(f"{x:.2f}" for x in os.getloadavg())
     (out / "perception.json").write_text(json.dumps(res, indent=2))

@@ -84,6 +84,24 @@ def _supports(model: pin.Model, joint: int) -> np.ndarray:
 
 
 @dataclass
+class FieldSpec:
+    """The depth map's field rows in the compiled QP (:mod:`qpctl.kernels.field_rows`): where the
+    newest snapshot is read (``source.snapshot``, every tick), the rows' settings, and the constraint
+    that owns them (told of the workspace, whose arrays then hold its pairs: ``owner.bind(ws)``)."""
+
+    source: Any
+    owner: Any
+    rows: int  # 2 channels × links × rows_per_link
+    samples: int
+    rows_per_link: int
+    margin: float  # the rigid rows' margin [m]
+    soft_speed: float  # [m/s]
+    cutoff: float  # [m]
+    k0: float  # [1/s²]
+    k1: float  # [1/s]
+
+
+@dataclass
 class QPSpec:
     """What the compiled QP assembly needs from a controller's tasks and constraints (one of each
     standard kind; see :func:`qpctl.controllers.qp.compiled_spec`)."""
@@ -102,6 +120,7 @@ class QPSpec:
     task_weights: np.ndarray | None = None  # (m,) the task rows' weights (None: 1)
     row_kinds: list[str] | None = None  # one per row: its constraint's kind (Constraint.kind)
     braking: Any = None  # the Braking of the braking-aware rows (qpctl.constraints.braking), or None
+    field: FieldSpec | None = None  # the depth map's field rows
 
 
 class QPBuffers:
@@ -265,7 +284,7 @@ class Workspace:
         self.tau_prev, self.t_prev = np.full(n, np.nan), np.full(1, np.nan)
         self.q_min, self.q_max, self.v_max = np.full(n, -np.inf), np.full(n, np.inf), np.full(n, np.inf)
         self.qdd_max = np.full(n, np.inf)
-        ip[codes.IP_TORQUE_ROW0] = ip[codes.IP_BARRIER_ROW0] = ip[codes.IP_SELF_ROW0] = -1
+        ip[codes.IP_TORQUE_ROW0] = ip[codes.IP_BARRIER_ROW0] = ip[codes.IP_SELF_ROW0] = ip[codes.IP_FIELD_ROW0] = -1
         self.fpar[codes.FP_SELF_CLEARANCE] = np.inf
         self.fpar[codes.FP_SCUT] = self_cutoff  # self pairs farther apart have no row (SelfCollisionBarrier.cutoff)
         capacity = 0
@@ -293,6 +312,7 @@ class Workspace:
         self.Bt, self.Vm = np.zeros((n, m)), np.zeros((m, m))
         self.w1, self.w2, self.w3 = np.zeros(n), np.zeros(n), np.zeros(max(n, 6))
         self.flags = np.zeros(codes.FLAG_SIZE, np.int64)
+        self._field_arrays(spec.field if spec is not None else None, L, n)
         self.layout = RecordLayout(n, m)
         self.rec = np.zeros(self.layout.size)
         self.fpar[codes.FP_CLEARANCE] = np.inf
@@ -300,6 +320,54 @@ class Workspace:
         # the QP's layouts: with the task slack, and hard (the "on_failure" relaxation's first try)
         self.relaxed = QPBuffers(n, m, spec, relax=True) if spec is not None else None
         self.hard = QPBuffers(n, m, spec, relax=False) if spec is not None else None
+        self.sync_field()
+
+    def _field_arrays(self, fs: FieldSpec | None, L: int, n: int) -> None:
+        """The field rows' arrays (one-voxel placeholders without a field: the kernels' types stay)."""
+        self._field, self._field_snap = fs, None
+        if fs is None:
+            shape, origin, R, S, rpl = (1, 1, 1), np.zeros(3), 2 * L, 2, 1
+        else:
+            snap = fs.source.snapshot
+            shape, origin = tuple(snap.grid.shape), np.asarray(snap.grid.origin, float).copy()
+            R, S, rpl = fs.rows, fs.samples, fs.rows_per_link
+            if R != 2 * L * rpl:
+                raise ValueError(f"the field's {R} rows are not 2 channels × {L} links × {rpl}")
+            fp, ip = self.fpar, self.ipar
+            fp[codes.FP_FD_VOXEL], fp[codes.FP_FD_TRUNC] = snap.grid.voxel, snap.truncation
+            fp[codes.FP_FD_MARGIN], fp[codes.FP_FD_VS], fp[codes.FP_FD_CUT] = fs.margin, fs.soft_speed, fs.cutoff
+            fp[codes.FP_FD_K0], fp[codes.FP_FD_K1] = fs.k0, fs.k1
+            ip[codes.IP_FD_SAMPLES], ip[codes.IP_FD_RPL] = S, rpl
+        self.fd_dist = np.zeros((2, *shape), np.float32)
+        self.fd_grad = np.zeros((2, *shape, 3), np.float32)
+        self.fd_dist.flags.writeable = self.fd_grad.flags.writeable = False  # a snapshot's arrays are read-only
+        self.fd_origin = origin
+        self.fd_d, self.fd_n, self.fd_p = np.zeros(R), np.zeros((R, 3)), np.zeros((R, 3))
+        self.fd_s, self.fd_ds = np.zeros(L * rpl), np.zeros(S)
+        self.fd_jac, self.fd_drift = np.zeros((R, 3, n)), np.zeros((R, 3))
+        if fs is None:
+            self.ipar[codes.IP_FD_RPL], self.ipar[codes.IP_FD_SAMPLES] = rpl, S
+
+    def sync_field(self) -> None:
+        """The newest snapshot's grids into the kernels' view (a reference swap when it changed; none
+        without a field). :class:`ValueError` when its grid is not the workspace's."""
+        fs = self._field
+        if fs is None:
+            return
+        fs.owner.bind(self)  # its pairs are this tick's, in these arrays
+        snap = fs.source.snapshot
+        if snap is self._field_snap:
+            return
+        if snap.dist.shape != self.fd_dist.shape or not np.array_equal(snap.grid.origin, self.fd_origin):
+            raise ValueError(f"a snapshot of grid {snap.dist.shape[1:]} at {snap.grid.origin} in a workspace of "
+                             f"{self.fd_dist.shape[1:]} at {self.fd_origin}")
+        K.set_field(self.work, snap.dist, snap.grad)
+        self.fd_dist, self.fd_grad = snap.dist, snap.grad
+        self._field_snap = snap
+
+    def field_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The last tick's field pairs (copies): distances (R,) [m], normals (R, 3), witness points (R, 3) [m]."""
+        return self.fd_d.copy(), self.fd_n.copy(), self.fd_p.copy()
 
     # -- construction helpers -------------------------------------------------------------------
     def _settings(self, spec: QPSpec) -> int:
@@ -321,6 +389,8 @@ class Workspace:
             elif name == "obstacles":
                 ip[codes.IP_BARRIER_ROW0] = row
                 capacity = count
+            elif spec.field is not None and name == spec.field.owner.name:
+                ip[codes.IP_FIELD_ROW0] = row
             elif name == "self_collision":
                 if count != len(self.sc_pairs):
                     raise ValueError("the self-collision rows and the workspace's pairs differ")

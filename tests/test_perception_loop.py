@@ -4,6 +4,7 @@ depth camera (qpctl.perception.rows, .closed_loop; issue 21, items 3, 4 and 7)."
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -122,7 +123,7 @@ def _camera_scene() -> tuple[Scenario, list, DepthCamera]:
     return scen, world, cam
 
 
-def test_a_short_run_sees_its_obstacles_only_through_the_camera() -> None:
+def test_a_short_run_sees_its_obstacles_only_through_the_camera(tmp_path) -> None:
     scen, world, cam = _camera_scene()
     robot = cam.robot
     ctrl = scen.build_controller("qp", robot=robot, obstacles=[])  # no primitive: the map only
@@ -132,21 +133,61 @@ def test_a_short_run_sees_its_obstacles_only_through_the_camera() -> None:
     m = loop.metrics()
     assert m["map_frames"] == 25  # 30 Hz from 0 to 0.8 s
     assert math.isfinite(m["map_min_clearance"]) and m["map_update_ms_p99"] > 0
-    assert m["map_latency_ms_p99"] >= m["map_update_cpu_ms_median"] - 1.0  # at least its build time
+    assert m["map_latency_ms_p99"] >= CFG.latency * 1e3 - 1e-6  # no map before its declared latency
+    assert m["map_updates_over_latency"] == sum(c > CFG.latency * 1e3 for c in loop.build_cpu_ms)
     # the first frames' map arrives after its build time: the policy held the arm until then
     assert loop.stop_ticks >= 1
     d_safe = float(scen.data["controller"]["d_safe"])
     assert traj.clearance.min() >= d_safe - CFG.voxel
     assert m["phantom_rows_checked"] > 0
+    files = loop.write_figures(tmp_path, traj.t, traj.clearance, d_safe)  # the run's three figures
+    assert [f.name for f in files] == ["depth_frame.png", "field_slice.png", "clearance_true_vs_map.png"]
+    assert all(f.stat().st_size > 10_000 for f in files)
 
 
-@pytest.mark.xfail(strict=False, reason="flaky, being fixed (issue 21, second round): phantom rows: 0 of 353 before merging camera's latest caster and house "
-                   "step 3, 87-138 of ~480 (19-28 %) after; not yet understood (docs/perception.md)")
+def test_the_closed_loop_is_the_same_run_however_long_the_map_takes() -> None:
+    """The map reaches the rows at its stamp + the declared latency, whatever the build cost: a run
+    made while another thread keeps a core busy (the build then takes longer on the wall clock and
+    in CPU time as caches are shared) is the same run, torque for torque; and a longer declared
+    latency delays the first rows by exactly the difference."""
+    import threading
+
+    def run(latency: float, busy: bool) -> tuple[np.ndarray, list[float]]:
+        scen, world, cam = _camera_scene()
+        ctrl = scen.build_controller("qp", robot=cam.robot, obstacles=[])
+        sim = Simulator(ctrl, dt=1e-3, duration=0.3, obstacles=world)
+        cfg = dataclasses.replace(CFG, latency=latency)
+        loop = attach(ctrl, sim, cfg, camera=cam, world=world)
+        stop = threading.Event()
+        spin = threading.Thread(target=lambda: [sum(range(1000)) for _ in iter(stop.is_set, True)])
+        if busy:
+            spin.start()
+        try:
+            traj = sim.run(scen.q0(cam.robot))
+        finally:
+            stop.set()
+            if busy:
+                spin.join()
+        return traj.tau, loop.series["age_ms"]
+
+    tau_a, age_a = run(0.03, busy=False)
+    tau_b, _ = run(0.03, busy=True)
+    assert np.array_equal(tau_a, tau_b)
+    _, age_c = run(0.06, busy=False)
+    first = [next(i for i, a in enumerate(ages) if np.isfinite(a)) for ages in (age_a, age_c)]
+    assert first[1] - first[0] == 30  # ticks of 1 ms
+
+
 def test_few_rows_come_from_what_is_not_there() -> None:
+    """Rows from what is not there: flying pixels at the robot's and the spheres' silhouettes whose
+    neighbours across the edge are flying too or lost to grazing dropouts pass the 4-neighbour test
+    (6 of 364 checked rows with it alone, 19-28 % before the map's latency was fixed); the 8-neighbour
+    support test removes them."""
     scen, world, cam = _camera_scene()
     ctrl = scen.build_controller("qp", robot=cam.robot, obstacles=[])
     sim = Simulator(ctrl, dt=1e-3, duration=0.8, obstacles=world)
     loop = attach(ctrl, sim, CFG, camera=cam, world=world)
     sim.run(scen.q0(cam.robot))
     m = loop.metrics()
-    assert m["phantom_rows"] <= 0.05 * m["phantom_rows_checked"]
+    assert m["phantom_rows_checked"] >= 200
+    assert m["phantom_rows"] <= 0.01 * m["phantom_rows_checked"]

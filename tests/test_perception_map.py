@@ -130,6 +130,24 @@ def test_flying_pixels_at_a_depth_edge_are_dropped_and_the_surfaces_kept() -> No
     assert DepthMap(CFG).integrate(DepthFrame(ramp, K, EYE, 0.0)).counts["flying"] == 0
 
 
+def test_a_flying_pixel_beside_a_dropout_has_no_nearer_neighbour_but_no_support_either() -> None:
+    # near plane | a column lost to grazing dropouts | mixed returns alternating 0.8 / 1.0 m | far
+    # plane: the 0.8 m pixels have no neighbour nearer than them (the near side returned nothing), so
+    # only the support test (fewer than two of the 8 neighbours within 2 % of the depth) drops them
+    depth = np.full((K.height, K.width), 1.2)
+    depth[:, :160] = 0.6
+    depth[:, 160] = 0.0
+    depth[:, 161] = np.where(np.arange(K.height) % 2 == 0, 0.8, 1.0)
+    rep = DepthMap(CFG).integrate(DepthFrame(depth, K, EYE, 0.0))
+    assert CFG.flying_support == 2
+    assert np.all(rep.status[:, 161] == FLYING)
+    assert np.all(rep.status[:, 159] == KEPT) and np.all(rep.status[:, 163] != FLYING)
+    assert rep.counts["flying"] == 2 * K.height  # the mixed column and the far side's first pixel
+    old = PerceptionConfig(**{**CFG.__dict__, "flying_support": 0})  # the 4-neighbour test alone
+    status = DepthMap(old).integrate(DepthFrame(depth, K, EYE, 0.0)).status
+    assert np.all(status[0::2, 161] != FLYING) and np.all(status[1::2, 161] == FLYING)
+
+
 def test_range_limits_drop_returns() -> None:
     cfg = PerceptionConfig(**{**CFG.__dict__, "min_range": 0.7, "max_range": 0.95})
     rep = DepthMap(cfg).integrate(render(EYE, [BALL]))
@@ -310,6 +328,6 @@ def test_a_lone_return_does_not_occupy_a_voxel() -> None:
     m = DepthMap(CFG)
     m.integrate(DepthFrame(depth, K, EYE, 0.0))
     assert CFG.min_points == 2 and m.snapshot().occupied == (0, 0)
-    depth[100, 101] = 0.9  # its neighbour falls in the same voxel: a surface
-    m.integrate(DepthFrame(depth, K, EYE, 0.1))
+    depth[100:102, 100:102] = 0.9  # its neighbours fall in the same voxel: a surface (each pixel with
+    m.integrate(DepthFrame(depth, K, EYE, 0.1))  # the flying test's two supporting neighbours)
     assert m.snapshot().occupied == (1, 0)

@@ -51,7 +51,8 @@ from qpctl.tick import QPBuffers, QPSpec, Workspace
 def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: int) -> QPSpec | None:
     """The compiled assembly's description of these tasks and constraints, or None when they are not
     exactly the standard ones (an AccelerationTask, an EndEffectorTask, at most one PostureTask and
-    one DampingTask; at most one TorqueLimit, JointLimit, ObstacleBarrier, SelfCollisionBarrier):
+    one DampingTask; at most one TorqueLimit, JointLimit, ObstacleBarrier, SelfCollisionBarrier and
+    depth map's field rows — a constraint with a ``field_spec()``, :class:`~qpctl.tick.FieldSpec`):
     those go through the Python formulation (:mod:`qpctl.controllers.qp_reference`)."""
     kinds = [type(t) for t in tasks]
     if kinds.count(AccelerationTask) != 1 or kinds.count(EndEffectorTask) != 1:
@@ -61,8 +62,10 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
     if len(kinds) != 2 + kinds.count(PostureTask) + kinds.count(DampingTask):
         return None
     ckinds = [type(c) for c in constraints]
+    fields = [c for c in constraints if callable(getattr(c, "field_spec", None))]  # the depth map's rows
     if any(ckinds.count(k) > 1 for k in ckinds) or not all(
-            k in (TorqueLimit, JointLimit, ObstacleBarrier, SelfCollisionBarrier) for k in ckinds):
+            k in (TorqueLimit, JointLimit, ObstacleBarrier, SelfCollisionBarrier) or c in fields
+            for k, c in zip(ckinds, constraints, strict=True)):
         return None
     acc = next(t for t in tasks if isinstance(t, AccelerationTask))
     ee = next(t for t in tasks if isinstance(t, EndEffectorTask))
@@ -93,6 +96,7 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
         self_barrier=next(((c.k0, c.k1, c.d_safe) for c in constraints if isinstance(c, SelfCollisionBarrier)), None),
         task_weights=ee.weights,
         braking=next(iter(brakes.values()), None),
+        field=fields[0].field_spec() if fields else None,  # type: ignore[attr-defined]
     )
 
 
@@ -264,6 +268,7 @@ class CompiledTick:
         """One tick (module docstring); ``start``: when the controller's step began (the budget's
         clock, and ``compute_us``'s)."""
         q, v, t = fast_state(q, v, t, self.ws.n)
+        self.ws.sync_field()  # the depth map's newest snapshot (a reference swap; nothing without a map)
         budget = self.budget_us()
         one_call = self.native_args is not None and budget <= 0
         relax = self.relax

@@ -123,15 +123,40 @@ def _behind(z: float, zn: float, thr: float) -> bool:
     return zn > 0.0 and zn < z - thr  # NaN and no-return neighbours fail
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _unsupported(depth: np.ndarray, scale: float, v: int, u: int, z: float, thr: float, support: int) -> bool:
+    """Fewer than ``support`` of pixel (v, u)'s 8 neighbours return a depth within thr of its z [m]:
+    a return on no surface (a flying pixel whose neighbours across the edge are themselves flying or
+    lost to a dropout, so that no neighbour is nearer than it)."""
+    H, W = depth.shape
+    found = 0
+    for dv in range(-1, 2):
+        a = v + dv
+        if a < 0 or a >= H:
+            continue
+        for du in range(-1, 2):
+            b = u + du
+            if (dv == 0 and du == 0) or b < 0 or b >= W:
+                continue
+            zn = depth[a, b] * scale
+            if zn > 0.0 and abs(zn - z) <= thr:  # NaN and no-return neighbours fail
+                found += 1
+                if found >= support:
+                    return False
+    return True
+
+
 @njit(cache=True, nogil=True)
 def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: float, fy: float, cx: float,
                     cy: float, pose: np.ndarray, min_range: float, max_range: float, flying: float,
-                    segments: np.ndarray, radii: np.ndarray, target: np.ndarray, target_radius: float,
+                    support: int, segments: np.ndarray, radii: np.ndarray, target: np.ndarray, target_radius: float,
                     origin: np.ndarray, voxel: float, last: np.ndarray, stamp: float, status: np.ndarray,
                     counts: np.ndarray, hits: np.ndarray, min_points: int, soft_depth: float) -> None:
     """Back-project a depth image (H×W, × ``scale`` [m]) through the pinhole (fx, fy, cx, cy) and the
     camera ``pose`` (4×4, optical frame in the base frame), classify every pixel into ``status``
-    (H×W uint8) and count them (``counts``, one per status), and stamp the voxels of the kept points
+    (H×W uint8; a return is :data:`FLYING` when a 4-neighbour is nearer than it by more than
+    ``flying`` × z, or when fewer than ``support`` of its 8 neighbours lie within ``flying`` × z of it:
+    :func:`_unsupported`) and count them (``counts``, one per status), and stamp the voxels of the kept points
     in ``last`` (2, nx, ny, nz): channel 1 where ``labels`` (H×W, or 0×0 for none) says soft, else 0 —
     once ``min_points`` of this frame's points fall in it (``hits``, (2, nx, ny, nz) uint16 scratch,
     counts them): a lone point in free space is the noise's tail, not an obstacle. A soft voxel also
@@ -167,7 +192,8 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
             elif flying > 0.0 and ((u > 0 and _behind(z, depth[v, u - 1] * scale, flying * z))
                                    or (u < W - 1 and _behind(z, depth[v, u + 1] * scale, flying * z))
                                    or (v > 0 and _behind(z, depth[v - 1, u] * scale, flying * z))
-                                   or (v < H - 1 and _behind(z, depth[v + 1, u] * scale, flying * z))):
+                                   or (v < H - 1 and _behind(z, depth[v + 1, u] * scale, flying * z))
+                                   or (support > 0 and _unsupported(depth, scale, v, u, z, flying * z, support))):
                 st = FLYING
             else:
                 xc = (u - cx) * ifx * z

@@ -4,7 +4,8 @@ x = [q̈ (n), s⁺ (k), s⁻ (k)]; the bounds on x (nv), then the inequality row
 rows (m): rows = [C; A], bu = [ub; u; b], bl = [lb; l; b] (:class:`qpctl.tick.QPBuffers`, which sets
 the slack columns and the inactive rows' infinite bounds once). Each constraint family writes its
 block: the task (EndEffectorTask), the torque window (TorqueLimit), the joint bounds (JointLimit),
-the obstacle barrier (ObstacleBarrier) and the self-collision rows (SelfCollisionBarrier); a new
+the obstacle barrier (ObstacleBarrier), the self-collision rows (SelfCollisionBarrier) and the
+depth map's field rows (FieldBarrier, :mod:`qpctl.kernels.field_rows`); a new
 family is a function here (or a module of its own) and a call in :func:`qp_build`, its first row in
 ``ipar`` (the ``IP_*_ROW0`` codes).
 
@@ -46,12 +47,14 @@ from qpctl.kernels.codes import (
     IP_CAPACITY,
     IP_DAMPING,
     IP_DRIFT_RIGID,
+    IP_FIELD_ROW0,
     IP_JOINT_LIMITS,
     IP_N_IN,
     IP_POSTURE,
     IP_SELF_ROW0,
     IP_TORQUE_ROW0,
 )
+from qpctl.kernels.field_rows import field_rows
 
 
 @njit(cache=True)
@@ -163,6 +166,11 @@ def qp_build(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray,
     if s0 >= 0:
         P = ws.sc_pairs.shape[0]
         self_rows(ws, rows[s0:s0 + P], bl[nv + s0:nv + s0 + P])
+    # the depth map's field rows (FieldBarrier; qpctl.kernels.field_rows)
+    f0 = ws.ipar[IP_FIELD_ROW0]
+    if f0 >= 0:
+        R = ws.fd_d.shape[0]
+        field_rows(ws, rows[f0:f0 + R], bl[nv + f0:nv + f0 + R])
 
 
 @njit(cache=True)

@@ -28,6 +28,7 @@ from qpctl.kernels.clearance import min_distance, min_self_distance
 from qpctl.kernels.clock import now_us
 from qpctl.kernels.codes import CNT_LOOKAHEAD, FP_T, R_BUILD_US, R_STATE_US, STATE_PYTHON, record_scalars
 from qpctl.kernels.daqp import native_solve
+from qpctl.kernels.field_rows import set_field
 from qpctl.kernels.finish import qp_finish, write_record
 from qpctl.kernels.hard_first import qp_tick_native_hard_first
 from qpctl.kernels.law import closed_form, closed_form_tick, law_terms
@@ -56,6 +57,7 @@ __all__ = [
     "qp_terms_and_build",
     "qp_tick_native",
     "qp_tick_native_hard_first",
+    "set_field",
     "state",
     "tick_closed_form",
     "tick_qp_native",

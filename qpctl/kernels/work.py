@@ -128,6 +128,17 @@ FIELDS = (
     "sc_row",  # (P, n) nᵀ(J_p − J_q): ḣ = sc_row q̇
     "sc_hdot",  # (P,) [m/s]
     "sc_drift",  # (P,) ḧ at q̈ = 0 [m/s²]
+    # -- the depth map's field (qpctl.kernels.field_rows; R = 2 channels × L × rows per link) ----------
+    "fd_dist",  # (2, nx, ny, nz) float32, read-only: the newest snapshot's distance grids [m] (set_field)
+    "fd_grad",  # (2, nx, ny, nz, 3) float32, read-only: their gradients
+    "fd_origin",  # (3,) the grid's lower corner [m]
+    "fd_d",  # (R,) per tick: the field pairs' distances from the capsules' surfaces [m]
+    "fd_n",  # (R, 3) unit normals, away from the obstacle (zero: no pair)
+    "fd_p",  # (R, 3) witness points on the links [m]
+    "fd_s",  # (L × rows per link,) scratch: axis parameters
+    "fd_ds",  # (samples,) scratch: the distances along one axis
+    "fd_jac",  # (R, 3, n) witness points' Jacobians (active rows)
+    "fd_drift",  # (R, 3) their J̇_p q̇ [m/s²]
     # -- per tick: law terms -------------------------------------------------------------------------
     "e",  # (m,) x_d − x [m]
     "edot",  # (m,) [m/s]

@@ -5,17 +5,18 @@ each tick it records q for the self-filter, takes a frame when the camera is due
 from it and applies the stale-map policy; after it, it measures what the map believed against the
 truth.
 
-**Latency on the simulated clock.** A frame stamped t is built at once (in the loop's thread: the
-run's physics stays deterministic) and its build time b is measured as the building thread's CPU
-time; its snapshot becomes the controller's at the first tick at or after t + b. So the simulated
-latency from stamp to rows is the real cost of the build rounded up to the control period — what
-the arm would see with the map worker on a core of its own. (On a machine shared with other work
-the wall clock also counts the time the thread waited for a core: ``map_update_ms_*`` report it
-beside ``map_update_cpu_ms_*``.)
+**Latency on the simulated clock.** A frame stamped t is built at once (in the loop's thread) and
+its snapshot becomes the controller's at the first tick at or after t + ``perception.latency``
+(default 30 ms, a frame period at 30 Hz): a fixed latency, so a run's physics is the same on every
+machine and under any load. The build's real cost is measured beside it — the building thread's CPU
+time (``map_update_cpu_ms_*``: what a map worker on a core of its own would take) and the wall clock
+(``map_update_ms_*``, which on a shared machine also counts the wait for a core) — and
+``map_updates_over_latency`` counts the frames whose CPU time exceeded the declared latency (the
+run was then more optimistic than this machine could be).
 
 **Metrics** (:meth:`MapLoop.metrics`): ``map_min_clearance`` (the least rigid distance the map's
 rows believed, from the link surfaces [m]), ``map_age_ms_max`` (the oldest the controller's map got,
-after the first), ``map_update_ms_median``/``_p99`` (frame to snapshot), ``map_latency_ms_p99``
+after the first), ``map_updates_over_latency``, ``map_update_ms_median``/``_p99`` (frame to snapshot), ``map_latency_ms_p99``
 (stamp to the first tick using it), ``min_soft_clearance`` (true, to the soft obstacles [m]),
 ``soft_contact_max_speed`` (the fastest a link's witness point moved while inside a soft obstacle
 [m/s]) and ``soft_contact_max_approach_speed`` (its component into the obstacle, along the normal:
@@ -104,6 +105,7 @@ class MapLoop:
         self.slow_ticks = 0
         self.stop_ticks = 0
         self.frames = 0
+        self.over_latency = 0
         self.soft_approach_max = 0.0
         self.sample: tuple[Any, np.ndarray, MapSnapshot, np.ndarray] | None = None
         self._sample_self = -1
@@ -128,7 +130,8 @@ class MapLoop:
             self.build_ms.append(snap.build_ms)
             self.build_cpu_ms.append(cpu * 1e3)
             self.frames += 1
-            self._pending.append((frame.stamp + cpu, snap))
+            self.over_latency += cpu > p.config.latency
+            self._pending.append((frame.stamp + p.config.latency, snap))
             rep = p.map.last_report
             if rep is not None and rep.counts["self"] >= self._sample_self:  # the figure's frame
                 self._sample_self = rep.counts["self"]
@@ -227,6 +230,7 @@ class MapLoop:
             "map_update_cpu_ms_p99": stat(self.build_cpu_ms, 99),
             "map_latency_ms_p99": stat(self.latency_ms, 99),
             "map_frames": self.frames,
+            "map_updates_over_latency": self.over_latency,
             "min_soft_clearance": self.soft_clearance,
             "soft_contact_max_speed": self.soft_speed_max,
             "soft_contact_max_approach_speed": self.soft_approach_max,
@@ -271,7 +275,7 @@ def attach(controller: Any, simulator: Any, config: Any, *, camera: Any = None, 
     if time_scaled:
         scaled = TimeScaledPath(controller.path)
         controller.path = scaled
-    controller._ws = None  # rebuilt on the next tick: the Python path, the path read in Python
+    controller._ws = None  # rebuilt on the next tick: the field's rows compiled, the path read in Python
     controller.warm = False
     rigid = [o for o in world if o.material != "soft"]
     soft = [o for o in world if o.material == "soft"]

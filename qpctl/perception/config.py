@@ -31,6 +31,8 @@ class PerceptionConfig:
     max_range: float = setting(3.0, valid="positive", unit="m")  # farther returns are dropped (they still clear) [m]
     flying_pixel: float = setting(0.02, valid="nonnegative")  # a pixel with a 4-neighbour nearer by more than
     #                                  this fraction of its depth is dropped: behind a depth edge (0: off)
+    flying_support: int = setting(2)  # ... and so is one with fewer than this many of its 8 neighbours within
+    #                                  that fraction of its depth: a return on no surface (0: off)
     min_points: int = setting(2)  # a voxel is occupied by a depth image once this many of its pixels fall in it
     self_margin: float = setting(0.03, valid="nonnegative", unit="m")  # the robot's capsules, inflated by this, are not obstacles [m]
     soft_depth: float = setting(0.04, valid="nonnegative", unit="m")  # a soft surface fills this behind it along the ray [m]
@@ -45,6 +47,9 @@ class PerceptionConfig:
     soft_speed: float = setting(0.05, valid="nonnegative", unit="m/s")  # the fastest a link may pass through a leaf [m/s]
     stale_slow: float = setting(0.15, valid="seconds", unit="s")  # a map older than this slows the task [s]
     stale_stop: float = setting(0.5, valid="seconds", unit="s")  # older than this, the arm stops [s]
+    latency: float = setting(0.03, valid="nonnegative", unit="s")  # in a simulated loop, a frame's map reaches
+    #                                  the rows this long after its stamp [s]: fixed, so a run is the same on
+    #                                  every machine (the build's measured cost is reported beside it)
 
     def __post_init__(self) -> None:
         check_fields(self, "perception")
@@ -60,6 +65,9 @@ class PerceptionConfig:
                               key="perception.max_range")
         if not 1 <= self.min_points <= 1000:
             raise ConfigError(f"must be an integer from 1 to 1000, got {self.min_points}", key="perception.min_points")
+        if not 0 <= self.flying_support <= 8:
+            raise ConfigError(f"must be an integer from 0 to 8, got {self.flying_support}",
+                              key="perception.flying_support")
         if not 2 <= self.samples <= 64:
             raise ConfigError(f"must be an integer from 2 to 64, got {self.samples}", key="perception.samples")
         if self.rows_per_link not in (1, 2):

@@ -7,7 +7,9 @@ the voxel was last seen occupied) and turns each frame into it (:meth:`DepthMap.
    are dropped and counted; so are *flying pixels*: a pixel with a 4-neighbour nearer than it by more
    than ``flying_pixel`` × its depth lies behind a depth edge, where a sensor's footprint straddling
    two surfaces reports a mixed depth on neither (the edge's near side is kept; its far side loses a
-   pixel, seen elsewhere);
+   pixel, seen elsewhere); and so is a return with fewer than ``flying_support`` of its 8 neighbours
+   within that fraction of its depth (a flying pixel whose neighbours across the edge are flying too,
+   or lost to a grazing dropout, has no nearer neighbour but no surface either);
 2. back-projection through the pinhole intrinsics and the camera's pose;
 3. self-filtering: points within the robot's capsules at the frame's stamp, inflated by
    ``self_margin`` (:mod:`qpctl.perception.self_filter`), or within ``target_radius`` of the grasp
@@ -145,7 +147,7 @@ class DepthMap:
                 labels = frame.labels if frame.labels is not None else np.zeros((0, 0), np.uint8)
                 status: np.ndarray = np.empty(depth.shape, np.uint8)
                 KD.integrate_depth(depth, scale, labels, K.fx, K.fy, K.cx, K.cy, frame.pose, c.min_range,
-                                   c.max_range, c.flying_pixel, segs, radii, target, target_r, g.origin, g.voxel,
+                                   c.max_range, c.flying_pixel, c.flying_support, segs, radii, target, target_r, g.origin, g.voxel,
                                    self.last, frame.stamp, status, counts, self._hits, c.min_points,
                                    c.soft_depth)
                 cleared = KD.clear_depth(depth, scale, status, K.fx, K.fy, K.cx, K.cy, frame.pose, margin,

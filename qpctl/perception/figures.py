@@ -25,7 +25,13 @@ STATUS_COLOURS = ("#2ca02c", "#dddddd", "#8c564b", "#ff7f0e", "#d62728", "#9467b
 
 
 def _save(fig: plt.Figure, path: Path, title: str) -> Path:
-    return _save(fig, path, title)
+    """The figure, titled, laid out and written to ``path`` (then closed)."""
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def depth_frame_figure(path: Path, frame: DepthFrame, status: np.ndarray, title: str = "") -> Path:

@@ -17,13 +17,15 @@ A row is active where d is within the controller's influence distance, inactive 
 elsewhere; the number of rows is fixed (2 channels × links × ``rows_per_link``).
 
 :class:`FieldBarrier` is the constraint on the Python path (:class:`~qpctl.formulation.Formulation`):
-the reference the compiled rows are held to. Its point Jacobians and drifts come from Pinocchio's
+the reference the compiled rows (:mod:`qpctl.kernels.field_rows`, through :meth:`FieldBarrier.field_spec`)
+are held to. Its point Jacobians and drifts come from Pinocchio's
 joint Jacobians and their time variation, shifted to the witness points.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -36,6 +38,7 @@ from qpctl.perception.snapshot import MapSnapshot
 from qpctl.qp import Inequality
 from qpctl.robot.model import RobotModel
 from qpctl.state import TickState
+from qpctl.tick import FieldSpec
 
 
 @dataclass(frozen=True)
@@ -101,7 +104,28 @@ class FieldBarrier(Constraint):
         self.joints = np.array([c.joint_id for c in robot.capsules], int)
         self.rows = 2 * len(robot.capsules) * config.rows_per_link
         self._data = robot.model.createData()
-        self.last: FieldPairs | None = None  # the last tick's pairs (for metrics and figures)
+        self._last: FieldPairs | None = None
+        self._ws: Any = None  # the compiled tick's workspace, when its arrays hold the last tick's pairs
+        L, R = len(robot.capsules), config.rows_per_link
+        self._link = np.tile(np.repeat(np.arange(L), R), 2)
+        self._soft = np.repeat([False, True], L * R)
+
+    @property
+    def last(self) -> FieldPairs | None:
+        """The last tick's pairs (for metrics and figures), from whichever path computed them."""
+        if self._last is None and self._ws is not None:
+            d, n, p = self._ws.field_state()
+            self._last = FieldPairs(d, n, p, self._link, self._soft, (d < self.cutoff) & np.any(n != 0.0, axis=1))
+        return self._last
+
+    def field_spec(self) -> FieldSpec:
+        """These rows in the compiled tick (:mod:`qpctl.kernels.field_rows`; held to :meth:`compute`)."""
+        return FieldSpec(self.source, self, self.rows, self.config.samples, self.config.rows_per_link, self.margin,
+                         self.config.soft_speed, self.cutoff, self.k0, self.k1)
+
+    def bind(self, ws: Any) -> None:
+        """A compiled tick runs on ``ws``: its arrays hold this tick's pairs (:attr:`last`)."""
+        self._ws, self._last = ws, None
 
     def segments(self, q: np.ndarray) -> np.ndarray:
         """(L, 2, 3) the capsules' axes [m] at q [rad] (Pinocchio's forward kinematics)."""
@@ -140,7 +164,7 @@ class FieldBarrier(Constraint):
         upper = np.full(self.rows, np.inf)
         snap: MapSnapshot = self.source.snapshot  # type: ignore[attr-defined]
         pairs = field_pairs(snap, state.segments, self.radii, self.config, self.cutoff)
-        self.last = pairs
+        self._last, self._ws = pairs, None
         idx = np.flatnonzero(pairs.active)
         if idx.size == 0:
             return Inequality(C, lower, upper)

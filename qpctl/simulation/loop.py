@@ -41,7 +41,7 @@ class SimConfig:
     dt [s], duration [s]: the control and integration step and the run's length (both > 0).
     integrator: "rk4" or "euler" (semi-implicit), the built-in simulator's.
     seed: recorded with the run (randomised scenes).
-    simulator: a name in :data:`qpctl.adapters.SIMULATORS` ("builtin", "mujoco", "pybullet").
+    simulator: a name in :data:`qpctl.adapters.SIMULATORS` ("builtin", "mujoco", "pybullet", "drake").
     model: the user's own model file for an adapter ("": generated from the robot).
     joint_names: the model's names of the controller's joints, in its order (None: by name or order).
     """

@@ -1,0 +1,98 @@
+"""The depth map's barrier rows in the compiled tick: the field's pairs and their rows on q̈.
+
+The workspace holds the newest :class:`~qpctl.perception.snapshot.MapSnapshot`'s grids (read-only
+views, swapped by :func:`set_field` when a new snapshot arrives: no copy). :func:`field_rows` samples
+each link capsule's axis in both channels (:func:`qpctl.kernels.field.field_pairs`: the nearest one
+or two points, smoothed), then writes each pair as a row of the obstacle barrier's form with the
+static map's ḣ = nᵀJ_p q̇ and the rigid-point drift nᵀJ̇_p q̇ (the witness point's Jacobian and
+acceleration from the capsule body's, :func:`qpctl.kernels.rigid.point_jacobian`):
+
+* rigid (channel 0): nᵀJ_p q̈ ≥ −k₁ḣ − k₀(d − m) − nᵀJ̇_p q̇, m the rigid margin
+  (d_safe + √3/2·voxel + depth noise);
+* soft (channel 1): nᵀJ_p q̈ ≥ −k₁(ḣ + v_s) − k₀ max(d, 0) − nᵀJ̇_p q̇, v_s = ``soft_speed``.
+
+A pair farther than the cutoff, or without a normal, is an inactive row (zero, −∞). Reference:
+:class:`qpctl.perception.rows.FieldBarrier` (the Python path), in ``tests/test_field_rows.py``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from qpctl.kernels.codes import (
+    FP_FD_CUT,
+    FP_FD_K0,
+    FP_FD_K1,
+    FP_FD_MARGIN,
+    FP_FD_TRUNC,
+    FP_FD_VOXEL,
+    FP_FD_VS,
+    IP_FD_RPL,
+    IP_FD_SAMPLES,
+)
+from qpctl.kernels.field import field_pairs
+from qpctl.kernels.rigid import point_jacobian
+
+
+@njit(cache=True)
+def set_field(ws, dist: np.ndarray, grad: np.ndarray) -> None:  # type: ignore[no-untyped-def]
+    """The tick reads these grids from now on: ``dist`` (2, nx, ny, nz) and ``grad`` (2, nx, ny, nz, 3),
+    float32, read-only (a snapshot's own arrays)."""
+    ws.fd_dist = dist
+    ws.fd_grad = grad
+
+
+@njit(cache=True)
+def field_pairs_both(ws) -> None:  # type: ignore[no-untyped-def]
+    """Both channels' pairs for the capsules at this tick into fd_d, fd_n, fd_p (channel-major)."""
+    L = ws.segments.shape[0]
+    rpl = ws.ipar[IP_FD_RPL]
+    k = L * rpl
+    voxel, trunc = ws.fpar[FP_FD_VOXEL], ws.fpar[FP_FD_TRUNC]
+    for ch in range(2):
+        o = ch * k
+        field_pairs(ws.segments, ws.cap_radius, ws.fd_dist[ch], ws.fd_grad[ch], ws.fd_origin, voxel, trunc,
+                    ws.ipar[IP_FD_SAMPLES], rpl, True, ws.fd_ds, ws.fd_d[o:o + k], ws.fd_n[o:o + k],
+                    ws.fd_p[o:o + k], ws.fd_s)
+
+
+@njit(cache=True)
+def field_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no-untyped-def]
+    """The field's rows (module docstring) into ``C`` (R, n) and ``lower`` (R,)."""
+    field_pairs_both(ws)
+    n = ws.N.shape[0]
+    L = ws.segments.shape[0]
+    rpl = ws.ipar[IP_FD_RPL]
+    k = L * rpl
+    cut, margin, vs = ws.fpar[FP_FD_CUT], ws.fpar[FP_FD_MARGIN], ws.fpar[FP_FD_VS]
+    k0, k1 = ws.fpar[FP_FD_K0], ws.fpar[FP_FD_K1]
+    for r in range(C.shape[0]):
+        nx, ny, nz = ws.fd_n[r, 0], ws.fd_n[r, 1], ws.fd_n[r, 2]
+        d = ws.fd_d[r]
+        if not (d < cut) or (nx == 0.0 and ny == 0.0 and nz == 0.0):
+            for c in range(n):
+                C[r, c] = 0.0
+            lower[r] = -math.inf
+            continue
+        link = (r % k) // rpl
+        p = ws.fd_p[r]
+        Jp = ws.fd_jac[r]
+        point_jacobian(ws, ws.cap_support[link], p, Jp)
+        K, off = ws.acc_K[link], ws.acc_off[link]
+        drift = 0.0
+        for c in range(3):
+            a = off[c] + K[c, 0] * p[0] + K[c, 1] * p[1] + K[c, 2] * p[2]
+            ws.fd_drift[r, c] = a
+            drift += ws.fd_n[r, c] * a
+        hdot = 0.0
+        for c in range(n):
+            val = nx * Jp[0, c] + ny * Jp[1, c] + nz * Jp[2, c]
+            C[r, c] = val
+            hdot += val * ws.v[c]
+        if r >= k:  # soft: the approach no faster than v_s; contact allowed
+            lower[r] = -k1 * (hdot + vs) - k0 * max(d, 0.0) - drift
+        else:
+            lower[r] = -k1 * hdot - k0 * (d - margin) - drift
