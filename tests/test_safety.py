@@ -144,3 +144,22 @@ def test_backup_guard_applies_the_stored_brake_when_the_proposal_cannot_stop():
     want = brake_torque(robot, data, q, v, tau_prev, guard._gain, DT)
     assert np.array_equal(out.tau, want)
     assert guard.stats == {**guard.stats, "checked": 3, "backup": 1}
+
+
+def test_collisions_at_rest_counts_the_contacts_a_stop_cannot_avoid():
+    """Issue 22, item 4, in the metrics: a run whose clearance crosses below 0 three times — with the
+    arm at rest, moving, at rest again but only barely moving (0.5 rad/s on one joint) — counts one
+    contact at rest."""
+    from qpctl.simulation.metrics import compute_metrics
+    from qpctl.simulation.trajectory import Trajectory
+
+    T, n = 12, 3
+    clearance = np.array([0.1, -0.01, -0.02, 0.1, 0.1, -0.01, 0.1, 0.1, -0.01, 0.2, 0.2, 0.2])
+    v = np.zeros((T, n))
+    v[5] = [0.0, 0.3, 0.0]
+    v[8] = [0.5, 0.0, 0.0]
+    z = np.zeros((T, 2))
+    traj = Trajectory(np.arange(T) * 1e-3, np.zeros((T, n)), v, np.zeros((T, n)), z, z, z, z, clearance,
+                      np.zeros((T, n)), np.zeros(T), np.zeros(T, bool), [{} for _ in range(T)])
+    m = compute_metrics(traj)
+    assert m["collided"] and m["collisions_at_rest"] == 1
