@@ -44,14 +44,13 @@ class Certificate:
 
 def brake_torque(robot: Any, data: pin.Data, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, gain: float,
                  dt: float) -> np.ndarray:
-    """The brake's torque [N·m] at (q, q̇) after τ_prev (module docstring)."""
-    M = pin.crba(robot.model, data, q)
-    M = np.triu(M) + np.triu(M, 1).T
-    tau = pin.nonLinearEffects(robot.model, data, q, v) - gain * (M @ v)
-    tau = np.clip(tau, -robot.tau_max, robot.tau_max)
-    if np.all(np.isfinite(tau_prev)):
-        w = np.broadcast_to(robot.tau_rate_max, tau.shape) * dt
-        tau = np.clip(tau, tau_prev - w, tau_prev + w)
+    """The brake's torque [N·m] at (q, q̇) after τ_prev (module docstring): N − κMq̇ is Pinocchio's
+    RNEA at q̈ = −κq̇, then the torque and rate limits."""
+    tau = pin.rnea(robot.model, data, q, v, -gain * v)
+    tau = np.minimum(np.maximum(tau, -robot.tau_max), robot.tau_max)
+    if np.isfinite(tau_prev[0]):
+        w = robot.tau_rate_max * dt
+        tau = np.minimum(np.maximum(tau, tau_prev - w), tau_prev + w)
     return tau
 
 
