@@ -5,8 +5,9 @@ a rollout on the controller's own model; otherwise the stored verified brake con
 Each tick at (q, q̇, t) with the torque τ_prev applied last:
 
 1. the controller proposes τ (its ``step``);
-2. where the arm's least clearance is below ``check_distance`` [m] (farther, τ is applied unchecked:
-   the guarantee is for the states within it), the successor (q₁, q̇₁) — τ held over one step, the
+2. where the arm's least clearance is below ``check_distance`` [m] (default: everywhere; farther, τ
+   is applied unchecked and the stored brake forgotten, since it was verified from another state),
+   the successor (q₁, q̇₁) — τ held over one step, the
    built-in simulator's RK4 — is rolled out with the stored brake's gain first, then the others; the
    first that comes to rest with the clearance above ``margin`` all along is stored and τ applied;
 3. if none does, the stored brake's torque from (q, q̇, τ_prev) is applied instead (the brake was
@@ -45,7 +46,7 @@ class BackupGuard:
     controller's, so it runs wherever the controller does. ``dt`` [s]: the control period (the
     simulator's step), ``check_distance`` [m], ``margin`` [m] (kept at rest), ``horizon`` [s]."""
 
-    def __init__(self, controller: Any, dt: float, *, check_distance: float = 1.0, margin: float = 0.0,
+    def __init__(self, controller: Any, dt: float, *, check_distance: float = np.inf, margin: float = 0.0,
                  horizon: float = 3.0, gains: tuple[float, ...] = BRAKE_GAINS) -> None:
         self.controller = controller
         self.dt, self.check_distance, self.margin, self.horizon = float(dt), float(check_distance), float(margin), \
@@ -54,7 +55,7 @@ class BackupGuard:
         self._sim = Simulator(controller, dt=self.dt, duration=self.dt)
         self._data = controller.robot.model.createData()
         self._limit = next((c for c in getattr(controller, "constraints", []) if isinstance(c, TorqueLimit)), None)
-        self.stats: dict[str, Any] = {"checked": 0, "backup": 0, "check_us": []}
+        self.stats: dict[str, Any] = {"checked": 0, "backup": 0, "unverified": 0, "check_us": []}
         self._reset_backup()
 
     def __getattr__(self, name: str) -> Any:
@@ -100,13 +101,17 @@ class BackupGuard:
             self.stats["checked"] += 1
             if gain is not None:
                 self._gain = gain
-            elif self._gain is not None:  # the stored brake continues
+            elif self._gain is None:  # nothing verified yet (the start, or after unchecked ticks)
+                self.stats["unverified"] += 1
+            else:  # the stored brake continues
                 tau = brake_torque(self.controller.robot, self._data, np.asarray(q, float), np.asarray(v, float),
                                    self._tau_prev, self._gain, self.dt)
                 info["backup"] = self._gain
                 self.stats["backup"] += 1
                 if self._limit is not None:  # the rate window of the next tick is about the torque applied
                     self._limit.remember(tau, t)
+        else:
+            self._gain = None
         self._tau_prev = tau
         return GuardedOutput(out, tau, info)
 
