@@ -10,6 +10,11 @@ intervenes are reported too). Scenes come from the soak's own generator
 (``tests/test_soak.py``: its seed, its validation, each scene's solver and fallback chain), in draw
 order, the first ``--scenes`` with a torque-rate limit and no moving obstacle. Prints one line per
 scene and a summary per mode; ``--out`` writes them as JSON too.
+
+    python -m benchmarks.braking --cost panda_spheres [--set controller.braking_reach=0.0]
+
+times ``ctrl.step`` with braking off and on alternately on every 5th state of one run of the scenario
+(braking off), three passes: medians and p99 [µs] (state the machine's load beside them).
 """
 
 from __future__ import annotations
@@ -45,12 +50,41 @@ def controller_table(raw: dict[str, Any], mode: str) -> dict[str, Any]:
     return c
 
 
+def tick_cost(name: str, overrides: list[str]) -> dict[str, float]:
+    """Interleaved QP tick times [µs], braking off and on, on the states of one run (module docstring)."""
+    sc_off = Scenario.load(name, overrides=['controller.braking="off"'])
+    sc_on = Scenario.load(name, overrides=['controller.braking="on"', *overrides])
+    tr = simulate(sc_off).trajectory
+    off, on = sc_off.build_controller("qp"), sc_on.build_controller("qp")
+    off.warmup()
+    on.warmup()
+    t_off, t_on = [], []
+    for _ in range(3):
+        off.reset()
+        on.reset()
+        for k in range(0, len(tr.t), 5):
+            q, v, t = tr.q[k], tr.v[k], float(tr.t[k])
+            a = time.perf_counter()
+            off.step(q, v, t)
+            b = time.perf_counter()
+            on.step(q, v, t)
+            t_off.append((b - a) * 1e6)
+            t_on.append((time.perf_counter() - b) * 1e6)
+    return {"ticks": len(t_off), "off_median": float(np.median(t_off)), "off_p99": float(np.percentile(t_off, 99)),
+            "on_median": float(np.median(t_on)), "on_p99": float(np.percentile(t_on, 99))}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--modes", default="off,0.5")
     ap.add_argument("--scenes", type=int, default=12)
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--cost", default=None, help="a scenario: time its QP ticks with braking off and on")
+    ap.add_argument("--set", action="append", default=[], help="KEY=VALUE for the braking run of --cost")
     args = ap.parse_args(argv)
+    if args.cost is not None:
+        print(args.cost, tick_cost(args.cost, args.set))
+        return 0
     modes = args.modes.split(",")
     rng = np.random.default_rng(soak.SEED)
     rows: dict[str, list[dict[str, Any]]] = {m: [] for m in modes}
