@@ -13,7 +13,13 @@ scene and a summary per mode; ``--out`` writes them as JSON too.
 
     python -m benchmarks.braking --cost panda_spheres [--set controller.braking_reach=0.0]
 
-times ``ctrl.step`` with braking off and on alternately on every 5th state of one run of the scenario
+    python -m benchmarks.braking --oracle --scenes 12
+
+runs each scene with braking off and asks the oracle (:func:`qpctl.safety.certify`) about every 10th
+visited state (the torque applied before it as τ_prev): how many it certifies viable, and in the scenes
+that collide when the first uncertified state came before the contact.
+
+``--cost`` times ``ctrl.step`` with braking off and on alternately on every 5th state of one run of the scenario
 (braking off), three passes: medians and p99 [µs] (state the machine's load beside them).
 """
 
@@ -34,7 +40,7 @@ import test_soak as soak  # the soak's generator is the scenes' definition
 
 from qpctl import Scenario
 from qpctl.run import simulate
-from qpctl.safety import BackupGuard
+from qpctl.safety import BackupGuard, certify
 from qpctl.simulation import Simulator
 
 
@@ -74,6 +80,31 @@ def tick_cost(name: str, overrides: list[str]) -> dict[str, float]:
             "on_median": float(np.median(t_on)), "on_p99": float(np.percentile(t_on, 99))}
 
 
+def oracle_sample(scenes: int, every: int = 10) -> int:
+    """Every ``every``-th visited state of the braking-off runs, certified or not (module docstring)."""
+    rng = np.random.default_rng(soak.SEED)
+    total = certified = count = 0
+    for _, which, raw in soak.valid_scenes(rng, Counter()):
+        if count >= scenes:
+            break
+        if any("velocity" in o or "amplitude" in o for o in raw["obstacles"]) or not (
+                which == "panda" or "tau_rate_max" in raw["robot"]):
+            continue
+        count += 1
+        sc = Scenario.from_dict({**raw, "controller": controller_table(raw, "off")}, source=raw["name"])
+        run = simulate(sc)
+        tr, ctrl, dt = run.trajectory, run.controller, raw["sim"]["dt"]
+        ks = list(range(every, len(tr.t), every))
+        ok = [certify(ctrl, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), dt).viable for k in ks]
+        total, certified = total + len(ks), certified + sum(ok)
+        contact = np.flatnonzero(tr.clearance < 0)
+        first_bad = next((tr.t[k] for k, good in zip(ks, ok, strict=True) if not good), None)
+        print(raw["name"], f"certified {sum(ok)}/{len(ks)}", "first uncertified t", first_bad,
+              "first contact t", tr.t[contact[0]] if contact.size else None, flush=True)
+    print(f"certified {certified} of {total} sampled states")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--modes", default="off,0.5")
@@ -81,7 +112,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--cost", default=None, help="a scenario: time its QP ticks with braking off and on")
     ap.add_argument("--set", action="append", default=[], help="KEY=VALUE for the braking run of --cost")
+    ap.add_argument("--oracle", action="store_true", help="certify every 10th visited state (braking off)")
     args = ap.parse_args(argv)
+    if args.oracle:
+        return oracle_sample(args.scenes)
     if args.cost is not None:
         print(args.cost, tick_cost(args.cost, args.set))
         return 0
