@@ -43,9 +43,13 @@ from qpctl.run import simulate
 from qpctl.safety import BackupGuard, certify
 from qpctl.simulation import Simulator
 
+NO_BUDGET = False  # --no-budget: tick_budget_us = 0 (a wall-clock budget makes runs depend on the load)
+
 
 def controller_table(raw: dict[str, Any], mode: str) -> dict[str, Any]:
     c = dict(raw["controller"])
+    if NO_BUDGET:
+        c["tick_budget_us"] = 0.0
     if mode in ("off", "backup"):
         c["braking"] = "off"
         return c
@@ -113,7 +117,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cost", default=None, help="a scenario: time its QP ticks with braking off and on")
     ap.add_argument("--set", action="append", default=[], help="KEY=VALUE for the braking run of --cost")
     ap.add_argument("--oracle", action="store_true", help="certify every 10th visited state (braking off)")
+    ap.add_argument("--no-budget", action="store_true", help="tick_budget_us = 0: runs independent of the load")
     args = ap.parse_args(argv)
+    global NO_BUDGET
+    NO_BUDGET = args.no_budget
     if args.oracle:
         return oracle_sample(args.scenes)
     if args.cost is not None:
