@@ -118,6 +118,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], help="KEY=VALUE for the braking run of --cost")
     ap.add_argument("--oracle", action="store_true", help="certify every 10th visited state (braking off)")
     ap.add_argument("--no-budget", action="store_true", help="tick_budget_us = 0: runs independent of the load")
+    ap.add_argument("--only", action="append", default=[], help="run only this scene (repeatable), e.g. soak-planar-238")
     args = ap.parse_args(argv)
     global NO_BUDGET
     NO_BUDGET = args.no_budget
@@ -126,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.cost is not None:
         print(args.cost, tick_cost(args.cost, args.set))
         return 0
-    modes = args.modes.split(",")
+    modes, only = args.modes.split(","), set(args.only)
     rng = np.random.default_rng(soak.SEED)
     rows: dict[str, list[dict[str, Any]]] = {m: [] for m in modes}
     t0, count = time.time(), 0
@@ -137,6 +138,8 @@ def main(argv: list[str] | None = None) -> int:
         if moving or not (which == "panda" or "tau_rate_max" in raw["robot"]):
             continue
         count += 1
+        if only and raw["name"] not in only:
+            continue
         for m in modes:
             sc = Scenario.from_dict({**raw, "controller": controller_table(raw, m)}, source=raw["name"])
             extra: dict[str, Any] = {}
@@ -155,6 +158,8 @@ def main(argv: list[str] | None = None) -> int:
     summary = {}
     for m in modes:
         cl = np.array([r["min_clearance"] for r in rows[m]])
+        if not cl.size:
+            continue
         summary[m] = {"scenes": int(cl.size), "collide": int(np.sum(cl < 0)), "worst_clearance": float(cl.min()),
                       "median_rms_tracking": float(np.median([r["rms_tracking"] for r in rows[m]]))}
         if m == "backup":
