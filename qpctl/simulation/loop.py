@@ -149,10 +149,15 @@ class SimulatorBase(ABC):
         return self.world(q, t)
 
     def run(self, q0: np.ndarray, v0: np.ndarray | None = None) -> Trajectory:
-        """Simulate from (q0 [rad], v0 [rad/s], default rest) at t = 0 for ``duration``."""
+        """Simulate from (q0: a configuration (nq) or one angle per degree of freedom (nv); v0 [rad/s],
+        default rest) at t = 0 for ``duration``."""
+        robot = self.robot
         q0 = np.asarray(q0, float)
-        if q0.shape != (self.robot.nv,):
-            raise ConfigError(f"q0 needs {self.robot.nv} joint values, got {q0.size}", key="robot.q0")
+        if robot.lie and q0.shape == (robot.nv,):  # one angle per degree of freedom → the configuration
+            q0 = robot.configuration(q0)
+        if q0.shape != (robot.nq,):
+            more = f" (or {robot.nv} angles)" if robot.lie else ""
+            raise ConfigError(f"q0 needs {robot.nq} joint values{more}, got {q0.size}", key="robot.q0")
         self.counts = {}
         self.reset(q0, v0)
         return record_run(self)
@@ -168,6 +173,7 @@ def record_run(sim: SimulatorBase) -> Trajectory:
     steps = round(sim.duration / dt) + 1
     keys = ("q", "v", "tau", "e_null") + (("tau_command",) if sim.faulty else ())
     rec = {k: np.zeros((steps, n)) for k in keys}
+    rec["q"] = np.zeros((steps, robot.nq))
     rec.update({k: np.zeros((steps, m)) for k in ("x", "x_ref", "xd_ref", "xdd_ref")})
     t_arr, clear, tick_us = np.zeros(steps), np.zeros(steps), np.zeros(steps)
     self_clear = np.full(steps, np.inf)
@@ -176,7 +182,7 @@ def record_run(sim: SimulatorBase) -> Trajectory:
     world = sim.world
     if sim.faulty:  # the task point's true position (kinematics only)
         kin = robot.model.createData()
-        ee, axes, m_p = robot.ee_frame_id, list(robot.task_axes), robot.m_position
+        m_p = robot.m_position
     if ctrl.warm:  # kernels loaded, workspace built, solver set up: not in the first tick
         ctrl.reset()
     else:
@@ -202,7 +208,7 @@ def record_run(sim: SimulatorBase) -> Trajectory:
         if sim.faulty:
             rec["tau_command"][k] = out.tau
             pin.framesForwardKinematics(robot.model, kin, q)
-            rec["x"][k, :m_p] = kin.oMf[ee].translation[axes]
+            rec["x"][k, :m_p] = robot.task_positions(kin)
         rec["x_ref"][k], rec["xd_ref"][k] = out.ref.x, out.ref.xd
         rec["xdd_ref"][k] = out.ref.xdd
         clear[k] = world(q, t)
