@@ -18,7 +18,7 @@ SEED = 2201
 
 
 def braked(v: np.ndarray, a: np.ndarray, A: np.ndarray, J: np.ndarray, *, hold: np.ndarray | None = None,
-           dt: float = 1e-4, t_end: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
+           dt: float = 2e-4, t_end: float = 4.0) -> tuple[np.ndarray, np.ndarray]:
     """(largest distance travelled [m], time it is reached [s]) of points starting at speed v with
     acceleration a, holding a for ``hold`` [s] (default 0), then braking: jerk −J until −A, then −A,
     until at rest (each step integrates the piecewise-constant jerk exactly)."""
@@ -46,7 +46,7 @@ def braked(v: np.ndarray, a: np.ndarray, A: np.ndarray, J: np.ndarray, *, hold: 
 
 
 def cases(rng: np.random.Generator, k: int) -> tuple[np.ndarray, ...]:
-    A = rng.uniform(1.0, 20.0, k)
+    A = rng.uniform(3.0, 20.0, k)
     J = rng.uniform(5.0, 400.0, k)
     v = rng.uniform(-0.5, 3.0, k)
     a = rng.uniform(-1.5, 1.5, k) * A
@@ -54,18 +54,18 @@ def cases(rng: np.random.Generator, k: int) -> tuple[np.ndarray, ...]:
 
 
 def test_stopping_distance_equals_a_fine_integration():
-    """D(v, a) and the time to rest against the braked point integrated at 0.1 ms, over 200 random
+    """D(v, a) and the time to rest against the braked point integrated at 0.2 ms, over 100 random
     (v, a, A, J) covering both branches, points moving away, and a below −A: |ΔD| ≤ 1e-6 m + 1e-5·D."""
     rng = np.random.default_rng(SEED)
-    v, a, A, J = cases(rng, 200)
+    v, a, A, J = cases(rng, 100)
     want, t_want = braked(v, a, A, J)
     got = np.array([stopping(*c)[0] for c in zip(v, a, A, J, strict=True)])
     T = np.array([stopping(*c)[2] for c in zip(v, a, A, J, strict=True)])
     np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-6)
     far = want > 1e-3
-    np.testing.assert_allclose(T[far], t_want[far], atol=2e-4)
+    np.testing.assert_allclose(T[far], t_want[far], atol=4e-4)
     branch = v >= (A**2 - np.clip(a, -A, None) ** 2) / (2 * J)
-    assert 20 < branch.sum() < 180 and (v < 0).sum() > 10 and (a < -A).sum() > 10
+    assert 10 < branch.sum() < 90 and (v < 0).sum() > 5 and (a < -A).sum() > 5
 
 
 def test_stopping_distance_limits():
@@ -111,14 +111,14 @@ def test_max_closing_acceleration_keeps_the_next_state_able_to_stop():
     then the brake (the fine integration), the obstacle closing at v_o all along, leave the margin
     (to 1e-6 m and the time step's share of the obstacle's travel); 1 % more than an interior a* does not."""
     rng = np.random.default_rng(SEED + 2)
-    k = 120
+    k = 60
     v, _, A, J = cases(rng, k)
     h = rng.uniform(0.05, 1.5, k)
     vo = np.where(rng.random(k) < 0.3, rng.uniform(0.0, 0.3, k), 0.0)
     dt, margin, cap = 2e-3, 0.01, 3.0 * A
     star = np.array([max_closing_acceleration(h[i], v[i], vo[i], dt, A[i], J[i], margin, cap[i]) for i in range(k)])
     interior = (star > -cap) & (star < cap)
-    assert interior.sum() > 60
+    assert interior.sum() > 30
     for scale in (1.0, 1.01):
         a = np.where(star > 0, star * scale, star / scale) if scale != 1.0 else star
         v1 = v + a * dt
@@ -127,7 +127,7 @@ def test_max_closing_acceleration_keeps_the_next_state_able_to_stop():
         dist, t_stop = braked(v1, a, A, J)
         left = h - x1 - dist - lat - vo * (2 * dt + t_stop) - margin
         if scale == 1.0:
-            tol = 1e-6 + vo * 2e-4  # the integration's time to rest is known to its step
+            tol = 1e-6 + vo * 4e-4  # the integration's time to rest is known to its step
             assert np.all(left[interior] >= -tol[interior]), (left + tol)[interior].min()
         else:
             assert np.all(left[interior] < 0), left[interior].max()
