@@ -156,6 +156,7 @@ class QPSpec:
     self_barrier: tuple[float, float, float] | None = None  # k0, k1, d_safe of the self-collision rows
     task_weights: np.ndarray | None = None  # (m,) the task rows' weights (None: 1)
     row_kinds: list[str] | None = None  # one per row: its constraint's kind (Constraint.kind)
+    braking: Any = None  # the Braking of the braking-aware rows (qpctl.constraints.braking), or None
     field: FieldSpec | None = None  # the depth map's field rows
 
 
@@ -457,6 +458,12 @@ class Workspace:
             ip[codes.IP_JOINT_LIMITS] = 1
         if spec.self_barrier is not None:
             fp[codes.FP_SK0], fp[codes.FP_SK1], fp[codes.FP_SDS] = spec.self_barrier
+        if spec.braking is not None:  # the braking-aware rows (qpctl.kernels.braking)
+            b = spec.braking
+            ip[codes.IP_BRAKING] = 1
+            fp[codes.FP_BRK_SHARE], fp[codes.FP_BRK_MARGIN], fp[codes.FP_BRK_DT] = b.share, b.margin, b.dt
+            if spec.joint_limits is None:
+                self.qdd_max = np.asarray(b.qdd_max, float).copy()
         if spec.barrier is not None:
             cap, bk0, bk1, rigid = spec.barrier
             ip[codes.IP_CAPACITY] = cap

@@ -79,6 +79,9 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
     torque = next((c for c in constraints if isinstance(c, TorqueLimit)), None)
     joint = next((c for c in constraints if isinstance(c, JointLimit)), None)
     barrier = next((c for c in constraints if isinstance(c, ObstacleBarrier)), None)
+    brakes = {id(c.braking): c.braking for c in (joint, barrier) if c is not None and c.braking is not None}
+    if len(brakes) > 1 or (brakes and torque is None):
+        return None  # two different brakes, or one without the torque limits: the Python formulation
     return QPSpec(
         acc_weight=acc.weight, slack_l1=ee.slack_l1, slack_l2=ee.slack_l2,
         posture=None if post is None else (post.q_ref, post.weight, post.kp, post.kd),
@@ -92,6 +95,7 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
         row_kinds=[c.kind for c in constraints for _ in range(c.rows)],
         self_barrier=next(((c.k0, c.k1, c.d_safe) for c in constraints if isinstance(c, SelfCollisionBarrier)), None),
         task_weights=ee.weights,
+        braking=next(iter(brakes.values()), None),
         field=fields[0].field_spec() if fields else None,  # type: ignore[attr-defined]
     )
 
