@@ -102,15 +102,17 @@ def test_soft_rows_cap_the_approach_speed_not_the_distance(panda_robot) -> None:
     p = Perception(CFG)
     p.submit(PointCloud(_sphere_cloud(list(tip + [0.0, 0.0, -0.1]), 0.04), 0.0,
                         labels=np.full(4000, 2, np.uint8)))
-    bar = FieldBarrier(p, robot, CFG, d_safe=0.05, cutoff=0.3)
+    cfg = PerceptionConfig(**{**CFG.__dict__, "soft_margin": 0.03})
+    bar = FieldBarrier(p, robot, cfg, d_safe=0.05, cutoff=0.3)
     st = Dynamics(robot).compute(q, np.zeros(7), 0.0)
     ineq = bar.compute(st, None)  # type: ignore[arg-type]
     pairs = bar.last
     assert pairs is not None
     soft = np.flatnonzero(pairs.active & pairs.soft)
     assert soft.size and not (pairs.active & ~pairs.soft).any()
-    # at rest: −k1 v_s − k0 max(d, 0) (no margin: contact is allowed at v_s)
-    expect = -40.0 * CFG.soft_speed - 400.0 * np.maximum(pairs.distance[soft], 0.0)
+    # at rest: −k1 v_s − k0 max(d − m_s, 0) (no d_safe: contact is allowed at v_s)
+    expect = -40.0 * cfg.soft_speed - 400.0 * np.maximum(pairs.distance[soft] - 0.03, 0.0)
+    assert (pairs.distance[soft] < 0.03).any() and (pairs.distance[soft] > 0.03).any()
     assert ineq.lower[soft] == pytest.approx(expect, abs=1e-9)
 
 

@@ -79,6 +79,7 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
     torque = next((c for c in constraints if isinstance(c, TorqueLimit)), None)
     joint = next((c for c in constraints if isinstance(c, JointLimit)), None)
     barrier = next((c for c in constraints if isinstance(c, ObstacleBarrier)), None)
+    starts = np.cumsum([0] + [c.rows for c in constraints])[:-1].tolist()
     return QPSpec(
         acc_weight=acc.weight, slack_l1=ee.slack_l1, slack_l2=ee.slack_l2,
         posture=None if post is None else (post.q_ref, post.weight, post.kp, post.kd),
@@ -93,6 +94,8 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
         self_barrier=next(((c.k0, c.k1, c.d_safe) for c in constraints if isinstance(c, SelfCollisionBarrier)), None),
         task_weights=ee.weights,
         field=fields[0].field_spec() if fields else None,  # type: ignore[attr-defined]
+        slack_columns=[(r0, c.slack_column(), *c.slack) for c, r0 in zip(constraints, starts, strict=True)
+                       if c.slack is not None and c.rows],
     )
 
 
