@@ -25,7 +25,7 @@ import pinocchio as pin
 from qpctl import Scenario
 from qpctl.errors import ConfigError
 from qpctl.geometry.self_collision import fcl_self_distances, self_collision_pairs
-from qpctl.robot.capsules import fit_robot, robot_file, write_capsules
+from qpctl.robot.capsules import fit_robot, write_capsules
 from qpctl.run import simulate
 from qpctl.scenario import arm_reach
 
@@ -77,8 +77,9 @@ def reach_scene(robot: Any, seed: int = 0) -> dict[str, Any]:
         for _ in range(20000):
             q = rng.uniform(lo + 0.1 * (hi - lo), hi - 0.1 * (hi - lo)) if near is None else \
                 np.clip(near + rng.uniform(-0.8, 0.8, len(near)), lo, hi)
-            if _clear(robot, q, pairs, data):
-                pin.framesForwardKinematics(robot.model, data, q)
+            qc = robot.configuration(q)  # angles (one per degree of freedom) → Pinocchio's configuration
+            if _clear(robot, qc, pairs, data):
+                pin.framesForwardKinematics(robot.model, data, qc)
                 return q, data.oMf[robot.ee_frame_id].translation.copy()
         raise RuntimeError(f"no clear configuration of {robot.name} in 20000 draws")
 
@@ -126,11 +127,7 @@ def run_arm(label: str, rel: str, ee: str, srdf: str, out: Path) -> dict[str, An
     }
     try:
         robot = Scenario.from_dict(raw, overrides=["sim.duration=0.01"]).build_robot()
-    except ConfigError as exc:  # e.g. continuous joints (nq != nv): part B of issue 24
-        model = pin.buildModelFromUrdf(str(robot_file(uri)))
-        if model.nq != model.nv:
-            kinds = sorted({model.joints[j].shortname().removeprefix("JointModel") for j in range(1, model.njoints)})
-            return {**row, "error": f"needs part B: joints {', '.join(kinds)} (nq {model.nq} ≠ nv {model.nv})"}
+    except ConfigError as exc:
         return {**row, "error": str(exc)}
     for seed in range(50):  # the first seeded scene whose obstacles clear the arm at the start
         try:

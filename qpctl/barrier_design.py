@@ -94,7 +94,7 @@ def _configurations(robot: Any, q0: np.ndarray, count: int = N_CONFIGURATIONS, s
     lo = np.where(np.isfinite(robot.q_min), robot.q_min, -np.pi)
     hi = np.where(np.isfinite(robot.q_max), robot.q_max, np.pi)
     rng = np.random.default_rng(seed)
-    return [np.asarray(q0, float)] + [rng.uniform(lo, hi) for _ in range(count - 1)]
+    return [np.asarray(q0, float)] + [robot.random_configuration(rng, lo, hi) for _ in range(count - 1)]
 
 
 def drive_means(robot: Any, q0: np.ndarray, v: float, dt: float, *, share: float = DEFAULT_SHARE

@@ -64,7 +64,7 @@ class Dynamics:
 
     def compute(self, q: np.ndarray, v: np.ndarray, t: float = 0.0) -> TickState:
         """Everything at (q [rad], v [rad/s], t [s]); raises :class:`InvalidStateError` on bad input."""
-        q, v, t = validate_state(q, v, t, self.model.nv)
+        q, v, t = validate_state(q, v, t, self.model.nv, self.model.nq)
         start = time.perf_counter()
         if self.workspace.state(q, v, t) < 0:
             raise InvalidStateError(f"the dynamics overflow at this state: q={q.tolist()}, v={v.tolist()}")

@@ -276,6 +276,7 @@ class Scenario:
                             "camera: give the [camera] a mount, or set perceived = false")
         self._check_reach(robot, self.build_path(robot, q0))
         self._check_start_clear(robot, obstacles, q0)
+        self._check_start_apart(robot, q0)
         sat = faults.torque_saturation
         if sat is not None and np.size(sat) not in (1, robot.nv):
             raise self._err("faults.torque_saturation", f"needs one value or {robot.nv} (one per joint), got "
@@ -386,6 +387,32 @@ class Scenario:
                 if d < 0:
                     raise self._err(f"obstacles[{j}]", f"obstacle {obs.name!r} penetrates link {cap.name!r} by "
                                     f"{-d:.4f} m at the start configuration (robot.q0, t = 0)")
+
+    def _check_start_apart(self, robot: RobotModel, q0: np.ndarray) -> None:
+        """No two of the links the self-collision barrier keeps apart are within ``self_d_safe`` at the
+        start (issue 22, item 5): the barrier's rows would be violated from the first tick, every tick
+        infeasible. The pairs are the QP's (named, or :func:`self_collision_pairs`), the distances
+        python-fcl's."""
+        c = self.data["controller"]
+        if not c["self_collision"] or not robot.capsules:
+            return
+        from qpctl.geometry.self_collision import fcl_self_distances, named_pairs, self_collision_pairs
+
+        try:
+            pairs = (named_pairs(robot, c["self_collision_pairs"]) if c["self_collision_pairs"] is not None
+                     else self_collision_pairs(robot, c["self_d_safe"])).pairs
+        except ConfigError as exc:
+            raise self._err(exc.key or "controller.self_collision_pairs", exc.message) from None
+        if not pairs:
+            return
+        gaps = fcl_self_distances(robot, q0, pairs)
+        k = int(np.argmin(gaps))
+        if gaps[k] < c["self_d_safe"]:
+            a, b = (robot.capsules[i].name for i in pairs[k])
+            how = f"overlap by {-gaps[k]:.4f} m" if gaps[k] < 0 else f"are {gaps[k]:.4f} m apart"
+            raise self._err("robot.q0", f"links {a!r} and {b!r} {how} at the start configuration "
+                            f"{np.round(robot.angles(q0), 4).tolist()}, within controller.self_d_safe = {c['self_d_safe']} m "
+                            "(the self-collision rows would be violated from the first tick)")
 
     @property
     def name(self) -> str:
@@ -523,9 +550,9 @@ class Scenario:
         outside = np.flatnonzero((q < robot.q_min) | (q > robot.q_max))
         if outside.size:
             i = int(outside[0])
-            raise self._err("robot.q0", f"joint {robot.joint_names[i]} = {q[i]} is outside its limits "
+            raise self._err("robot.q0", f"joint {robot.dof_names[i]} = {q[i]} is outside its limits "
                             f"[{robot.q_min[i]}, {robot.q_max[i]}]")
-        return q
+        return robot.configuration(q)  # one angle per continuous joint, x, y, θ per planar one → Pinocchio's q
 
     def build_path(self, robot: RobotModel, q0: np.ndarray) -> WaypointPath:
         p = self.data["path"]

@@ -59,7 +59,7 @@ class TickState:
 
     @property
     def n(self) -> int:
-        return int(self.q.shape[0])
+        return int(self.v.shape[0])  # degrees of freedom (q has nq entries, more with continuous joints)
 
     def jdot(self) -> np.ndarray:
         """J̇ (m, n) of the task point: in the states of :meth:`Dynamics.compute`, and in a controller's
@@ -83,8 +83,11 @@ class TickState:
         return self._barrier_drift
 
 
-def validate_state(q: np.ndarray, v: np.ndarray, t: float, n: int) -> tuple[np.ndarray, np.ndarray, float]:
-    """Check shapes and finiteness of a joint state; :class:`InvalidStateError` otherwise."""
+def validate_state(q: np.ndarray, v: np.ndarray, t: float, n: int,
+                   nq: int | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+    """Check shapes and finiteness of a joint state (q of ``nq`` entries, default n; v of n);
+    :class:`InvalidStateError` otherwise."""
+    nq = n if nq is None else nq
     for name, val in (("q", q), ("v", v), ("t", t)):
         try:
             bad = val is None or isinstance(val, (str, bytes, bool, np.bool_)) or bool(np.iscomplexobj(val))
@@ -99,8 +102,9 @@ def validate_state(q: np.ndarray, v: np.ndarray, t: float, n: int) -> tuple[np.n
         t = float(t)
     except (TypeError, ValueError) as exc:
         raise InvalidStateError(f"q, v must be arrays of numbers and t a number: {exc}") from exc
-    if q.shape != (n,) or v.shape != (n,):
-        raise InvalidStateError(f"q and v must have shape ({n},), got {q.shape} and {v.shape}")
+    if q.shape != (nq,) or v.shape != (n,):
+        shapes = f"({n},)" if nq == n else f"({nq},) and ({n},)"
+        raise InvalidStateError(f"q and v must have shape {shapes}, got {q.shape} and {v.shape}")
     if not (np.isfinite(q).all() and np.isfinite(v).all() and math.isfinite(t)):
         raise InvalidStateError(f"non-finite state: q={q.tolist()}, v={v.tolist()}, t={t}")
     return q, v, t

@@ -5,10 +5,12 @@ views (``computeAllTerms`` refreshes them in place), allocates every array the k
 :mod:`qpctl.kernels.tick` write (rigid-body terms, link–obstacle pairs at their full capacity,
 law terms, the QP in DAQP's layout, the output record), and runs a tick as a handful of calls:
 
-    computeAllTerms → kernels.state → [python-fcl for boxes and cylinders] → law kernel → [solve]
+    computeAllTerms → kernels.state → [python-fcl for other shapes] → law kernel → [solve]
 
-Obstacles without a closed form (boxes, cylinders) are the only per-pair Python work: python-fcl's
-queries and the look-ahead difference of their barrier drift. Everything the kernels compute has a
+Spheres, capsules, boxes and cylinders are in closed form in the kernels. Obstacles of any other
+shape (a mesh, a shape a user registers) are the only per-pair Python work: python-fcl's queries and
+the look-ahead difference of their barrier drift (and of capsule pairs whose axes meet or run
+parallel). Everything the kernels compute has a
 reference implementation elsewhere in the package (:class:`qpctl.dynamics.Dynamics`'s Pinocchio and
 python-fcl path, :mod:`qpctl.law`, :class:`qpctl.formulation.Formulation`) that the tests compare.
 """
@@ -27,6 +29,7 @@ import pinocchio as pin
 
 from qpctl.errors import ConfigError
 from qpctl.geometry.distance import DistanceEngine, PairSet
+from qpctl.geometry.frames import rotation_z_to
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels import codes
 from qpctl.kernels import tick as K
@@ -71,6 +74,39 @@ def bind_pinocchio(model: pin.Model, data: pin.Data) -> dict[str, np.ndarray]:
         if views[name].flags["OWNDATA"] or not views[name].flags["C_CONTIGUOUS"]:
             raise RuntimeError(f"pin.Data's {name} is not a contiguous view in this Pinocchio build")
     return views
+
+
+#: The obstacle shapes the kernels compute in closed form; every other shape is python-fcl's (KIND_FCL).
+KINDS = {"sphere": codes.KIND_SPHERE, "capsule": codes.KIND_CAPSULE, "box": codes.KIND_BOX,
+         "cylinder": codes.KIND_CYLINDER}
+
+
+def _half_extents(obstacle: Obstacle) -> tuple[float, float, float]:
+    """A box's half extents, a cylinder's (radius, radius, half length) [m]; zeros for other shapes."""
+    if obstacle.shape == "box" and obstacle.size is not None:
+        hx, hy, hz = (0.5 * float(s) for s in obstacle.size)
+        return hx, hy, hz
+    if obstacle.shape == "cylinder":
+        return obstacle.radius, obstacle.radius, 0.5 * obstacle.length
+    return 0.0, 0.0, 0.0
+
+
+def _bounding_capsule(obstacle: Obstacle, rot: np.ndarray, half: np.ndarray) -> tuple[np.ndarray, float]:
+    """(axis vector s [m], radius [m]) of the capsule the kernels compute for this obstacle: a
+    capsule's own; a sphere's (s = 0); for a box or cylinder the capsule that contains it (about its
+    longest axis, the cross radius), whose distance bounds the exact one from below (the pair loop's
+    cheap test before :mod:`qpctl.kernels.solids`); zero for python-fcl's shapes."""
+    if obstacle.shape == "capsule":
+        return obstacle.length * obstacle.axis / np.linalg.norm(obstacle.axis), obstacle.radius
+    if obstacle.shape == "sphere":
+        return np.zeros(3), obstacle.radius
+    if obstacle.shape == "cylinder":
+        return 2.0 * half[2] * rot[:, 2], float(half[0])
+    if obstacle.shape == "box":
+        k = int(np.argmax(half))
+        others = [half[c] for c in range(3) if c != k]
+        return 2.0 * half[k] * rot[:, k], float(np.hypot(*others))
+    return np.zeros(3), 0.0
 
 
 def _supports(model: pin.Model, joint: int) -> np.ndarray:
@@ -206,6 +242,11 @@ class Workspace:
         self.spec = spec
         n, m, L, O = model.nv, robot.m, len(robot.capsules), len(self.obstacles)
         self.n, self.m = n, m
+        # a configuration of nq ≠ nv entries (continuous, planar joints): the kernels read one coordinate
+        # per degree of freedom (joint_view), the posture's error comes from pin.difference
+        self.nq, self.lie = model.nq, robot.lie
+        self.q_config, self.q_angles = np.zeros(model.nq), np.zeros(n)
+        self.posture_config: np.ndarray | None = None
         f = self.__dict__
         f.update(bind_pinocchio(model, self.data))
         # robot
@@ -240,12 +281,13 @@ class Workspace:
         self.sc_hdot, self.sc_drift = np.zeros(P), np.zeros(P)
         m_p = robot.m_position
         # scene
-        kinds = {"sphere": codes.KIND_SPHERE, "capsule": codes.KIND_CAPSULE}
-        self.ob_kind = np.array([kinds.get(o.shape, codes.KIND_FCL) for o in self.obstacles], dtype=np.int64)
-        self.ob_radius = np.array([o.radius for o in self.obstacles], float)
+        self.ob_kind = np.array([KINDS.get(o.shape, codes.KIND_FCL) for o in self.obstacles], dtype=np.int64)
         self.ob_bound = np.array([o.bounding_radius() for o in self.obstacles], float)
-        self.ob_axis = np.array([o.length * o.axis / np.linalg.norm(o.axis) if o.shape == "capsule" else np.zeros(3)
-                                 for o in self.obstacles], float).reshape(O, 3)
+        self.ob_rot = np.array([rotation_z_to(o.axis) for o in self.obstacles], float).reshape(O, 3, 3)
+        self.ob_half = np.array([_half_extents(o) for o in self.obstacles], float).reshape(O, 3)
+        capsules = [_bounding_capsule(o, R, h) for o, R, h in zip(self.obstacles, self.ob_rot, self.ob_half)]
+        self.ob_axis = np.array([c[0] for c in capsules], float).reshape(O, 3)
+        self.ob_radius = np.array([c[1] for c in capsules], float)
         self.ob_pos0 = np.array([o.position for o in self.obstacles], float).reshape(O, 3)
         self.ob_vel0 = np.array([o.velocity for o in self.obstacles], float).reshape(O, 3)
         self.ob_amp = np.array([o.amplitude for o in self.obstacles], float).reshape(O, 3)
@@ -385,6 +427,8 @@ class Workspace:
         if spec.posture is not None:
             q_ref, w, kp, kd = spec.posture
             self.q_ref = np.asarray(q_ref, float).copy()
+            if self.lie:  # q_ref is a configuration; the kernel's (nv) is written each tick by joint_view
+                self.posture_config, self.q_ref = self.q_ref, np.zeros(self.n)
             ip[codes.IP_POSTURE] = 1
             fp[codes.FP_WPOST], fp[codes.FP_PKP], fp[codes.FP_PKD] = w, kp, kd
         if spec.damping is not None:
@@ -458,6 +502,18 @@ class Workspace:
         self.grid_items = np.array([j for c in cells for j in c], dtype=np.int64)
 
     # -- the tick -------------------------------------------------------------------------------
+    def joint_view(self, q: np.ndarray) -> np.ndarray:
+        """What the kernels take as q: ``q`` itself where nq == nv; else its angles (one per degree
+        of freedom, :meth:`RobotModel.angles`), with the posture target written so that the kernel's
+        q_ref − q is pin.difference(q, q_ref). Computed once per tick, before the state kernel."""
+        if not self.lie:
+            return q
+        self.q_config[:] = q
+        qa = self.robot.angles(q, out=self.q_angles)
+        if self.posture_config is not None:
+            self.q_ref[:] = qa + pin.difference(self.model, q, self.posture_config)
+        return qa
+
     def state(self, q: np.ndarray, v: np.ndarray, t: float) -> int:
         """computeAllTerms and the state kernel (and python-fcl's pairs, if any); −1 if the dynamics
         overflow at this state (or q, v are not finite), else 0. Records Pinocchio's and the kernel's wall
@@ -465,7 +521,7 @@ class Workspace:
         start = time.perf_counter()
         pin.computeAllTerms(self.model, self.data, q, v)
         mid = time.perf_counter()
-        status = K.state(self.work, q, v, t)
+        status = K.state(self.work, self.joint_view(q), v, t)
         if status != 0:
             if status < 0:
                 return -1
@@ -518,7 +574,7 @@ class Workspace:
         k = int(self.cnt[codes.CNT_PAIRS])
         idx = np.flatnonzero(self.pr_bok[:k] == 0)
         delta = self.drift_step
-        pin.forwardKinematics(self.model, data, q + delta * v, v)
+        pin.forwardKinematics(self.model, data, self.robot.integrate(q, delta * v), v)
         seg = np.empty_like(self.segments)
         for i, jid in enumerate(self.cap_joint.tolist()):
             seg[i, 0] = data.oMi[jid].act(self.cap_local[i, 0])
@@ -542,7 +598,8 @@ class Workspace:
                         self.pr_pl[:k].copy(), self.pr_po[:k].copy(), self.ob_v[self.pr_obs[:k]],
                         self.ob_a[self.pr_obs[:k]])
         bdrift = self.pr_bdrift[:k].copy() if self.ipar[codes.IP_BDRIFT] else None
-        return TickState(float(self.fpar[codes.FP_T]), self.q.copy(), self.v.copy(), self.M.copy(), self.N.copy(),
+        q = self.q_config if self.lie else self.q  # the configuration (the kernels hold its angles)
+        return TickState(float(self.fpar[codes.FP_T]), q.copy(), self.v.copy(), self.M.copy(), self.N.copy(),
                          self.x.copy(), self.xdot.copy(), self.J.copy(), self.drift.copy(), self.link_jac.copy(),
                          self.segments.copy(), pairs, self.pr_jac[:k].copy(), self.pr_drift[:k].copy(),
                          float(self.fpar[codes.FP_CLEARANCE]), _barrier_drift=bdrift,
@@ -570,7 +627,7 @@ class WorldClearance:
     def __init__(self, robot: RobotModel, obstacles: Sequence[Obstacle],
                  self_pairs: Sequence[tuple[int, int]] = ()) -> None:
         self.ws = Workspace(robot, obstacles, None, None, math.inf, self_pairs=self_pairs)
-        others = [o for o in obstacles if o.shape not in ("sphere", "capsule")]
+        others = [o for o in obstacles if o.shape not in KINDS]
         self._fcl = DistanceEngine(self.ws.cap_radius, others, broadphase=False) if others else None
         self.any = bool(obstacles)
         self.self_clearance = math.inf  # [m] between the self pairs' capsules, at the last call

@@ -84,6 +84,31 @@ def test_drive_means_against_a_linear_program_and_finite_differences():
     assert any(np.allclose(m, want, rtol=1e-5) for m in means), want
 
 
+@pytest.mark.parametrize("name", ["panda_canopy", "paper"])
+def test_design_for_is_the_slowest_omega_and_the_largest_influence(name):
+    """Issue 22's guard: design_for's ω and influence distance against an enumeration written here over
+    every point–direction of drive_means (itself held against a linear program above): ω the least of
+    min(e·a/v, √(j/v)), d_i the largest of d_safe + 2v/ω + v·a/j + v·dt at that ω; and the scenario's
+    controller gets that d_i. Taking the least influence (0.434 → 0.040 m on panda_canopy) fails here."""
+    raw = Scenario.load(name).data
+    overrides = {"barrier_design": "drives"}
+    robot_raw = raw["robot"] if name != "paper" else {**raw["robot"], "tau_max": 1500.0, "tau_rate_max": 3000.0}
+    sc = Scenario.from_dict({**raw, "robot": robot_raw, "controller": {**raw["controller"], **overrides}}, source="t")
+    robot = sc.build_robot()
+    dt, d_safe, v = raw["sim"]["dt"], raw["controller"]["d_safe"], d_speed(sc, robot)
+    means = [(vv, a, j) for vv, a, j in drive_means(robot, sc.q0(robot), v, dt) if vv > 0]
+    assert len(means) > 100
+    omegas = [min(math.e * a / vv, math.sqrt(j / vv)) for vv, a, j in means]
+    w = min(omegas)
+    lead = [vv * a / j if math.isfinite(a) and math.isfinite(j) else 0.0 for vv, a, j in means]
+    d_each = [d_safe + 2 * vv / w + ld + vv * dt for (vv, _, _), ld in zip(means, lead, strict=True)]
+    d = design_for(robot, sc.q0(robot), v, d_safe, dt)
+    assert d.omega == pytest.approx(w, rel=1e-12)
+    assert d.d_influence == pytest.approx(max(d_each), rel=1e-12)
+    assert max(d_each) - min(d_each) > 0.05  # [m]: the choice matters on this robot
+    assert sc.build_controller("qp").gains.d_influence == pytest.approx(max(d_each), rel=1e-3)
+
+
 def _soak_scene(name: str) -> dict:
     rng = np.random.default_rng(soak.SEED)
     for k in range(1, 200):

@@ -45,6 +45,7 @@ import fcl
 import numpy as np
 import pinocchio as pin
 import pytest
+from solid_reference import minimised_distance
 
 from baselines import HsuController, PaperController
 from qpctl import LawGains, Obstacle, Scenario, WaypointPath, panda, planar_arm
@@ -698,7 +699,8 @@ def reference_pairs(robot: RobotModel, segments: np.ndarray, obstacles: Sequence
                     ) -> dict[tuple[int, int], tuple[float, float, np.ndarray, np.ndarray]]:
     """Every (link, obstacle) pair by enumeration: {(i, j): (d, tolerance, p_link, p_obs)} — python-fcl's
     distance and nearest points; for sphere and capsule obstacles the distance is the brute-force
-    axes' distance less both radii (python-fcl's signed query is only EPA-accurate when penetrating)."""
+    axes' distance less both radii (python-fcl's signed query is only EPA-accurate when penetrating),
+    for boxes and cylinders apart the minimised point–solid distance along the axis (solid_reference)."""
     out = {}
     links = [fcl_segment(s[0], s[1], c.radius) for s, c in zip(segments, robot.capsules)]
     exact_pairs, axes = [], []
@@ -707,6 +709,15 @@ def reference_pairs(robot: RobotModel, segments: np.ndarray, obstacles: Sequence
         for i, link in enumerate(links):
             d, p1, p2 = fcl_distance(link, obj)
             out[i, j] = (d, GJK_TOL.get(o.shape, 0.0) if d > 0 else EPA_TOL, p1, p2)
+            if o.shape in ("box", "cylinder") and d > 0:
+                # python-fcl's GJK stops above the true distance, by up to ~1e-3 m within 0.3 m
+                # (test_solids) and more farther away; the minimisation along the axis is exact
+                R = np.eye(3) if o.shape == "box" else frame_z_to(o.axis)  # as fcl_obstacle places them
+                half = 0.5 * np.asarray(o.size) if o.shape == "box" else np.array([o.radius, o.radius, 0.5 * o.length])
+                exact = minimised_distance(o.shape, segments[i, 0], segments[i, 1], robot.capsules[i].radius,
+                                           obstacle_centre(o, t), R, half)
+                assert -1e-9 <= d - exact <= 1e-3 + 5e-3 * d  # the two references agree
+                out[i, j] = (exact, 1e-9, p1, p2)
             if o.shape in ("sphere", "capsule"):
                 exact_pairs.append((i, j))
                 axes.append((segments[i, 0], segments[i, 1], *obstacle_axis(o, t)))
@@ -1067,6 +1078,40 @@ def test_qp_assembly_equals_formulation(key):
             assert_entrywise(got[f], getattr(want, f), 1e-9, f"{key}: {f} at q={q.tolist()}, v={v.tolist()}, t={t}")
         active += int(np.isfinite(want.l[barrier_rows]).any())
     assert active >= 4, active
+
+
+@pytest.mark.parametrize("key", ["panda_canopy", "paper-posture-limits"])
+def test_compiled_joint_bounds_outside_the_limits(key):
+    """States outside the joint limits (issue 22's guard: no state of the test above lies there):
+    positions up to 1.5 rad beyond either limit, speeds up to 3 × v_max. The compiled bounds on q̈ (the
+    problem's lb, ub after ctrl.step) equal JointLimit.compute to 1e-12, lie within ±q̈_max with
+    lb ≤ ub; and (independently of both) a joint far below q_min at rest, where the position barrier
+    asks k₀·1.5 rad ≫ q̈_max, gets lb = ub = +q̈_max (above q_max: −q̈_max)."""
+    rng = np.random.default_rng(SEED + 63)
+    ctrl = qp_controller(key)
+    robot, n = ctrl.robot, ctrl.robot.nv
+    limit = next(c for c in ctrl.constraints if c.name == "joint_limits")
+    qdd = np.broadcast_to(np.inf if robot.qdd_max is None else robot.qdd_max, (n,))
+    lo = np.where(np.isfinite(robot.q_min), robot.q_min, -np.pi)
+    hi = np.where(np.isfinite(robot.q_max), robot.q_max, np.pi)
+    vmax = np.where(np.isfinite(robot.v_max), robot.v_max, 2.0)
+    for k in range(12):
+        q, v = rng.uniform(lo, hi), rng.uniform(-3, 3, n) * vmax
+        out = rng.random(n) < 0.5
+        side = rng.random(n) < 0.5
+        q = np.where(out & side, lo - rng.uniform(0.1, 1.5, n), np.where(out, hi + rng.uniform(0.1, 1.5, n), q))
+        if k < 2:  # every joint 1.5 rad beyond one limit, at rest
+            q, v = (lo - 1.5 if k == 0 else hi + 1.5), np.zeros(n)
+        ctrl.step(q, v, 0.1)
+        lb, ub = np.array(ctrl.last_problem.lb[:n]), np.array(ctrl.last_problem.ub[:n])
+        want = limit.compute(ctrl.dynamics.compute(q, v, 0.1), None)  # type: ignore[arg-type]
+        where = f"{key} at q={q.tolist()}, v={v.tolist()}"
+        assert_close(lb, want.lower, 1e-12, f"lb, {where}")
+        assert_close(ub, want.upper, 1e-12, f"ub, {where}")
+        assert np.all(lb <= ub) and np.all(lb >= -qdd) and np.all(ub <= qdd), where
+        if k < 2 and np.isfinite(robot.q_min).all() and np.isfinite(qdd).all():
+            edge = qdd if k == 0 else -qdd
+            assert np.array_equal(lb, edge) and np.array_equal(ub, edge), where
 
 
 def test_qp_rigid_and_exact_barrier_drift_differ():

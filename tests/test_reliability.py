@@ -89,6 +89,8 @@ BAD_SCENARIOS = {
     "obstacle penetrates a link": ({"obstacles[0].position": [-1.0, -0.5], "obstacles[0].radius": 0.1},
                                    "obstacles[0]", "penetrates"),
     "q0 not finite": ({"robot.q0": [nan, 0.0, 0.0]}, "robot.q0", "finite"),
+    # the arm folded back on itself: link 3 lies across link 1 (issue 22, item 5)
+    "links overlap at the start": ({"robot.q0": [0.71, 2.74, 3.13]}, "robot.q0", "self_d_safe"),
     "zero link radius": ({"robot.radius": 0.0}, "robot.radius", "positive"),
     "negative link radius": ({"robot.radius": -0.05}, "robot.radius", "positive"),
     "zero obstacle radius": ({"obstacles[0].radius": 0.0}, "obstacles[0].radius", "positive"),
@@ -124,6 +126,48 @@ def test_bad_scenario_is_a_named_error_naming_the_key(case):
     assert exc.value.key == key, str(exc.value)
     assert "bad.toml" in str(exc.value) and word in str(exc.value)
     assert "\n" not in str(exc.value)
+
+
+def _planar_links(q: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The planar arm's unit links as (start, end) in its plane, by hand (angles summed along the chain)."""
+    ends, angle, p = [], 0.0, np.zeros(2)
+    for qi in q:
+        angle += qi
+        nxt = p + np.array([np.cos(angle), np.sin(angle)])
+        ends.append((p, nxt))
+        p = nxt
+    return ends
+
+
+def _sampled_distance(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]) -> float:
+    s = np.linspace(0.0, 1.0, 2001)[:, None]
+    pa, pb = a[0] + s * (a[1] - a[0]), b[0] + s * (b[1] - b[0])
+    return float(np.min(np.linalg.norm(pa[:, None] - pb[None], axis=2)))
+
+
+@pytest.mark.parametrize("self_d_safe", [0.02, 0.1])
+def test_start_with_links_within_self_d_safe_is_refused(self_d_safe):
+    """Issue 22, item 5: along a fold of joint 3 (link 3 swung towards link 1), the starts whose link 1 –
+    link 3 gap (axis distance by a sampled search, less both radii, computed here by hand) is below
+    self_d_safe are refused naming robot.q0; those 5 mm beyond it load; without the self-collision
+    barrier every one loads."""
+    r = BASE["robot"]["radius"]
+    refused = accepted = 0
+    for q3 in np.linspace(0.8, 2.0, 40):
+        q0 = np.array([0.71, 2.74, q3])
+        links = _planar_links(q0)
+        gap = _sampled_distance(links[0], links[2]) - 2 * r
+        raw = edited(**{"robot.q0": q0.tolist(), "controller.self_d_safe": self_d_safe})
+        if gap < self_d_safe - 1e-4:
+            with pytest.raises(ConfigError) as exc:
+                Scenario.from_dict(raw, source="folded.toml")
+            assert exc.value.key == "robot.q0" and "link1" in str(exc.value) and "link3" in str(exc.value)
+            refused += 1
+            Scenario.from_dict(edited(**{"robot.q0": q0.tolist(), "controller.self_collision": False}), source="t")
+        elif gap > self_d_safe + 5e-3:
+            Scenario.from_dict(raw, source="folded.toml")
+            accepted += 1
+    assert refused >= 3 and accepted >= 3, (refused, accepted)
 
 
 def _leaves(node: object, prefix: str = "") -> dict[str, object]:

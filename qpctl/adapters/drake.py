@@ -487,6 +487,9 @@ class QpctlController(LeafSystem):
     def _torque(self, context: Context) -> np.ndarray:
         x = self._state.Eval(context)
         q, v = x[self.joints.q_local], x[self.joints.nq + self.joints.v_local]
+        robot = self.controller.robot
+        if robot.lie:  # Drake's revolute angles → Pinocchio's configuration (continuous joints)
+            q = robot.configuration(q)
         t = float(context.get_time())
         out = self.controller.step(q, v, t)
         if not np.all(np.isfinite(out.tau)):
@@ -546,6 +549,7 @@ class DrakeSimulator(SimulatorBase):
                  model: str | Path | None = None, joint_names: Sequence[str] | None = None,
                  integrator: str = "euler", discrete: bool = False, measure_clearance: bool = True) -> None:
         super().__init__(controller, dt=dt, duration=duration, progress=progress)
+        self.robot.check_scalar_joints("Drake")
         if integrator != "euler":
             self.notes.append(f"Drake steps with semi-explicit Euler (sim.integrator = {integrator!r} is the "
                               "built-in simulator's; Drake has no classical RK4)")
@@ -598,7 +602,7 @@ class DrakeSimulator(SimulatorBase):
         (``CalcBiasTerm`` less ``CalcGravityGeneralizedForces``), in the controller's joint order."""
         plant, ctx, j = self.plant, self._measure_plant, self.joints
         qs, vs = np.zeros(plant.num_positions()), np.zeros(plant.num_velocities())
-        qs[j.q], vs[j.v] = q, v
+        qs[j.q], vs[j.v] = self.robot.angles(q), v
         plant.SetPositions(ctx, qs)
         plant.SetVelocities(ctx, vs)
         M = plant.CalcMassMatrix(ctx)
@@ -619,7 +623,7 @@ class DrakeSimulator(SimulatorBase):
         if not self.obstacle_geometry.ids:
             return math.inf
         qs = np.zeros(self.plant.num_positions())
-        qs[self.joints.q] = q
+        qs[self.joints.q] = self.robot.angles(q)
         self.plant.SetPositions(self._measure_plant, qs)
         self._measure.SetTime(float(t))
         query = self.scene_graph.get_query_output_port().Eval(self.scene_graph.GetMyContextFromRoot(self._measure))
@@ -631,11 +635,11 @@ class DrakeSimulator(SimulatorBase):
     def reset(self, q0: np.ndarray, v0: np.ndarray | None = None) -> None:
         """Put the plant at (q0 [rad], v0 [rad/s], default rest) at t = 0, zero actuation, and initialise."""
         q0 = np.asarray(q0, float)
-        if q0.shape != (self.robot.nv,):
-            raise ConfigError(f"q0 needs {self.robot.nv} joint values, got {q0.size}", key="robot.q0")
+        if q0.shape != (self.robot.nq,):
+            raise ConfigError(f"q0 needs {self.robot.nq} joint values, got {q0.size}", key="robot.q0")
         v0 = np.zeros(self.robot.nv) if v0 is None else np.asarray(v0, float)
         qs, vs = np.zeros(self.plant.num_positions()), np.zeros(self.plant.num_velocities())
-        qs[self.joints.q], vs[self.joints.v] = q0, v0
+        qs[self.joints.q], vs[self.joints.v] = self.robot.angles(q0), v0
         self._context.SetTime(0.0)
         self.plant.SetPositions(self._plant_context, qs)
         self.plant.SetVelocities(self._plant_context, vs)
@@ -649,7 +653,8 @@ class DrakeSimulator(SimulatorBase):
         x = self.plant.GetPositionsAndVelocities(self._plant_context)
         if not np.isfinite(x).all():
             raise SimulationError("Drake state diverged (non-finite joint state)")
-        return x[self.joints.q], x[self._v_in_x]
+        q = x[self.joints.q]
+        return (self.robot.configuration(q) if self.robot.lie else q), x[self._v_in_x]
 
     def apply(self, tau: np.ndarray) -> None:
         tau = np.asarray(tau, float)

@@ -57,11 +57,11 @@ class DynamicsCheck:
 
 
 def random_states(robot: RobotModel, count: int = 5, seed: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Seeded (q [rad], v [rad/s]) within the joint limits (±π where unlimited), |v| ≤ 1 rad/s."""
+    """Seeded (q (a configuration), v [rad/s]) within the joint limits (±π where unlimited), |v| ≤ 1 rad/s."""
     rng = np.random.default_rng(seed)
     lo = np.where(np.isfinite(robot.q_min), robot.q_min, -np.pi)
     hi = np.where(np.isfinite(robot.q_max), robot.q_max, np.pi)
-    return [(rng.uniform(lo, hi), rng.uniform(-1.0, 1.0, robot.nv)) for _ in range(count)]
+    return [(robot.random_configuration(rng, lo, hi), rng.uniform(-1.0, 1.0, robot.nv)) for _ in range(count)]
 
 
 def check_dynamics(robot: RobotModel, terms: Terms, count: int = 5, seed: int = 0) -> DynamicsCheck:

@@ -93,12 +93,14 @@ def _joint_type_axis(joint: Any) -> tuple[str, np.ndarray]:
         return "hinge", np.array(_REVOLUTE[kind])
     if kind in _PRISMATIC:
         return "slide", np.array(_PRISMATIC[kind])
-    if kind == "JointModelRevoluteUnaligned":
+    if kind.startswith("JointModelRUB") and kind[-1] in _AXES:  # continuous: an unlimited hinge
+        return "hinge", np.array(_AXES[kind[-1]])
+    if kind in ("JointModelRevoluteUnaligned", "JointModelRevoluteUnboundedUnaligned"):
         return "hinge", np.asarray(joint.extract().axis, float)
     if kind == "JointModelPrismaticUnaligned":
         return "slide", np.asarray(joint.extract().axis, float)
-    raise ConfigError(f"joint type {kind} has no MuJoCo counterpart here (revolute and prismatic only)",
-                      key="robot")
+    raise ConfigError(f"joint type {kind} has no MuJoCo counterpart here (revolute, continuous and prismatic "
+                      "only; write a planar base as two slides and a hinge)", key="robot")
 
 
 def _body_name(model: pin.Model, joint_id: int) -> str:
@@ -245,11 +247,20 @@ class MujocoJoints:
         self.names = tuple(str(n) for n in joint_names)
         self.qpos_adr = np.asarray(mj_model.jnt_qposadr[ids], int)
         self.dof_adr = np.asarray(mj_model.jnt_dofadr[ids], int)
+        # the controller's robot where its configuration is not its hinges' angles (continuous joints:
+        # Pinocchio's cos θ, sin θ); read and write_state convert (set by for_robot)
+        self.robot: RobotModel | None = None
 
     @classmethod
     def for_robot(cls, mj_model: mujoco.MjModel, robot: RobotModel, *,
                   allow_extra: bool = False) -> MujocoJoints:
-        return cls(mj_model, robot.joint_names, allow_extra=allow_extra)
+        return cls(mj_model, robot.joint_names, allow_extra=allow_extra).on(robot)
+
+    def on(self, robot: RobotModel) -> MujocoJoints:
+        """These joints with ``robot``'s configurations (converted to and from the hinges' angles
+        where nq ≠ nv); itself."""
+        self.robot = robot if robot.lie else None
+        return self
 
     @classmethod
     def by_order(cls, mj_model: mujoco.MjModel, n: int) -> MujocoJoints:
@@ -263,11 +274,12 @@ class MujocoJoints:
         return cls(mj_model, names)
 
     def read(self, data: mujoco.MjData) -> tuple[np.ndarray, np.ndarray]:
-        """(q [rad], v [rad/s]) in the model's joint order."""
-        return data.qpos[self.qpos_adr].copy(), data.qvel[self.dof_adr].copy()
+        """(q (the robot's configuration), v [rad/s]) in the model's joint order."""
+        q = data.qpos[self.qpos_adr].copy()
+        return (q if self.robot is None else self.robot.configuration(q)), data.qvel[self.dof_adr].copy()
 
     def write_state(self, data: mujoco.MjData, q: np.ndarray, v: np.ndarray) -> None:
-        data.qpos[self.qpos_adr] = q
+        data.qpos[self.qpos_adr] = q if self.robot is None else self.robot.angles(q)
         data.qvel[self.dof_adr] = v
 
     def apply(self, data: mujoco.MjData, tau: np.ndarray) -> None:
@@ -477,6 +489,7 @@ class MujocoSimulator(SimulatorBase):
                  allow_extra_joints: bool = False, obstacles: Sequence[Obstacle] | None = None,
                  scenery: Sequence[Obstacle] = ()) -> None:
         super().__init__(controller, dt=dt, duration=duration, progress=progress, obstacles=obstacles)
+        self.robot.check_scalar_joints("MuJoCo")
         if integrator not in INTEGRATORS:
             raise ConfigError(f"unknown MuJoCo integrator {integrator!r}; one of {', '.join(INTEGRATORS)}",
                               key="sim.integrator")
@@ -502,8 +515,8 @@ class MujocoSimulator(SimulatorBase):
         self.geom_prefix = prefix  # of the obstacles' geom and body names (a user's model: "qpctl_")
         model = mj
         self.data = mujoco.MjData(model)
-        self.joints = self._match_joints(model, joint_names, allow_extra_joints) if own else \
-            MujocoJoints.for_robot(model, self.robot)
+        self.joints = (self._match_joints(model, joint_names, allow_extra_joints) if own else
+                       MujocoJoints.for_robot(model, self.robot)).on(self.robot)
         self.actuation = MujocoActuation(model, self.joints)
         self.notes.extend(self.actuation.notes)
         self.dynamics: DynamicsCheck | None = None
@@ -591,8 +604,8 @@ class MujocoSimulator(SimulatorBase):
         """Put MuJoCo at (q0, v0) at t = 0, zero applied force, and run ``mj_forward``."""
         mujoco.mj_resetData(self.model, self.data)
         q0 = np.asarray(q0, float)
-        if q0.shape != (self.robot.nv,):
-            raise ConfigError(f"q0 needs {self.robot.nv} joint values, got {q0.size}", key="robot.q0")
+        if q0.shape != (self.robot.nq,):
+            raise ConfigError(f"q0 needs {self.robot.nq} joint values, got {q0.size}", key="robot.q0")
         v0 = np.zeros(self.robot.nv) if v0 is None else np.asarray(v0, float)
         self.joints.write_state(self.data, q0, v0)
         self._move_obstacles(0.0)

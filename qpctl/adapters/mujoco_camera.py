@@ -88,7 +88,7 @@ class MujocoCaster:
 
     def cast(self, camera: DepthCamera, pose: np.ndarray, q: np.ndarray, t: float) -> Hits:
         model, data = self.model, self.data
-        self.joints.write_state(data, q, np.zeros(len(q)))
+        self.joints.write_state(data, q, np.zeros(len(self.joints.dof_adr)))
         for mocap_id, obs in self.mocap:
             data.mocap_pos[mocap_id] = obs.position_at(t)
         mujoco.mj_kinematics(model, data)

@@ -103,6 +103,7 @@ class PybulletSimulator(SimulatorBase):
                  joint_limits: bool = False, integrator: str = "euler") -> None:
         super().__init__(controller, dt=dt, duration=duration, progress=progress)
         robot = self.robot
+        robot.check_scalar_joints("PyBullet")
         if integrator != "euler":
             self.notes.append(f"PyBullet integrates with semi-implicit Euler (sim.integrator = {integrator!r} "
                               "is the built-in simulator's)")
@@ -168,7 +169,7 @@ class PybulletSimulator(SimulatorBase):
         """PyBullet's M(q) [kg·m²] and bias forces [N·m] in the controller's joint order."""
         c, n = self.client, self._n_dof
         qs, vs = np.zeros(n), np.zeros(n)
-        qs[self._dof_order], vs[self._dof_order] = q, v
+        qs[self._dof_order], vs[self._dof_order] = self.robot.angles(q), v
         M = np.asarray(pybullet.calculateMassMatrix(self.body, qs.tolist(), physicsClientId=c))
         b = np.asarray(pybullet.calculateInverseDynamics(self.body, qs.tolist(), vs.tolist(), [0.0] * n,
                                                          physicsClientId=c))
@@ -222,7 +223,7 @@ class PybulletSimulator(SimulatorBase):
 
     def reset(self, q0: np.ndarray, v0: np.ndarray | None = None) -> None:
         v0 = np.zeros(self.robot.nv) if v0 is None else np.asarray(v0, float)
-        for j, qj, vj in zip(self.joint_ids, np.asarray(q0, float), v0):
+        for j, qj, vj in zip(self.joint_ids, self.robot.angles(np.asarray(q0, float)), v0):  # continuous: angles
             pybullet.resetJointState(self.body, j, float(qj), float(vj), physicsClientId=self.client)
         self._move_obstacles(0.0)
 
@@ -231,7 +232,7 @@ class PybulletSimulator(SimulatorBase):
         q, v = np.array([s[0] for s in states]), np.array([s[1] for s in states])
         if not (np.all(np.isfinite(q)) and np.all(np.isfinite(v))):
             raise SimulationError("PyBullet state diverged (non-finite joint state)")
-        return q, v
+        return (self.robot.configuration(q) if self.robot.lie else q), v
 
     def apply(self, tau: np.ndarray) -> None:
         pybullet.setJointMotorControlArray(self.body, self.joint_ids, pybullet.TORQUE_CONTROL,

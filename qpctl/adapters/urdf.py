@@ -34,15 +34,16 @@ def _fmt(values: Sequence[float] | np.ndarray) -> str:
 def _joint_type_axis(joint: Any) -> tuple[str, np.ndarray]:
     kind = joint.shortname()
     for k, axis in _AXES.items():
-        if kind == f"JointModelR{k}":
+        if kind in (f"JointModelR{k}", f"JointModelRUB{k}"):  # revolute, continuous
             return "continuous", np.array(axis)
         if kind == f"JointModelP{k}":
             return "prismatic", np.array(axis)
-    if kind == "JointModelRevoluteUnaligned":
+    if kind in ("JointModelRevoluteUnaligned", "JointModelRevoluteUnboundedUnaligned"):
         return "continuous", np.asarray(joint.extract().axis, float)
     if kind == "JointModelPrismaticUnaligned":
         return "prismatic", np.asarray(joint.extract().axis, float)
-    raise ConfigError(f"joint type {kind} has no URDF counterpart here (revolute and prismatic only)", key="robot")
+    raise ConfigError(f"joint type {kind} has no URDF counterpart here (revolute, continuous and prismatic only)",
+                      key="robot")
 
 
 def robot_urdf(robot: RobotModel) -> str:

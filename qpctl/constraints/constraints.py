@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import contextlib
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -131,8 +131,12 @@ class JointLimit(Constraint):
     kind = JOINT_LIMITS
 
     def __init__(self, q_min: np.ndarray, q_max: np.ndarray, v_max: np.ndarray, *, k0: float = 100.0,
-                 k1: float = 20.0, kv: float = 50.0, qdd_max: np.ndarray | float | None = None) -> None:
+                 k1: float = 20.0, kv: float = 50.0, qdd_max: np.ndarray | float | None = None,
+                 angles: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
         self.q_min, self.q_max, self.v_max = (np.asarray(a, float) for a in (q_min, q_max, v_max))
+        # a configuration (nq) → one coordinate per degree of freedom (RobotModel.angles), where they
+        # differ; the limits are on those coordinates (±inf on continuous and planar joints)
+        self.angles = angles
         self.qdd_max = np.broadcast_to(np.asarray(np.inf if qdd_max is None else qdd_max, float),
                                        self.q_min.shape).copy()
         if np.any(np.isnan(self.qdd_max)) or np.any(self.qdd_max <= 0):
@@ -145,7 +149,7 @@ class JointLimit(Constraint):
         self._finite = bool(np.isfinite(np.concatenate([self.q_min, self.q_max, self.v_max])).all())
 
     def compute(self, state: TickState, terms: LawTerms) -> Bounds:
-        q, v = state.q, state.v
+        q, v = (state.q if self.angles is None else self.angles(state.q)), state.v
         with contextlib.nullcontext() if self._finite else np.errstate(invalid="ignore"):
             lo = np.maximum(-self.k1 * v - self.k0 * (q - self.q_min), -self.kv * (self.v_max + v))
             hi = np.minimum(-self.k1 * v + self.k0 * (self.q_max - q), self.kv * (self.v_max - v))

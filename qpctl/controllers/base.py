@@ -140,16 +140,17 @@ class RecordOutput(ControlOutput):
         """Add the law's own entries from the record (none for the closed forms)."""
 
 
-def fast_state(q: Any, v: Any, t: Any, n: int) -> tuple[np.ndarray, np.ndarray, float]:
+def fast_state(q: Any, v: Any, t: Any, n: int, nq: int | None = None) -> tuple[np.ndarray, np.ndarray, float]:
     """(q, v, t) as the kernels take them: contiguous float64 arrays of n and a float. The common case
     (already so) costs a few attribute checks; anything else goes through :func:`validate_state`,
     which raises :class:`InvalidStateError` for what it cannot accept. Finiteness of q and v is
     checked by the kernels (:meth:`Controller._state`)."""
+    nq = n if nq is None else nq
     if (type(q) is np.ndarray and type(v) is np.ndarray and q.dtype == np.float64 and v.dtype == np.float64
-            and q.shape == (n,) and v.shape == (n,) and q.flags.c_contiguous and v.flags.c_contiguous
+            and q.shape == (nq,) and v.shape == (n,) and q.flags.c_contiguous and v.flags.c_contiguous
             and isinstance(t, float) and math.isfinite(t)):
         return q, v, t
-    q, v, t = validate_state(q, v, t, n)
+    q, v, t = validate_state(q, v, t, n, nq)
     return np.ascontiguousarray(q), np.ascontiguousarray(v), t
 
 
@@ -266,7 +267,7 @@ class Controller(ABC):
         """One control tick: the state once (compiled), then the law :meth:`control` on a snapshot of it;
         records wall time in ``compute_us``. The built-in laws override this with compiled ticks."""
         start = time.perf_counter()
-        q, v, t = fast_state(q, v, t, self.n)
+        q, v, t = fast_state(q, v, t, self.n, self.robot.nq)
         ws = self._state(q, v, t)
         state = ws.snapshot()
         t_state = time.perf_counter()

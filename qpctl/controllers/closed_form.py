@@ -55,13 +55,13 @@ class PaperController(Controller):
     def step(self, q: np.ndarray, v: np.ndarray, t: float) -> ControlOutput:
         """One compiled tick: state, law terms and the closed form; ``compute_us`` its wall time."""
         start = time.perf_counter()
-        q, v, t = fast_state(q, v, t, self.n)
+        q, v, t = fast_state(q, v, t, self.n, self.robot.nq)
         ws = self._ws if self._ws is not None else self.workspace()
         if ws.fast:  # computeAllTerms, then one kernel call (stage times measured in it)
             t0 = time.perf_counter()
             pin.computeAllTerms(ws.model, ws.data, q, v)
             t1 = time.perf_counter()
-            code = K.tick_closed_form(ws.work, q, v, t, self.weighted)
+            code = K.tick_closed_form(ws.work, ws.joint_view(q), v, t, self.weighted)
             if code == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
                 t2 = time.perf_counter()

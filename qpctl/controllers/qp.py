@@ -211,7 +211,8 @@ class QPController(Controller):
         cfg, robot = self.config, self.robot
         tasks: list[Task] = [AccelerationTask(), EndEffectorTask(cfg.slack_l1, cfg.slack_l2, cfg.task_weights)]
         if cfg.posture_weight > 0:
-            tasks.append(PostureTask(cfg.posture if cfg.posture is not None else robot.q_home, cfg.posture_weight))
+            posture = robot.configuration(cfg.posture) if cfg.posture is not None else robot.q_home  # angles → q
+            tasks.append(PostureTask(posture, cfg.posture_weight, difference=robot.difference if robot.lie else None))
         if cfg.damping > 0:
             tasks.append(DampingTask(cfg.damping, cfg.damping_gain))
         return tasks
@@ -224,7 +225,8 @@ class QPController(Controller):
         finite = np.isfinite(np.concatenate([robot.q_min, robot.q_max, robot.v_max, robot.qdd_max]))
         if cfg.joint_limits and np.any(finite):
             constraints.append(JointLimit(robot.q_min, robot.q_max, robot.v_max, k0=cfg.joint_k0, k1=cfg.joint_k1,
-                                          kv=cfg.velocity_gain, qdd_max=robot.qdd_max))
+                                          kv=cfg.velocity_gain, qdd_max=robot.qdd_max,
+                                          angles=robot.angles if robot.lie else None))
         if self.obstacles:
             cap = cfg.max_pairs or len(robot.capsules) * min(len(self.obstacles), 4)
             constraints.append(ObstacleBarrier(cap, self.gains.d_safe, k0=cfg.barrier_k0, k1=cfg.barrier_k1,
@@ -313,7 +315,7 @@ class QPController(Controller):
         return self.qp_path().relax.strategy
 
     def _make_workspace(self) -> Workspace:
-        spec = compiled_spec(self.tasks, self.constraints, self.n)
+        spec = compiled_spec(self.tasks, self.constraints, self.robot.nq)
         selfc = next((c for c in self.constraints if isinstance(c, SelfCollisionBarrier)), None)
         if selfc is not None:
             selfc.cutoff = min(self.cutoff, selfc.d_safe + selfc.REACH)

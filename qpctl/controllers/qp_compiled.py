@@ -74,7 +74,7 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
     order = [t for t in tasks if isinstance(t, (PostureTask, DampingTask))]
     if len(order) == 2 and isinstance(order[0], DampingTask):  # the kernel adds the posture first
         return None
-    if post is not None and post.q_ref.shape != (n,):
+    if post is not None and post.q_ref.shape != (n,):  # n: the configuration's entries (nq)
         raise ConfigError(f"q_ref has {post.q_ref.size} entries, the robot {n}", key="PostureTask.q_ref")
     torque = next((c for c in constraints if isinstance(c, TorqueLimit)), None)
     joint = next((c for c in constraints if isinstance(c, JointLimit)), None)
@@ -266,7 +266,7 @@ class CompiledTick:
     def step(self, q: np.ndarray, v: np.ndarray, t: float, start: float) -> QPOutput:
         """One tick (module docstring); ``start``: when the controller's step began (the budget's
         clock, and ``compute_us``'s)."""
-        q, v, t = fast_state(q, v, t, self.ws.n)
+        q, v, t = fast_state(q, v, t, self.ws.n, self.ws.nq)
         self.ws.sync_field()  # the depth map's newest snapshot (a reference swap; nothing without a map)
         budget = self.budget_us()
         one_call = self.native_args is not None and budget <= 0
@@ -318,7 +318,7 @@ class CompiledTick:
             t0 = time.perf_counter()
             pin.computeAllTerms(ws.model, ws.data, q, v)
             t1 = time.perf_counter()
-            code, hard = K.tick_qp_native_hard_first(ws.work, q, v, t, *args, try_hard)
+            code, hard = K.tick_qp_native_hard_first(ws.work, ws.joint_view(q), v, t, *args, try_hard)
             if code == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
                 code, hard = K.qp_tick_native_hard_first(ws.work, *args, try_hard)

@@ -115,7 +115,7 @@ def _select(robot: RobotModel, d_safe: float, samples: int, seed: int) -> SelfPa
     radius = np.array([c.radius for c in robot.capsules])
     home = _segments(robot, data, robot.q_home)
     close = np.zeros((L, L), int)
-    segs = [_segments(robot, data, rng.uniform(lo, hi)) for _ in range(samples)]
+    segs = [_segments(robot, data, robot.random_configuration(rng, lo, hi)) for _ in range(samples)]
     keep, excluded = [], {}
     for i in range(L):
         for j in range(i + 1, L):

@@ -7,9 +7,10 @@ below is abstract, so a shape that lacks one cannot be registered, and a shape n
 a :class:`~qpctl.errors.ConfigError` when an obstacle names it — never a silent capsule or circle.
 
 Sizes are the obstacle's ``radius``, ``length`` (along ``axis``) and ``size`` [m]. Distances to a
-new shape go through python-fcl (the compiled kernels have closed forms for spheres and capsules
-only, :mod:`qpctl.tick`); the PyBullet adapter draws it from its MuJoCo geom (sphere, box, capsule,
-cylinder).
+new shape go through python-fcl (the compiled kernels have closed forms for the four shapes here:
+spheres and capsules in :mod:`qpctl.kernels.geometry`, boxes and cylinders in
+:mod:`qpctl.kernels.solids`); the PyBullet adapter draws it from its MuJoCo geom (sphere, box,
+capsule, cylinder).
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
-"""The world's clearance for a simulator: the least distance between any link and any sphere or
-capsule obstacle, and between the self-collision pairs, every pair, no cutoff
+"""The world's clearance for a simulator: the least distance between any link and any sphere,
+capsule, box or cylinder obstacle, and between the self-collision pairs, every pair, no cutoff
 (:class:`qpctl.tick.WorldClearance`; python-fcl's shapes are left to Python).
 """
 
@@ -10,17 +10,18 @@ import math
 import numpy as np
 from numba import njit
 
-from qpctl.kernels.codes import KIND_FCL
+from qpctl.kernels.codes import KIND_BOX, KIND_CYLINDER, KIND_FCL
 from qpctl.kernels.geometry import segment_params
 from qpctl.kernels.rigid import world_point
 from qpctl.kernels.scene import obstacles_at
+from qpctl.kernels.solids import solid_distance
 
 
 @njit(cache=True)
 def min_distance(ws, t: float) -> float:  # type: ignore[no-untyped-def]
-    """The least signed distance [m] between any link capsule and any sphere or capsule obstacle at
-    t [s], every pair, no cutoff (a simulator's clearance; python-fcl's shapes are left to Python),
-    from the joint placements only (after ``forwardKinematics``); the segments are left in ws."""
+    """The least signed distance [m] between any link capsule and any sphere, capsule, box or
+    cylinder obstacle at t [s], every pair, no cutoff (a simulator's clearance; python-fcl's shapes
+    are left to Python), from the joint placements only (after ``forwardKinematics``); the segments are left in ws."""
     segments = ws.segments
     for i in range(ws.cap_joint.shape[0]):
         world_point(ws, ws.cap_joint[i], ws.cap_local[i, 0], segments[i, 0])
@@ -32,7 +33,12 @@ def min_distance(ws, t: float) -> float:  # type: ignore[no-untyped-def]
         ux, uy, uz = segments[i, 1, 0] - ax, segments[i, 1, 1] - ay, segments[i, 1, 2] - az
         uu = ux * ux + uy * uy + uz * uz
         for j in range(ws.ob_kind.shape[0]):
-            if ws.ob_kind[j] == KIND_FCL:
+            kind = ws.ob_kind[j]
+            if kind == KIND_FCL:
+                continue
+            if kind == KIND_BOX or kind == KIND_CYLINDER:
+                best = min(best, solid_distance(kind, segments[i, 0], segments[i, 1], ws.cap_radius[i], ws.ob_c[j],
+                                                ws.ob_rot[j], ws.ob_half[j]))
                 continue
             sx, sy, sz = ws.ob_axis[j, 0], ws.ob_axis[j, 1], ws.ob_axis[j, 2]
             c0x, c0y, c0z = ws.ob_c[j, 0] - 0.5 * sx, ws.ob_c[j, 1] - 0.5 * sy, ws.ob_c[j, 2] - 0.5 * sz

@@ -9,8 +9,9 @@ from __future__ import annotations
 
 from numba import njit
 
-# Obstacle kinds (TickWork.ob_kind): closed form in the kernels, or python-fcl's (KIND_FCL)
-KIND_SPHERE, KIND_CAPSULE, KIND_FCL = 0, 1, 2
+# Obstacle kinds (TickWork.ob_kind): closed form in the kernels (spheres and capsules in
+# qpctl.kernels.geometry, boxes and cylinders in qpctl.kernels.solids), or python-fcl's (KIND_FCL)
+KIND_SPHERE, KIND_CAPSULE, KIND_FCL, KIND_BOX, KIND_CYLINDER = 0, 1, 2, 3, 4
 # Pair states (TickWork.pr_state)
 PAIR_OK, PAIR_FCL, PAIR_FAR = 0, 1, 2
 

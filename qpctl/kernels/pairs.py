@@ -2,11 +2,12 @@
 normal, witness points, witness-point Jacobian and drift, and the barrier's drift ḧ(q̈ = 0).
 
 :func:`find_pairs` lists the pairs link-major (through the broad-phase grid when there is one),
-distances in closed form for spheres and capsules (:mod:`qpctl.kernels.geometry`); pairs with
-python-fcl's shapes are marked PAIR_FCL for Python to query. :func:`finish_pairs` then compacts the
+distances in closed form for spheres and capsules (:mod:`qpctl.kernels.geometry`) and for boxes and
+cylinders (:mod:`qpctl.kernels.solids`); pairs with any other shape (python-fcl's: meshes, shapes a
+user registers) are marked PAIR_FCL for Python to query. :func:`finish_pairs` then compacts the
 list and adds the Jacobians, drifts and the exact barrier drift (:func:`barrier_drift`); pairs
-without a closed-form drift are counted for Python's look-ahead difference
-(:meth:`qpctl.tick.Workspace._look_ahead`).
+without a closed-form drift (python-fcl's shapes; capsules with meeting or parallel axes) are
+counted for Python's look-ahead difference (:meth:`qpctl.tick.Workspace._look_ahead`).
 
 References (``tests/test_kernels.py``): python-fcl on every (link, obstacle) pair, a brute-force
 segment distance, Pinocchio's point Jacobians; the drift against finite differences.
@@ -27,6 +28,8 @@ from qpctl.kernels.codes import (
     FP_CUTOFF,
     FP_GRID_H,
     IP_BDRIFT,
+    KIND_BOX,
+    KIND_CYLINDER,
     KIND_FCL,
     KIND_SPHERE,
     PAIR_FAR,
@@ -35,6 +38,7 @@ from qpctl.kernels.codes import (
 )
 from qpctl.kernels.geometry import contact_frame, segment_params, sphere_bound
 from qpctl.kernels.rigid import point_jacobian
+from qpctl.kernels.solids import solid_drift, solid_pair
 
 
 @njit(cache=True)
@@ -89,9 +93,9 @@ def _candidates(ws, i: int, out: np.ndarray) -> int:  # type: ignore[no-untyped-
 @njit(cache=True)
 def find_pairs(ws) -> int:  # type: ignore[no-untyped-def]
     """Every link–obstacle pair within the cutoff, link-major and by obstacle index: distances,
-    normals and witness points in closed form for spheres and capsules (:mod:`qpctl.kernels.geometry`);
-    pairs with python-fcl's shapes whose bounding sphere is within the cutoff are listed as PAIR_FCL
-    for Python to query. Returns the number of PAIR_FCL pairs."""
+    normals and witness points in closed form for spheres and capsules (:mod:`qpctl.kernels.geometry`),
+    boxes and cylinders (:mod:`qpctl.kernels.solids`); pairs with python-fcl's shapes whose bounding
+    sphere is within the cutoff are listed as PAIR_FCL for Python to query. Returns the number of PAIR_FCL pairs."""
     cutoff = ws.fpar[FP_CUTOFF]
     segments, cap_radius = ws.segments, ws.cap_radius
     ob_kind, ob_c, ob_axis, ob_radius, ob_bound = ws.ob_kind, ws.ob_c, ws.ob_axis, ws.ob_radius, ws.ob_bound
@@ -137,6 +141,13 @@ def find_pairs(ws) -> int:  # type: ignore[no-untyped-def]
             d = wn - rl - ro
             if not d < cutoff:
                 continue
+            if kind == KIND_BOX or kind == KIND_CYLINDER:  # d was its bounding capsule's: a lower bound
+                d = solid_pair(kind, segments[i, 0], segments[i, 1], rl, ob_c[j], ws.ob_rot[j], ws.ob_half[j],
+                               pr_n[k], pr_pl[k], pr_po[k])
+                if d < cutoff:
+                    pr_link[k], pr_obs[k], pr_state[k], pr_d[k] = i, j, PAIR_OK, d
+                    k += 1
+                continue
             contact_frame(px, py, pz, qx, qy, qz, wx, wy, wz, wn, ux, uy, uz, sx, sy, sz, rl, ro,
                           pr_n[k], pr_pl[k], pr_po[k])
             pr_link[k], pr_obs[k], pr_state[k], pr_d[k] = i, j, PAIR_OK, d
@@ -147,9 +158,26 @@ def find_pairs(ws) -> int:  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
+def _solid_drift(ws, r: int) -> float:  # type: ignore[no-untyped-def]
+    """ḧ at q̈ = 0 [m/s²] of pair r, a link and a box or cylinder (:func:`~qpctl.kernels.solids.solid_drift`),
+    from the link's axis ends' velocities v + ω × p and accelerations offset + K p."""
+    i, j = ws.pr_link[r], ws.pr_obs[r]
+    a, b = ws.segments[i, 0], ws.segments[i, 1]
+    uu = tau = 0.0
+    for c in range(3):  # the closest axis point's τ: p_link + r n = a + τu
+        u = b[c] - a[c]
+        uu += u * u
+        tau += (ws.pr_pl[r, c] + ws.cap_radius[i] * ws.pr_n[r, c] - a[c]) * u
+    tau = tau / uu if uu > 1e-300 else 0.0
+    return solid_drift(ws.ob_kind[j], a, b, ws.body_vel[i], ws.acc_off[i], ws.acc_K[i], ws.ob_c[j], ws.ob_v[j],
+                       ws.ob_a[j], ws.ob_rot[j], ws.ob_half[j], tau)
+
+
+@njit(cache=True)
 def barrier_drift(ws, r: int) -> bool:  # type: ignore[no-untyped-def]
     """ḧ at q̈ = 0 of pair r (∂ḣ/∂q q̇ + ∂ḣ/∂t) into pr_bdrift[r], in closed form for a sphere or
-    capsule obstacle; False where it has none (python-fcl's shapes, meeting or parallel axes).
+    capsule obstacle, a central difference of the closed-form distance for a box or cylinder; False
+    where it has none (python-fcl's shapes, meeting or parallel axes).
 
     The axis points p = a + τu (link) and q = c₀ + σs (obstacle) are closest, so with w = p − q,
     ρ = |w|, n = w/ρ and h = ρ − radii − d_s: ḣ = nᵀẇ and ḧ = nᵀẅ + (|ẇ|² − (nᵀẇ)²)/ρ, where
@@ -162,6 +190,9 @@ def barrier_drift(ws, r: int) -> bool:  # type: ignore[no-untyped-def]
     kind = ws.ob_kind[j]
     if kind == KIND_FCL:
         return False
+    if kind == KIND_BOX or kind == KIND_CYLINDER:
+        ws.pr_bdrift[r] = _solid_drift(ws, r)
+        return True
     nx, ny, nz = ws.pr_n[r, 0], ws.pr_n[r, 1], ws.pr_n[r, 2]
     rl, ro = ws.cap_radius[i], ws.ob_radius[j]
     px, py, pz = ws.pr_pl[r, 0] + rl * nx, ws.pr_pl[r, 1] + rl * ny, ws.pr_pl[r, 2] + rl * nz  # link axis

@@ -15,8 +15,8 @@ pairs changes the work inside a loop, never the number of Python calls. In tick 
    :func:`tick_qp_native_hard_first`.
 
 Return codes: those of :mod:`qpctl.kernels.solve`, and −1 (the dynamics overflow) or STATE_PYTHON
-(the state is waiting for Python: python-fcl's pairs or a look-ahead drift; Python finishes it and
-calls the stage after the state).
+(the state is waiting for Python: python-fcl's pairs — shapes other than spheres, capsules, boxes
+and cylinders — or a look-ahead drift; Python finishes it and calls the stage after the state).
 """
 
 from __future__ import annotations

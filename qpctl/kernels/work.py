@@ -50,10 +50,13 @@ FIELDS = (
     "ori_basis",  # (2, 3) b_1, b_2 ⟂ the approach axis, in the task frame
     "ori_axis",  # (3,) the approach axis c in the task frame
     # -- scene, built once (O obstacles) -------------------------------------------------------------
-    "ob_kind",  # (O,) int: KIND_SPHERE, KIND_CAPSULE or KIND_FCL (python-fcl's shapes)
-    "ob_radius",  # (O,) [m]
+    "ob_kind",  # (O,) int: KIND_SPHERE, KIND_CAPSULE, KIND_BOX, KIND_CYLINDER or KIND_FCL (python-fcl's)
+    "ob_radius",  # (O,) [m] (a box's or cylinder's: that of its bounding capsule, see ob_axis)
     "ob_bound",  # (O,) bounding-sphere radius [m]
-    "ob_axis",  # (O, 3) capsule axis vector s (length × unit axis; zero for other shapes) [m]
+    "ob_axis",  # (O, 3) capsule axis vector s (length × unit axis; zero for a sphere and python-fcl's
+    #             shapes; for a box or cylinder the axis of the capsule containing it) [m]
+    "ob_rot",  # (O, 3, 3) a box's or cylinder's axes in the world (columns; z along its axis)
+    "ob_half",  # (O, 3) a box's half extents; a cylinder's (radius, radius, half length) [m]
     "ob_pos0",  # (O, 3) centre at t = 0 [m]
     "ob_vel0",  # (O, 3) constant velocity [m/s]
     "ob_amp",  # (O, 3) sway amplitude [m]

@@ -89,7 +89,9 @@ class DepthMap:
         self._work = np.empty((nx, ny, nz))
         self.robot = robot
         self.self_filter = SelfFilter(robot, c.self_margin) if robot is not None else None
-        self.history = history if history is not None else (JointHistory(robot.nv) if robot is not None else None)
+        if history is None and robot is not None:  # q: the configuration (nq), interpolated on its group
+            history = JointHistory(robot.nq, interpolate=robot.interpolate if robot.lie else None)
+        self.history = history
         self.target: np.ndarray | None = None
         self.stamp = -math.inf  # the newest frame's
         self.frames = 0

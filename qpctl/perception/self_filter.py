@@ -12,6 +12,7 @@ a radius of the grasp target (the fruit is not an obstacle to the gripper that p
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 
 import numpy as np
 import pinocchio as pin
@@ -23,8 +24,10 @@ from qpctl.robot.model import RobotModel
 class JointHistory:
     """The last ``capacity`` (t [s], q) the controller recorded, in time order."""
 
-    def __init__(self, n: int, capacity: int = 512) -> None:
-        self.n = int(n)
+    def __init__(self, n: int, capacity: int = 512,
+                 interpolate: Callable[[np.ndarray, np.ndarray, float], np.ndarray] | None = None) -> None:
+        self.n = int(n)  # a configuration's entries (nq)
+        self._interpolate = interpolate  # RobotModel.interpolate where q is not a vector (continuous joints)
         self._t = np.full(capacity, np.nan)
         self._q = np.zeros((capacity, self.n))
         self._count = 0
@@ -61,6 +64,8 @@ class JointHistory:
         if i >= k:
             return qs[-1].copy()
         w = (t - ts[i - 1]) / (ts[i] - ts[i - 1]) if ts[i] > ts[i - 1] else 1.0
+        if self._interpolate is not None:
+            return self._interpolate(qs[i - 1], qs[i], w)
         return (1 - w) * qs[i - 1] + w * qs[i]
 
 

@@ -138,7 +138,7 @@ def from_run_dir(run_dir: str | Path) -> ReplayInput:
     metrics_file = run_dir / "metrics.json"
     metrics = json.loads(metrics_file.read_text()) if metrics_file.is_file() else {}
     robot = scenario.build_robot()
-    if traj.q.ndim != 2 or traj.q.shape[1] != robot.nv:
+    if traj.q.ndim != 2 or traj.q.shape[1] != robot.nq:
         raise ReplayError(f"{npz} holds {traj.q.shape[-1]}-joint states but {toml} describes a {robot.nv}-joint "
                           f"robot ({robot.name})")
     return _make(scenario, robot, traj, metrics, maps)

@@ -68,14 +68,18 @@ class RobotModel:
 
     Attributes:
         name: short name ("planar3", "panda", or the URDF's).
-        model: the Pinocchio model (``nq == nv``: revolute/prismatic joints only).
+        model: the Pinocchio model: revolute and prismatic joints, continuous (unbounded revolute)
+            joints and planar joints (x, y, θ; a mobile base). A configuration q has ``nq`` entries
+            (Pinocchio's: cos θ, sin θ for a continuous joint), a velocity ``nv``; :meth:`angles` and
+            :meth:`configuration` convert to and from one number per degree of freedom.
         ee_frame: name of the frame whose origin is the task point.
         task_axes: which world axes form the task (``(0, 1)`` planar x–y, ``(0, 1, 2)`` spatial).
         capsules: link collision shapes for python-fcl, one per link that can collide.
-        q_min, q_max: joint position limits [rad or m] (±inf where unlimited).
+        q_min, q_max: joint position limits [rad or m], one per degree of freedom, in :meth:`angles`'
+            coordinates (±inf where unlimited: always on continuous and planar joints).
         v_max: joint speed limits [rad/s] (inf where unlimited).
         tau_max: joint torque limits [N·m] (inf where unlimited); symmetric, ``|τ| ≤ tau_max``.
-        q_home: a default configuration.
+        q_home: a default configuration (Pinocchio's, ``nq``; given as ``nv`` angles it is converted).
         tau_rate_max: the drives' torque-rate limits [N·m/s] (inf where unlimited): between two
             commands dt apart, ``|τ_k − τ_{k−1}| ≤ tau_rate_max · dt``.
         qdd_max: joint acceleration limits [rad/s² or m/s²] (inf where unlimited), ``|q̈| ≤ qdd_max``.
@@ -107,9 +111,7 @@ class RobotModel:
     disabled_pairs: frozenset[frozenset[str]] | None = None  # its <disable_collisions> link pairs
 
     def __post_init__(self) -> None:
-        if self.model.nq != self.model.nv:
-            raise ConfigError("only models with nq == nv (revolute/prismatic joints) are supported",
-                              key="robot")
+        self._joint_maps()
         self.ee_frame_id = self.frame_id(self.ee_frame)
         if not self.joint_names:
             self.joint_names = [self.model.names[i] for i in range(1, self.model.njoints)]
@@ -118,11 +120,132 @@ class RobotModel:
                 setattr(self, name, np.full(self.nv, np.inf))
         if self.approach_axis is None:
             self.approach_axis = np.array([0.0, 0.0, 1.0])
-        for name in ("q_min", "q_max", "v_max", "tau_max", "q_home", "tau_rate_max", "qdd_max"):
+        home = np.asarray(self.q_home, dtype=float).reshape(-1)
+        if self.lie and home.shape == (self.nv,):
+            home = self.configuration(home)
+        if home.shape != (self.nq,):
+            raise ConfigError(f"q_home must have {self.nq} entries (or {self.nv} angles), got {home.shape[0]}",
+                              key="q_home")
+        self.q_home = home
+        for name in ("q_min", "q_max", "v_max", "tau_max", "tau_rate_max", "qdd_max"):
             arr = np.asarray(getattr(self, name), dtype=float).reshape(-1)
             if arr.shape != (self.nv,):
                 raise ConfigError(f"{name} must have {self.nv} entries, got {arr.shape[0]}", key=name)
             setattr(self, name, arr)
+        if self.lie:  # no position limit on a continuous or planar joint's coordinates
+            self.q_min = np.where(self.bounded, self.q_min, -np.inf)
+            self.q_max = np.where(self.bounded, self.q_max, np.inf)
+
+    def _joint_maps(self) -> None:
+        """Index maps between a configuration (nq) and one number per degree of freedom (nv):
+        ``_plain`` (q index, v index) of the coordinates that are the same in both (revolute,
+        prismatic, a planar joint's x, y); ``_rot`` (index of cos θ, v index) of the angles stored as
+        (cos θ, sin θ). A free-flyer or spherical joint is a :class:`ConfigError`."""
+        plain_q: list[int] = []
+        plain_v: list[int] = []
+        rot_q: list[int] = []
+        rot_v: list[int] = []
+        bounded = np.ones(self.model.nv, dtype=bool)
+        for j in range(1, self.model.njoints):
+            jm = self.model.joints[j]
+            kind, iq, iv = jm.shortname(), jm.idx_q, jm.idx_v
+            if jm.nq == jm.nv:
+                plain_q += range(iq, iq + jm.nq)
+                plain_v += range(iv, iv + jm.nv)
+            elif kind.startswith(("JointModelRUB", "JointModelRevoluteUnbounded")):
+                rot_q.append(iq)
+                rot_v.append(iv)
+                bounded[iv] = False
+            elif kind == "JointModelPlanar":
+                plain_q += [iq, iq + 1]
+                plain_v += [iv, iv + 1]
+                rot_q.append(iq + 2)
+                rot_v.append(iv + 2)
+                bounded[iv:iv + 3] = False
+            elif kind == "JointModelFreeFlyer":
+                raise ConfigError(f"joint {self.model.names[j]!r} is a free-flyer (a floating base): it needs contact "
+                                  "constraints, which qpctl does not model; fix the base or give it a planar joint",
+                                  key="robot")
+            else:
+                raise ConfigError(f"joint {self.model.names[j]!r} is a {kind} (nq {jm.nq} ≠ nv {jm.nv}); qpctl takes "
+                                  "revolute, prismatic, continuous and planar joints", key="robot")
+        self._plain_q, self._plain_v = np.array(plain_q, np.int64), np.array(plain_v, np.int64)
+        self._rot_q, self._rot_v = np.array(rot_q, np.int64), np.array(rot_v, np.int64)
+        self.bounded = bounded
+
+    @property
+    def dof_names(self) -> list[str]:
+        """One name per degree of freedom: the joint's, ``<joint>.x``, ``.y``, ``.theta`` on a planar joint."""
+        names: list[str] = []
+        for j in range(1, self.model.njoints):
+            jm, name = self.model.joints[j], self.model.names[j]
+            names += [name] if jm.nv == 1 else [f"{name}.{c}" for c in ("x", "y", "theta")[:jm.nv]]
+        return names
+
+    def check_scalar_joints(self, simulator: str) -> None:
+        """:class:`ConfigError` if a joint is planar: ``simulator`` has one coordinate per joint axis
+        (slides and hinges), whose velocities are not a planar joint's (Pinocchio's, in the base's frame)."""
+        planar = [self.model.names[j] for j in range(1, self.model.njoints)
+                  if self.model.joints[j].shortname() == "JointModelPlanar"]
+        if planar:
+            raise ConfigError(f"the {simulator} simulator takes hinges and slides; joint {planar[0]!r} is planar: "
+                              "use the built-in simulator, or write the base as two prismatic joints and a "
+                              "revolute one", key="sim.simulator")
+
+    @property
+    def nq(self) -> int:
+        """Entries of a configuration (Pinocchio's ``nq``: 2 per continuous joint, 4 per planar one)."""
+        return int(self.model.nq)
+
+    @property
+    def lie(self) -> bool:
+        """True when a configuration is not one number per degree of freedom (nq ≠ nv)."""
+        return self.model.nq != self.model.nv
+
+    def angles(self, q: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
+        """One number per degree of freedom [rad or m] of configuration(s) ``q`` (nq, or T × nq): a
+        continuous joint's angle atan2(sin θ, cos θ) in (−π, π], a planar joint's x, y, θ; ``q`` itself
+        where nq == nv (no copy). ``out``: an (nv,) array to write into."""
+        q = np.asarray(q, float)
+        if not self.lie:
+            return q
+        if out is None:
+            out = np.empty(q.shape[:-1] + (self.nv,))
+        out[..., self._plain_v] = q[..., self._plain_q]
+        out[..., self._rot_v] = np.arctan2(q[..., self._rot_q + 1], q[..., self._rot_q])
+        return out
+
+    def configuration(self, angles: np.ndarray | Sequence[float]) -> np.ndarray:
+        """The configuration (nq, or T × nq) of one number per degree of freedom (nv, or T × nv): the
+        inverse of :meth:`angles`; a copy."""
+        a = np.array(angles, float)
+        if not self.lie:
+            return a
+        if a.shape[-1:] != (self.nv,):
+            raise ConfigError(f"needs {self.nv} joint values, got {a.shape[-1] if a.ndim else 1}", key="robot.q0")
+        q = np.empty(a.shape[:-1] + (self.nq,))
+        q[..., self._plain_q] = a[..., self._plain_v]
+        q[..., self._rot_q] = np.cos(a[..., self._rot_v])
+        q[..., self._rot_q + 1] = np.sin(a[..., self._rot_v])
+        return q
+
+    def integrate(self, q: np.ndarray, dv: np.ndarray) -> np.ndarray:
+        """q ⊕ dv: the configuration reached from ``q`` along the velocity ``dv`` for a unit time
+        (``pin.integrate``; q + dv where nq == nv)."""
+        return pin.integrate(self.model, q, dv) if self.lie else q + dv
+
+    def difference(self, q0: np.ndarray, q1: np.ndarray) -> np.ndarray:
+        """q1 ⊖ q0 (nv): the velocity that takes ``q0`` to ``q1`` in a unit time (``pin.difference``;
+        q1 − q0 where nq == nv)."""
+        return pin.difference(self.model, q0, q1) if self.lie else q1 - q0
+
+    def interpolate(self, q0: np.ndarray, q1: np.ndarray, w: float) -> np.ndarray:
+        """The configuration a fraction ``w`` of the way from ``q0`` to ``q1`` (``pin.interpolate``)."""
+        return pin.interpolate(self.model, q0, q1, w) if self.lie else (1 - w) * q0 + w * q1
+
+    def random_configuration(self, rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """A configuration of angles drawn uniformly in [lo, hi] (nv each)."""
+        return self.configuration(rng.uniform(lo, hi))
 
     @property
     def nv(self) -> int:
@@ -203,7 +326,7 @@ class RobotModel:
         data = self.model.createData()
         reach = np.zeros(3)
         for _ in range(samples):
-            q = rng.uniform(lo, hi)
+            q = self.random_configuration(rng, lo, hi)
             J = pin.computeFrameJacobian(self.model, data, q, self.ee_frame_id, pin.LOCAL_WORLD_ALIGNED)[:3]
             reach = np.maximum(reach, np.abs(J).max(axis=1))
         return [i for i in range(3) if reach[i] <= 1e-9 * max(1.0, float(reach.max()))]
@@ -329,16 +452,29 @@ class RobotModel:
             ee_id = frame_index(model, tcp)
         if capsules is None:
             capsules = default_capsules(model, capsule_radius, _links_with_geometry(path))
-        nv = model.nv
+        q_min, q_max = position_limits(model)
         return cls(
             name=name or path.stem, model=model, ee_frame=ee_frame, task_axes=(0, 1, 2), capsules=capsules,
-            q_min=np.where(np.isfinite(model.lowerPositionLimit), model.lowerPositionLimit, -np.inf)[:nv],
-            q_max=np.where(np.isfinite(model.upperPositionLimit), model.upperPositionLimit, np.inf)[:nv],
-            v_max=np.where(model.velocityLimit > 0, model.velocityLimit, np.inf)[:nv],
-            tau_max=np.where(model.effortLimit > 0, model.effortLimit, np.inf)[:nv],
+            q_min=q_min, q_max=q_max,
+            v_max=np.where(model.velocityLimit > 0, model.velocityLimit, np.inf)[:model.nv],
+            tau_max=np.where(model.effortLimit > 0, model.effortLimit, np.inf)[:model.nv],
             q_home=np.asarray(q_home, float) if q_home is not None else pin.neutral(model),
             urdf=path.resolve(),
         )
+
+
+def position_limits(model: pin.Model) -> tuple[np.ndarray, np.ndarray]:
+    """(q_min, q_max) [rad or m], one per degree of freedom: the model's position limits on joints whose
+    configuration is their coordinate (nq == nv), ±inf elsewhere (continuous, planar) and where the
+    file gives none (Pinocchio's ±DBL_MAX)."""
+    lo, hi = np.full(model.nv, -np.inf), np.full(model.nv, np.inf)
+    for j in range(1, model.njoints):
+        jm = model.joints[j]
+        if jm.nq == jm.nv:
+            lo[jm.idx_v:jm.idx_v + jm.nv] = model.lowerPositionLimit[jm.idx_q:jm.idx_q + jm.nq]
+            hi[jm.idx_v:jm.idx_v + jm.nv] = model.upperPositionLimit[jm.idx_q:jm.idx_q + jm.nq]
+    big = 0.5 * np.finfo(float).max
+    return np.where(lo > -big, lo, -np.inf), np.where(hi < big, hi, np.inf)
 
 
 def _links_with_geometry(urdf: Path) -> set[str] | None:

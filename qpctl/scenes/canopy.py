@@ -189,7 +189,7 @@ def reach(robot: RobotModel, target: np.ndarray, q_start: np.ndarray, iterations
     model, data, fid = robot.model, robot.model.createData(), robot.ee_frame_id
     lo = np.where(np.isfinite(robot.q_min), robot.q_min, -np.pi)
     hi = np.where(np.isfinite(robot.q_max), robot.q_max, np.pi)
-    q = np.clip(q_start, lo, hi)
+    q = robot.configuration(np.clip(robot.angles(q_start), lo, hi))
     err = math.inf
     for _ in range(iterations):
         pin.framesForwardKinematics(model, data, q)
@@ -200,9 +200,9 @@ def reach(robot: RobotModel, target: np.ndarray, q_start: np.ndarray, iterations
         J = pin.computeFrameJacobian(model, data, q, fid, pin.LOCAL_WORLD_ALIGNED)[:3]
         JJt = J @ J.T + 1e-4 * np.eye(3)
         step = J.T @ np.linalg.solve(JJt, e)
-        pull = 0.1 * (q_start - q)
+        pull = 0.1 * robot.difference(q, q_start)
         step += pull - J.T @ np.linalg.solve(JJt, J @ pull)
-        q = np.clip(q + np.clip(step, -0.3, 0.3), lo, hi)
+        q = robot.configuration(np.clip(robot.angles(robot.integrate(q, np.clip(step, -0.3, 0.3))), lo, hi))
     return q, err
 
 
@@ -215,7 +215,7 @@ def _fruit_reach(robot: RobotModel, fruit: np.ndarray, q0: np.ndarray, row: list
         far = float(np.linalg.norm(fruit - centre))
         if far > radius:
             return None, f"beyond the arm's reach: {far:.3f} m from its first joint, which reaches {radius:.3f} m"
-    starts = [q0] + [q0 + rng.uniform(-0.6, 0.6, robot.nv) for _ in range(IK_STARTS - 1)]
+    starts = [q0] + [robot.integrate(q0, rng.uniform(-0.6, 0.6, robot.nv)) for _ in range(IK_STARTS - 1)]
     best: tuple[float, np.ndarray, str] | None = None
     closest = math.inf
     for start in starts:

@@ -242,8 +242,9 @@ class FaultState:
     """One run's faults as they unfold: the sensors' and the drives' state (the Simulator's). The first
     command always arrives; each later one is lost with probability ``miss_rate``."""
 
-    def __init__(self, faults: Faults, n: int, dt: float) -> None:
+    def __init__(self, faults: Faults, n: int, dt: float, robot: RobotModel | None = None) -> None:
         self.faults, self.n, self.dt = faults, n, dt
+        self.robot = robot if robot is not None and robot.lie else None  # the sensors read its angles
         self._q_rng = _stream(faults.seed, "q_noise")
         self._v_rng = _stream(faults.seed, "v_noise")
         self._miss_rng = _stream(faults.seed, "miss_rate")
@@ -261,10 +262,14 @@ class FaultState:
     def measure(self, q: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(q, q̇) as the sensors report them."""
         f = self.faults
-        qm = q + self._q_rng.normal(0.0, f.q_noise, self.n) if f.q_noise else q.copy()
+        robot = self.robot
+        qa = q if robot is None else robot.angles(q)  # the encoders read one angle per degree of freedom
+        qm = qa + self._q_rng.normal(0.0, f.q_noise, self.n) if f.q_noise else qa.copy()
         if f.q_quantum:
             qm = f.q_quantum * np.round(qm / f.q_quantum)
         vm = v + self._v_rng.normal(0.0, f.v_noise, self.n) if f.v_noise else v.copy()
+        if robot is not None:
+            qm = robot.configuration(qm) if (f.q_noise or f.q_quantum) else q.copy()
         return qm, vm
 
     def actuate(self, command: np.ndarray) -> np.ndarray:

@@ -41,7 +41,7 @@ class SimConfig:
     dt [s], duration [s]: the control and integration step and the run's length (both > 0).
     integrator: "rk4" or "euler" (semi-implicit), the built-in simulator's.
     seed: recorded with the run (randomised scenes).
-    simulator: a name in :data:`qpctl.adapters.SIMULATORS` ("builtin", "mujoco", "pybullet").
+    simulator: a name in :data:`qpctl.adapters.SIMULATORS` ("builtin", "mujoco", "pybullet", "drake").
     model: the user's own model file for an adapter ("": generated from the robot).
     joint_names: the model's names of the controller's joints, in its order (None: by name or order).
     """
@@ -149,10 +149,15 @@ class SimulatorBase(ABC):
         return self.world(q, t)
 
     def run(self, q0: np.ndarray, v0: np.ndarray | None = None) -> Trajectory:
-        """Simulate from (q0 [rad], v0 [rad/s], default rest) at t = 0 for ``duration``."""
+        """Simulate from (q0: a configuration (nq) or one angle per degree of freedom (nv); v0 [rad/s],
+        default rest) at t = 0 for ``duration``."""
+        robot = self.robot
         q0 = np.asarray(q0, float)
-        if q0.shape != (self.robot.nv,):
-            raise ConfigError(f"q0 needs {self.robot.nv} joint values, got {q0.size}", key="robot.q0")
+        if robot.lie and q0.shape == (robot.nv,):  # one angle per degree of freedom → the configuration
+            q0 = robot.configuration(q0)
+        if q0.shape != (robot.nq,):
+            more = f" (or {robot.nv} angles)" if robot.lie else ""
+            raise ConfigError(f"q0 needs {robot.nq} joint values{more}, got {q0.size}", key="robot.q0")
         self.counts = {}
         self.reset(q0, v0)
         return record_run(self)
@@ -168,6 +173,7 @@ def record_run(sim: SimulatorBase) -> Trajectory:
     steps = round(sim.duration / dt) + 1
     keys = ("q", "v", "tau", "e_null") + (("tau_command",) if sim.faulty else ())
     rec = {k: np.zeros((steps, n)) for k in keys}
+    rec["q"] = np.zeros((steps, robot.nq))
     rec.update({k: np.zeros((steps, m)) for k in ("x", "x_ref", "xd_ref", "xdd_ref")})
     t_arr, clear, tick_us = np.zeros(steps), np.zeros(steps), np.zeros(steps)
     self_clear = np.full(steps, np.inf)

@@ -35,21 +35,32 @@ from qpctl.simulation.trajectory import (  # noqa: F401  (re-exported: their his
 INTEGRATORS = ("rk4", "euler")
 
 
+Integrate = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+def _add(q: np.ndarray, dv: np.ndarray) -> np.ndarray:
+    return q + dv
+
+
 def rk4_step(f: Callable[[np.ndarray, np.ndarray], np.ndarray], q: np.ndarray, v: np.ndarray,
-             dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """One classical Runge–Kutta step of q̇ = v, v̇ = f(q, v)."""
+             dt: float, integrate: Integrate = _add) -> tuple[np.ndarray, np.ndarray]:
+    """One classical Runge–Kutta step of q̇ = v, v̇ = f(q, v); ``integrate(q, dv)`` is q ⊕ dv on the
+    configuration space (``pin.integrate`` for continuous or planar joints, q + dv otherwise): the
+    stages' configurations are q ⊕ (c dt k), the step's q ⊕ (dt/6 Σ wᵢkᵢ) — RK4 in the tangent space
+    at q (Munthe-Kaas' RK-MK to first order in the commutator, exact for the abelian groups of
+    continuous and planar joints' rotations)."""
     k1q, k1v = v, f(q, v)
-    k2q, k2v = v + 0.5 * dt * k1v, f(q + 0.5 * dt * k1q, v + 0.5 * dt * k1v)
-    k3q, k3v = v + 0.5 * dt * k2v, f(q + 0.5 * dt * k2q, v + 0.5 * dt * k2v)
-    k4q, k4v = v + dt * k3v, f(q + dt * k3q, v + dt * k3v)
-    return (q + dt / 6 * (k1q + 2 * k2q + 2 * k3q + k4q), v + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v))
+    k2q, k2v = v + 0.5 * dt * k1v, f(integrate(q, 0.5 * dt * k1q), v + 0.5 * dt * k1v)
+    k3q, k3v = v + 0.5 * dt * k2v, f(integrate(q, 0.5 * dt * k2q), v + 0.5 * dt * k2v)
+    k4q, k4v = v + dt * k3v, f(integrate(q, dt * k3q), v + dt * k3v)
+    return (integrate(q, dt / 6 * (k1q + 2 * k2q + 2 * k3q + k4q)), v + dt / 6 * (k1v + 2 * k2v + 2 * k3v + k4v))
 
 
 def euler_step(f: Callable[[np.ndarray, np.ndarray], np.ndarray], q: np.ndarray, v: np.ndarray,
-               dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Semi-implicit Euler: v ← v + dt f(q, v), q ← q + dt v."""
+               dt: float, integrate: Integrate = _add) -> tuple[np.ndarray, np.ndarray]:
+    """Semi-implicit Euler: v ← v + dt f(q, v), q ← q ⊕ dt v."""
     v1 = v + dt * f(q, v)
-    return q + dt * v1, v1
+    return integrate(q, dt * v1), v1
 
 
 class Simulator(SimulatorBase):
@@ -89,7 +100,8 @@ class Simulator(SimulatorBase):
                                   key="faults.obstacle_noise")
             truth = self.faults.world(truth, self.robot.task_axes)
         self.obstacles = truth
-        self._q = np.zeros(self.robot.nv)
+        self._integrate: Integrate = self.robot.integrate if self.robot.lie else _add
+        self._q = self.robot.q_home.copy()
         self._v = np.zeros(self.robot.nv)
         self._tau = np.zeros(self.robot.nv)
         self._models = {False: (self.robot.model, self._data)}
@@ -107,7 +119,8 @@ class Simulator(SimulatorBase):
                    progress=progress, faults=faults, obstacles=obstacles)
 
     def reset(self, q0: np.ndarray, v0: np.ndarray | None = None) -> None:
-        """Start at (q0 [rad], v0 [rad/s], default rest), zero torque; with faults, fresh fault draws."""
+        """Start at (q0: a configuration (nq), v0 [rad/s] (nv), default rest), zero torque; with faults,
+        fresh fault draws."""
         n = self.robot.nv
         self._q = np.asarray(q0, float).copy()
         self._v = np.zeros(n) if v0 is None else np.asarray(v0, float).copy()
@@ -116,7 +129,7 @@ class Simulator(SimulatorBase):
         if self.faults is not None:
             before, after = self.faults.simulated_models(self.robot)
             self._models = {False: (before, before.createData()), True: (after, after.createData())}
-            self._state = FaultState(self.faults, n, self.dt)
+            self._state = FaultState(self.faults, n, self.dt, self.robot)
         else:
             self._models = {False: (self.robot.model, self._data)}
 
@@ -141,7 +154,7 @@ class Simulator(SimulatorBase):
         def accel(qq: np.ndarray, vv: np.ndarray) -> np.ndarray:
             return pin.aba(model, data, qq, vv, tau)
 
-        self._q, self._v = self.integrator(accel, self._q, self._v, self.dt)
+        self._q, self._v = self.integrator(accel, self._q, self._v, self.dt, self._integrate)
         self._t = t + self.dt
         if not (np.all(np.isfinite(self._q)) and np.all(np.isfinite(self._v))):
             raise SimulationError(f"state diverged at t = {t + self.dt:.4f} s")

@@ -18,7 +18,9 @@ from qpctl.robot.model import RobotModel
 
 @dataclass
 class Trajectory:
-    """Recorded arrays (DESIGN.md §4); T samples, n joints, m task coordinates."""
+    """Recorded arrays (DESIGN.md §4); T samples, n joints (degrees of freedom), m task coordinates;
+    q is Pinocchio's configuration (T × nq: nq > n with continuous or planar joints, then ``angles``
+    holds one number per degree of freedom)."""
 
     t: np.ndarray
     q: np.ndarray
@@ -43,11 +45,14 @@ class Trajectory:
     # torque ("" where the QP's own answer did), from the ticks' infos (the replay's status panel)
     qp_status: np.ndarray | None = None
     qp_fallback: np.ndarray | None = None
+    # (T, n) one number per degree of freedom beside Pinocchio's configuration q (T, nq), where they
+    # differ (continuous joints' angles in (−π, π], a planar base's x, y, θ: RobotModel.angles)
+    angles: np.ndarray | None = None
 
     ARRAYS = ("t", "q", "v", "tau", "x", "x_ref", "xd_ref", "xdd_ref", "clearance", "e_null", "tick_us",
               "singular")
     OPTIONAL = ("quat", "quat_ref", "orientation_error_deg", "self_clearance", "tau_command", "qp_status",
-                "qp_fallback")
+                "qp_fallback", "angles")
 
     def save(self, path: str | Path) -> None:
         arrays = {k: getattr(self, k) for k in self.ARRAYS}
@@ -101,6 +106,8 @@ def finish_trajectory(traj: Trajectory, controller: Controller) -> Trajectory:
                                    (i.get("solve_status", i["status"]) for i in traj.infos)])
         traj.qp_fallback = np.array([str(i.get("fallback") or "") for i in traj.infos])
     robot = controller.robot
+    if robot.lie:
+        traj.angles = robot.angles(traj.q).copy()
     if not robot.m_orientation:
         return traj
     from qpctl.orientation import orientation_error_deg

@@ -12,7 +12,7 @@
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -88,8 +88,11 @@ class PostureTask(Task):
     name = "posture"
 
     def __init__(self, q_ref: Sequence[float] | np.ndarray, weight: float = 1.0, kp: float = 25.0,
-                 kd: float = 10.0) -> None:
+                 kd: float = 10.0, *, difference: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None) -> None:
         self.q_ref = np.asarray(q_ref, float).reshape(-1)
+        # q_ref ⊖ q on a configuration space that is not a vector space (RobotModel.difference): then
+        # q_ref is a configuration (nq) and the error a velocity (nv)
+        self.difference = difference
         if not np.all(np.isfinite(self.q_ref)):
             raise ConfigError("q_ref must be finite", key="PostureTask.q_ref")
         for key, val in (("weight", weight), ("kp", kp), ("kd", kd)):
@@ -100,7 +103,8 @@ class PostureTask(Task):
     def compute(self, state: TickState, terms: LawTerms) -> Objective:
         if self.q_ref.shape != state.q.shape:
             raise ConfigError(f"q_ref has {self.q_ref.size} entries, the robot {state.n}", key="PostureTask.q_ref")
-        target = self.kp * (self.q_ref - state.q) - self.kd * state.v
+        error = self.q_ref - state.q if self.difference is None else self.difference(state.q, self.q_ref)
+        target = self.kp * error - self.kd * state.v
         return Objective(self.weight * np.eye(state.n), -self.weight * target)
 
 
