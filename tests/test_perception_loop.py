@@ -142,6 +142,11 @@ def test_a_short_run_sees_its_obstacles_only_through_the_camera(tmp_path) -> Non
     d_safe = float(scen.data["controller"]["d_safe"])
     assert traj.clearance.min() >= d_safe - CFG.voxel
     assert m["phantom_rows_checked"] > 0
+    # the maps the replay draws (every MAP_RECORD_EVERY s): voxel centres on the true spheres
+    pts, stamps = loop.map_points()
+    assert len(np.unique(stamps)) >= 2 and stamps.min() >= 0.0 and stamps.max() <= 0.8
+    gap = np.min([np.abs(np.linalg.norm(pts - o.position, axis=1) - o.radius) for o in world], axis=0)
+    assert np.mean(gap <= 2 * CFG.voxel + CFG.depth_noise) >= 0.95
     files = loop.write_figures(tmp_path, traj.t, traj.clearance, d_safe)  # the run's three figures
     assert [f.name for f in files] == ["depth_frame.png", "field_slice.png", "clearance_true_vs_map.png"]
     assert all(f.stat().st_size > 10_000 for f in files)

@@ -62,7 +62,8 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
     if len(kinds) != 2 + kinds.count(PostureTask) + kinds.count(DampingTask):
         return None
     ckinds = [type(c) for c in constraints]
-    fields = [c for c in constraints if callable(getattr(c, "field_spec", None))]  # the depth map's rows
+    fields = [c for c in constraints if callable(getattr(c, "field_spec", None))  # the depth map's rows
+              and getattr(c, "smooth", True)]  # (smooth: the compiled ones are)
     if any(ckinds.count(k) > 1 for k in ckinds) or not all(
             k in (TorqueLimit, JointLimit, ObstacleBarrier, SelfCollisionBarrier) or c in fields
             for k, c in zip(ckinds, constraints, strict=True)):

@@ -98,8 +98,9 @@ class FieldBarrier(Constraint):
     kind = BARRIER
 
     def __init__(self, source: object, robot: RobotModel, config: PerceptionConfig, *, d_safe: float,
-                 cutoff: float, k0: float = 400.0, k1: float = 40.0) -> None:
+                 cutoff: float, k0: float = 400.0, k1: float = 40.0, smooth: bool = True) -> None:
         self.source = source
+        self.smooth = bool(smooth)  # the Python path's switch (qpctl.kernels.field); the compiled rows are smooth
         self.robot = robot
         self.config = config
         self.margin = config.rigid_margin(d_safe)
@@ -132,7 +133,10 @@ class FieldBarrier(Constraint):
         return self._soft.astype(float)
 
     def field_spec(self) -> FieldSpec:
-        """These rows in the compiled tick (:mod:`qpctl.kernels.field_rows`; held to :meth:`compute`)."""
+        """These rows in the compiled tick (:mod:`qpctl.kernels.field_rows`; held to :meth:`compute`;
+        :class:`ValueError` for raw rows, which only the Python path has)."""
+        if not self.smooth:
+            raise ValueError("the compiled field rows are smooth: a raw FieldBarrier needs the Python path")
         return FieldSpec(self.source, self, self.rows, self.config.samples, self.config.rows_per_link, self.margin,
                          self.config.soft_speed, self.cutoff, self.k0, self.k1, self.soft_margin)
 
@@ -176,7 +180,7 @@ class FieldBarrier(Constraint):
         lower = np.full(self.rows, -np.inf)
         upper = np.full(self.rows, np.inf)
         snap: MapSnapshot = self.source.snapshot  # type: ignore[attr-defined]
-        pairs = field_pairs(snap, state.segments, self.radii, self.config, self.cutoff)
+        pairs = field_pairs(snap, state.segments, self.radii, self.config, self.cutoff, smooth=self.smooth)
         self._last, self._ws = pairs, None
         idx = np.flatnonzero(pairs.active)
         if idx.size == 0:
