@@ -51,6 +51,8 @@ R_SCALARS = 14
 # What the state kernel returns when Python must finish the state (python-fcl's pairs, or a
 # look-ahead barrier drift) before the law: the tick's entry points pass it on (qpctl.kernels.tick)
 STATE_PYTHON = 5
+# What the one-call QP tick returns when q or v does not have the robot's n joints
+BAD_SHAPE = -2
 
 @njit(cache=True)
 def record_scalars(n: int, m: int) -> int:
