@@ -97,6 +97,7 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
         metrics.update(getattr(sim, "fault_counts", {}))
     metrics.update(sim.counts)
     if loop is not None:
+        traj.map_points, traj.map_stamps = loop.map_points()  # the replay draws the map the rows read
         metrics.update(loop.metrics())
         path = loop.path.path if loop.path is not None else controller.path
         metrics["fruit_errors_mm"] = [float(np.min(np.linalg.norm(traj.x[:, :3] - p, axis=1)) * 1e3)

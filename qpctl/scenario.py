@@ -762,6 +762,8 @@ class Scenario:
         designed = self.barrier_design(robot, margin=margin)  # once: the gains below take it too
         if designed is not None:
             c["barrier_k0"], c["barrier_k1"], c["d_influence"] = designed.k0, designed.k1, designed.d_influence
+        if c.get("braking_period") == 0:  # the braking-aware rows' period: the simulator's
+            c["braking_period"] = self.data["sim"]["dt"]
         if kind is not None:
             c["kind"] = kind
         if solver is not None:

@@ -353,3 +353,17 @@ def test_a_runs_scenario_toml_reads_back_with_its_robot_files(tmp_path) -> None:
     back = Scenario.load(tmp_path / "scenario.toml")
     assert Path(back.data["robot"]["capsules"]).is_absolute()
     assert [c.name for c in back.build_robot().capsules] == [c.name for c in src.build_robot().capsules]
+
+
+def test_the_kernels_angle_view_is_robot_angles() -> None:
+    """qpctl.kernels.lie.joint_angles (the compiled tick's per-tick view) against RobotModel.angles, on
+    the Kinova's continuous joints and a planar base."""
+    from qpctl.kernels.lie import joint_angles
+
+    rng = np.random.default_rng(5)
+    for robot in (_kinova(), _planar_arm()):
+        out = np.empty(robot.nv)
+        for _ in range(10):
+            q = robot.configuration(rng.uniform(-np.pi, np.pi, robot.nv))
+            joint_angles(q, robot._plain_q, robot._plain_v, robot._rot_q, robot._rot_v, out)
+            assert np.array_equal(out, robot.angles(q))

@@ -73,7 +73,8 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
     if len(kinds) != 2 + kinds.count(PostureTask) + kinds.count(DampingTask):
         return None
     ckinds = [type(c) for c in constraints]
-    fields = [c for c in constraints if callable(getattr(c, "field_spec", None))]  # the depth map's rows
+    fields = [c for c in constraints if callable(getattr(c, "field_spec", None))  # the depth map's rows
+              and getattr(c, "smooth", True)]  # (smooth: the compiled ones are)
     if any(ckinds.count(k) > 1 for k in ckinds) or not all(
             k in (TorqueLimit, JointLimit, ObstacleBarrier, SelfCollisionBarrier) or c in fields
             for k, c in zip(ckinds, constraints, strict=True)):
@@ -90,6 +91,10 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
     torque = next((c for c in constraints if isinstance(c, TorqueLimit)), None)
     joint = next((c for c in constraints if isinstance(c, JointLimit)), None)
     barrier = next((c for c in constraints if isinstance(c, ObstacleBarrier)), None)
+    brakes = {id(c.braking): c.braking for c in (joint, barrier) if c is not None and c.braking is not None}
+    if len(brakes) > 1 or (brakes and torque is None):
+        return None  # two different brakes, or one without the torque limits: the Python formulation
+    starts = np.cumsum([0] + [c.rows for c in constraints])[:-1].tolist()
     return QPSpec(
         acc_weight=acc.weight, slack_l1=ee.slack_l1, slack_l2=ee.slack_l2,
         posture=None if post is None else (post.q_ref, post.weight, post.kp, post.kd),
@@ -103,7 +108,10 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
         row_kinds=[c.kind for c in constraints for _ in range(c.rows)],
         self_barrier=next(((c.k0, c.k1, c.d_safe) for c in constraints if isinstance(c, SelfCollisionBarrier)), None),
         task_weights=ee.weights,
+        braking=next(iter(brakes.values()), None),
         field=fields[0].field_spec() if fields else None,  # type: ignore[attr-defined]
+        slack_columns=[(r0, c.slack_column(), *c.slack) for c, r0 in zip(constraints, starts, strict=True)
+                       if c.slack is not None and c.rows],
     )
 
 

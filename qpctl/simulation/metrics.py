@@ -14,6 +14,18 @@ def _finite_or_none(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
 
 
+#: An arm is at rest when every joint speed is at most this [rad/s] (qpctl.safety.oracle's REST_SPEED).
+REST_SPEED = 1e-2
+
+
+def collisions_at_rest(traj: Trajectory) -> int:
+    """How many contacts (the clearance crossing below 0) began with every joint speed ≤ REST_SPEED
+    [rad/s] (issue 22, item 4: a moving obstacle catching a stopped arm; a stop cannot avoid it)."""
+    inside = traj.clearance < 0.0
+    onsets = np.flatnonzero(inside & ~np.concatenate([[False], inside[:-1]]))
+    return int(sum(bool(np.all(np.abs(traj.v[k]) <= REST_SPEED)) for k in onsets))
+
+
 def compute_metrics(traj: Trajectory, *, d_safe: float = 0.0, frames: int = 1) -> dict[str, Any]:
     """Tracking [m], torque [N·m] and torque rate [N·m/s], clearance [m], compute time [µs], QP stats.
     With several task frames (``frames``, their position rows stacked in x) the tracking errors are
@@ -33,6 +45,8 @@ def compute_metrics(traj: Trajectory, *, d_safe: float = 0.0, frames: int = 1) -
         "max_abs_torque_rate_per_joint": np.max(rate, axis=0).tolist(),
         "min_clearance": _finite_or_none(min_clear),
         "collided": bool(min_clear < 0.0),
+        # contacts that began with the arm at rest: an obstacle caught a stopped arm, which no brake avoids
+        "collisions_at_rest": collisions_at_rest(traj),
         "safety_violated": bool(min_clear < d_safe - 1e-9),
         "final_null_space_error": float(np.linalg.norm(traj.e_null[-1])),
         "singular_ticks": int(np.count_nonzero(traj.singular)),
