@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import sys
 import time
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -43,6 +44,7 @@ from qpctl.controllers.base import (
     RecordOutput,
     TickStatus,
     call_compiling,
+    entry_point,
     fast_state,
     lock_compilation,
 )
@@ -53,6 +55,8 @@ from qpctl.law import closed_form_acceleration, law_terms
 from qpctl.state import TickState
 from qpctl.tick import Workspace
 
+_F64 = np.dtype(np.float64)
+
 
 class PaperController(Controller):
     """The paper's inertia-weighted law (eq. 19); ``weighted = False`` gives Hsu's law."""
@@ -61,6 +65,7 @@ class PaperController(Controller):
     weighted = True
 
     _out: RecordOutput | None = None  # the last output, reused when nobody else holds it
+    _entry: Any = None  # K.tick_closed_form's compiled entry point for float64 C arrays (entry_point)
 
     def _make_workspace(self) -> Workspace:
         return Workspace(self.robot, self.obstacles, self.path, self.gains, self.cutoff, broadphase=self.broadphase)
@@ -76,7 +81,14 @@ class PaperController(Controller):
                 t0 = time.perf_counter()
                 pin.computeAllTerms(ws.model, ws.data, q, v)
                 t1 = time.perf_counter()
-                code = K.tick_closed_form(ws.work, ws.joint_view(q), v, t, self.weighted)
+                qk = ws.joint_view(q)
+                entry = self._entry
+                if (entry is not None and type(qk) is np.ndarray and type(v) is np.ndarray and qk.dtype is _F64
+                        and v.dtype is _F64 and qk.ndim == 1 and v.ndim == 1 and qk.flags.c_contiguous
+                        and v.flags.c_contiguous):
+                    code = entry(ws.work, qk, v, t, self.weighted)
+                else:
+                    code = K.tick_closed_form(ws.work, qk, v, t, self.weighted)
             except Exception:  # noqa: BLE001 — not two float64 arrays and a float: check, convert, once more
                 q, v, t = fast_state(q, v, t, self.n, self.robot.nq)  # InvalidStateError if it cannot
                 t0 = time.perf_counter()
@@ -84,6 +96,8 @@ class PaperController(Controller):
                 t1 = time.perf_counter()
                 code = call_compiling(K.tick_closed_form, ws.work, ws.joint_view(q), v, t, self.weighted)
             lock_compilation(K.tick_closed_form)
+            if self._entry is None:
+                self._entry = entry_point(K.tick_closed_form, ws.work, weighted=self.weighted)
             if code == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
                 t2 = time.perf_counter()

@@ -38,6 +38,7 @@ from qpctl.controllers.base import (
     RecordOutput,
     TickStatus,
     call_compiling,
+    entry_point,
     fast_state,
     lock_compilation,
 )
@@ -115,23 +116,6 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
 
 
 _F64 = np.dtype(np.float64)
-
-
-def _entry_point(kernel: Any, ws: Any, packed: Any) -> Any:
-    """The compiled entry point of ``kernel`` for (these structrefs, float64 C arrays, a float, a bool),
-    which skips numba's typing of the arguments (~1 µs of the dispatch of the two structrefs); None
-    where this numba does not expose it. Only called on arguments checked to be those types: the
-    entry point unboxes without checking a dtype or a number of dimensions."""
-    try:
-        from numba import typeof
-        from numba.core import types
-
-        arr = types.Array(types.float64, 1, "C")
-        sig = (typeof(ws), typeof(packed), arr, arr, types.float64, types.boolean)
-        cres = kernel.overloads.get(sig)
-        return None if cres is None else cres.entry_point
-    except Exception:  # noqa: BLE001 — numba's internals moved: the dispatcher it is
-        return None
 
 
 class QPOutput(RecordOutput):
@@ -419,7 +403,7 @@ class CompiledTick:
                 code, hard = call_compiling(K.tick_qp, ws.work, self.packed, ws.joint_view(q), v, t, try_hard)
             lock_compilation(K.tick_qp)
             if self._entry is None:
-                self._entry = _entry_point(K.tick_qp, ws.work, self.packed)
+                self._entry = entry_point(K.tick_qp, ws.work, self.packed, try_hard=True)
             if code == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
                 code, hard = K.qp_tick_native_hard_first(ws.work, *self.native_args, try_hard)  # type: ignore[misc]
