@@ -74,12 +74,12 @@ class Dynamics:
         return state
 
     def task_jacobian_derivative(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """J̇ (m, n) of the task point at (q, v)."""
+        """J̇ (m, n) of the task points at (q, v) (every task frame's rows, stacked)."""
         data = self._jdot_data
         pin.computeJointJacobiansTimeVariation(self.model, data, q, v)
-        dJ = pin.getFrameJacobianTimeVariation(self.model, data, self.robot.ee_frame_id,
-                                               pin.LOCAL_WORLD_ALIGNED)[:3]
-        return dJ[list(self.robot.task_axes)].copy()
+        axes = list(self.robot.task_axes)
+        return np.concatenate([pin.getFrameJacobianTimeVariation(self.model, data, f, pin.LOCAL_WORLD_ALIGNED)[:3][axes]
+                               for f in self.robot.task_frame_ids])
 
     def forward_dynamics(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> np.ndarray:
         """q̈ = M⁻¹(τ − N) by Pinocchio's ABA [rad/s²]."""

@@ -62,6 +62,23 @@ class PathConfig:
     approach: list[list[float]] | None = None
 
 
+@dataclass(frozen=True, kw_only=True)
+class TaskConfig:
+    """One ``[[tasks]]`` table: a task frame and its own path (several arms on one torso).
+
+    frame: the task frame (its origin is the task point); waypoints [m]: its points after the start,
+    one per ``path`` segment (every task has as many: they share ``[path]``'s durations and dwell);
+    start [m]: its first point (None: the frame's position at q0); weights: its position rows' slack
+    weights in the QP (one, or one per row; 1 by default: ``controller.task_weights``' rows).
+    The first task's frame is ``robot.ee_frame`` (and carries ``controller.task``'s orientation rows).
+    """
+
+    frame: str = ""
+    waypoints: list[list[float]] | None = None
+    start: list[float] | None = None
+    weights: float | list[float] | None = None
+
+
 class WaypointPath:
     """Straight segments through ``points`` ((k+1, m) [m]), each with quintic timing.
 

@@ -88,7 +88,7 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
         "gravity": controller.robot.model.gravity.linear.tolist(),
     }
     d_safe = float(scenario.data["controller"]["d_safe"])  # the run is judged by the scenario's d_safe
-    metrics.update(compute_metrics(traj, d_safe=d_safe))
+    metrics.update(compute_metrics(traj, d_safe=d_safe, frames=len(controller.robot.frames)))
     margin = scenario.d_safe_margin(controller.robot)
     if margin:
         metrics["d_safe_margin"] = margin

@@ -29,7 +29,7 @@ from qpctl.controllers.config import ControllerConfig, controller_schema
 from qpctl.errors import ConfigError
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.law import LawGains
-from qpctl.paths import PathConfig, PosePath, WaypointPath
+from qpctl.paths import PathConfig, PosePath, TaskConfig, WaypointPath
 from qpctl.perception.config import PerceptionConfig
 from qpctl.robot.config import RobotConfig
 from qpctl.robot.model import RobotModel, arm_reach, load_robot
@@ -47,6 +47,9 @@ else:  # pragma: no cover
 # Every table is generated from the fields of the dataclass that declares its keys (qpctl.config).
 # [[obstacles]]: Obstacle's fields, and the label the paper reproduction groups them by
 OBSTACLE_SCHEMA: dict[str, tuple[Checker, Any]] = {**schema_of(Obstacle), "area": (string, "")}
+# [[tasks]]: several task frames, each with its own waypoints (qpctl.paths.TaskConfig)
+TASK_SCHEMA: dict[str, tuple[Checker, Any]] = schema_of(TaskConfig)
+ARRAYS = {"obstacles": OBSTACLE_SCHEMA, "tasks": TASK_SCHEMA}  # the arrays of tables
 
 SCHEMA: dict[str, Any] = {
     "name": (string, "scenario"),
@@ -55,6 +58,7 @@ SCHEMA: dict[str, Any] = {
     "robot": schema_of(RobotConfig),
     "path": schema_of(PathConfig),
     "obstacles": OBSTACLE_SCHEMA,  # array of tables
+    "tasks": TASK_SCHEMA,  # array of tables (none: the one task of robot.ee_frame and [path])
     # LawGains', QPConfig's and ControllerConfig's fields (qpctl.controllers.config)
     "controller": controller_schema(),
     # every fault off (qpctl.simulation.faults)
@@ -80,11 +84,11 @@ def _validate_table(raw: Any, schema: dict[str, Any], source: str, prefix: str) 
             raise ConfigError(f"unknown key (known here: {known})", source=source, key=where)
     for key, spec in schema.items():
         where = f"{prefix}.{key}" if prefix else key
-        if key == "obstacles" and not prefix:
+        if key in ARRAYS and not prefix:
             items = raw.get(key, [])
             if not isinstance(items, list):
-                raise ConfigError("must be an array of tables ([[obstacles]])", source=source, key=where)
-            out[key] = [_validate_table(item, OBSTACLE_SCHEMA, source, f"{where}[{i}]")
+                raise ConfigError(f"must be an array of tables ([[{key}]])", source=source, key=where)
+            out[key] = [_validate_table(item, ARRAYS[key], source, f"{where}[{i}]")
                         for i, item in enumerate(items)]
         elif isinstance(spec, dict):
             out[key] = _validate_table(raw.get(key, {}), spec, source, where)
@@ -130,8 +134,9 @@ def apply_overrides(raw: dict[str, Any], overrides: Sequence[str]) -> dict[str, 
         node = raw
         for i, part in enumerate(path):
             last = i == len(path) - 1
-            if part.startswith("obstacles[") or (part == "obstacles" and not last):
-                raise ConfigError("obstacles cannot be overridden with --set; edit the file", source="--set",
+            table = part.split("[")[0]
+            if table in ARRAYS and (part != table or not last):
+                raise ConfigError(f"{table} cannot be overridden with --set; edit the file", source="--set",
                                   key=dotted)
             if not isinstance(schema, dict) or part not in schema:
                 raise ConfigError("unknown key", source="--set", key=dotted)
@@ -217,6 +222,56 @@ class Scenario:
     def _err(self, key: str, message: str) -> ConfigError:
         return ConfigError(message, source=self.source, key=key)
 
+    def _check_tasks(self) -> None:
+        """The ``[[tasks]]``: each names a frame once and gives as many waypoints as the others; they
+        replace path.waypoints and path.start, and their first frame is robot.ee_frame."""
+        tasks, path, r = self.data["tasks"], self.data["path"], self.data["robot"]
+        if not tasks:
+            return
+        for key in ("waypoints", "start"):
+            if path[key] is not None:
+                raise self._err(f"path.{key}", "the [[tasks]] give each task frame's points: set them there")
+        if self.data["canopy"]["seed"] is not None:
+            raise self._err("tasks", "a [canopy]'s fruits are the waypoints of one task frame: drop the [[tasks]]")
+        if r["ee_frame"] and r["ee_frame"] != tasks[0]["frame"]:
+            raise self._err("robot.ee_frame", f"is {r['ee_frame']!r} but the first task's frame is "
+                            f"{tasks[0]['frame']!r}: leave it out (the first task's frame is the task frame)")
+        count = None
+        for i, t in enumerate(tasks):
+            if not t["frame"]:
+                raise self._err(f"tasks[{i}].frame", "missing value (the task frame)")
+            if t["frame"] in (u["frame"] for u in tasks[:i]):
+                raise self._err(f"tasks[{i}].frame", f"two tasks on frame {t['frame']!r}: give each frame once")
+            if not t["waypoints"]:
+                raise self._err(f"tasks[{i}].waypoints", "missing value (the task's points after its start)")
+            if count is not None and len(t["waypoints"]) != count:
+                raise self._err(f"tasks[{i}].waypoints", f"has {len(t['waypoints'])} points, tasks[0] {count}: every "
+                                "task moves through as many points, on [path]'s timing")
+            count = len(t["waypoints"])
+            w = t["weights"]
+            ws = [w] if isinstance(w, float) else (w or [])
+            if any(not (np.isfinite(x) and x > 0) for x in ws):
+                raise self._err(f"tasks[{i}].weights", f"must be positive numbers, got {w}")
+
+    def task_weights(self, robot: RobotModel) -> list[float] | None:
+        """The QP's task-row weights: controller.task_weights, with the [[tasks]]' weights on their
+        position rows (None: all 1)."""
+        given = self.data["controller"]["task_weights"]
+        tasks = self.data["tasks"]
+        if not any(t["weights"] is not None for t in tasks):
+            return given
+        per = len(robot.task_axes)
+        out = list(given) if given is not None else [1.0] * robot.m
+        for i, t in enumerate(tasks):
+            w = t["weights"]
+            if w is None:
+                continue
+            vals = [float(w)] * per if isinstance(w, float) else list(w)
+            if len(vals) != per:
+                raise self._err(f"tasks[{i}].weights", f"needs one value or {per} (one per position row), got {len(vals)}")
+            out[i * per:(i + 1) * per] = vals
+        return out
+
     def _check_values(self) -> None:
         sim = self.data["sim"]
         try:  # the rules of the [sim] and [controller] keys' fields (dt and duration > 0, integrator, task...)
@@ -236,7 +291,8 @@ class Scenario:
         path = self.data["path"]
         if path["duration"] is None and path["durations"] is None:
             raise self._err("path.duration", "missing value (give duration or durations)")
-        if path["waypoints"] is None and self.data["canopy"]["seed"] is None:
+        self._check_tasks()
+        if path["waypoints"] is None and self.data["canopy"]["seed"] is None and not self.data["tasks"]:
             raise self._err("path.waypoints", "missing value (or name a [canopy], whose reachable fruits are the "
                                               "waypoints)")
         from qpctl.adapters import SIMULATORS
@@ -260,7 +316,7 @@ class Scenario:
         # Validated on load (DESIGN.md §4), not when the run starts: obstacles, robot, q0, path.
         obstacles = self.build_obstacles()
         robot = self.build_robot()
-        w = self.data["controller"]["task_weights"]
+        w = self.task_weights(robot)
         if w is not None and (len(w) != robot.m or not all(np.isfinite(x) and x > 0 for x in w)):
             raise self._err("controller.task_weights", f"needs {robot.m} positive numbers (one per task row: "
                             f"{robot.m_position} position, {robot.m_orientation} orientation), got {w}")
@@ -355,8 +411,9 @@ class Scenario:
         return self._canopy
 
     def _check_reach(self, robot: RobotModel, path: WaypointPath) -> None:
-        """Every waypoint within the arm's reach (a sphere about its first joint; revolute arms only)."""
-        reach = arm_reach(robot)
+        """Every waypoint within the arm's reach (a sphere about its first joint; revolute arms with one
+        task frame only)."""
+        reach = arm_reach(robot) if not robot.task_frames else None
         if reach is None:
             return
         centre, radius = reach
@@ -438,17 +495,19 @@ class Scenario:
                     kwargs["gravity"] = r["gravity"]
                 robot = load_robot(f"planar{r['links']}" if r["kind"] == "planar" else r["kind"], **kwargs)
             elif r["kind"] == "urdf":
+                r = {**r, "ee_frame": r["ee_frame"] or (self.data["tasks"][0]["frame"] if self.data["tasks"] else "")}
                 for key in ("urdf", "ee_frame"):
                     if not r[key]:
                         raise self._err(f"robot.{key}", 'is required with robot.kind = "urdf" (the URDF file and '
                                                          "the frame whose origin is the task point)")
-                kw: dict[str, Any] = {"capsule_radius": r["radius"]}
+                kw: dict[str, Any] = {"capsule_radius": r["radius"], "locked_joints": r["locked_joints"] or ()}
                 if r["gravity"] is not None:
                     kw["gravity"] = r["gravity"]
                 robot = RobotModel.from_urdf(self.resolve(r["urdf"]), r["ee_frame"], **kw)
             elif r["kind"] == "mjcf":
                 from qpctl.robot.mjcf import from_mjcf
 
+                r = {**r, "ee_frame": r["ee_frame"] or (self.data["tasks"][0]["frame"] if self.data["tasks"] else "")}
                 for key in ("mjcf", "ee_frame"):
                     if not r[key]:
                         raise self._err(f"robot.{key}", 'is required with robot.kind = "mjcf" (the MJCF file and '
@@ -460,6 +519,7 @@ class Scenario:
             robot = robot.with_robot_files(capsules=self.resolve(r["capsules"]) if r["capsules"] else None,
                                            srdf=self.resolve(r["srdf"]) if r["srdf"] not in ("", "none") else r["srdf"] or None)
             robot = self._with_task(robot)
+            robot = self._with_task_frames(robot)
             limits = {k: r[k] for k in ("tau_max", "v_max", "tau_rate_max", "qdd_max") if r[k] is not None}
             if limits:
                 robot = robot.with_limits(**limits)
@@ -472,6 +532,20 @@ class Scenario:
         except ConfigError as exc:
             raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key or "robot") from None
         return robot
+
+    def _with_task_frames(self, robot: RobotModel) -> RobotModel:
+        """The [[tasks]]' frames (none: the robot's own task frame); an unknown frame names its key."""
+        from qpctl.errors import UnknownFrameError
+
+        frames = [t["frame"] for t in self.data["tasks"]]
+        if not frames:
+            return robot
+        for i, name in enumerate(frames):
+            try:
+                robot.frame_id(name)
+            except UnknownFrameError as exc:
+                raise ConfigError(str(exc), key=f"tasks[{i}].frame") from None
+        return robot.with_task_frames(frames)
 
     def _with_task(self, robot: RobotModel) -> RobotModel:
         """The robot's task rows: robot.task_axes, and controller.task's orientation rows."""
@@ -556,6 +630,8 @@ class Scenario:
 
     def build_path(self, robot: RobotModel, q0: np.ndarray) -> WaypointPath:
         p = self.data["path"]
+        if self.data["tasks"]:
+            return self._task_path(robot, q0)
         if p["start"] is not None:
             start = np.array(p["start"], float)
         else:
@@ -572,6 +648,32 @@ class Scenario:
         pts = [list(start)] + waypoints
         if any(len(w) != robot.m_position for w in pts):
             raise self._err("path.waypoints", f"each point needs {robot.m_position} coordinates for robot {robot.name}")
+        timing = {"duration": p["duration"], "durations": p["durations"], "start_time": p["start_time"],
+                  "dwell": p["dwell"]}
+        try:
+            if robot.m_orientation:
+                return PosePath(pts, self._rotations(robot, q0, len(pts)), **timing)
+            return WaypointPath(pts, **timing)
+        except ConfigError as exc:
+            raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key) from None
+
+    def _task_path(self, robot: RobotModel, q0: np.ndarray) -> WaypointPath:
+        """The [[tasks]]' paths as one: each point the task frames' points stacked (their position
+        rows' order), on [path]'s timing."""
+        import pinocchio as pin
+
+        p, tasks = self.data["path"], self.data["tasks"]
+        data = robot.model.createData()
+        pin.framesForwardKinematics(robot.model, data, q0)
+        at_q0 = robot.task_positions(data).reshape(len(tasks), -1)
+        per = robot.m_position // len(tasks)
+        rows = []
+        for i, t in enumerate(tasks):
+            pts = ([t["start"]] if t["start"] is not None else [at_q0[i].tolist()]) + t["waypoints"]
+            if any(len(w) != per for w in pts):
+                raise self._err(f"tasks[{i}].waypoints", f"each point needs {per} coordinates (robot.task_axes)")
+            rows.append(np.array(pts, float))
+        pts = np.concatenate(rows, axis=1)
         timing = {"duration": p["duration"], "durations": p["durations"], "start_time": p["start_time"],
                   "dwell": p["dwell"]}
         try:
@@ -655,10 +757,13 @@ class Scenario:
         robot = robot or self.build_robot()
         q0 = self.q0(robot)
         c = dict(self.data["controller"])
+        c["task_weights"] = self.task_weights(robot)  # with the [[tasks]]' own
         margin = self.d_safe_margin(robot)
         designed = self.barrier_design(robot, margin=margin)  # once: the gains below take it too
         if designed is not None:
             c["barrier_k0"], c["barrier_k1"], c["d_influence"] = designed.k0, designed.k1, designed.d_influence
+        if c.get("braking_period") == 0:  # the braking-aware rows' period: the simulator's
+            c["braking_period"] = self.data["sim"]["dt"]
         if kind is not None:
             c["kind"] = kind
         if solver is not None:
@@ -671,7 +776,8 @@ class Scenario:
 
     def to_toml(self, **changes: dict[str, Any]) -> str:
         """The validated scenario as a TOML file that :meth:`load` reads back to the same ``data``:
-        every default filled in, relative paths (``robot.urdf``, ``sim.model``) made absolute, unset
+        every default filled in, relative paths (``robot.urdf``, ``.mjcf``, ``.capsules``, ``.srdf``,
+        ``sim.model``) made absolute, unset
         optional keys left out. ``changes`` replaces keys of a table, e.g. ``controller={"kind": "qp"}``
         for the law a run used (what ``qpctl simulate`` writes beside a run as ``scenario.toml``)."""
         import tomli_w
@@ -679,8 +785,9 @@ class Scenario:
         data = copy.deepcopy(self.data)
         for table, values in changes.items():
             data[table].update(values)
-        for table, key in (("robot", "urdf"), ("sim", "model")):
-            if data[table].get(key):
+        for table, key in (("robot", "urdf"), ("robot", "mjcf"), ("robot", "capsules"), ("robot", "srdf"),
+                           ("sim", "model")):
+            if data[table].get(key) and data[table][key] != "none":  # robot.srdf = "none": no SRDF
                 data[table][key] = str(self.resolve(data[table][key]).resolve())
         return tomli_w.dumps(_toml_value(data))
 

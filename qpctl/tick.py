@@ -33,6 +33,7 @@ from qpctl.geometry.frames import rotation_z_to
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels import codes
 from qpctl.kernels import tick as K
+from qpctl.kernels.lie import joint_angles
 from qpctl.kernels.work import FIELDS, new_tick_work
 from qpctl.law import LawGains, LawTerms
 from qpctl.paths import PosePath, Reference, WaypointPath
@@ -156,6 +157,7 @@ class QPSpec:
     self_barrier: tuple[float, float, float] | None = None  # k0, k1, d_safe of the self-collision rows
     task_weights: np.ndarray | None = None  # (m,) the task rows' weights (None: 1)
     row_kinds: list[str] | None = None  # one per row: its constraint's kind (Constraint.kind)
+    braking: Any = None  # the Braking of the braking-aware rows (qpctl.constraints.braking), or None
     field: FieldSpec | None = None  # the depth map's field rows
     # the constraints' shared slack columns (Constraint.slack), after the task's: (first row, the column's
     # entries in its rows, ℓ₁, ℓ₂), in both layouts
@@ -258,7 +260,12 @@ class Workspace:
         self.ee_joint = int(frame.parentJoint)
         self.ee_local = np.array(frame.placement.translation, float)
         self.ee_support = _supports(model, self.ee_joint)
-        self.axes = np.array(robot.task_axes, dtype=np.int64)
+        # every task frame (several arms: robot.task_frames), its rows along task_axes stacked in order
+        self.axes = np.tile(np.array(robot.task_axes, dtype=np.int64), len(robot.frames))
+        tk = [model.frames[f] for f in robot.task_frame_ids]
+        self.tk_joint = np.array([int(f.parentJoint) for f in tk], dtype=np.int64)
+        self.tk_local = np.array([f.placement.translation for f in tk], float).reshape(len(tk), 3)
+        self.tk_support = np.array([_supports(model, int(f.parentJoint)) for f in tk]).reshape(len(tk), n)
         self.ee_rot = robot.ee_rotation
         if robot.orientation == "pose":
             self.ori_rows = np.array(robot.orientation_axes, dtype=np.int64)
@@ -461,6 +468,12 @@ class Workspace:
             ip[codes.IP_JOINT_LIMITS] = 1
         if spec.self_barrier is not None:
             fp[codes.FP_SK0], fp[codes.FP_SK1], fp[codes.FP_SDS] = spec.self_barrier
+        if spec.braking is not None:  # the braking-aware rows (qpctl.kernels.braking)
+            b = spec.braking
+            ip[codes.IP_BRAKING] = 1
+            fp[codes.FP_BRK_SHARE], fp[codes.FP_BRK_MARGIN], fp[codes.FP_BRK_DT] = b.share, b.margin, b.dt
+            if spec.joint_limits is None:
+                self.qdd_max = np.asarray(b.qdd_max, float).copy()
         if spec.barrier is not None:
             cap, bk0, bk1, rigid = spec.barrier
             ip[codes.IP_CAPACITY] = cap
@@ -509,7 +522,8 @@ class Workspace:
         if not self.lie:
             return q
         self.q_config[:] = q
-        qa = self.robot.angles(q, out=self.q_angles)
+        r, qa = self.robot, self.q_angles
+        joint_angles(q, r._plain_q, r._plain_v, r._rot_q, r._rot_v, qa)  # RobotModel.angles, compiled
         if self.posture_config is not None:
             self.q_ref[:] = qa + pin.difference(self.model, q, self.posture_config)
         return qa

@@ -39,7 +39,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("formulation and solvers", ("qpctl.formulation", "qpctl.solvers", "qpctl.outcome", "qpctl.fallbacks",
                                  "qpctl.warmup")),
     ("controllers", ("qpctl.controllers",)),
-    ("simulation", ("qpctl.simulation", "qpctl.scenes")),
+    ("simulation", ("qpctl.simulation", "qpctl.scenes", "qpctl.safety")),  # safety: brakes rolled out in the simulator
     ("adapters", ("qpctl.adapters",)),
     ("scenario", ("qpctl.scenario",)),
     ("replay", ("qpctl.replay",)),

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from qpctl.scenario import OBSTACLE_SCHEMA, SCHEMA, Scenario
+from qpctl.scenario import ARRAYS, SCHEMA, Scenario
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -77,14 +77,14 @@ def test_every_scenario_key_is_documented():
     text = SCENARIO_REFERENCE
     missing = []
     for section, spec in SCHEMA.items():
-        if isinstance(spec, dict) and section != "obstacles":
+        if isinstance(spec, dict) and section not in ARRAYS:
             for key in spec:
                 if f"{section}.{key}" not in text and f"`.{key}`" not in text:
                     missing.append(f"{section}.{key}")
-        elif section == "obstacles":
-            for key in OBSTACLE_SCHEMA:
-                if f"obstacles[].{key}" not in text and f"`.{key}`" not in text:
-                    missing.append(f"obstacles[].{key}")
+        elif section in ARRAYS:  # [[obstacles]], [[tasks]]
+            for key in ARRAYS[section]:
+                if f"{section}[].{key}" not in text and f"`.{key}`" not in text:
+                    missing.append(f"{section}[].{key}")
         elif f"`{section}`" not in text:
             missing.append(section)
     assert not missing, missing

@@ -20,7 +20,7 @@ from qpctl.errors import ConfigError, UnknownSolverError
 from qpctl.geometry.shapes import SHAPES, Geom, Shape, register_shape
 from qpctl.law import LawGains
 from qpctl.run import simulate
-from qpctl.scenario import SCHEMA, Scenario
+from qpctl.scenario import ARRAYS, SCHEMA, Scenario
 from qpctl.solvers.base import FAST_PATH_SOLVERS, GenericSolver, make_solver
 from qpctl.state import TickState
 
@@ -171,7 +171,7 @@ def test_every_key_is_one_dataclass_field_and_its_default_is_the_fields():
     from qpctl.perception.config import PerceptionConfig
 
     tables["perception"] = (PerceptionConfig,)
-    assert sorted(tables) == sorted(k for k, v in SCHEMA.items() if isinstance(v, dict) and k != "obstacles")
+    assert sorted(tables) == sorted(k for k, v in SCHEMA.items() if isinstance(v, dict) and k not in ARRAYS)
     for table, classes in tables.items():
         fields = [f for c in classes for f in dataclasses.fields(c) if f.name != "obstacle_v_ref"]
         assert len(fields) == len({f.name for f in fields}) and sorted(f.name for f in fields) == sorted(SCHEMA[table])
@@ -182,6 +182,11 @@ def test_every_key_is_one_dataclass_field_and_its_default_is_the_fields():
     from qpctl.scenario import OBSTACLE_SCHEMA
 
     assert sorted(OBSTACLE_SCHEMA) == sorted([f.name for f in dataclasses.fields(Obstacle)] + ["area"])
+    from qpctl.paths import TaskConfig
+    from qpctl.scenario import TASK_SCHEMA
+
+    assert sorted(ARRAYS) == ["obstacles", "tasks"] and ARRAYS["tasks"] is TASK_SCHEMA
+    assert sorted(TASK_SCHEMA) == sorted(f.name for f in dataclasses.fields(TaskConfig))
     assert OBSTACLE_SCHEMA["axis"][1] == Obstacle("sphere", np.zeros(3), radius=1.0).axis.tolist()
 
 

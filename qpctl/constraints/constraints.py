@@ -24,6 +24,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from qpctl.constraints.braking import Braking
 from qpctl.errors import ConfigError
 from qpctl.law import LawTerms
 from qpctl.qp import Bounds, Inequality
@@ -132,7 +133,7 @@ class JointLimit(Constraint):
 
     def __init__(self, q_min: np.ndarray, q_max: np.ndarray, v_max: np.ndarray, *, k0: float = 100.0,
                  k1: float = 20.0, kv: float = 50.0, qdd_max: np.ndarray | float | None = None,
-                 angles: Callable[[np.ndarray], np.ndarray] | None = None) -> None:
+                 angles: Callable[[np.ndarray], np.ndarray] | None = None, braking: Braking | None = None) -> None:
         self.q_min, self.q_max, self.v_max = (np.asarray(a, float) for a in (q_min, q_max, v_max))
         # a configuration (nq) → one coordinate per degree of freedom (RobotModel.angles), where they
         # differ; the limits are on those coordinates (±inf on continuous and planar joints)
@@ -145,6 +146,7 @@ class JointLimit(Constraint):
         self.k0 = _positive("controller.joint_k0", k0)
         self.k1 = _positive("controller.joint_k1", k1)
         self.kv = _positive("controller.velocity_gain", kv)
+        self.braking = braking  # the bounds braking-aware too (qpctl.constraints.braking)
         # with every limit finite no ∞ − ∞ (NaN) can arise: skip the guard (it costs more than the rows)
         self._finite = bool(np.isfinite(np.concatenate([self.q_min, self.q_max, self.v_max])).all())
 
@@ -156,6 +158,8 @@ class JointLimit(Constraint):
         if not self._finite:
             lo = np.where(np.isnan(lo), -np.inf, lo)
             hi = np.where(np.isnan(hi), np.inf, hi)
+        if self.braking is not None:
+            lo, hi = self.braking.joint_limits(q, v, self.q_min, self.q_max, state.M, state.N, lo, hi)
         cross = lo > hi
         if cross.any():
             mid = 0.5 * (lo + hi)
@@ -180,7 +184,7 @@ class ObstacleBarrier(Constraint):
     kind = BARRIER
 
     def __init__(self, capacity: int, d_safe: float, *, k0: float = 400.0, k1: float = 40.0,
-                 drift: str = "exact") -> None:
+                 drift: str = "exact", braking: Braking | None = None, d_influence: float = np.inf) -> None:
         if drift not in ("exact", "rigid"):
             raise ConfigError(f"must be exact or rigid, got {drift!r}", key="controller.barrier_drift")
         self.drift = drift
@@ -190,6 +194,9 @@ class ObstacleBarrier(Constraint):
         self.d_safe = float(d_safe)
         self.k0 = _positive("controller.barrier_k0", k0)
         self.k1 = _positive("controller.barrier_k1", k1)
+        # braking-aware rows (qpctl.constraints.braking); the pairs beyond d_influence [m] (found within
+        # the braking cutoff) then get only the braking bound
+        self.braking, self.d_influence = braking, float(d_influence)
         self._empty: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (C, lower, upper) of no pair
 
     def compute(self, state: TickState, terms: LawTerms) -> Inequality:
@@ -206,12 +213,19 @@ class ObstacleBarrier(Constraint):
         Jp = state.pair_jac[order]  # (r, 3, n)
         rows = np.einsum("ri,rin->rn", nrm, Jp)
         h = pairs.distance[order] - self.d_safe
-        hdot = rows @ state.v - np.einsum("ri,ri->r", nrm, pairs.v_obstacle[order])
+        nvo = np.einsum("ri,ri->r", nrm, pairs.v_obstacle[order])
+        hdot = rows @ state.v - nvo
         if self.drift == "exact":
             drift = state.barrier_drift()[order]
         else:
             drift = np.einsum("ri,ri->r", nrm, state.pair_drift[order] - pairs.a_obstacle[order])
         rhs = -self.k1 * hdot - self.k0 * h - drift
+        if self.braking is not None:
+            d = pairs.distance[order]
+            rhs = np.where(d < self.d_influence, rhs, -np.inf)
+            for i in range(order.size):
+                rhs[i] = max(rhs[i], self.braking.barrier_lower(rows[i], float(d[i]), self.d_safe, float(nvo[i]),
+                                                                float(drift[i]), state.v, state.M, state.N))
         r = order.size
         C[:r] = rows
         lower[:r] = rhs

@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from qpctl.config import check_fields, setting
+from qpctl.constraints.braking import Braking
 from qpctl.constraints.constraints import (
     Constraint,
     JointLimit,
@@ -135,6 +136,13 @@ class QPConfig:
     self_collision: keep the arm's own links ``self_d_safe`` [m] apart (a SelfCollisionBarrier on
     the pairs :func:`qpctl.geometry.self_collision.self_collision_pairs` keeps, or on
     ``self_collision_pairs``, pairs of link names), with the obstacle barrier's gains.
+    braking: braking-aware obstacle and joint-limit rows (issue 22; :mod:`qpctl.kernels.braking`):
+    ``"on"``, ``"off"`` (the default: measured, they do not yet lower the soak's collisions,
+    docs/reliability.md) or ``"auto"`` (on where the robot has a finite torque-rate limit and torque
+    limits); braking_share (0, 1]: the share of the drives' means at a point the brake is assumed to
+    have; braking_margin [m]: kept at rest beyond d_safe; braking_period [s]: the control period
+    (0: the scenario's sim.dt, 1 ms for a controller built in code); braking_reach [m]: pairs are
+    found this far beyond d_influence (they have only the braking bound there).
     """
 
     solver: str = DEFAULT_SOLVER
@@ -161,6 +169,11 @@ class QPConfig:
     self_collision: bool = True
     self_d_safe: float = 0.02
     self_collision_pairs: list[list[str]] | None = None
+    braking: str = setting("off", choices=("auto", "on", "off"))
+    braking_share: float = setting(0.5, valid="positive", unit="1")
+    braking_margin: float = setting(0.0, valid="nonnegative", unit="m")
+    braking_period: float = setting(0.0, valid="nonnegative", unit="s")
+    braking_reach: float = setting(0.5, valid="nonnegative", unit="m")
 
     def __post_init__(self) -> None:
         if isinstance(self.fallback, str) or not all(isinstance(x, str) for x in self.fallback):
@@ -176,6 +189,22 @@ class QPConfig:
         return cls(**{k: v for k, v in cfg.items() if k in keys})
 
 
+
+
+def braking_model(cfg: QPConfig, robot: RobotModel) -> Braking | None:
+    """The brake the braking-aware rows assume (``controller.braking``), or None where they are off."""
+    rate = np.broadcast_to(np.asarray(robot.tau_rate_max, float), (robot.nv,))
+    limited = bool(np.all(np.isfinite(robot.tau_max)) and np.any(np.isfinite(rate)))
+    if cfg.braking == "off" or (cfg.braking == "auto" and not (limited and cfg.torque_limits)):
+        return None
+    if not (cfg.torque_limits and np.all(np.isfinite(robot.tau_max))):
+        raise ConfigError("braking-aware rows need the torque limits (robot.tau_max finite, "
+                          "controller.torque_limits = true)", key="controller.braking")
+    if cfg.braking_share > 1:
+        raise ConfigError(f"must be in (0, 1], got {cfg.braking_share}", key="controller.braking_share")
+    qdd = np.broadcast_to(np.asarray(robot.qdd_max, float), (robot.nv,))
+    return Braking(np.asarray(robot.tau_max, float).copy(), rate.copy(), qdd.copy(), cfg.braking_share,
+                   cfg.braking_margin, cfg.braking_period or 1e-3)
 
 
 class QPController(Controller):
@@ -194,18 +223,28 @@ class QPController(Controller):
         self._solver_soft = make_solver(cfg.solver, cfg.solver_settings)  # with its slack
         self._failures = Failures(cfg.fallback, strict, self._torque_limit)
         self._tick_start: float | None = None
+        self.braking = braking_model(cfg, robot)
+        if self.braking is not None:  # pairs found within the braking reach beyond d_influence
+            self.dynamics.cutoff = self.cutoff
         self.tasks: list[Task] = list(tasks) if tasks is not None else self._default_tasks()
         self.constraints: list[Constraint] = (list(constraints) if constraints is not None
                                               else self._default_constraints())
         selfc = next((c for c in self.constraints if isinstance(c, SelfCollisionBarrier)), None)
         if selfc is not None:  # the Python path's states carry these pairs' distances
-            selfc.cutoff = min(self.cutoff, selfc.d_safe + selfc.REACH)
+            selfc.cutoff = min(self.gains.d_influence, selfc.d_safe + selfc.REACH)
             self.dynamics.self_pairs, self.dynamics.self_cutoff = selfc.pairs, selfc.cutoff
         self._formulation: Formulation | None = None
         self._path: CompiledTick | ReferenceTick | None = None  # the tick's path (qp_path), chosen for
         self._path_ws: Workspace | None = None  # this workspace
         self._reference: ReferenceTick | None = None
         self._last_from: CompiledTick | ReferenceTick | None = None  # the path of the last tick
+
+    @property
+    def cutoff(self) -> float:
+        """Distance [m] beyond which link–obstacle pairs are not queried: d_influence, plus
+        ``braking_reach`` where the rows are braking-aware."""
+        braking = getattr(self, "braking", None)
+        return self.gains.d_influence + (self.config.braking_reach if braking is not None else 0.0)
 
     def _default_tasks(self) -> list[Task]:
         cfg, robot = self.config, self.robot
@@ -226,11 +265,12 @@ class QPController(Controller):
         if cfg.joint_limits and np.any(finite):
             constraints.append(JointLimit(robot.q_min, robot.q_max, robot.v_max, k0=cfg.joint_k0, k1=cfg.joint_k1,
                                           kv=cfg.velocity_gain, qdd_max=robot.qdd_max,
-                                          angles=robot.angles if robot.lie else None))
+                                          angles=robot.angles if robot.lie else None, braking=self.braking))
         if self.obstacles:
             cap = cfg.max_pairs or len(robot.capsules) * min(len(self.obstacles), 4)
             constraints.append(ObstacleBarrier(cap, self.gains.d_safe, k0=cfg.barrier_k0, k1=cfg.barrier_k1,
-                                               drift=cfg.barrier_drift))
+                                               drift=cfg.barrier_drift, braking=self.braking,
+                                               d_influence=self.gains.d_influence))
         if cfg.self_collision:
             pairs = (named_pairs(robot, cfg.self_collision_pairs) if cfg.self_collision_pairs is not None
                      else self_collision_pairs(robot, cfg.self_d_safe))
@@ -318,7 +358,7 @@ class QPController(Controller):
         spec = compiled_spec(self.tasks, self.constraints, self.robot.nq)
         selfc = next((c for c in self.constraints if isinstance(c, SelfCollisionBarrier)), None)
         if selfc is not None:
-            selfc.cutoff = min(self.cutoff, selfc.d_safe + selfc.REACH)
+            selfc.cutoff = min(self.gains.d_influence, selfc.d_safe + selfc.REACH)
         return Workspace(self.robot, self.obstacles, self.path, self.gains, self.cutoff, spec=spec,
                          broadphase=self.broadphase, barrier_drift=spec is None,
                          self_pairs=selfc.pairs if selfc is not None else (),

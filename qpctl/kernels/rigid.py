@@ -1,4 +1,5 @@
-"""Stage 1 of the tick, the rigid-body terms: M, N, the task point's x, ẋ, J, J̇q̇ and the link
+"""Stage 1 of the tick, the rigid-body terms: M, N, the task points' x, ẋ, J, J̇q̇ (one per task
+frame, rows stacked) and the link
 capsules' world geometry, read from Pinocchio's arrays after ``computeAllTerms``.
 
 Pinocchio's data are bound once as numpy views (:func:`qpctl.tick.bind_pinocchio`): the joint
@@ -83,32 +84,35 @@ def rigid_terms(ws, v: np.ndarray) -> bool:  # type: ignore[no-untyped-def]
     vel = np.empty(6)
     p = np.empty(3)
     J3 = np.empty((3, n))
-    # task point
-    support = ws.ee_support
-    world_point(ws, ws.ee_joint, ws.ee_local, p)
-    point_jacobian(ws, support, p, J3)
-    for r in range(6):
-        s = 0.0
-        for k in range(n):
-            s += Jt[k, r] * support[k] * v[k]
-        vel[r] = s
-    _world_acceleration(ws, ws.ee_joint, acc)
-    a3 = np.empty(3)
-    _classical_acceleration(vel, acc, p, a3)
+    # task points: one per task frame (tk_*; the first is ee_*), their rows stacked in ws.axes' order
     axes, x, drift, J, xdot = ws.axes, ws.x, ws.drift, ws.J, ws.xdot
-    for r in range(axes.shape[0]):
-        ax = axes[r]
-        x[r] = p[ax]
-        drift[r] = a3[ax]
-        s = 0.0
-        for k in range(n):
-            J[r, k] = J3[ax, k]
-            s += J3[ax, k] * v[k]
-        xdot[r] = s
-    if ws.ori_rows.shape[0]:  # the frame's R, ω, α₀ for the orientation rows (orientation_reference)
-        _frame_rotation(ws)
-        for c in range(3):
-            ws.ee_w[c], ws.ee_w[3 + c] = vel[3 + c], acc[3 + c]
+    a3 = np.empty(3)
+    frames = ws.tk_joint.shape[0]
+    per = axes.shape[0] // frames
+    for tk in range(frames):
+        support = ws.tk_support[tk]
+        world_point(ws, ws.tk_joint[tk], ws.tk_local[tk], p)
+        point_jacobian(ws, support, p, J3)
+        for r in range(6):
+            s = 0.0
+            for k in range(n):
+                s += Jt[k, r] * support[k] * v[k]
+            vel[r] = s
+        _world_acceleration(ws, ws.tk_joint[tk], acc)
+        _classical_acceleration(vel, acc, p, a3)
+        for r in range(tk * per, (tk + 1) * per):
+            ax = axes[r]
+            x[r] = p[ax]
+            drift[r] = a3[ax]
+            s = 0.0
+            for k in range(n):
+                J[r, k] = J3[ax, k]
+                s += J3[ax, k] * v[k]
+            xdot[r] = s
+        if tk == 0 and ws.ori_rows.shape[0]:  # the frame's R, ω, α₀ for the orientation rows
+            _frame_rotation(ws)
+            for c in range(3):
+                ws.ee_w[c], ws.ee_w[3 + c] = vel[3 + c], acc[3 + c]
     # capsules
     cap_joint, cap_local, cap_support = ws.cap_joint, ws.cap_local, ws.cap_support
     segments, body_jac, body_vel = ws.segments, ws.body_jac, ws.body_vel

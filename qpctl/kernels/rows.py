@@ -20,6 +20,7 @@ import math
 import numpy as np
 from numba import njit
 
+from qpctl.kernels.braking import barrier_bound, joint_bounds_braking
 from qpctl.kernels.codes import (
     CNT_DROPPED,
     CNT_PAIRS,
@@ -27,6 +28,7 @@ from qpctl.kernels.codes import (
     FP_BK1,
     FP_DAMP,
     FP_DAMP_KD,
+    FP_DI,
     FP_DS,
     FP_JK0,
     FP_JK1,
@@ -41,6 +43,7 @@ from qpctl.kernels.codes import (
     FP_WACC,
     FP_WPOST,
     IP_BARRIER_ROW0,
+    IP_BRAKING,
     IP_CAPACITY,
     IP_DAMPING,
     IP_DRIFT_RIGID,
@@ -57,10 +60,13 @@ from qpctl.kernels.field_rows import field_rows
 @njit(cache=True)
 def joint_bounds(ws, lo: np.ndarray, hi: np.ndarray) -> None:  # type: ignore[no-untyped-def]
     """JointLimit's bounds on q̈ [rad/s²]: ḧ + k₁ḣ + k₀h ≥ 0 on the positions, ḣ + k_v h ≥ 0 on the
-    speeds; ∞ − ∞ (NaN) counts as no bound; crossed bounds both become their mean. Then within
+    speeds; ∞ − ∞ (NaN) counts as no bound; braking-aware, each tightened so that the next state can
+    still stop before the limit (IP_BRAKING, :mod:`qpctl.kernels.braking`); crossed bounds both become
+    their mean. Then within
     ±q̈_max, the drive's acceleration limit; where the position or speed barrier asks for more than
     that, both bounds become the limit on that side (the most the drive may do)."""
     k0, k1, kv = ws.fpar[FP_JK0], ws.fpar[FP_JK1], ws.fpar[FP_JKV]
+    braking = ws.ipar[IP_BRAKING] != 0
     for i in range(lo.shape[0]):
         q, v = ws.q[i], ws.v[i]
         low = max(-k1 * v - k0 * (q - ws.q_min[i]), -kv * (ws.v_max[i] + v))
@@ -69,6 +75,8 @@ def joint_bounds(ws, lo: np.ndarray, hi: np.ndarray) -> None:  # type: ignore[no
             low = -np.inf
         if math.isnan(high):
             high = np.inf
+        if braking:  # the next state able to stop before the limit (qpctl.kernels.braking)
+            low, high = joint_bounds_braking(ws, i, low, high)
         if low > high:
             low = high = 0.5 * (low + high)
         a = ws.qdd_max[i]
@@ -168,7 +176,9 @@ def qp_build(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray,
 @njit(cache=True)
 def barrier_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no-untyped-def]
     """nᵀJ_p q̈ ≥ −k₁ḣ − k₀h − drift for the nearest pairs, as many as there are rows (the rest
-    inactive: zero rows, −∞ bounds); h = d − d_s, ḣ = nᵀ(J_p q̇ − v_obs)."""
+    inactive: zero rows, −∞ bounds); h = d − d_s, ḣ = nᵀ(J_p q̇ − v_obs). Braking-aware (IP_BRAKING),
+    each bound is raised to the braking bound where that is higher (:mod:`qpctl.kernels.braking`;
+    ws.w1 is its scratch), and the pairs beyond d_i (found within the braking cutoff) have only it."""
     n = ws.N.shape[0]
     k = ws.cnt[CNT_PAIRS]
     cap = C.shape[0]
@@ -177,6 +187,7 @@ def barrier_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[
     ws.cnt[CNT_DROPPED] = k - used
     k0, k1, ds = ws.fpar[FP_BK0], ws.fpar[FP_BK1], ws.fpar[FP_DS]
     rigid = ws.ipar[IP_DRIFT_RIGID] != 0
+    braking, di = ws.ipar[IP_BRAKING] != 0, ws.fpar[FP_DI]
     for r in range(used):
         p = order[r]
         ws.order[r] = p
@@ -196,7 +207,13 @@ def barrier_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[
             drift = nx * (dr[0] - ao[0]) + ny * (dr[1] - ao[1]) + nz * (dr[2] - ao[2])
         else:
             drift = ws.pr_bdrift[p]
-        lower[r] = -k1 * hdot - k0 * (ws.pr_d[p] - ds) - drift
+        if not braking:
+            lower[r] = -k1 * hdot - k0 * (ws.pr_d[p] - ds) - drift
+            continue
+        # braking-aware (qpctl.kernels.braking): the pairs found beyond d_i have only the braking bound
+        low = -k1 * hdot - k0 * (ws.pr_d[p] - ds) - drift if ws.pr_d[p] < di else -np.inf
+        lower[r] = max(low, barrier_bound(ws, C[r], ws.pr_d[p], ds, nx * vo[0] + ny * vo[1] + nz * vo[2], drift,
+                                          ws.w1))
     for r in range(used, cap):
         for c in range(n):
             C[r, c] = 0.0

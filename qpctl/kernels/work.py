@@ -16,6 +16,7 @@ from __future__ import annotations
 from numba import njit
 from numba.core import types
 from numba.experimental import structref
+from numba.extending import typeof_impl
 
 
 @structref.register
@@ -43,7 +44,10 @@ FIELDS = (
     "ee_joint",  # int: the task frame's parent joint
     "ee_local",  # (3,) task point in that joint's frame [m]
     "ee_support",  # (n,)
-    "axes",  # (m_p,) int: the world axes of the task's position rows
+    "axes",  # (m_p,) int: the world axes of the task's position rows (task_axes once per task frame)
+    "tk_joint",  # (F,) int: each task frame's parent joint (the first: ee_joint)
+    "tk_local",  # (F, 3) its task point in that joint's frame [m]
+    "tk_support",  # (F, n) 1 where joint k moves it
     "ee_rot",  # (3, 3) the task frame's rotation in its parent joint's frame
     "ori_rows",  # (m_o,) int: the orientation rows after the position rows, 0–2 a pose's world axis,
     #              3–4 an approach's row k = 1, 2 (qpctl.orientation)
@@ -171,6 +175,13 @@ def _make_proxy() -> None:
 
 
 _make_proxy()
+
+
+@typeof_impl.register(TickWork)
+def _typeof(val: TickWork, c: object) -> types.Type:
+    """Its numba type, directly: numba's generic typeof first tries the object as a buffer, an
+    exception on every kernel call (~1 µs of the dispatch, and allocations tracemalloc sees)."""
+    return val._numba_type_
 
 
 @njit(cache=True)

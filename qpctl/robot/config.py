@@ -17,7 +17,8 @@ class RobotConfig:
     mass [kg]: the planar arm's links (uniform thin rods); radius [m]: the link capsules' radius (planar
     arm; URDF links). gravity [m/s²]: a 3-vector. urdf (kind = "urdf") or mjcf (kind = "mjcf"): the
     robot file (relative to the scenario's folder, or package://example-robot-data/robots/...) and
-    ee_frame: the task frame. capsules: a capsules file (``qpctl fit-capsules``) replacing the link
+    ee_frame: the task frame. locked_joints: joints of the URDF held at their neutral position (a
+    Baxter's head and grippers: Pinocchio's reduced model). capsules: a capsules file (``qpctl fit-capsules``) replacing the link
     capsules. srdf: the SRDF whose disabled pairs the self-collision pairs leave out ("": the one beside
     the URDF, if any, when the capsules name their links; "none": no SRDF). task_axes: the
     world axes the task point tracks. q0 [rad]: the start. tau_max [N·m], v_max [rad/s], tau_rate_max
@@ -34,6 +35,7 @@ class RobotConfig:
     urdf: str = ""
     mjcf: str = ""
     ee_frame: str = ""
+    locked_joints: list[str] | None = None
     capsules: str = ""
     srdf: str = ""
     task_axes: list[str] | None = None

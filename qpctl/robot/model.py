@@ -109,10 +109,20 @@ class RobotModel:
     mjcf: Path | None = None  # the MJCF it was read from (MuJoCo runs it), if any
     srdf: Path | None = None  # the SRDF whose disabled pairs the self-collision pairs leave out, if any
     disabled_pairs: frozenset[frozenset[str]] | None = None  # its <disable_collisions> link pairs
+    # more task frames after ee_frame (several arms on one torso): each adds its position rows along
+    # task_axes, stacked in this order after ee_frame's; the orientation rows stay ee_frame's
+    task_frames: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         self._joint_maps()
         self.ee_frame_id = self.frame_id(self.ee_frame)
+        self.task_frames = tuple(self.task_frames)
+        seen = {self.ee_frame}
+        for name in self.task_frames:
+            if name in seen:
+                raise ConfigError(f"two tasks on frame {name!r}: give each task frame once", key="tasks")
+            seen.add(name)
+        self.task_frame_ids = [self.ee_frame_id] + [self.frame_id(f) for f in self.task_frames]
         if not self.joint_names:
             self.joint_names = [self.model.names[i] for i in range(1, self.model.njoints)]
         for name in ("tau_rate_max", "qdd_max"):
@@ -254,13 +264,32 @@ class RobotModel:
 
     @property
     def m(self) -> int:
-        """Task rows: the position's (2 planar, 3 spatial), then the orientation's (0, 2 or 3)."""
-        return len(self.task_axes) + self.m_orientation
+        """Task rows: the position's (2 planar, 3 spatial, per task frame), then the orientation's (0, 2 or 3)."""
+        return self.m_position + self.m_orientation
 
     @property
     def m_position(self) -> int:
-        """The task's position rows (the coordinates of a path's points)."""
-        return len(self.task_axes)
+        """The task's position rows (the coordinates of a path's points): ``task_axes`` per task frame."""
+        return len(self.task_axes) * (1 + len(self.task_frames))
+
+    @property
+    def frames(self) -> tuple[str, ...]:
+        """The task frames: ``ee_frame``, then ``task_frames``."""
+        return (self.ee_frame, *self.task_frames)
+
+    def task_positions(self, data: pin.Data) -> np.ndarray:
+        """(m_position,) the task frames' positions along ``task_axes`` [m], stacked, from ``data``
+        after ``framesForwardKinematics``."""
+        axes = list(self.task_axes)
+        return np.concatenate([data.oMf[f].translation[axes] for f in self.task_frame_ids])
+
+    def with_task_frames(self, frames: Sequence[str]) -> RobotModel:
+        """A copy whose tasks are on ``frames`` (the first becomes ``ee_frame``); an unknown frame is an
+        :class:`UnknownFrameError`, a frame given twice a :class:`ConfigError` naming ``tasks``."""
+        if not frames:
+            raise ConfigError("needs at least one task", key="tasks")
+        return replace(self, ee_frame=frames[0], task_frames=tuple(frames[1:]), capsules=list(self.capsules),
+                       joint_names=list(self.joint_names))
 
     @property
     def m_orientation(self) -> int:

@@ -182,7 +182,7 @@ def record_run(sim: SimulatorBase) -> Trajectory:
     world = sim.world
     if sim.faulty:  # the task point's true position (kinematics only)
         kin = robot.model.createData()
-        ee, axes, m_p = robot.ee_frame_id, list(robot.task_axes), robot.m_position
+        m_p = robot.m_position
     if ctrl.warm:  # kernels loaded, workspace built, solver set up: not in the first tick
         ctrl.reset()
     else:
@@ -208,7 +208,7 @@ def record_run(sim: SimulatorBase) -> Trajectory:
         if sim.faulty:
             rec["tau_command"][k] = out.tau
             pin.framesForwardKinematics(robot.model, kin, q)
-            rec["x"][k, :m_p] = kin.oMf[ee].translation[axes]
+            rec["x"][k, :m_p] = robot.task_positions(kin)
         rec["x_ref"][k], rec["xd_ref"][k] = out.ref.x, out.ref.xd
         rec["xdd_ref"][k] = out.ref.xdd
         clear[k] = world(q, t)

@@ -14,8 +14,22 @@ def _finite_or_none(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
 
 
-def compute_metrics(traj: Trajectory, *, d_safe: float = 0.0) -> dict[str, Any]:
-    """Tracking [m], torque [N·m] and torque rate [N·m/s], clearance [m], compute time [µs], QP stats."""
+#: An arm is at rest when every joint speed is at most this [rad/s] (qpctl.safety.oracle's REST_SPEED).
+REST_SPEED = 1e-2
+
+
+def collisions_at_rest(traj: Trajectory) -> int:
+    """How many contacts (the clearance crossing below 0) began with every joint speed ≤ REST_SPEED
+    [rad/s] (issue 22, item 4: a moving obstacle catching a stopped arm; a stop cannot avoid it)."""
+    inside = traj.clearance < 0.0
+    onsets = np.flatnonzero(inside & ~np.concatenate([[False], inside[:-1]]))
+    return int(sum(bool(np.all(np.abs(traj.v[k]) <= REST_SPEED)) for k in onsets))
+
+
+def compute_metrics(traj: Trajectory, *, d_safe: float = 0.0, frames: int = 1) -> dict[str, Any]:
+    """Tracking [m], torque [N·m] and torque rate [N·m/s], clearance [m], compute time [µs], QP stats.
+    With several task frames (``frames``, their position rows stacked in x) the tracking errors are
+    over all of them, and ``max_tracking_error_per_task``, ``final_tracking_error_per_task`` give each's."""
     err = np.linalg.norm(traj.x_ref - traj.x, axis=1)
     dt = float(np.median(np.diff(traj.t))) if traj.t.size > 1 else 1.0
     rate = np.abs(np.diff(traj.tau, axis=0)) / dt if traj.t.size > 1 else np.zeros((1, traj.tau.shape[1]))
@@ -31,6 +45,8 @@ def compute_metrics(traj: Trajectory, *, d_safe: float = 0.0) -> dict[str, Any]:
         "max_abs_torque_rate_per_joint": np.max(rate, axis=0).tolist(),
         "min_clearance": _finite_or_none(min_clear),
         "collided": bool(min_clear < 0.0),
+        # contacts that began with the arm at rest: an obstacle caught a stopped arm, which no brake avoids
+        "collisions_at_rest": collisions_at_rest(traj),
         "safety_violated": bool(min_clear < d_safe - 1e-9),
         "final_null_space_error": float(np.linalg.norm(traj.e_null[-1])),
         "singular_ticks": int(np.count_nonzero(traj.singular)),
@@ -40,6 +56,10 @@ def compute_metrics(traj: Trajectory, *, d_safe: float = 0.0) -> dict[str, Any]:
         "duration_s": float(traj.t[-1]),
         "ticks": int(traj.t.size),
     }
+    if frames > 1:  # each task frame's own position rows (the orientation rows are not in x)
+        per = np.linalg.norm((traj.x_ref - traj.x).reshape(len(traj.t), frames, -1), axis=2)
+        out["max_tracking_error_per_task"] = per.max(axis=0).tolist()
+        out["final_tracking_error_per_task"] = per[-1].tolist()
     if traj.self_clearance is not None:  # between the arm's own links (qpctl.geometry.self_collision's pairs)
         out["min_self_clearance"] = _finite_or_none(float(np.min(traj.self_clearance)))
     if traj.orientation_error_deg is not None:  # an orientation task (pose: the whole rotation; approach: the axis)

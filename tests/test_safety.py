@@ -1,0 +1,166 @@
+"""The brake family, the oracle and the verified backup (qpctl.safety, issue 22 items 2 and 3).
+
+References: a rollout integrated here (RK4 on Pinocchio's ABA written out, the torque held over each
+step, the clearance by python-fcl on capsules posed here), and a bound on the deceleration the drives
+allow for a state the oracle must not certify."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pinocchio as pin
+import pytest
+
+from qpctl import LawGains, Obstacle, WaypointPath, planar_arm
+from qpctl.controllers.qp import QPConfig, QPController
+from qpctl.geometry.distance import DistanceEngine
+from qpctl.safety import BackupGuard, certify, rollout
+from qpctl.safety.oracle import REST_SPEED, REST_TIME, brake_torque
+from qpctl.simulation import Simulator
+
+DT = 2e-3
+
+
+def arm(rate: float = 3000.0):
+    return planar_arm(tau_max=1500.0).with_limits(tau_rate_max=rate)
+
+
+def controller(obstacles: list[Obstacle], rate: float = 3000.0) -> QPController:
+    path = WaypointPath([[-1.0, -2.0], [1.0, -1.5]], duration=2.0)
+    return QPController(arm(rate), path, obstacles, LawGains(d_influence=0.3, d_safe=0.05), QPConfig())
+
+
+def reference_rollout(robot, obstacles, q, v, tau_prev, gain, steps):
+    """Least clearance [m] and time to rest of the brake, integrated here."""
+    model, data = robot.model, robot.model.createData()
+    engine = DistanceEngine([c.radius for c in robot.capsules], obstacles, broadphase=False)
+    tau, worst, still = np.asarray(tau_prev, float), np.inf, 0.0
+    for k in range(steps):
+        pin.forwardKinematics(model, data, q)
+        seg = np.array([[data.oMi[c.joint_id].act(c.p0), data.oMi[c.joint_id].act(c.p1)] for c in robot.capsules])
+        engine.update(seg, 0.0)
+        worst = min(worst, engine.min_distance())
+        still = still + DT if np.all(np.abs(v) <= REST_SPEED) else 0.0
+        if still >= REST_TIME:
+            return worst, k * DT
+        tau = brake_torque(robot, data, q, v, tau, gain, DT)
+
+        def f(qq, vv, tau=tau):
+            return pin.aba(model, data, qq, vv, tau)
+
+        k1q, k1v = v, f(q, v)
+        k2q, k2v = v + DT / 2 * k1v, f(q + DT / 2 * k1q, v + DT / 2 * k1v)
+        k3q, k3v = v + DT / 2 * k2v, f(q + DT / 2 * k2q, v + DT / 2 * k2v)
+        k4q, k4v = v + DT * k3v, f(q + DT * k3q, v + DT * k3v)
+        q, v = q + DT / 6 * (k1q + 2 * k2q + 2 * k3q + k4q), v + DT / 6 * (k1v + 2 * k2v + 2 * k3v + k4v)
+    return worst, np.inf
+
+
+def test_rollout_equals_an_independent_integration():
+    """From a moving state near a box, the oracle's rollout (the built-in simulator) and the one
+    integrated here agree on the least clearance (1e-6 m: the simulator's closed-form box against
+    python-fcl's GJK) and the time to rest (exactly, in steps)."""
+    obstacles = [Obstacle("box", [-0.4, -1.3], size=[0.2, 0.2, 0.2])]
+    ctrl = controller(obstacles)
+    q, v = np.array([np.pi, np.pi / 2, 0.0]), np.array([0.8, -0.5, 1.0])
+    tau_prev = pin.computeGeneralizedGravity(ctrl.robot.model, ctrl.robot.model.createData(), q)
+    sim = Simulator(ctrl, dt=DT, duration=DT)
+    for gain in (25.0,):
+        c = rollout(sim, q, v, tau_prev, 0.0, gain, horizon=3.0)
+        worst, t_rest = reference_rollout(ctrl.robot, obstacles, q.copy(), v.copy(), tau_prev, gain, 1500)
+        assert c.min_clearance == pytest.approx(worst, abs=1e-6)
+        assert c.t_rest == pytest.approx(t_rest, abs=1e-12)
+        assert np.isfinite(c.t_rest)
+
+
+def test_oracle_certifies_rest_and_refuses_what_no_drive_can_stop():
+    """At rest 0.5 m from a sphere: certified (a brake, at rest, clearance kept). A link tip 2 cm from a
+    sphere closing at 8 m/s: to stop within 2 cm needs 1600 m/s², more than the drives give that point
+    along x (Σ|nᵀJ M⁻¹|ᵢ(τ_max − |gᵢ|), computed here), so no brake that keeps the tip's course stops in
+    time: not certified, every brake of the family collides."""
+    robot = arm()
+    q = np.array([np.pi, np.pi / 2, 0.0])
+    data = robot.model.createData()
+    pin.forwardKinematics(robot.model, data, q)
+    tip = data.oMi[3].act(robot.capsules[2].p1)  # link 3's far end, (−1, −2)
+    far = controller([Obstacle("sphere", tip[:2] + [0.5 + 0.05 + 0.1, 0.0], radius=0.1)])
+    c = certify(far, q, np.zeros(3), np.full(3, np.nan), 0.0, DT)
+    assert c.viable and c.min_clearance > 0.4
+    # closing on a sphere just beyond the tip along −x: the tip moves along −x when joint 1 turns
+    pin.computeJointJacobians(robot.model, data, q)
+    J = pin.getFrameJacobian(robot.model, data, robot.ee_frame_id, pin.LOCAL_WORLD_ALIGNED)[:2]
+    v = np.linalg.lstsq(J, np.array([-8.0, 0.0]), rcond=None)[0]
+    near = controller([Obstacle("sphere", tip[:2] + [-(0.05 + 0.02 + 0.1), 0.0], radius=0.1)])
+    M = pin.crba(robot.model, data, q)
+    M = np.triu(M) + np.triu(M, 1).T
+    g = pin.computeGeneralizedGravity(robot.model, data, q)
+    row = np.array([1.0, 0.0]) @ J @ np.linalg.inv(M)
+    assert float(np.abs(row) @ (robot.tau_max - np.abs(g))) < 8.0**2 / (2 * 0.02)
+    c = certify(near, q, v, np.full(3, np.nan), 0.0, DT)
+    assert not c.viable and c.min_clearance < 0
+
+
+class Pusher:
+    """A stand-in controller: holds gravity, then (from ``t_push``) pushes joint 1 as hard as it may."""
+
+    def __init__(self, inner: QPController, t_push: float) -> None:
+        self.inner, self.t_push = inner, t_push
+        self.robot, self.obstacles = inner.robot, inner.obstacles
+
+    def reset(self) -> None:
+        pass
+
+    def warmup(self) -> float:
+        return 0.0
+
+    def step(self, q, v, t):
+        data = self.robot.model.createData()
+        tau = pin.computeGeneralizedGravity(self.robot.model, data, q)
+        if t >= self.t_push:
+            tau = tau + np.array([-self.robot.tau_max[0], 0.0, 0.0])
+
+        return SimpleNamespace(tau=tau, info={})
+
+
+def test_backup_guard_applies_the_stored_brake_when_the_proposal_cannot_stop():
+    """A stand-in controller holds the arm, then pushes it into an obstacle: the held ticks are verified
+    and applied as proposed; once the push's successor has no verified brake, the guard applies the
+    stored brake's torque (from the state and the torque applied last) and says so."""
+    robot = arm()
+    q = np.array([np.pi, np.pi / 2, 0.0])
+    data = robot.model.createData()
+    pin.forwardKinematics(robot.model, data, q)
+    tip = data.oMi[3].act(robot.capsules[2].p1)
+    inner = controller([Obstacle("sphere", tip[:2] + [-(0.05 + 0.04 + 0.1), 0.0], radius=0.1)])
+    guard = BackupGuard(Pusher(inner, t_push=2 * DT), dt=DT)  # type: ignore[arg-type]
+    guard._limit = None  # the stand-in has no torque limit to tell
+    v, tau_prev = np.zeros(3), np.full(3, np.nan)
+    for k in range(2):
+        out = guard.step(q, v, k * DT)
+        assert "backup" not in out.info and guard._gain is not None
+        tau_prev = out.tau
+    out = guard.step(q, v, 2 * DT)
+    assert out.info.get("backup") == guard._gain
+    want = brake_torque(robot, data, q, v, tau_prev, guard._gain, DT)
+    assert np.array_equal(out.tau, want)
+    assert guard.stats == {**guard.stats, "checked": 3, "backup": 1}
+
+
+def test_collisions_at_rest_counts_the_contacts_a_stop_cannot_avoid():
+    """Issue 22, item 4, in the metrics: a run whose clearance crosses below 0 three times — with the
+    arm at rest, moving, at rest again but only barely moving (0.5 rad/s on one joint) — counts one
+    contact at rest."""
+    from qpctl.simulation.metrics import compute_metrics
+    from qpctl.simulation.trajectory import Trajectory
+
+    T, n = 12, 3
+    clearance = np.array([0.1, -0.01, -0.02, 0.1, 0.1, -0.01, 0.1, 0.1, -0.01, 0.2, 0.2, 0.2])
+    v = np.zeros((T, n))
+    v[5] = [0.0, 0.3, 0.0]
+    v[8] = [0.5, 0.0, 0.0]
+    z = np.zeros((T, 2))
+    traj = Trajectory(np.arange(T) * 1e-3, np.zeros((T, n)), v, np.zeros((T, n)), z, z, z, z, clearance,
+                      np.zeros((T, n)), np.zeros(T), np.zeros(T, bool), [{} for _ in range(T)])
+    m = compute_metrics(traj)
+    assert m["collided"] and m["collisions_at_rest"] == 1
