@@ -129,6 +129,7 @@ def test_the_soft_rows_slack_keeps_the_qp_feasible_where_a_leaf_cannot_be_stoppe
     ctrl, bar, q, v = _rushing_into_a_leaf(CFG.soft_weight)
     out = ctrl.step(q, v, 0.0)
     assert "fallback" not in out.info and out.info["status"] == "solved"
+    assert "field" in out.info["active_rows"]  # the record's active-row mask has the field's rows
     x = ctrl.last_solution.x
     sigma = x[-1]
     assert sigma > 1.0  # [m/s²] the leaf gives way

@@ -184,7 +184,8 @@ class QPOutput(RecordOutput):
         info["slack_norm"] = float(r[s + codes.R_SLACK])
         info["active"] = int(r[s + codes.R_ACTIVE])
         mask = int(r[s + codes.R_ACTIVE_MASK])
-        info["active_rows"] = [name for bit, name in ((1, "obstacles"), (0, "torque_limits")) if mask >> bit & 1]
+        info["active_rows"] = [name for bit, name in ((2, "field"), (1, "obstacles"), (0, "torque_limits"))
+                               if mask >> bit & 1]
 
 
 def daqp_word(flag: int) -> str:

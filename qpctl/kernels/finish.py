@@ -21,6 +21,7 @@ from qpctl.kernels.codes import (
     FP_T,
     IP_BARRIER_ROW0,
     IP_CAPACITY,
+    IP_FIELD_ROW0,
     IP_N_IN,
     IP_TORQUE_ROW0,
     R_ACTIVE,
@@ -147,6 +148,7 @@ def qp_finish(ws, x: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarra
     active = 0
     mask = 0
     t0, b0, cap = ip[IP_TORQUE_ROW0], ip[IP_BARRIER_ROW0], ip[IP_CAPACITY]
+    f0, nf = ip[IP_FIELD_ROW0], ws.fd_d.shape[0]
     for r in range(n_in):
         cx = Cx[r]
         if min(abs(cx - bl[nv + r]), abs(cx - bu[nv + r])) <= 1e-6 * (1.0 + abs(cx)):
@@ -155,6 +157,8 @@ def qp_finish(ws, x: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarra
                 mask |= 1
             if b0 >= 0 and b0 <= r < b0 + cap:
                 mask |= 2
+            if f0 >= 0 and f0 <= r < f0 + nf:
+                mask |= 4
     for i in range(n):
         if min(abs(x[i] - bl[i]), abs(x[i] - bu[i])) <= 1e-6:
             active += 1
