@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: all env demo test soak robust bench bench-quick perception perception-canopies harvest simulators camera robots sweep-small sweep-1k sweep-throughput lint clean
+.PHONY: all env demo test soak robust bench bench-quick peers perception perception-canopies harvest simulators camera robots sweep-small sweep-1k sweep-throughput lint clean
 
 all: test
 
@@ -36,6 +36,15 @@ bench: $(STAMP)
 
 bench-quick: $(STAMP)
 	MPLBACKEND=Agg $(VENV)/bin/qpctl bench --quick --out results/bench-quick
+
+# qpctl, Pink and mink on the Panda canopy in one process (docs/performance.md, "Peers"): installs the
+# [peers] extra (pin-pink, mink: pure Python, beside the environment's pin and MuJoCo), runs the
+# benchmark into results/peers/peers.md, then its test.
+peers: $(STAMP)
+	$(PY) -m pip install --quiet -e '.[peers]'
+	mkdir -p results/peers
+	MPLBACKEND=Agg $(PY) -m benchmarks.peers > results/peers/peers.md && cat results/peers/peers.md
+	MPLBACKEND=Agg $(PY) -m pytest -q -m slow -p no:cacheprovider tests/test_peers.py
 
 # The depth map (docs/perception.md): frame → field on recorded 640×480 frames, EDT backends, field queries,
 # the tick beside the map worker; and the closed loop on panda_canopy_depth under 20 canopy seeds.

@@ -292,6 +292,61 @@ def tick_with_field(reps: int) -> dict[str, Any]:
             "median_ratio": st["primitives + field"]["median"] / st["primitives only"]["median"]}
 
 
+def tau_dot(duration: float, out: Path) -> dict[str, Any]:
+    """|τ̇| on ``panda_canopy_depth`` (seed 1, noise on) over ``duration`` [s] with the smooth rows (the
+    parabola-refined witness point, the interpolated gradient grid) and with the raw ones (the best
+    sample's point, the trilinear interpolant's own gradient, which jumps at every voxel face), both on
+    the Python path; |τ̇| = max over joints of |Δτ|/dt [N·m/s], its median, p99 and max over the run,
+    the ticks at the drives' rate limit, and a figure (``tau_dot.png``)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    import qpctl.perception.rows as rows_module
+    from qpctl import Scenario
+    from qpctl.run import simulate
+
+    original = rows_module.FieldBarrier
+    res: dict[str, Any] = {}
+    fig, ax = plt.subplots(figsize=(9, 3.6))
+    try:
+        for smooth in (True, False):
+            class Rows(original):  # type: ignore[misc, valid-type]
+                field_spec = None  # the Python path for both
+
+                def __init__(self, *a: Any, smooth: bool = smooth, **k: Any) -> None:
+                    super().__init__(*a, smooth=smooth, **k)
+
+            rows_module.FieldBarrier = Rows  # type: ignore[misc]
+            scen = Scenario.load("panda_canopy_depth", overrides=[f"sim.duration={duration}"])
+            run = simulate(scen)
+            tr = run.trajectory
+            rate = np.abs(np.diff(tr.tau, axis=0)).max(axis=1) / np.diff(tr.t)
+            lim = float(np.min(run.controller.robot.tau_rate_max))
+            name = "smooth" if smooth else "raw"
+            res[name] = {"median": float(np.median(rate)), "p99": float(np.percentile(rate, 99)),
+                         "max": float(rate.max()), "at_rate_limit": int(np.sum(rate >= 0.999 * lim)),
+                         "ticks": int(rate.size), "min_clearance": float(run.metrics["min_clearance"]),
+                         "fallbacks": int(sum(v for k, v in run.metrics.get("qp_status_counts", {}).items()
+                                              if k != "solved"))}
+            ax.plot(tr.t[1:], rate, lw=0.7, label=f"{name} rows (p99 {res[name]['p99']:.0f} N·m/s)", alpha=0.8)
+    finally:
+        rows_module.FieldBarrier = original  # type: ignore[misc]
+    ax.axhline(lim, color="k", ls="--", lw=0.8, label="the drives' rate limit")
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel("max over joints |τ̇| [N·m/s]")
+    ax.set_yscale("log")
+    ax.legend(loc="lower right", fontsize=8)
+    ax.set_title(f"panda_canopy_depth, seed 1, {duration:g} s: the field's rows smooth and raw")
+    fig.tight_layout()
+    out.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out / "tau_dot.png", dpi=110)
+    plt.close(fig)
+    res["rate_limit"] = lim
+    return res
+
+
 CLOSED_LOOP_KEYS = ("collided", "min_clearance", "min_soft_clearance", "soft_contact_max_speed",
                     "soft_contact_max_approach_speed", "map_min_clearance", "map_age_ms_max", "map_update_cpu_ms_median",
                     "map_update_cpu_ms_p99", "map_latency_ms_p99", "phantom_rows", "phantom_rows_checked",
@@ -382,6 +437,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--out", default="results/perception")
     ap.add_argument("--canopies", type=int, default=0,
                     help="instead: closed loops on panda_canopy_depth under canopy seeds 1..N")
+    ap.add_argument("--tau-dot", type=float, default=0.0, help="instead: |τ̇| with smooth and raw rows over S seconds")
     ap.add_argument("--only-tick", action="store_true", help="only the frames' map and the tick with the field")
     ap.add_argument("--duration", type=float, default=None, help="with --canopies: simulated seconds")
     args = ap.parse_args(argv)
@@ -398,6 +454,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     n = 12 if args.quick else 61
     res: dict[str, Any] = {"machine": f"{os.cpu_count()} cores, {os.uname().machine}",
                            "load_before": " ".join(f"{x:.2f}" for x in os.getloadavg())}
+    if args.tau_dot:
+        res["tau_dot"] = tau_dot(args.tau_dot, out)
+        (out / "tau_dot.json").write_text(json.dumps(res["tau_dot"], indent=1))
+        print(json.dumps(res["tau_dot"], indent=1))
+        return res
     if args.only_tick:
         res["tick_with_field"] = tick_with_field(20000)
         print(markdown_tick(res))

@@ -73,16 +73,20 @@ class Formulation:
     def _template(self, eqs: list[Equality], relax: bool) -> tuple[np.ndarray, ...]:
         """(P, q, A, b, C, l, u, lb, ub) with every tick-independent entry set: the slack columns of A
         (±I), their costs (ℓ₁ in q, ℓ₂ on P's diagonal, at least 1e-9 so that P is positive definite
-        on the slack block even when slack_l2 = 0 — some solvers need it), s± ≥ 0, and the
-        placeholder bounds (±inf)."""
+        on the slack block even when slack_l2 = 0 — some solvers need it), s± ≥ 0, the constraints'
+        shared slack columns σ ≥ 0 (:attr:`Constraint.slack`, in their rows of C, after s±; kept with
+        the task hard too), and the placeholder bounds (±inf)."""
         key = (relax, tuple((e.A.shape[0], e.soft, e.slack_l1, e.slack_l2) for e in eqs))
+        # the constraints' own slack columns (one per constraint with ``slack``), after the task's
+        sl = [(r0, c) for c, r0 in zip(self.constraints, np.cumsum([0] + [c.rows for c in self.constraints]))
+              if c.slack is not None and c.rows]
         cached = self._templates.get(key)
         if cached is not None:
             return cached
         n = self.n
         n_soft = sum(e.A.shape[0] for e in eqs if e.soft) if relax else 0
         n_eq = sum(e.A.shape[0] for e in eqs)
-        nv = n + 2 * n_soft
+        nv = n + 2 * n_soft + len(sl)
         P = np.zeros((nv, nv))
         q = np.zeros(nv)
         A = np.zeros((n_eq, nv))
@@ -98,11 +102,18 @@ class Formulation:
                 P[idx_p, idx_p] = P[idx_m, idx_m] = e.slack_l2
                 s += k
             r += k
+        C = np.zeros((self.n_in, nv))
+        for j, (r0, con) in enumerate(sl):
+            col = n + 2 * n_soft + j
+            weights = con.slack
+            assert weights is not None
+            q[col], P[col, col] = weights
+            C[r0 : r0 + con.rows, col] = con.slack_column()
         for i in range(n, nv):
             P[i, i] = max(P[i, i], 1e-9)
         lb = np.full(nv, -np.inf)
-        lb[n:] = 0.0  # s⁺, s⁻ ≥ 0
-        template = (P, q, A, np.zeros(n_eq), np.zeros((self.n_in, nv)), np.full(self.n_in, -np.inf),
+        lb[n:] = 0.0  # s⁺, s⁻, σ ≥ 0
+        template = (P, q, A, np.zeros(n_eq), C, np.full(self.n_in, -np.inf),
                     np.full(self.n_in, np.inf), lb, np.full(nv, np.inf))
         self._templates[key] = template
         return template

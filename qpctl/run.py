@@ -88,7 +88,7 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
         "gravity": controller.robot.model.gravity.linear.tolist(),
     }
     d_safe = float(scenario.data["controller"]["d_safe"])  # the run is judged by the scenario's d_safe
-    metrics.update(compute_metrics(traj, d_safe=d_safe))
+    metrics.update(compute_metrics(traj, d_safe=d_safe, frames=len(controller.robot.frames)))
     margin = scenario.d_safe_margin(controller.robot)
     if margin:
         metrics["d_safe_margin"] = margin
@@ -97,6 +97,7 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
         metrics.update(getattr(sim, "fault_counts", {}))
     metrics.update(sim.counts)
     if loop is not None:
+        traj.map_points, traj.map_stamps = loop.map_points()  # the replay draws the map the rows read
         metrics.update(loop.metrics())
         path = loop.path.path if loop.path is not None else controller.path
         metrics["fruit_errors_mm"] = [float(np.min(np.linalg.norm(traj.x[:, :3] - p, axis=1)) * 1e3)

@@ -776,7 +776,8 @@ class Scenario:
 
     def to_toml(self, **changes: dict[str, Any]) -> str:
         """The validated scenario as a TOML file that :meth:`load` reads back to the same ``data``:
-        every default filled in, relative paths (``robot.urdf``, ``sim.model``) made absolute, unset
+        every default filled in, relative paths (``robot.urdf``, ``.mjcf``, ``.capsules``, ``.srdf``,
+        ``sim.model``) made absolute, unset
         optional keys left out. ``changes`` replaces keys of a table, e.g. ``controller={"kind": "qp"}``
         for the law a run used (what ``qpctl simulate`` writes beside a run as ``scenario.toml``)."""
         import tomli_w
@@ -784,8 +785,9 @@ class Scenario:
         data = copy.deepcopy(self.data)
         for table, values in changes.items():
             data[table].update(values)
-        for table, key in (("robot", "urdf"), ("sim", "model")):
-            if data[table].get(key):
+        for table, key in (("robot", "urdf"), ("robot", "mjcf"), ("robot", "capsules"), ("robot", "srdf"),
+                           ("sim", "model")):
+            if data[table].get(key) and data[table][key] != "none":  # robot.srdf = "none": no SRDF
                 data[table][key] = str(self.resolve(data[table][key]).resolve())
         return tomli_w.dumps(_toml_value(data))
 

@@ -33,6 +33,7 @@ from qpctl.geometry.frames import rotation_z_to
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels import codes
 from qpctl.kernels import tick as K
+from qpctl.kernels.lie import joint_angles
 from qpctl.kernels.work import FIELDS, new_tick_work
 from qpctl.law import LawGains, LawTerms
 from qpctl.paths import PosePath, Reference, WaypointPath
@@ -135,6 +136,7 @@ class FieldSpec:
     cutoff: float  # [m]
     k0: float  # [1/s²]
     k1: float  # [1/s]
+    soft_margin: float = 0.0  # the soft rows' margin [m]
 
 
 @dataclass
@@ -157,12 +159,16 @@ class QPSpec:
     row_kinds: list[str] | None = None  # one per row: its constraint's kind (Constraint.kind)
     braking: Any = None  # the Braking of the braking-aware rows (qpctl.constraints.braking), or None
     field: FieldSpec | None = None  # the depth map's field rows
+    # the constraints' shared slack columns (Constraint.slack), after the task's: (first row, the column's
+    # entries in its rows, ℓ₁, ℓ₂), in both layouts
+    slack_columns: list[tuple[int, np.ndarray, float, float]] | None = None
 
 
 class QPBuffers:
     """One QP layout in DAQP's convention, and a :class:`~qpctl.qp.Problem` of views onto it.
 
-    x = [q̈ (n), s⁺ (k), s⁻ (k)] with k slack rows (0 for the hard layout); rows = [C; A],
+    x = [q̈ (n), s⁺ (k), s⁻ (k), σ (one per constraint with a slack)] with k slack rows (0 for the hard
+    layout); rows = [C; A],
     bu = [ub; u; b], bl = [lb; l; b], sense marks the equality rows. The tick-independent entries
     (slack columns, costs and bounds, inactive rows' infinite bounds) are set here, once.
     """
@@ -170,7 +176,8 @@ class QPBuffers:
     def __init__(self, n: int, m: int, spec: QPSpec, *, relax: bool) -> None:
         soft = relax and (spec.slack_l1 > 0 or spec.slack_l2 > 0)
         k = m if soft else 0
-        nv = n + 2 * k
+        cols = spec.slack_columns or []
+        nv = n + 2 * k + len(cols)
         n_in = sum(r for _, r in spec.rows)
         self.n, self.nv, self.n_in, self.n_eq, self.relaxed = n, nv, n_in, m, soft
         self.H = np.zeros((nv, nv))
@@ -182,10 +189,14 @@ class QPBuffers:
         self.sense[nv + n_in :] = 5  # equality
         if k:
             self.rows[n_in:, n : n + k] = np.eye(k)
-            self.rows[n_in:, n + k :] = -np.eye(k)
-            self.f[n:] = spec.slack_l1
-            self.H[np.arange(n, nv), np.arange(n, nv)] = max(spec.slack_l2, 1e-9)
-            self.bl[n:nv] = 0.0  # s⁺, s⁻ ≥ 0
+            self.rows[n_in:, n + k : n + 2 * k] = -np.eye(k)
+            self.f[n : n + 2 * k] = spec.slack_l1
+            self.H[np.arange(n, n + 2 * k), np.arange(n, n + 2 * k)] = max(spec.slack_l2, 1e-9)
+            self.bl[n : n + 2 * k] = 0.0  # s⁺, s⁻ ≥ 0
+        for j, (r0, col, l1, l2) in enumerate(cols):  # a constraint's σ ≥ 0, its rows' entries set once
+            c = n + 2 * k + j
+            self.rows[r0 : r0 + col.size, c] = col
+            self.f[c], self.H[c, c], self.bl[c] = l1, max(l2, 1e-9), 0.0
         self.x = np.zeros(nv)
         self.problem = Problem(self.H, self.f, self.rows[n_in:], self.bu[nv + n_in :], self.rows[:n_in],
                                self.bl[nv : nv + n_in], self.bu[nv : nv + n_in], self.bl[:nv], self.bu[:nv], n,
@@ -383,7 +394,7 @@ class Workspace:
             fp, ip = self.fpar, self.ipar
             fp[codes.FP_FD_VOXEL], fp[codes.FP_FD_TRUNC] = snap.grid.voxel, snap.truncation
             fp[codes.FP_FD_MARGIN], fp[codes.FP_FD_VS], fp[codes.FP_FD_CUT] = fs.margin, fs.soft_speed, fs.cutoff
-            fp[codes.FP_FD_K0], fp[codes.FP_FD_K1] = fs.k0, fs.k1
+            fp[codes.FP_FD_K0], fp[codes.FP_FD_K1], fp[codes.FP_FD_SMARGIN] = fs.k0, fs.k1, fs.soft_margin
             ip[codes.IP_FD_SAMPLES], ip[codes.IP_FD_RPL] = S, rpl
         self.fd_dist = np.zeros((2, *shape), np.float32)
         self.fd_grad = np.zeros((2, *shape, 3), np.float32)
@@ -511,7 +522,8 @@ class Workspace:
         if not self.lie:
             return q
         self.q_config[:] = q
-        qa = self.robot.angles(q, out=self.q_angles)
+        r, qa = self.robot, self.q_angles
+        joint_angles(q, r._plain_q, r._plain_v, r._rot_q, r._rot_v, qa)  # RobotModel.angles, compiled
         if self.posture_config is not None:
             self.q_ref[:] = qa + pin.difference(self.model, q, self.posture_config)
         return qa

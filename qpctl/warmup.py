@@ -20,6 +20,7 @@ from qpctl.constraints.constraints import TorqueLimit
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels import codes
 from qpctl.kernels import tick as K
+from qpctl.kernels.native_qp import new_native_qp
 from qpctl.law import LawGains
 from qpctl.outcome import SOLUTION_RTOL
 from qpctl.paths import WaypointPath
@@ -93,6 +94,7 @@ def warmup() -> dict[str, float]:
         K.native_solve_finish(ws.work, relaxed.rows, relaxed.bu, relaxed.bl, *nat_r.addresses, nat_r.flag, nat_r.x,
                               SOLUTION_RTOL)
         args = (*nat_h.kernel_args, nat_h.lam, *nat_r.kernel_args, SOLUTION_RTOL, 1e6)
+        packed = new_native_qp(*args)
         for try_hard in (True, False):  # the whole tick, then its part after the state (Python's turn)
             pin.computeAllTerms(ws.model, ws.data, q, v)
             if K.tick_qp_native(ws.work, q, v, t, *nat_r.kernel_args, SOLUTION_RTOL) == codes.STATE_PYTHON:
@@ -102,6 +104,8 @@ def warmup() -> dict[str, float]:
             if K.tick_qp_native_hard_first(ws.work, q, v, t, *args, try_hard)[0] == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
             K.qp_tick_native_hard_first(ws.work, *args, try_hard)
+            pin.computeAllTerms(ws.model, ws.data, q, v)
+            K.tick_qp(ws.work, packed, q, v, t, try_hard)
         nat_h.free()
         nat_r.free()
     times["qp"] = time.perf_counter() - start

@@ -62,7 +62,9 @@ def test_compiled_field_rows_equal_the_python_rows() -> None:
         rows = np.flatnonzero(names == bar.name)
         assert rows.size == bar.rows
         got_C, got_l = np.array(problem.C[rows]), np.array(problem.l[rows])
-        assert not got_C[:, ctrl.n:].any()  # no slack on the field rows
+        # the soft rows' shared slack σ: the last column, 1 on the soft rows, 0 on the rigid ones
+        assert np.array_equal(got_C[:, -1], np.repeat([0.0, 1.0], bar.rows // 2))
+        assert not got_C[:, ctrl.n:-1].any()
         got_C = got_C[:, :ctrl.n]
         compiled = bar.last
         state = ctrl.dynamics.compute(q, v, t)
@@ -79,6 +81,7 @@ def test_compiled_field_rows_equal_the_python_rows() -> None:
         obst = np.flatnonzero(names == "obstacles")
         primitive_active += int(np.isfinite(np.array(problem.l[obst])).any())
     assert rigid_active >= 5 and soft_active >= 5 and primitive_active >= 1
+    assert problem.c[-1] == CFG.soft_weight and problem.lb[-1] == 0.0 and problem.ub[-1] == np.inf
 
 
 def test_compiled_and_python_field_ticks_give_the_same_torque() -> None:
@@ -90,3 +93,50 @@ def test_compiled_and_python_field_ticks_give_the_same_torque() -> None:
         a, b = fast.step(q, v, t), slow.step(q, v, t)
         assert a.info.get("fallback") == b.info.get("fallback")
         assert np.allclose(a.tau, b.tau, rtol=1e-7, atol=1e-7 * np.abs(b.tau).max())
+
+
+def _rushing_into_a_leaf(soft_weight: float):  # type: ignore[no-untyped-def]
+    """The hand 3 cm from a soft blob, moving into it at 4 m/s: its soft rows ask more deceleration
+    than the drives' torques give."""
+    import dataclasses
+
+    import pinocchio as pin
+
+    scen = Scenario.load("panda_spheres")
+    ctrl = scen.build_controller("qp", obstacles=[])
+    robot = ctrl.robot
+    q = robot.q_home.copy()
+    seg = ctrl.dynamics.compute(q, np.zeros(robot.nv)).segments
+    tip, axis = seg[-1, 1], seg[-1, 1] - seg[-1, 0]
+    axis /= np.linalg.norm(axis)
+    cfg = dataclasses.replace(CFG, soft_weight=soft_weight)
+    p = Perception(cfg, robot)
+    blob = _sphere_cloud(tip + (0.03 + robot.capsules[-1].radius + 0.05) * axis, 0.05, np.random.default_rng(5))
+    p.submit(PointCloud(blob, 0.0, labels=np.full(len(blob), 2, np.uint8)))
+    bar = p.rows_for(ctrl)
+    data = robot.model.createData()
+    pin.computeJointJacobians(robot.model, data, q)
+    J = pin.getJointJacobian(robot.model, data, robot.capsules[-1].joint_id, pin.LOCAL_WORLD_ALIGNED)[:3]
+    v = np.linalg.pinv(J) @ (4.0 * axis)
+    return ctrl, bar, q, v
+
+
+def test_the_soft_rows_slack_keeps_the_qp_feasible_where_a_leaf_cannot_be_stopped_for() -> None:
+    hard_ctrl, _, q, v = _rushing_into_a_leaf(0.0)
+    out = hard_ctrl.step(q, v, 0.0)
+    assert hard_ctrl.workspace().spec is not None and hard_ctrl.last_problem.n_var == hard_ctrl.n + 6
+    assert "fallback" in out.info and out.info["status"] == "primal_infeasible"  # the soft rows hard
+    ctrl, bar, q, v = _rushing_into_a_leaf(CFG.soft_weight)
+    out = ctrl.step(q, v, 0.0)
+    assert "fallback" not in out.info and out.info["status"] == "solved"
+    x = ctrl.last_solution.x
+    sigma = x[-1]
+    assert sigma > 1.0  # [m/s²] the leaf gives way
+    problem = ctrl.last_problem
+    rows = np.flatnonzero(np.array(problem.row_names) == bar.name)
+    soft = rows[bar.rows // 2:]
+    active = soft[np.isfinite(problem.l[soft])]
+    assert active.size >= 1
+    Cq = problem.C[active, :ctrl.n] @ x[:ctrl.n]
+    assert np.all(Cq + sigma >= problem.l[active] - 1e-6)  # they hold with the slack
+    assert np.any(Cq < problem.l[active] - 1.0)  # and only with it

@@ -1223,10 +1223,10 @@ CHILD = textwrap.dedent("""
             ctrl.step(np.array([np.pi, np.pi / 2, 0.0]), np.zeros(3), t)
     # what the ticks dispatch: the paper law one call; the QP's first tick the state, the rows, then
     # DAQP's setup and solve of the hard QP (the task without slack), later ones one call on DAQP's C API
-    # (or, without it, daqp.Model's path)
+    # (tick_qp; or, without it, daqp.Model's path)
     kernels = [("tick_closed_form", K.tick_closed_form), ("state", K.state), ("qp_terms_and_build", K.qp_terms_and_build)]
     if daqp_native.available():
-        kernels += [("native_solve", K.native_solve), ("tick_qp_native_hard_first", K.tick_qp_native_hard_first)]
+        kernels += [("native_solve", K.native_solve), ("tick_qp", K.tick_qp)]
     else:
         kernels += [("qp_finish", K.qp_finish)]
     out = {name: [sum(k.stats.cache_hits.values()), sum(k.stats.cache_misses.values()), k.stats.cache_path]

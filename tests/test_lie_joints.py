@@ -341,3 +341,29 @@ def test_kinova_picks_three_fruits_among_branches() -> None:
     theta = traj.angles[:, 0]
     assert theta.max() > 3.0 and theta.min() < -3.0  # both sides of ±π
     assert np.abs(_wrap(np.diff(theta))).max() < 2e-3  # 1 ms steps at ≤ 0.63 rad/s: no jump in the motion
+
+
+def test_a_runs_scenario_toml_reads_back_with_its_robot_files(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """scenario.toml beside a run (Scenario.to_toml) names robot.capsules by an absolute path, so that
+    `qpctl replay RUN_DIR` reads it back from anywhere (the examples' capsules files are relative)."""
+    from pathlib import Path
+
+    src = Scenario.load(Path(__file__).parent.parent / "examples" / "kinova_branches.toml")
+    (tmp_path / "scenario.toml").write_text(src.to_toml())
+    back = Scenario.load(tmp_path / "scenario.toml")
+    assert Path(back.data["robot"]["capsules"]).is_absolute()
+    assert [c.name for c in back.build_robot().capsules] == [c.name for c in src.build_robot().capsules]
+
+
+def test_the_kernels_angle_view_is_robot_angles() -> None:
+    """qpctl.kernels.lie.joint_angles (the compiled tick's per-tick view) against RobotModel.angles, on
+    the Kinova's continuous joints and a planar base."""
+    from qpctl.kernels.lie import joint_angles
+
+    rng = np.random.default_rng(5)
+    for robot in (_kinova(), _planar_arm()):
+        out = np.empty(robot.nv)
+        for _ in range(10):
+            q = robot.configuration(rng.uniform(-np.pi, np.pi, robot.nv))
+            joint_angles(q, robot._plain_q, robot._plain_v, robot._rot_q, robot._rot_v, out)
+            assert np.array_equal(out, robot.angles(q))

@@ -102,15 +102,17 @@ def test_soft_rows_cap_the_approach_speed_not_the_distance(panda_robot) -> None:
     p = Perception(CFG)
     p.submit(PointCloud(_sphere_cloud(list(tip + [0.0, 0.0, -0.1]), 0.04), 0.0,
                         labels=np.full(4000, 2, np.uint8)))
-    bar = FieldBarrier(p, robot, CFG, d_safe=0.05, cutoff=0.3)
+    cfg = PerceptionConfig(**{**CFG.__dict__, "soft_margin": 0.03})
+    bar = FieldBarrier(p, robot, cfg, d_safe=0.05, cutoff=0.3)
     st = Dynamics(robot).compute(q, np.zeros(7), 0.0)
     ineq = bar.compute(st, None)  # type: ignore[arg-type]
     pairs = bar.last
     assert pairs is not None
     soft = np.flatnonzero(pairs.active & pairs.soft)
     assert soft.size and not (pairs.active & ~pairs.soft).any()
-    # at rest: −k1 v_s − k0 max(d, 0) (no margin: contact is allowed at v_s)
-    expect = -40.0 * CFG.soft_speed - 400.0 * np.maximum(pairs.distance[soft], 0.0)
+    # at rest: −k1 v_s − k0 max(d − m_s, 0) (no d_safe: contact is allowed at v_s)
+    expect = -40.0 * cfg.soft_speed - 400.0 * np.maximum(pairs.distance[soft] - 0.03, 0.0)
+    assert (pairs.distance[soft] < 0.03).any() and (pairs.distance[soft] > 0.03).any()
     assert ineq.lower[soft] == pytest.approx(expect, abs=1e-9)
 
 
@@ -140,6 +142,11 @@ def test_a_short_run_sees_its_obstacles_only_through_the_camera(tmp_path) -> Non
     d_safe = float(scen.data["controller"]["d_safe"])
     assert traj.clearance.min() >= d_safe - CFG.voxel
     assert m["phantom_rows_checked"] > 0
+    # the maps the replay draws (every MAP_RECORD_EVERY s): voxel centres on the true spheres
+    pts, stamps = loop.map_points()
+    assert len(np.unique(stamps)) >= 2 and stamps.min() >= 0.0 and stamps.max() <= 0.8
+    gap = np.min([np.abs(np.linalg.norm(pts - o.position, axis=1) - o.radius) for o in world], axis=0)
+    assert np.mean(gap <= 2 * CFG.voxel + CFG.depth_noise) >= 0.95
     files = loop.write_figures(tmp_path, traj.t, traj.clearance, d_safe)  # the run's three figures
     assert [f.name for f in files] == ["depth_frame.png", "field_slice.png", "clearance_true_vs_map.png"]
     assert all(f.stat().st_size > 10_000 for f in files)

@@ -22,6 +22,7 @@ from qpctl.tick import Workspace
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 BAXTER = "package://example-robot-data/robots/baxter_description/urdf/baxter.urdf"
+SRDF = "package://example-robot-data/robots/baxter_description/srdf/baxter_manipulation.srdf"  # no sampled pairs
 HEAD_AND_FINGERS = ["head_pan", "l_gripper_l_finger_joint", "l_gripper_r_finger_joint", "r_gripper_l_finger_joint",
                     "r_gripper_r_finger_joint"]
 ARM = [0.0, -0.55, 0.0, 0.75, 0.0, 1.26, 0.0]
@@ -33,7 +34,7 @@ def _raw(sides: tuple[str, ...], kind: str, **controller: object) -> dict:
     for other in ("left", "right"):
         if other not in sides:
             locked += [f"{other}_{j}" for j in ("s0", "s1", "e0", "e1", "w0", "w1", "w2")]
-    return {"robot": {"kind": "urdf", "urdf": BAXTER, "locked_joints": locked, "q0": ARM * len(sides)},
+    return {"robot": {"kind": "urdf", "urdf": BAXTER, "locked_joints": locked, "q0": ARM * len(sides), "srdf": SRDF},
             "tasks": [{"frame": SIDES[s][0], "waypoints": SIDES[s][1]} for s in sides],
             "obstacles": [{"shape": "sphere", "position": [0.95, 0.45, 0.36], "radius": 0.04},
                           {"shape": "capsule", "position": [0.9, -0.3, 0.55], "axis": [0.0, 1.0, 0.2],
@@ -98,6 +99,9 @@ def test_baxter_picks_two_fruits_at_once() -> None:
     result = simulate(scenario, progress=False)
     m, traj = result.metrics, result.trajectory
     assert not m["collided"] and m["min_clearance"] > 0.0
+    right = np.linalg.norm(traj.x[:, 3:] - traj.x_ref[:, 3:], axis=1)  # the second frame's rows
+    assert m["max_tracking_error_per_task"][1] == pytest.approx(right.max())
+    assert m["max_tracking_error"] >= max(m["max_tracking_error_per_task"])
     t_end = scenario.data["path"]["durations"][0] + scenario.data["path"]["dwell"]
     k = int(np.searchsorted(traj.t, t_end - 1e-9))
     data = robot.model.createData()
@@ -160,3 +164,24 @@ def test_cli_reports_a_bad_task_frame_in_one_line(tmp_path, capsys) -> None:  # 
     assert main(["simulate", str(bad), "--out", str(tmp_path / "out"), "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and "tasks[1].frame" in err and str(bad) in err
+
+
+def test_orientation_rows_ride_on_the_first_task_frame() -> None:
+    """controller.task = "approach" with two task frames: 6 position rows, then the first frame's 2
+    approach rows. Hsu's law on Baxter then gives the left arm (first frame) exactly what the one-task
+    approach law gives the left arm alone, on the same states."""
+    def raw(sides: tuple[str, ...]) -> dict:
+        r = _raw(sides, "hsu", task="approach", approach_axis=[0.0, 0.0, 1.0])
+        r["path"]["approach"] = [[1.0, 0.0, -0.3]]
+        return r
+
+    dual_sc = Scenario.from_dict(raw(("left", "right")))
+    dual = dual_sc.build_controller()
+    assert (dual.robot.m, dual.robot.m_orientation) == (8, 2)
+    traj = Simulator(dual, dt=1e-3, duration=1.0).run(dual_sc.q0(dual.robot))
+    assert traj.orientation_error_deg[-1] < 0.5  # [deg] the approach tracked (1 s run)
+    single = Scenario.from_dict(raw(("left",))).build_controller()
+    single.reset()
+    tau = np.array([single.torque(q[:7].copy(), v[:7].copy(), float(t)) for t, q, v in zip(traj.t, traj.q, traj.v)])
+    assert np.abs(traj.tau[:, :7]).max() > 1.0
+    assert np.array_equal(tau, traj.tau[:, :7])

@@ -58,6 +58,13 @@ class Constraint(ABC):
     name: str = "constraint"
     kind: str = "constraint"
     rows: int = 0  # rows of C it contributes (0 for Bounds)
+    #: (ℓ₁, ℓ₂) weights of one slack column σ ≥ 0 its rows share (C q̈ + c σ ≥ l, c = :meth:`slack_column`;
+    #: cost ℓ₁σ + ½ℓ₂σ²), or None: hard rows. Fixed for the constraint's life (the QP's layout has it).
+    slack: tuple[float, float] | None = None
+
+    def slack_column(self) -> np.ndarray:
+        """(rows,) the slack column's entry in each row (0: the row is hard); read once, with the layout."""
+        return np.ones(self.rows)
 
     @abstractmethod
     def compute(self, state: TickState, terms: LawTerms) -> Inequality | Bounds:

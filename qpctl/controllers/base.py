@@ -131,6 +131,11 @@ class RecordOutput(ControlOutput):
             self._info = info
         return self._info
 
+    def renew(self, compute_us: float, stages: tuple[float, float, float, float]) -> None:
+        """This output for a new tick whose record the caller has copied into it (a compiled tick
+        reuses its last output when the caller kept neither it nor a view of its arrays)."""
+        self._extra, self._info, self._stages, self.compute_us = None, None, stages, compute_us
+
     def _set_info(self, value: dict[str, Any]) -> None:
         self._info = value
 
@@ -138,6 +143,34 @@ class RecordOutput(ControlOutput):
 
     def _decode(self, info: dict[str, Any]) -> None:
         """Add the law's own entries from the record (none for the closed forms)."""
+
+
+#: sys.getrefcount of a tick's output that only the tick still holds: the controller's own reference
+#: and its ``last``, the local name and getrefcount's argument; of the output's record: the output's
+#: and the argument. A compiled tick reuses such an output (its record overwritten): nothing allocated.
+IDLE_REFS, IDLE_REC_REFS = 4, 2
+
+
+_LOCKED: set[int] = set()  # the kernels that compile no more signatures in this process (by id)
+
+
+def lock_compilation(kernel: Any) -> None:
+    """After its first call, a one-call tick's kernel takes only the types it was compiled for: any
+    other argument is a TypeError at dispatch (which the controller turns into :func:`fast_state`'s
+    checks and conversions), never a compilation inside a control loop."""
+    if id(kernel) not in _LOCKED:
+        kernel.disable_compile()
+        _LOCKED.add(id(kernel))
+
+
+def call_compiling(kernel: Any, *args: Any) -> Any:
+    """``kernel(*args)``, allowed to compile or load a signature (say, a workspace of other types)."""
+    kernel.disable_compile(False)
+    try:
+        return kernel(*args)
+    finally:
+        if id(kernel) in _LOCKED:
+            kernel.disable_compile()
 
 
 def fast_state(q: Any, v: Any, t: Any, n: int, nq: int | None = None) -> tuple[np.ndarray, np.ndarray, float]:
@@ -255,7 +288,7 @@ class Controller(ABC):
     @staticmethod
     def _bad_state(q: np.ndarray, v: np.ndarray, t: float) -> None:
         """Raise the InvalidStateError of a state the kernels refused (non-finite, or overflowing)."""
-        if not (np.isfinite(q).all() and np.isfinite(v).all()):
+        if not (np.isfinite(q).all() and np.isfinite(v).all() and math.isfinite(t)):
             raise InvalidStateError(f"non-finite state: q={q.tolist()}, v={v.tolist()}, t={t}")
         raise InvalidStateError(f"the dynamics overflow at this state: q={q.tolist()}, v={v.tolist()}")
 

@@ -17,6 +17,7 @@ A failed solve goes to :class:`~qpctl.controllers.qp_failure.Failures` on snapsh
 from __future__ import annotations
 
 import math
+import sys
 import time
 from collections.abc import Callable, Sequence
 from typing import Any
@@ -31,13 +32,22 @@ from qpctl.constraints.constraints import (
     SelfCollisionBarrier,
     TorqueLimit,
 )
-from qpctl.controllers.base import RecordOutput, TickStatus, fast_state
+from qpctl.controllers.base import (
+    IDLE_REC_REFS,
+    IDLE_REFS,
+    RecordOutput,
+    TickStatus,
+    call_compiling,
+    fast_state,
+    lock_compilation,
+)
 from qpctl.controllers.qp_failure import Failures
 from qpctl.controllers.relaxation import REFUSALS, TaskRelaxation
 from qpctl.errors import ConfigError, InvalidStateError
 from qpctl.fallbacks import FallbackContext
 from qpctl.kernels import codes
 from qpctl.kernels import tick as K
+from qpctl.kernels.native_qp import new_native_qp
 from qpctl.law import LawGains
 from qpctl.outcome import SOLUTION_RTOL, SolveOutcome, checked_solve, solve_status
 from qpctl.qp import Problem, Solution
@@ -62,7 +72,8 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
     if len(kinds) != 2 + kinds.count(PostureTask) + kinds.count(DampingTask):
         return None
     ckinds = [type(c) for c in constraints]
-    fields = [c for c in constraints if callable(getattr(c, "field_spec", None))]  # the depth map's rows
+    fields = [c for c in constraints if callable(getattr(c, "field_spec", None))  # the depth map's rows
+              and getattr(c, "smooth", True)]  # (smooth: the compiled ones are)
     if any(ckinds.count(k) > 1 for k in ckinds) or not all(
             k in (TorqueLimit, JointLimit, ObstacleBarrier, SelfCollisionBarrier) or c in fields
             for k, c in zip(ckinds, constraints, strict=True)):
@@ -82,6 +93,7 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
     brakes = {id(c.braking): c.braking for c in (joint, barrier) if c is not None and c.braking is not None}
     if len(brakes) > 1 or (brakes and torque is None):
         return None  # two different brakes, or one without the torque limits: the Python formulation
+    starts = np.cumsum([0] + [c.rows for c in constraints])[:-1].tolist()
     return QPSpec(
         acc_weight=acc.weight, slack_l1=ee.slack_l1, slack_l2=ee.slack_l2,
         posture=None if post is None else (post.q_ref, post.weight, post.kp, post.kd),
@@ -97,19 +109,52 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
         task_weights=ee.weights,
         braking=next(iter(brakes.values()), None),
         field=fields[0].field_spec() if fields else None,  # type: ignore[attr-defined]
+        slack_columns=[(r0, c.slack_column(), *c.slack) for c, r0 in zip(constraints, starts, strict=True)
+                       if c.slack is not None and c.rows],
     )
+
+
+_F64 = np.dtype(np.float64)
+
+
+def _entry_point(kernel: Any, ws: Any, packed: Any) -> Any:
+    """The compiled entry point of ``kernel`` for (these structrefs, float64 C arrays, a float, a bool),
+    which skips numba's typing of the arguments (~1 µs of the dispatch of the two structrefs); None
+    where this numba does not expose it. Only called on arguments checked to be those types: the
+    entry point unboxes without checking a dtype or a number of dimensions."""
+    try:
+        from numba import typeof
+        from numba.core import types
+
+        arr = types.Array(types.float64, 1, "C")
+        sig = (typeof(ws), typeof(packed), arr, arr, types.float64, types.boolean)
+        cres = kernel.overloads.get(sig)
+        return None if cres is None else cres.entry_point
+    except Exception:  # noqa: BLE001 — numba's internals moved: the dispatcher it is
+        return None
 
 
 class QPOutput(RecordOutput):
     """A compiled QP tick's output: the record, and the solver's word; ``info`` built on first access
     (status — the solver's word — and ``solve_status`` (:class:`~qpctl.outcome.SolveStatus`),
     iterations, solver, stage timings [µs], slack norm, active rows, and the fallback's entries when
-    one produced the torque); :attr:`outcome` the solve as a typed record."""
+    one produced the torque); :attr:`outcome` the solve as a typed record.
 
-    def __init__(self, rec: np.ndarray, layout: Any, extra: dict[str, Any], compute_us: float,
-                 stages: tuple[float, float, float, float], solved: bool) -> None:
+    ``words``: (status, iterations, solver, hard first, hard used, refusal, relaxed iterations, budget
+    exhausted) of the tick, which ``info`` spells out (:meth:`TaskRelaxation.report`); ``extra``, a
+    fallback's info dict, when one produced the torque."""
+
+    def __init__(self, rec: np.ndarray, layout: Any, extra: dict[str, Any] | None, compute_us: float,
+                 stages: tuple[float, float, float, float], solved: bool, words: tuple[Any, ...] = ()) -> None:
         super().__init__(rec, layout, extra, compute_us, stages)
-        self._solved = solved
+        self._solved, self._words = solved, words
+
+    def renew_qp(self, compute_us: float, stages: tuple[float, float, float, float], solved: bool,
+                 words: tuple[Any, ...]) -> None:
+        """This output for a new tick whose record the caller has copied into it (the reuse of
+        :meth:`CompiledTick.step`)."""
+        self._extra, self._info, self._stages, self.compute_us = None, None, stages, compute_us
+        self._solved, self._words = solved, words
 
     @property
     def status(self) -> TickStatus:  # type: ignore[override]
@@ -117,7 +162,21 @@ class QPOutput(RecordOutput):
 
     @property
     def iterations(self) -> int:
-        return int(self._extra["iterations"]) if self._extra else 0
+        if self._extra:
+            return int(self._extra["iterations"])
+        return int(self._words[1]) if self._words else 0
+
+    def _get_info(self) -> dict[str, Any]:
+        if self._info is None and self._extra is None and self._words:
+            status, iters, solver, hard_first, used_hard, refusal, relaxed_iters, exhausted = self._words
+            extra: dict[str, Any] = {"status": status, "iterations": iters, "solver": solver}
+            TaskRelaxation.report(extra, hard_first, used_hard, refusal, relaxed_iters)
+            if exhausted:
+                extra["budget_exhausted"] = True
+            self._extra = extra
+        return super()._get_info()
+
+    info = property(_get_info, RecordOutput._set_info)  # type: ignore[assignment]
 
     @property
     def outcome(self) -> SolveOutcome:
@@ -258,86 +317,131 @@ class CompiledTick:
             nh, nr = self.hard.nat, self.relaxed.nat
             assert nh is not None and nr is not None
             self.native_args = (*nh.kernel_args, nh.lam, *nr.kernel_args, SOLUTION_RTOL, float(ws.spec.slack_l1))
+        # the one-call tick's QP arguments as one compiled argument (qpctl.kernels.native_qp)
+        self.packed: Any = None if self.native_args is None else new_native_qp(*self.native_args)
         self.last_problem: Problem | None = None
         self.last: tuple[np.ndarray | None, str, int, str] | Solution | None = None
+        self._out: QPOutput | None = None  # the last output, reused when nobody else holds it
+        self._entry: Any = None  # K.tick_qp's compiled entry point for these argument types (_entry_point)
 
     def reset(self) -> None:
         self.relax.reset()
 
+    def _output(self, compute_us: float, stages: tuple[float, float, float, float], ok: bool,
+                words: tuple[Any, ...], extra: dict[str, Any] | None) -> QPOutput:
+        """The tick's output: the last one, its record overwritten, when only this tick and the
+        controller still refer to it and to its record (CPython's reference counts say so: the caller
+        kept neither it nor a view of its arrays) — nothing is allocated; else a new one."""
+        out, ws = self._out, self.ws
+        if extra is None and out is not None and sys.getrefcount(out) <= IDLE_REFS and \
+                sys.getrefcount(out._rec) <= IDLE_REC_REFS:
+            np.copyto(out._rec, ws.rec)
+            out.renew_qp(compute_us, stages, ok, words)
+            return out
+        out = QPOutput(ws.rec.copy(), ws.layout, extra, compute_us, stages, ok, words)
+        self._out = out
+        return out
+
     def step(self, q: np.ndarray, v: np.ndarray, t: float, start: float) -> QPOutput:
         """One tick (module docstring); ``start``: when the controller's step began (the budget's
-        clock, and ``compute_us``'s)."""
-        q, v, t = fast_state(q, v, t, self.ws.n, self.ws.nq)
-        self.ws.sync_field()  # the depth map's newest snapshot (a reference swap; nothing without a map)
+        clock, and ``compute_us``'s). On the one-call path nothing checks a good state in Python: the
+        compiled tick's dispatcher takes only float64 arrays and a float, the kernel checks their
+        length and finiteness, and :class:`~qpctl.errors.InvalidStateError` is raised only when it
+        reports a bad state."""
+        ws = self.ws
+        ws.sync_field()  # the depth map's newest snapshot (a reference swap; nothing without a map)
         budget = self.budget_us()
-        one_call = self.native_args is not None and budget <= 0
+        one_call = self.packed is not None and budget <= 0
         relax = self.relax
         hard_first, try_hard = relax.hard_first(one_call), relax.try_hard(one_call)
         relaxed_iters: int | None = None
         deadline = start + budget * 1e-6 if budget > 0 else math.inf
         if one_call:
-            code, hard, stages = self._native(q, v, t, try_hard)
+            code, hard, stages, q = self._native(q, v, t, try_hard)
             used_hard = hard == 0
             lay = self.hard if used_hard else self.relaxed
             code, status, iters = lay.native_outcome(code)
             refusal = "" if hard <= 0 else REFUSALS.get(hard) or daqp_word(self.hard.nat.flag[0])  # type: ignore[union-attr]
         else:
+            q, v, t = fast_state(q, v, t, ws.n, ws.nq)
             self._state(q, v, t)
-            stages = (self.ws.pin_s, self.ws.state_s, -1.0, -1.0)
+            stages = (ws.pin_s, ws.state_s, -1.0, -1.0)
             lay, refusal = (self.hard if try_hard else self.relaxed), ""
             code, status, iters = lay.solve(deadline, terms_done=False,
-                                            l1=float(self.ws.spec.slack_l1) if try_hard else None)  # type: ignore[union-attr]
+                                            l1=float(ws.spec.slack_l1) if try_hard else None)  # type: ignore[union-attr]
             used_hard = try_hard and code == 0
             if try_hard and code == 3:  # the task conflicts with the hard rows, or its answer was refused: relax
                 refusal, lay = status, self.relaxed
                 code, status, relaxed_iters = lay.solve(deadline, terms_done=True)
         if code == 1:
             raise InvalidStateError(f"the inertia matrix is not positive definite at q={q.tolist()}")
-        ws = self.ws
-        extra: dict[str, Any] = {"status": status, "iterations": iters, "solver": lay.solver.name}
-        relax.report(extra, hard_first, used_hard, refusal, relaxed_iters)
         self.last_problem, self.last = lay.buf.problem, lay.last
-        if status == "time_limit":
-            extra["budget_exhausted"] = True
         ok = code == 0
         relax.after(one_call, used_hard, ok, float(ws.rec[ws.layout.scalars + codes.R_SLACK]))
+        words = (status, iters, lay.solver.name, hard_first, used_hard, refusal, relaxed_iters, status == "time_limit")
+        extra: dict[str, Any] | None = None
         if not ok:
+            extra = {"status": status, "iterations": iters, "solver": lay.solver.name}
+            relax.report(extra, hard_first, used_hard, refusal, relaxed_iters)
+            if status == "time_limit":
+                extra["budget_exhausted"] = True
             self._fall_back(lay.buf, status, extra, deadline)
-        return QPOutput(ws.rec.copy(), ws.layout, extra, (time.perf_counter() - start) * 1e6, stages, ok)
+        return self._output((time.perf_counter() - start) * 1e6, stages, ok, words, extra)
 
-    def _native(self, q: np.ndarray, v: np.ndarray, t: float,
-                try_hard: bool) -> tuple[int, int, tuple[float, float, float, float]]:
-        """The tick on DAQP's C API: one kernel call when both DAQP workspaces are set up and the state
-        needs no Python; else the state, DAQP's set-up (:meth:`_setup`) and the same kernel after it.
-        Returns (code, hard, stages): the kernel's code and what became of the hard QP (−1 not tried,
-        0 used, 3 DAQP failed, 4 rejected by the check of its rows, 7 not the relaxed QP's answer)."""
-        ws, args = self.ws, self.native_args
-        assert args is not None
+    def _native(self, q: Any, v: Any, t: Any,
+                try_hard: bool) -> tuple[int, int, tuple[float, float, float, float], np.ndarray]:
+        """The tick on DAQP's C API: one kernel call (:func:`qpctl.kernels.tick.tick_qp`) when both
+        DAQP workspaces are set up and the state needs no Python; else the state, DAQP's set-up
+        (:meth:`_setup`) and the same kernel after it. Returns (code, hard, stages, q): the kernel's
+        code, what became of the hard QP (−1 not tried, 0 used, 3 DAQP failed, 4 rejected by the
+        check of its rows, 7 not the relaxed QP's answer), and q as the kernels took it."""
+        ws = self.ws
         nat_h, nat_r = self.hard.nat, self.relaxed.nat
         assert nat_h is not None and nat_r is not None
         if ws.fast and nat_r.ready and (nat_h.ready or not try_hard):
-            t0 = time.perf_counter()
-            pin.computeAllTerms(ws.model, ws.data, q, v)
-            t1 = time.perf_counter()
-            code, hard = K.tick_qp_native_hard_first(ws.work, ws.joint_view(q), v, t, *args, try_hard)
+            try:
+                t0 = time.perf_counter()
+                pin.computeAllTerms(ws.model, ws.data, q, v)
+                t1 = time.perf_counter()
+                qk = ws.joint_view(q)
+                entry = self._entry
+                if (entry is not None and type(qk) is np.ndarray and type(v) is np.ndarray and qk.dtype is _F64
+                        and v.dtype is _F64 and qk.ndim == 1 and v.ndim == 1 and qk.flags.c_contiguous
+                        and v.flags.c_contiguous):
+                    code, hard = entry(ws.work, self.packed, qk, v, t, try_hard)
+                else:
+                    code, hard = K.tick_qp(ws.work, self.packed, qk, v, t, try_hard)
+            except Exception:  # noqa: BLE001 — not two float64 arrays and a float: check, convert, once more
+                q, v, t = fast_state(q, v, t, ws.n, ws.nq)  # InvalidStateError if it cannot
+                t0 = time.perf_counter()
+                pin.computeAllTerms(ws.model, ws.data, q, v)
+                t1 = time.perf_counter()
+                code, hard = call_compiling(K.tick_qp, ws.work, self.packed, ws.joint_view(q), v, t, try_hard)
+            lock_compilation(K.tick_qp)
+            if self._entry is None:
+                self._entry = _entry_point(K.tick_qp, ws.work, self.packed)
             if code == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
-                code, hard = K.qp_tick_native_hard_first(ws.work, *args, try_hard)
-            if code < 0:
+                code, hard = K.qp_tick_native_hard_first(ws.work, *self.native_args, try_hard)  # type: ignore[misc]
+            elif code < 0:
+                if code == codes.BAD_SHAPE:
+                    raise InvalidStateError(f"q and v must have shapes ({ws.nq},) and ({ws.n},), "
+                                            f"got {np.shape(q)} and {np.shape(v)}")
                 self._bad_state(q, v, t)
             stages = (t1 - t0, -1.0, -1.0, -1.0)
         else:
+            q, v, t = fast_state(q, v, t, ws.n, ws.nq)
             self._state(q, v, t)
             code, hard_ready = self._setup(try_hard)
             hard = -1
             if code == 0:
-                code, hard = K.qp_tick_native_hard_first(ws.work, *args, try_hard and hard_ready)
+                code, hard = K.qp_tick_native_hard_first(ws.work, *self.native_args, try_hard and hard_ready)  # type: ignore[misc]
             if try_hard and not hard_ready:
                 hard = 3  # DAQP could not set the hard QP up (its exit flag in nat_h.flag)
             stages = (ws.pin_s, ws.state_s, -1.0, -1.0)  # the set-up is in "other"
         if hard in (3, 4):
             nat_h.free()  # a failed or rejected working set is no warm start: cold the next time it is tried
-        return code, hard, stages
+        return code, hard, stages, q
 
     def _setup(self, try_hard: bool) -> tuple[int, bool]:
         """DAQP's workspaces set up where they are not (the first tick, and after a failure freed one):

@@ -78,7 +78,7 @@ def row_ranges(problem: Problem) -> list[tuple[str, int, int]]:
 def solution_info(problem: Problem, x: np.ndarray, info: dict[str, Any]) -> None:
     """Slack norm, active-row count and the constraint families with an active row, at the solver's x."""
     n = problem.n
-    s = x[n:]
+    s = x[n:][np.any(problem.A[:, n:] != 0.0, axis=0)]  # the task's s⁺, s⁻ (not a constraint's own σ)
     half = s.size // 2
     slack = s[:half] - s[half:]
     info["slack_norm"] = math.sqrt(float(slack @ slack))

@@ -21,11 +21,11 @@ FP_BK0, FP_BK1, FP_JK0, FP_JK1, FP_JKV, FP_SL1, FP_SL2, FP_WACC, FP_WPOST, FP_PK
 FP_GRID_H, FP_CLEARANCE, FP_T, FP_DAMP, FP_DAMP_KD = 20, 21, 22, 23, 24
 FP_SK0, FP_SK1, FP_SDS, FP_SELF_CLEARANCE, FP_SCUT = 25, 26, 27, 28, 29
 # the depth map's field rows (qpctl.kernels.field_rows): voxel [m], truncation [m], rigid margin [m],
-# soft_speed [m/s], cutoff [m], k0 [1/s²], k1 [1/s]
-FP_FD_VOXEL, FP_FD_TRUNC, FP_FD_MARGIN, FP_FD_VS, FP_FD_CUT, FP_FD_K0, FP_FD_K1 = range(30, 37)
+# soft_speed [m/s], cutoff [m], k0 [1/s²], k1 [1/s], the soft rows' margin [m]
+FP_FD_VOXEL, FP_FD_TRUNC, FP_FD_MARGIN, FP_FD_VS, FP_FD_CUT, FP_FD_K0, FP_FD_K1, FP_FD_SMARGIN = range(30, 38)
 # the braking-aware rows (qpctl.kernels.braking): the share of the drives' means, the margin [m], the period [s]
-FP_BRK_SHARE, FP_BRK_MARGIN, FP_BRK_DT = 37, 38, 39
-FP_SIZE = 40
+FP_BRK_SHARE, FP_BRK_MARGIN, FP_BRK_DT = 38, 39, 40
+FP_SIZE = 41
 # Int settings (TickWork.ipar)
 IP_JDOT_EN, IP_DRIFT_RIGID, IP_CAPACITY, IP_TORQUE_ROW0, IP_BARRIER_ROW0, IP_JOINT_LIMITS = range(6)
 IP_POSTURE, IP_N_IN, IP_BDRIFT, IP_DAMPING, IP_SELF_ROW0 = range(6, 11)
@@ -51,6 +51,8 @@ R_SCALARS = 14
 # What the state kernel returns when Python must finish the state (python-fcl's pairs, or a
 # look-ahead barrier drift) before the law: the tick's entry points pass it on (qpctl.kernels.tick)
 STATE_PYTHON = 5
+# What the one-call QP tick returns when q or v does not have the robot's n joints
+BAD_SHAPE = -2
 
 @njit(cache=True)
 def record_scalars(n: int, m: int) -> int:

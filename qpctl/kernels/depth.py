@@ -73,13 +73,15 @@ def voxel_index(x: float, y: float, z: float, ox: float, oy: float, oz: float, i
 @njit(cache=True, nogil=True)
 def classify_point(x: float, y: float, z: float, segments: np.ndarray, radii: np.ndarray, boxes: np.ndarray,
                    robot_box: np.ndarray, target: np.ndarray, target_radius: float, soft: bool) -> int:
-    """A base-frame point's status before the bounds: :data:`SELF` (in an inflated capsule; ``robot_box``
-    (6,) bounds them all), :data:`TARGET` (not ``soft`` and within ``target_radius`` of the grasp
-    target: the fruit goes, the leaves in front of it stay soft obstacles) or :data:`KEPT`.
+    """A base-frame point's status before the bounds: :data:`SELF` (not ``soft`` and in an inflated
+    capsule; ``robot_box`` (6,) bounds them all: a point labelled soft is a leaf, not the robot, and
+    the leaf a link pushes through stays in the map), :data:`TARGET` (not ``soft`` and within
+    ``target_radius`` of the grasp target: the fruit goes, the leaves in front of it stay soft
+    obstacles) or :data:`KEPT`.
     (The integrating kernels test the boxes in scalars first and call this only for the points in them:
     a call per point that passes arrays costs more than the whole back-projection.)"""
-    if (x >= robot_box[0] and y >= robot_box[1] and z >= robot_box[2] and x <= robot_box[3] and y <= robot_box[4]
-            and z <= robot_box[5] and in_capsules(x, y, z, segments, radii, boxes)):
+    if (not soft and x >= robot_box[0] and y >= robot_box[1] and z >= robot_box[2] and x <= robot_box[3]
+            and y <= robot_box[4] and z <= robot_box[5] and in_capsules(x, y, z, segments, radii, boxes)):
         return SELF
     if target_radius > 0.0 and not soft:
         dx, dy, dz = x - target[0], y - target[1], z - target[2]

@@ -9,7 +9,8 @@ acceleration from the capsule body's, :func:`qpctl.kernels.rigid.point_jacobian`
 
 * rigid (channel 0): nᵀJ_p q̈ ≥ −k₁ḣ − k₀(d − m) − nᵀJ̇_p q̇, m the rigid margin
   (d_safe + √3/2·voxel + depth noise);
-* soft (channel 1): nᵀJ_p q̈ ≥ −k₁(ḣ + v_s) − k₀ max(d, 0) − nᵀJ̇_p q̇, v_s = ``soft_speed``.
+* soft (channel 1): nᵀJ_p q̈ ≥ −k₁(ḣ + v_s) − k₀ max(d − m_s, 0) − nᵀJ̇_p q̇, v_s = ``soft_speed``,
+  m_s the soft margin (``perception.soft_margin``).
 
 A pair farther than the cutoff, or without a normal, is an inactive row (zero, −∞). Reference:
 :class:`qpctl.perception.rows.FieldBarrier` (the Python path), in ``tests/test_field_rows.py``.
@@ -27,6 +28,7 @@ from qpctl.kernels.codes import (
     FP_FD_K0,
     FP_FD_K1,
     FP_FD_MARGIN,
+    FP_FD_SMARGIN,
     FP_FD_TRUNC,
     FP_FD_VOXEL,
     FP_FD_VS,
@@ -68,7 +70,7 @@ def field_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no
     rpl = ws.ipar[IP_FD_RPL]
     k = L * rpl
     cut, margin, vs = ws.fpar[FP_FD_CUT], ws.fpar[FP_FD_MARGIN], ws.fpar[FP_FD_VS]
-    k0, k1 = ws.fpar[FP_FD_K0], ws.fpar[FP_FD_K1]
+    k0, k1, ms = ws.fpar[FP_FD_K0], ws.fpar[FP_FD_K1], ws.fpar[FP_FD_SMARGIN]
     for r in range(C.shape[0]):
         nx, ny, nz = ws.fd_n[r, 0], ws.fd_n[r, 1], ws.fd_n[r, 2]
         d = ws.fd_d[r]
@@ -93,6 +95,6 @@ def field_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no
             C[r, c] = val
             hdot += val * ws.v[c]
         if r >= k:  # soft: the approach no faster than v_s; contact allowed
-            lower[r] = -k1 * (hdot + vs) - k0 * max(d, 0.0) - drift
+            lower[r] = -k1 * (hdot + vs) - k0 * max(d - ms, 0.0) - drift
         else:
             lower[r] = -k1 * hdot - k0 * (d - margin) - drift

@@ -139,7 +139,7 @@ def qp_finish(ws, x: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarra
     for i in range(n):
         ws.qdd[i] = x[i]
     finish_torque(ws)
-    half = (nv - n) // 2
+    half = (nv - n) // 2  # the task's s⁺, s⁻ (a constraint's own σ, one at the end, rounds away)
     sl = 0.0
     for r in range(half):
         d = x[n + r] - x[n + half + r]

@@ -26,7 +26,15 @@ from numba import njit
 
 from qpctl.kernels.clearance import min_distance, min_self_distance
 from qpctl.kernels.clock import now_us
-from qpctl.kernels.codes import CNT_LOOKAHEAD, FP_T, R_BUILD_US, R_STATE_US, STATE_PYTHON, record_scalars
+from qpctl.kernels.codes import (
+    BAD_SHAPE,
+    CNT_LOOKAHEAD,
+    FP_T,
+    R_BUILD_US,
+    R_STATE_US,
+    STATE_PYTHON,
+    record_scalars,
+)
 from qpctl.kernels.daqp import native_solve
 from qpctl.kernels.field_rows import set_field
 from qpctl.kernels.finish import qp_finish, write_record
@@ -60,6 +68,7 @@ __all__ = [
     "set_field",
     "state",
     "tick_closed_form",
+    "tick_qp",
     "tick_qp_native",
     "tick_qp_native_hard_first",
     "write_record",
@@ -102,8 +111,14 @@ def state_timed(ws, q: np.ndarray, v: np.ndarray, t: float, ts: np.ndarray) -> i
 
 @njit(cache=True)
 def tick_closed_form(ws, q: np.ndarray, v: np.ndarray, t: float, weighted: bool) -> int:  # type: ignore[no-untyped-def]
-    """State, law terms and closed form in one call: 0; −1 the dynamics overflow; 1 M not positive
-    definite; STATE_PYTHON: the state is waiting for Python (then call :func:`closed_form_tick`)."""
+    """State, law terms and closed form in one call: 0; −1 the dynamics overflow or a non-finite
+    state; 1 M not positive definite; BAD_SHAPE: q or v is not of the robot's n joints; STATE_PYTHON:
+    the state is waiting for Python (then call :func:`closed_form_tick`)."""
+    n = ws.q.shape[0]
+    if q.shape[0] != n or v.shape[0] != n:
+        return BAD_SHAPE
+    if not abs(t) < np.inf:
+        return -1
     ts = np.empty(2, np.int64)
     code = state_timed(ws, q, v, t, ts)
     if code != 0:
@@ -142,3 +157,24 @@ def tick_qp_native_hard_first(ws, q: np.ndarray, v: np.ndarray, t: float, Hh: np
         return code, -1
     return qp_tick_native_hard_first(ws, Hh, fh, rowsh, buh, blh, workh, problemh, resulth, flagh, xh, lamh, Hr, fr,
                                      rowsr, bur, blr, workr, problemr, resultr, flagr, xr, tol, l1, try_hard)
+
+
+@njit(cache=True)
+def tick_qp(ws, nq, q: np.ndarray, v: np.ndarray, t: float, try_hard: bool) -> tuple[int, int]:  # type: ignore[no-untyped-def]
+    """The whole QP tick after ``computeAllTerms`` in one call of three compiled arguments: the
+    workspace, both QP layouts (``nq``, a :class:`~qpctl.kernels.native_qp.NativeQP`) and the state;
+    :func:`tick_qp_native_hard_first`'s pair, (BAD_SHAPE, −1) when q or v is not of the robot's n
+    joints, (−1, −1) when the state is not finite or the dynamics overflow (the dispatcher has
+    already refused any other type: no Python checks a good state)."""
+    n = ws.q.shape[0]
+    if q.shape[0] != n or v.shape[0] != n:
+        return BAD_SHAPE, -1
+    if not abs(t) < np.inf:  # NaN or ±inf; q and v: the state's overflow test (rigid_terms)
+        return -1, -1
+    ts = np.empty(2, np.int64)
+    code = state_timed(ws, q, v, t, ts)
+    if code != 0:
+        return code, -1
+    return qp_tick_native_hard_first(ws, nq.Hh, nq.fh, nq.rowsh, nq.buh, nq.blh, nq.workh, nq.problemh, nq.resulth,
+                                     nq.flagh, nq.xh, nq.lamh, nq.Hr, nq.fr, nq.rowsr, nq.bur, nq.blr, nq.workr,
+                                     nq.problemr, nq.resultr, nq.flagr, nq.xr, nq.tol, nq.l1, try_hard)

@@ -46,6 +46,7 @@ from qpctl.perception.stale import SLOW, STOP, TimeScaledPath
 from qpctl.robot.model import RobotModel
 
 PHANTOM_EVERY = 10  # ticks between two phantom-row checks
+MAP_RECORD_EVERY = 0.5  # [s] between two snapshots whose occupied voxels the run keeps (the replay's map)
 
 
 class MapLoop:
@@ -111,6 +112,9 @@ class MapLoop:
         self._sample_self = -1
         self._used: float = -math.inf
         self.series: dict[str, list[float]] = {"t": [], "map_clearance": [], "age_ms": [], "kappa": []}
+        self._map_points: list[np.ndarray] = []
+        self._map_stamps: list[np.ndarray] = []
+        self._next_record = -math.inf
         self.perception.policy.reset()
 
     # -- the hook -------------------------------------------------------------------------------
@@ -139,6 +143,9 @@ class MapLoop:
         ready = [s for when, s in self._pending if when <= t + 1e-12]
         if ready:
             p.publish(ready[-1])
+            if t >= self._next_record - 1e-12:  # the map as the controller has it from t (the replay's)
+                self._record_map(ready[-1], t)
+                self._next_record = t + MAP_RECORD_EVERY
             self._pending = [(w, s) for w, s in self._pending if w > t + 1e-12]
         snap = p.snapshot
         if snap.stamp != self._used and math.isfinite(snap.stamp):
@@ -170,6 +177,20 @@ class MapLoop:
         self.series["map_clearance"].append(believed)
         if self.soft:
             self._measure_soft(q, v, t)
+
+    def _record_map(self, snap: MapSnapshot, t: float) -> None:
+        """Keep the snapshot's occupied voxel centres (both channels) [m], from t [s] on."""
+        occupied = np.argwhere((snap.dist[0] <= 0.0) | (snap.dist[1] <= 0.0))
+        self._map_points.append(snap.grid.centres(occupied))
+        self._map_stamps.append(np.full(len(occupied), t))
+
+    def map_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """The recorded maps (every ``MAP_RECORD_EVERY`` s of the run): occupied voxel centres (K, 3) [m]
+        and the time each snapshot reached the controller (K,) [s] — the replay's ``map_points`` and
+        ``map_stamps``."""
+        if not self._map_points:
+            return np.zeros((0, 3)), np.zeros(0)
+        return np.concatenate(self._map_points), np.concatenate(self._map_stamps)
 
     # -- truth ------------------------------------------------------------------------------------
     def _check_phantoms(self, axis: np.ndarray, field: np.ndarray, t: float) -> None:

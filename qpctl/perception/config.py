@@ -45,6 +45,12 @@ class PerceptionConfig:
     samples: int = setting(12)  # points sampled along each link capsule's axis for the field's rows
     rows_per_link: int = setting(2)  # field rows per link and channel (the nearest one or two)
     soft_speed: float = setting(0.05, valid="nonnegative", unit="m/s")  # the fastest a link may pass through a leaf [m/s]
+    soft_margin: float = setting(0.0, valid="nonnegative", unit="m")  # the soft rows slow a link to soft_speed
+    #                                  from this far from the leaf's voxels [m] (√3/2 voxel + depth_noise would
+    #                                  reach the leaf's true surface at soft_speed; see docs/perception.md)
+    soft_weight: float = setting(1e7, valid="nonnegative", unit="(N·m)²/(m/s²)")  # ℓ₁ weight of the slack the soft
+    #                                  rows share (above the task's slack_l1: the task lags before a leaf is
+    #                                  pushed faster; 0: the soft rows are hard)
     stale_slow: float = setting(0.15, valid="seconds", unit="s")  # a map older than this slows the task [s]
     stale_stop: float = setting(0.5, valid="seconds", unit="s")  # older than this, the arm stops [s]
     latency: float = setting(0.03, valid="nonnegative", unit="s")  # in a simulated loop, a frame's map reaches

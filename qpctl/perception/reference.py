@@ -19,7 +19,7 @@ from qpctl.perception.snapshot import VoxelGrid
 
 def classify_points(points: np.ndarray, segments: np.ndarray, radii: np.ndarray, target: np.ndarray | None,
                     target_radius: float, grid: VoxelGrid, soft: np.ndarray | None = None) -> np.ndarray:
-    """(N,) statuses of finite base-frame points: inside a capsule, near the target (unless ``soft``,
+    """(N,) statuses of finite base-frame points: inside a capsule or near the target (unless ``soft``,
     (N,) bool), outside, kept."""
     pts = np.asarray(points, float)
     status = np.full(len(pts), KEPT, np.uint8)
@@ -31,6 +31,7 @@ def classify_points(points: np.ndarray, segments: np.ndarray, radii: np.ndarray,
     near = (np.linalg.norm(pts - target, axis=1) < target_radius) if target is not None else np.zeros(len(pts), bool)
     if soft is not None:
         near &= ~soft
+        inside &= ~soft  # a leaf is not the robot
     idx = np.floor((pts - grid.origin) / grid.voxel)
     out = np.any((idx < 0) | (idx >= np.asarray(grid.shape)), axis=1)
     status[out] = OUTSIDE

@@ -9,9 +9,12 @@ rigid-point drift ḧ = nᵀ(J_p q̈ + J̇_p q̇):
 * **rigid** (stems, branches; unlabeled points too): ḧ + k₁ḣ + k₀h ≥ 0 with h = d − m,
   m = d_safe + √3/2·voxel + depth noise (:meth:`PerceptionConfig.rigid_margin`): the voxel's centre
   may be √3/2 voxel from the surface it stands for, and the surface itself off by the noise;
-* **soft** (leaves): ḧ + k₁(ḣ + v_s) + k₀ max(d, 0) ≥ 0, v_s = ``soft_speed``: far from a leaf it
-  is the rigid row without the margin, at contact and inside it asks only ḣ ≥ −v_s — a link may
-  pass through a leaf, no faster than v_s along the field's normal.
+* **soft** (leaves): ḧ + k₁(ḣ + v_s) + k₀ max(d − m_s, 0) + σ ≥ 0, v_s = ``soft_speed``,
+  m_s = ``soft_margin`` (√3/2·voxel + depth noise would be where the leaf's true surface may already
+  be; 0 by default): far from a leaf it is a barrier without d_safe, from m_s on it asks only
+  ḣ ≥ −v_s — a link may pass through a leaf, no faster than v_s along the field's normal. σ ≥ 0 is
+  one slack column all soft rows share (:attr:`~qpctl.constraints.Constraint.slack`, ℓ₁ weight
+  ``soft_weight``): where the soft rows conflict with the hard ones the QP stays feasible.
 
 A row is active where d is within the controller's influence distance, inactive (−inf bound)
 elsewhere; the number of rows is fixed (2 channels × links × ``rows_per_link``).
@@ -39,6 +42,8 @@ from qpctl.qp import Inequality
 from qpctl.robot.model import RobotModel
 from qpctl.state import TickState
 from qpctl.tick import FieldSpec
+
+SOFT_SLACK_L2 = 1e2  # [(N·m)²/(m/s²)²] the soft rows' slack's ℓ₂ weight (as the task's slack_l2)
 
 
 @dataclass(frozen=True)
@@ -93,11 +98,16 @@ class FieldBarrier(Constraint):
     kind = BARRIER
 
     def __init__(self, source: object, robot: RobotModel, config: PerceptionConfig, *, d_safe: float,
-                 cutoff: float, k0: float = 400.0, k1: float = 40.0) -> None:
+                 cutoff: float, k0: float = 400.0, k1: float = 40.0, smooth: bool = True) -> None:
         self.source = source
+        self.smooth = bool(smooth)  # the Python path's switch (qpctl.kernels.field); the compiled rows are smooth
         self.robot = robot
         self.config = config
         self.margin = config.rigid_margin(d_safe)
+        self.soft_margin = float(config.soft_margin)
+        # the soft rows share one slack column σ ≥ 0 (cost ℓ₁σ + ½ℓ₂σ²): where they conflict with the hard
+        # rows (the torque limits, a branch) the QP stays feasible and the leaf gives way
+        self.slack = (float(config.soft_weight), SOFT_SLACK_L2) if config.soft_weight > 0 else None
         self.cutoff = float(cutoff)
         self.k0, self.k1 = float(k0), float(k1)
         self.radii = np.array([c.radius for c in robot.capsules], float)
@@ -118,10 +128,17 @@ class FieldBarrier(Constraint):
             self._last = FieldPairs(d, n, p, self._link, self._soft, (d < self.cutoff) & np.any(n != 0.0, axis=1))
         return self._last
 
+    def slack_column(self) -> np.ndarray:
+        """1 on the soft rows (the second half), 0 on the rigid ones."""
+        return self._soft.astype(float)
+
     def field_spec(self) -> FieldSpec:
-        """These rows in the compiled tick (:mod:`qpctl.kernels.field_rows`; held to :meth:`compute`)."""
+        """These rows in the compiled tick (:mod:`qpctl.kernels.field_rows`; held to :meth:`compute`;
+        :class:`ValueError` for raw rows, which only the Python path has)."""
+        if not self.smooth:
+            raise ValueError("the compiled field rows are smooth: a raw FieldBarrier needs the Python path")
         return FieldSpec(self.source, self, self.rows, self.config.samples, self.config.rows_per_link, self.margin,
-                         self.config.soft_speed, self.cutoff, self.k0, self.k1)
+                         self.config.soft_speed, self.cutoff, self.k0, self.k1, self.soft_margin)
 
     def bind(self, ws: Any) -> None:
         """A compiled tick runs on ``ws``: its arrays hold this tick's pairs (:attr:`last`)."""
@@ -163,7 +180,7 @@ class FieldBarrier(Constraint):
         lower = np.full(self.rows, -np.inf)
         upper = np.full(self.rows, np.inf)
         snap: MapSnapshot = self.source.snapshot  # type: ignore[attr-defined]
-        pairs = field_pairs(snap, state.segments, self.radii, self.config, self.cutoff)
+        pairs = field_pairs(snap, state.segments, self.radii, self.config, self.cutoff, smooth=self.smooth)
         self._last, self._ws = pairs, None
         idx = np.flatnonzero(pairs.active)
         if idx.size == 0:
@@ -175,7 +192,7 @@ class FieldBarrier(Constraint):
         d = pairs.distance[idx]
         soft = pairs.soft[idx]
         vs = self.config.soft_speed
-        rhs = np.where(soft, -self.k1 * (hdot + vs) - self.k0 * np.maximum(d, 0.0),
+        rhs = np.where(soft, -self.k1 * (hdot + vs) - self.k0 * np.maximum(d - self.soft_margin, 0.0),
                        -self.k1 * hdot - self.k0 * (d - self.margin)) - np.einsum("ri,ri->r", nrm, drift)
         C[idx] = rows
         lower[idx] = rhs

@@ -26,8 +26,10 @@ def collisions_at_rest(traj: Trajectory) -> int:
     return int(sum(bool(np.all(np.abs(traj.v[k]) <= REST_SPEED)) for k in onsets))
 
 
-def compute_metrics(traj: Trajectory, *, d_safe: float = 0.0) -> dict[str, Any]:
-    """Tracking [m], torque [N·m] and torque rate [N·m/s], clearance [m], compute time [µs], QP stats."""
+def compute_metrics(traj: Trajectory, *, d_safe: float = 0.0, frames: int = 1) -> dict[str, Any]:
+    """Tracking [m], torque [N·m] and torque rate [N·m/s], clearance [m], compute time [µs], QP stats.
+    With several task frames (``frames``, their position rows stacked in x) the tracking errors are
+    over all of them, and ``max_tracking_error_per_task``, ``final_tracking_error_per_task`` give each's."""
     err = np.linalg.norm(traj.x_ref - traj.x, axis=1)
     dt = float(np.median(np.diff(traj.t))) if traj.t.size > 1 else 1.0
     rate = np.abs(np.diff(traj.tau, axis=0)) / dt if traj.t.size > 1 else np.zeros((1, traj.tau.shape[1]))
@@ -54,6 +56,10 @@ def compute_metrics(traj: Trajectory, *, d_safe: float = 0.0) -> dict[str, Any]:
         "duration_s": float(traj.t[-1]),
         "ticks": int(traj.t.size),
     }
+    if frames > 1:  # each task frame's own position rows (the orientation rows are not in x)
+        per = np.linalg.norm((traj.x_ref - traj.x).reshape(len(traj.t), frames, -1), axis=2)
+        out["max_tracking_error_per_task"] = per.max(axis=0).tolist()
+        out["final_tracking_error_per_task"] = per[-1].tolist()
     if traj.self_clearance is not None:  # between the arm's own links (qpctl.geometry.self_collision's pairs)
         out["min_self_clearance"] = _finite_or_none(float(np.min(traj.self_clearance)))
     if traj.orientation_error_deg is not None:  # an orientation task (pose: the whole rotation; approach: the axis)

@@ -48,11 +48,15 @@ class Trajectory:
     # (T, n) one number per degree of freedom beside Pinocchio's configuration q (T, nq), where they
     # differ (continuous joints' angles in (−π, π], a planar base's x, y, θ: RobotModel.angles)
     angles: np.ndarray | None = None
+    # with a depth camera: the map's occupied voxel centres (K, 3) [m], both channels, at some of its
+    # snapshots, and each point's snapshot stamp (K,) [s] (the replay draws them: qpctl.replay.record)
+    map_points: np.ndarray | None = None
+    map_stamps: np.ndarray | None = None
 
     ARRAYS = ("t", "q", "v", "tau", "x", "x_ref", "xd_ref", "xdd_ref", "clearance", "e_null", "tick_us",
               "singular")
     OPTIONAL = ("quat", "quat_ref", "orientation_error_deg", "self_clearance", "tau_command", "qp_status",
-                "qp_fallback", "angles")
+                "qp_fallback", "angles", "map_points", "map_stamps")
 
     def save(self, path: str | Path) -> None:
         arrays = {k: getattr(self, k) for k in self.ARRAYS}

@@ -1,0 +1,59 @@
+"""The QP's two layouts on DAQP's C API as one compiled argument: :class:`NativeQP`.
+
+The one-call tick (:func:`qpctl.kernels.tick.tick_qp`) reads, besides the workspace and the state,
+both layouts of the QP (the task hard, and relaxed: H, f, rows, bu, bl in DAQP's convention), DAQP's
+three structs for each (workspace, problem, result: addresses), its exit flags and answers, the
+hard QP's multipliers, the check's tolerance and the task's ℓ₁ slack weight. Passed one by one they
+are 23 arguments, and numba's dispatcher types and unboxes each on every call (measured here: 3.6 µs
+for a call of the 28 arguments against 1.3 µs for five); in one structref they cost what one does. Built once per controller (:class:`qpctl.controllers.qp_compiled.
+CompiledTick`), holding the same numpy arrays as the layouts (:class:`qpctl.tick.QPBuffers`) and
+:class:`qpctl.solvers.daqp_native.NativeDAQP`.
+"""
+
+from __future__ import annotations
+
+from numba import njit
+from numba.core import types
+from numba.experimental import structref
+from numba.extending import typeof_impl
+
+
+@structref.register
+class NativeQPType(types.StructRef):  # type: ignore[name-defined]  # numba is untyped
+    def preprocess_fields(self, fields: tuple[tuple[str, types.Type], ...]) -> tuple[tuple[str, types.Type], ...]:
+        return tuple((name, types.unliteral(typ)) for name, typ in fields)  # type: ignore[attr-defined]
+
+
+class NativeQP(structref.StructRefProxy):
+    """Both QP layouts and their DAQP structs (fields: :data:`FIELDS`)."""
+
+
+FIELDS = (
+    # the task hard (n variables): H, f, rows, bu, bl; DAQP's workspace, problem, result (addresses);
+    # its [exit flag, iterations], answer x and multipliers λ
+    "Hh", "fh", "rowsh", "buh", "blh", "workh", "problemh", "resulth", "flagh", "xh", "lamh",
+    # the relaxed QP (n + 2m variables), the same without λ
+    "Hr", "fr", "rowsr", "bur", "blr", "workr", "problemr", "resultr", "flagr", "xr",
+    "tol",  # the answer's check: every hard row to this, relative to 1 + |its bound| (SOLUTION_RTOL)
+    "l1",  # the task's ℓ₁ slack weight (the exact-penalty test of the hard answer)
+)
+
+
+def _make_proxy() -> None:
+    structref.define_proxy(NativeQP, NativeQPType, list(FIELDS))
+
+
+_make_proxy()
+
+
+@typeof_impl.register(NativeQP)
+def _typeof(val: NativeQP, c: object) -> types.Type:
+    """Its numba type, directly: numba's generic typeof first tries the object as a buffer, an
+    exception on every kernel call (~1 µs of the dispatch, and allocations tracemalloc sees)."""
+    return val._numba_type_
+
+
+@njit(cache=True)
+def new_native_qp(*fields):  # type: ignore[no-untyped-def]
+    """A NativeQP of ``fields`` (in FIELDS order), by a cached compiled constructor."""
+    return NativeQP(*fields)

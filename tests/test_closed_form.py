@@ -1,0 +1,54 @@
+"""qpctl.controllers.closed_form: the closed forms' thin shell (issue 23, item 5) — bad states are an
+InvalidStateError reported by the kernel, other array types are converted, and an output nobody kept
+is reused (the same object, its record overwritten) while a kept one keeps its tick's values."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from qpctl import Scenario
+from qpctl.errors import InvalidStateError
+
+Q0, V0 = np.array([np.pi, np.pi / 2, 0.0]), np.array([0.1, -0.2, 0.3])
+
+
+@pytest.fixture(scope="module", params=["paper", "hsu"])
+def law(request):
+    ctrl = Scenario.load("paper").build_controller(request.param)
+    ctrl.warmup()
+    return ctrl
+
+
+@pytest.mark.parametrize("bad", ["nan q", "inf v", "short q", "nan t", "text"])
+def test_bad_states_raise_invalid_state_error(law, bad):
+    q, v, t = Q0.copy(), V0.copy(), 0.3
+    if bad == "nan q":
+        q[1] = np.nan
+    elif bad == "inf v":
+        v[2] = -np.inf
+    elif bad == "short q":
+        q = q[:2]
+    elif bad == "nan t":
+        t = float("nan")
+    else:
+        v = "fast"
+    with pytest.raises(InvalidStateError):
+        law.step(q, v, t)
+    assert np.isfinite(law.step(Q0, V0, 0.3).tau).all()
+
+
+def test_outputs_reused_only_when_nobody_holds_them(law):
+    """The torque of the float64 state equals that of its list and float32 forms (to float32's
+    rounding); an output kept across later ticks keeps its values; one dropped is reused."""
+    ref = law.step(Q0, V0, 0.3).tau.copy()
+    np.testing.assert_allclose(law.step(Q0.tolist(), V0.tolist(), 0.3).tau, ref, rtol=0, atol=0)
+    np.testing.assert_allclose(law.step(Q0.astype(np.float32), V0.astype(np.float32), 0.3).tau, ref, rtol=1e-4,
+                               atol=1e-4 * np.abs(ref).max())
+    kept = law.step(Q0, V0, 0.3)
+    for k in range(5):
+        law.step(Q0 + 0.01 * k, V0, 0.3 + 1e-3 * k)
+    np.testing.assert_array_equal(kept.tau, ref)
+    del kept
+    first = id(law.step(Q0, V0, 0.31))
+    assert id(law.step(Q0, V0, 0.32)) == first
