@@ -78,6 +78,8 @@ class PaperController(Controller):
         ws = self._ws if self._ws is not None else self.workspace()
         if ws.fast:  # computeAllTerms, then one kernel call (stage times measured in it)
             try:
+                if not isinstance(t, float):  # a bool or an int would pass numba's conversions
+                    raise TypeError(t)
                 t0 = time.perf_counter()
                 pin.computeAllTerms(ws.model, ws.data, q, v)
                 t1 = time.perf_counter()

@@ -385,6 +385,8 @@ class CompiledTick:
         assert nat_h is not None and nat_r is not None
         if ws.fast and nat_r.ready and (nat_h.ready or not try_hard):
             try:
+                if not isinstance(t, float):  # a bool or an int would pass numba's conversions
+                    raise TypeError(t)
                 t0 = time.perf_counter()
                 pin.computeAllTerms(ws.model, ws.data, q, v)
                 t1 = time.perf_counter()
