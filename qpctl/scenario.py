@@ -648,6 +648,11 @@ class Scenario:
         pts = [list(start)] + waypoints
         if any(len(w) != robot.m_position for w in pts):
             raise self._err("path.waypoints", f"each point needs {robot.m_position} coordinates for robot {robot.name}")
+        return self._timed_path(robot, q0, pts)
+
+    def _timed_path(self, robot: RobotModel, q0: np.ndarray, pts: Any) -> WaypointPath:
+        """The path through ``pts`` on [path]'s timing (a pose path where the robot has orientation rows)."""
+        p = self.data["path"]
         timing = {"duration": p["duration"], "durations": p["durations"], "start_time": p["start_time"],
                   "dwell": p["dwell"]}
         try:
@@ -662,7 +667,7 @@ class Scenario:
         rows' order), on [path]'s timing."""
         import pinocchio as pin
 
-        p, tasks = self.data["path"], self.data["tasks"]
+        tasks = self.data["tasks"]
         data = robot.model.createData()
         pin.framesForwardKinematics(robot.model, data, q0)
         at_q0 = robot.task_positions(data).reshape(len(tasks), -1)
@@ -674,14 +679,7 @@ class Scenario:
                 raise self._err(f"tasks[{i}].waypoints", f"each point needs {per} coordinates (robot.task_axes)")
             rows.append(np.array(pts, float))
         pts = np.concatenate(rows, axis=1)
-        timing = {"duration": p["duration"], "durations": p["durations"], "start_time": p["start_time"],
-                  "dwell": p["dwell"]}
-        try:
-            if robot.m_orientation:
-                return PosePath(pts, self._rotations(robot, q0, len(pts)), **timing)
-            return WaypointPath(pts, **timing)
-        except ConfigError as exc:
-            raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key) from None
+        return self._timed_path(robot, q0, pts)
 
     def build_obstacles(self) -> list[Obstacle]:
         """The ``[[obstacles]]``, then a ``[canopy]``'s trunk, wires, branches and leaves."""
