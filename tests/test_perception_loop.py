@@ -159,7 +159,7 @@ def test_the_closed_loop_is_the_same_run_however_long_the_map_takes() -> None:
     latency delays the first rows by exactly the difference."""
     import threading
 
-    def run(latency: float, busy: bool) -> tuple[np.ndarray, list[float]]:
+    def run(latency: float, busy: bool) -> tuple[np.ndarray, list[float], dict]:
         scen, world, cam = _camera_scene()
         ctrl = scen.build_controller("qp", robot=cam.robot, obstacles=[])
         sim = Simulator(ctrl, dt=1e-3, duration=0.3, obstacles=world)
@@ -175,12 +175,14 @@ def test_the_closed_loop_is_the_same_run_however_long_the_map_takes() -> None:
             stop.set()
             if busy:
                 spin.join()
-        return traj.tau, loop.series["age_ms"]
+        return traj.tau, loop.series["age_ms"], loop.metrics()
 
-    tau_a, age_a = run(0.03, busy=False)
-    tau_b, _ = run(0.03, busy=True)
+    tau_a, age_a, _ = run(0.03, busy=False)
+    tau_b, _, _ = run(0.03, busy=True)
     assert np.array_equal(tau_a, tau_b)
-    _, age_c = run(0.06, busy=False)
+    _, age_c, m_c = run(0.06, busy=False)
+    _, _, m_0 = run(0.0, busy=False)  # no build takes no time: every frame is over a zero latency
+    assert m_0["map_updates_over_latency"] == m_0["map_frames"] == 10 and m_c["map_frames"] == 10
     first = [next(i for i, a in enumerate(ages) if np.isfinite(a)) for ages in (age_a, age_c)]
     assert first[1] - first[0] == 30  # ticks of 1 ms
 

@@ -191,6 +191,16 @@ def entry_point(kernel: Any, *leading: Any, **trailing: Any) -> Any:
         return None
 
 
+_F64 = np.dtype(np.float64)
+
+
+def plain_vectors(q: Any, v: Any) -> bool:
+    """q and v as a one-call tick's compiled entry point (:func:`entry_point`) takes them unchecked:
+    float64, one-dimensional, C-contiguous ndarrays (anything else goes through numba's dispatcher)."""
+    return (type(q) is np.ndarray and type(v) is np.ndarray and q.dtype is _F64 and v.dtype is _F64
+            and q.ndim == 1 and v.ndim == 1 and q.flags.c_contiguous and v.flags.c_contiguous)
+
+
 def fast_state(q: Any, v: Any, t: Any, n: int, nq: int | None = None) -> tuple[np.ndarray, np.ndarray, float]:
     """(q, v, t) as the kernels take them: contiguous float64 arrays of n and a float. The common case
     (already so) costs a few attribute checks; anything else goes through :func:`validate_state`,

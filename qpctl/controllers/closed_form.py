@@ -47,6 +47,7 @@ from qpctl.controllers.base import (
     entry_point,
     fast_state,
     lock_compilation,
+    plain_vectors,
 )
 from qpctl.errors import InvalidStateError
 from qpctl.kernels import codes
@@ -54,8 +55,6 @@ from qpctl.kernels import tick as K
 from qpctl.law import closed_form_acceleration, law_terms
 from qpctl.state import TickState
 from qpctl.tick import Workspace
-
-_F64 = np.dtype(np.float64)
 
 
 class PaperController(Controller):
@@ -85,9 +84,7 @@ class PaperController(Controller):
                 t1 = time.perf_counter()
                 qk = ws.joint_view(q)
                 entry = self._entry
-                if (entry is not None and type(qk) is np.ndarray and type(v) is np.ndarray and qk.dtype is _F64
-                        and v.dtype is _F64 and qk.ndim == 1 and v.ndim == 1 and qk.flags.c_contiguous
-                        and v.flags.c_contiguous):
+                if entry is not None and plain_vectors(qk, v):
                     code = entry(ws.work, qk, v, t, self.weighted)
                 else:
                     code = K.tick_closed_form(ws.work, qk, v, t, self.weighted)

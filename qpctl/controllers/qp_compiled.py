@@ -41,6 +41,7 @@ from qpctl.controllers.base import (
     entry_point,
     fast_state,
     lock_compilation,
+    plain_vectors,
 )
 from qpctl.controllers.qp_failure import Failures
 from qpctl.controllers.relaxation import REFUSALS, TaskRelaxation
@@ -115,7 +116,6 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
     )
 
 
-_F64 = np.dtype(np.float64)
 
 
 class QPOutput(RecordOutput):
@@ -392,9 +392,7 @@ class CompiledTick:
                 t1 = time.perf_counter()
                 qk = ws.joint_view(q)
                 entry = self._entry
-                if (entry is not None and type(qk) is np.ndarray and type(v) is np.ndarray and qk.dtype is _F64
-                        and v.dtype is _F64 and qk.ndim == 1 and v.ndim == 1 and qk.flags.c_contiguous
-                        and v.flags.c_contiguous):
+                if entry is not None and plain_vectors(qk, v):
                     code, hard = entry(ws.work, self.packed, qk, v, t, try_hard)
                 else:
                     code, hard = K.tick_qp(ws.work, self.packed, qk, v, t, try_hard)
