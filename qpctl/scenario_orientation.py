@@ -66,9 +66,14 @@ def task_orientation(data: dict[str, Any], i: int, task_axes: tuple[int, ...]) -
 
 def with_task_orientations(data: dict[str, Any], robot: RobotModel) -> RobotModel:
     """``robot`` with each ``[[tasks]]`` table's own orientation task on its frame."""
-    for i in range(len(data["tasks"])):
+    for i, t in enumerate(data["tasks"]):
         if own_task(data, i):
             robot = robot.with_frame_orientation(i, task_orientation(data, i, tuple(robot.task_axes)))
+            continue
+        for key, kinds in KEY_KINDS.items():  # the first table without a task of its own: none of its keys
+            if t[key] is not None:
+                raise ConfigError(f"applies to a task = {' or '.join(kinds)} only (this task is 'position': give "
+                                  f"tasks[{i}].task)", key=f"tasks[{i}].{key}")
     return robot
 
 

@@ -25,8 +25,8 @@ import pinocchio as pin
 
 from qpctl.errors import ConfigError, UnknownFrameError
 from qpctl.robot.config import RobotConfig
-from qpctl.robot.frame_orientation import FrameOrientation
 from qpctl.robot.files import example_robot_data_path, read_model, resolve_package_uri
+from qpctl.robot.frame_orientation import FrameOrientation
 
 # Where a URDF names a link and a joint alike (example-robot-data's Z1: "gripperStator"), Pinocchio
 # has several frames of that name; the task point is then the first of these kinds.
