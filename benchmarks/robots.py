@@ -5,7 +5,8 @@
 For each arm: ``qpctl fit-capsules`` on its URDF (capsules file in OUT), the SRDF found beside the
 URDF (or none), then the QP on a reach among obstacles built from the arm's own size: the task point
 moves in 2 s along a straight line between two seeded random configurations' task points (both
-with the arm's capsules clear of each other and of the floor z = 0, the task point above it),
+held against gravity within 0.8 × the torque limits, with the arm's capsules clear of each other
+and of the floor z = 0, the task point above it),
 holds 0.5 s, past a sphere beside the line's middle (away from the base) and a capsule "branch"
 across the line below it — each placed so that the task point's path stays clear of it while the
 arm passes within the influence distance. Writes ``robots.md`` (the table of docs/robots.md) and ``robots.json``.
@@ -47,11 +48,15 @@ ARMS: list[tuple[str, str, str, str]] = [
     ("Kinova Gen2 (j2s6s200)", "kinova_description/robots/kinova.urdf", "j2s6s200_end_effector", ""),
 ]
 D_SAFE = 0.02  # [m]
+HOLD = 0.8  # a drawn configuration's gravity torque stays within this share of each joint's torque limit
 
 
 def _clear(robot: Any, q: np.ndarray, pairs: Any, data: Any) -> bool:
-    """The capsules of ``pairs`` apart by d_safe, the links past the first joint above the floor, the
-    task point too."""
+    """The arm holds q against gravity within HOLD × its torque limits (Talos's arm, 22.3 N·m at its
+    shoulder, cannot hold every pose its joint limits allow), the capsules of ``pairs`` apart by d_safe,
+    the links past the first joint above the floor, the task point too."""
+    if np.any(np.abs(pin.computeGeneralizedGravity(robot.model, data, q)) > HOLD * robot.tau_max):
+        return False
     pin.framesForwardKinematics(robot.model, data, q)
     if data.oMf[robot.ee_frame_id].translation[2] < 0.05:
         return False
