@@ -30,10 +30,12 @@ from qpctl.robot.capsules import fit_robot, write_capsules
 from qpctl.run import simulate
 from qpctl.scenario import arm_reach
 
-# (label, file below example-robot-data's robots/, task frame, robot.srdf)
+# (label, file below example-robot-data's robots/, task frame, robot.srdf); not ur3.urdf: an empty
+# <robot> (xacro's output without its macros), no link to run
 ARMS: list[tuple[str, str, str, str]] = [
     ("Panda", "panda_description/urdf/panda.urdf", "panda_hand_tcp", ""),
     ("UR3", "ur_description/urdf/ur3_robot.urdf", "tool0", ""),
+    ("UR3 joint-limited", "ur_description/urdf/ur3_joint_limited_robot.urdf", "tool0", ""),
     ("UR3 + gripper", "ur_description/urdf/ur3_gripper.urdf", "tool0", ""),
     ("UR5", "ur_description/urdf/ur5_robot.urdf", "tool0", ""),
     ("UR5 + gripper", "ur_description/urdf/ur5_gripper.urdf", "tool0", ""),

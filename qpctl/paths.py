@@ -192,6 +192,12 @@ class PosePath(WaypointPath):
         """How many frames' rotations it holds."""
         return int(self.frame_rotations.shape[0])
 
+    def check_frames(self, oriented: int) -> None:
+        """A ConfigError (``path.orientations``) unless it holds rotations for ``oriented`` frames."""
+        if self.frames != oriented:
+            raise ConfigError(f"{oriented} task frames have orientation rows but the path holds rotations for "
+                              f"{self.frames}", key="path.orientations")
+
     def _lengths(self) -> np.ndarray:
         moves = np.linalg.norm(np.diff(self.points, axis=0), axis=1)
         return np.maximum(moves, ROTATION_LENGTH * np.linalg.norm(self.frame_theta, axis=2).max(axis=0))

@@ -321,13 +321,13 @@ class Workspace:
         else:  # None, or any callable t → Reference (evaluated in Python each tick)
             self.path_pts, self.path_t0, self.path_T = np.zeros((2, m_p)), np.zeros(1), np.ones(1)
         if isinstance(path, PosePath):
-            if len(self.ori_rows) and path.frames != len(self.ori_tk):
-                raise ConfigError(f"{len(self.ori_tk)} task frames have orientation rows but the path holds "
-                                  f"rotations for {path.frames}", key="path.orientations")
+            if len(self.ori_rows):
+                path.check_frames(len(self.ori_tk))
             self.rot_pts = np.ascontiguousarray(path.frame_rotations)
             self.rot_theta = np.ascontiguousarray(path.frame_theta)
         else:
-            self.rot_pts, self.rot_theta = np.tile(np.eye(3), (len(self.ori_tk), 2, 1, 1)), np.zeros((len(self.ori_tk), 1, 3))
+            F = len(self.ori_tk)
+            self.rot_pts, self.rot_theta = np.tile(np.eye(3), (F, 2, 1, 1)), np.zeros((F, 1, 3))
             if len(self.ori_rows) and path is not None:
                 raise ConfigError("an orientation task needs a PosePath (a rotation at every point)",
                                   key="path.orientations")

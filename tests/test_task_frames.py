@@ -80,9 +80,16 @@ def test_dual_arm_law_splits_into_each_arm_alone(kind: str) -> None:
     dual_sc = Scenario.from_dict(_raw(("left", "right"), kind, **extra))
     dual = dual_sc.build_controller()
     traj = Simulator(dual, dt=1e-3, duration=1.5).run(dual_sc.q0(dual.robot))
+    _assert_each_arm_alone(traj, kind, lambda side: _raw((side,), kind, **extra))
+
+
+def _assert_each_arm_alone(traj, kind: str, single_raw) -> None:  # type: ignore[no-untyped-def]
+    """Each arm's torques in ``traj`` (Baxter's two-task run) are what the one-task controller of
+    ``single_raw(side)`` gives that arm alone on the same states: Hsu's law bit for bit, the others
+    to 5e-5 of the torque."""
     assert np.abs(traj.tau).max() > 1.0
     for side, cols in (("left", slice(0, 7)), ("right", slice(7, 14))):
-        single = Scenario.from_dict(_raw((side,), kind, **extra)).build_controller()
+        single = Scenario.from_dict(single_raw(side)).build_controller()
         single.reset()
         tau = np.array([single.torque(q[cols].copy(), v[cols].copy(), float(t))
                         for t, q, v in zip(traj.t, traj.q, traj.v)])
@@ -281,17 +288,10 @@ def test_two_orientation_tasks_split_into_each_arm_alone(kind: str, right: str) 
     dual_sc = Scenario.from_dict(_oriented(("left", "right"), kind, right=right))
     dual = dual_sc.build_controller()
     traj = Simulator(dual, dt=1e-3, duration=1.0).run(dual_sc.q0(dual.robot))
-    assert np.abs(traj.tau).max() > 1.0
+    assert dual.robot.m == (11 if right == "pose" else 10)
     if kind != "hsu":
         assert not traj.singular.any()
-    for side, cols in (("left", slice(0, 7)), ("right", slice(7, 14))):
-        single = Scenario.from_dict(_oriented((side,), kind, own=False, right=right)).build_controller()
-        assert single.robot.m == (6 if side == "right" and right == "pose" else 5)
-        single.reset()
-        tau = np.array([single.torque(q[cols].copy(), v[cols].copy(), float(t))
-                        for t, q, v in zip(traj.t, traj.q, traj.v)])
-        scale = np.abs(traj.tau[:, cols]).max()
-        assert np.abs(tau - traj.tau[:, cols]).max() <= (0.0 if kind == "hsu" else 5e-5 * scale), side
+    _assert_each_arm_alone(traj, kind, lambda side: _oriented((side,), kind, own=False, right=right))
 
 
 def test_two_orientation_tasks_are_tracked_and_reported_per_task() -> None:
@@ -347,3 +347,14 @@ def test_bad_orientation_keys_of_a_task_name_the_key(change, key, text) -> None:
         Scenario.from_dict(_edited(change), source="dual.toml")
     assert err.value.key == key and text in str(err.value) and "\n" not in str(err.value)
     assert "dual.toml" in str(err.value)
+
+
+def test_a_path_without_each_oriented_frames_rotations_is_refused() -> None:
+    from qpctl.controllers.qp import QPController
+    from qpctl.paths import PosePath
+
+    ctrl = Scenario.from_dict(_oriented(("left", "right"), "qp")).build_controller()
+    one = PosePath(ctrl.path.points, ctrl.path.frame_rotations[0], durations=[1.5])
+    with pytest.raises(ConfigError) as err:
+        QPController(ctrl.robot, one, [])
+    assert err.value.key == "path.orientations" and "2 task frames" in str(err.value)

@@ -240,9 +240,8 @@ class Controller(ABC):
         if robot.m_orientation and not isinstance(path, PosePath):
             raise ConfigError("an orientation task needs a PosePath (a rotation at every point)",
                               key="path.orientations")
-        if robot.m_orientation and path.frames != len(robot.oriented_frames):  # type: ignore[attr-defined]
-            raise ConfigError(f"{len(robot.oriented_frames)} task frames have orientation rows but the path holds "
-                              f"rotations for {path.frames}", key="path.orientations")  # type: ignore[attr-defined]
+        if robot.m_orientation:
+            path.check_frames(len(robot.oriented_frames))  # type: ignore[attr-defined]
         if robot.m_orientation and self.gains.jdot_en:
             raise ConfigError("the J̇e_N term is implemented for position tasks only", key="controller.jdot_en")
         self.broadphase = broadphase
