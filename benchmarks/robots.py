@@ -5,7 +5,8 @@
 For each arm: ``qpctl fit-capsules`` on its URDF (capsules file in OUT), the SRDF found beside the
 URDF (or none), then the QP on a reach among obstacles built from the arm's own size: the task point
 moves in 2 s along a straight line between two seeded random configurations' task points (both
-with the arm's capsules clear of each other and of the floor z = 0, the task point above it),
+held against gravity within 0.8 × the torque limits, with the arm's capsules clear of each other
+and of the floor z = 0, the task point above it),
 holds 0.5 s, past a sphere beside the line's middle (away from the base) and a capsule "branch"
 across the line below it — each placed so that the task point's path stays clear of it while the
 arm passes within the influence distance. Writes ``robots.md`` (the table of docs/robots.md) and ``robots.json``.
@@ -29,10 +30,12 @@ from qpctl.robot.capsules import fit_robot, write_capsules
 from qpctl.run import simulate
 from qpctl.scenario import arm_reach
 
-# (label, file below example-robot-data's robots/, task frame, robot.srdf)
+# (label, file below example-robot-data's robots/, task frame, robot.srdf); not ur3.urdf: an empty
+# <robot> (xacro's output without its macros), no link to run
 ARMS: list[tuple[str, str, str, str]] = [
     ("Panda", "panda_description/urdf/panda.urdf", "panda_hand_tcp", ""),
     ("UR3", "ur_description/urdf/ur3_robot.urdf", "tool0", ""),
+    ("UR3 joint-limited", "ur_description/urdf/ur3_joint_limited_robot.urdf", "tool0", ""),
     ("UR3 + gripper", "ur_description/urdf/ur3_gripper.urdf", "tool0", ""),
     ("UR5", "ur_description/urdf/ur5_robot.urdf", "tool0", ""),
     ("UR5 + gripper", "ur_description/urdf/ur5_gripper.urdf", "tool0", ""),
@@ -47,11 +50,15 @@ ARMS: list[tuple[str, str, str, str]] = [
     ("Kinova Gen2 (j2s6s200)", "kinova_description/robots/kinova.urdf", "j2s6s200_end_effector", ""),
 ]
 D_SAFE = 0.02  # [m]
+HOLD = 0.8  # a drawn configuration's gravity torque stays within this share of each joint's torque limit
 
 
 def _clear(robot: Any, q: np.ndarray, pairs: Any, data: Any) -> bool:
-    """The capsules of ``pairs`` apart by d_safe, the links past the first joint above the floor, the
-    task point too."""
+    """The arm holds q against gravity within HOLD × its torque limits (Talos's arm, 22.3 N·m at its
+    shoulder, cannot hold every pose its joint limits allow), the capsules of ``pairs`` apart by d_safe,
+    the links past the first joint above the floor, the task point too."""
+    if np.any(np.abs(pin.computeGeneralizedGravity(robot.model, data, q)) > HOLD * robot.tau_max):
+        return False
     pin.framesForwardKinematics(robot.model, data, q)
     if data.oMf[robot.ee_frame_id].translation[2] < 0.05:
         return False

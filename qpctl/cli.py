@@ -128,10 +128,11 @@ def _cmd_fit_capsules(args: argparse.Namespace) -> int:
     from qpctl.errors import ConfigError
     from qpctl.robot.capsules import fit_robot, write_capsules
 
-    if args.max_capsules not in (1, 2):
-        raise ConfigError(f"must be 1 or 2, got {args.max_capsules}", key="--max-capsules")
+    if args.max_capsules not in (1, 2, 3):
+        raise ConfigError(f"must be 1, 2 or 3, got {args.max_capsules}", key="--max-capsules")
     path, fits = fit_robot(args.robot, skip=args.skip or (), max_capsules=args.max_capsules)
-    command = " ".join(["qpctl fit-capsules", args.robot] + (["--max-capsules", "1"] if args.max_capsules == 1 else [])
+    command = " ".join(["qpctl fit-capsules", args.robot]
+                       + (["--max-capsules", str(args.max_capsules)] if args.max_capsules != 3 else [])
                        + [f"--skip {s}" for s in args.skip or ()])
     out = write_capsules(fits, args.out, robot=args.robot if args.robot == "panda" else path.stem,
                          source=str(path), command=command)
@@ -191,7 +192,8 @@ def build_parser() -> argparse.ArgumentParser:
     fc = sub.add_parser("fit-capsules", help="fit collision capsules to a robot's link meshes into a TOML file")
     fc.add_argument("robot", help="panda, a .urdf or MJCF .xml file, or package://example-robot-data/robots/<file>")
     fc.add_argument("--out", required=True, help="the capsules file to write (robot.capsules reads it)")
-    fc.add_argument("--max-capsules", type=int, default=2, help="capsules per link at most: 1 or 2 (default 2)")
+    fc.add_argument("--max-capsules", type=int, default=3, help="capsules per link at most: 1, 2 or 3 (default 3: "
+                    "a third only where two exceed twice the link's convex hull)")
     fc.add_argument("--skip", action="append", metavar="LINK", help="leave this link without capsules (repeatable)")
     fc.set_defaults(func=_cmd_fit_capsules)
     return p

@@ -1,4 +1,4 @@
-"""The task frame's orientation rows (:attr:`RobotModel.orientation`), in Python.
+"""The task frames' orientation rows (:meth:`RobotModel.frame_orientation`), in Python.
 
 The compiled tick computes the same rows in :mod:`qpctl.kernels.scene` (``tests/test_orientation.py``
 holds the two together, and these against finite differences on SO(3)). Every row is in the form
@@ -17,6 +17,10 @@ the error):
   v̇_k = ω_d × v_k: ẏ_k = (z × v_k)·(ω − ω_d), so J = (z × v_k)ᵀJ_ω, ẋ_d = (z × v_k)·ω_d,
   J̇q̇ = (z × v_k)·α₀ + (ż × v_k)·(ω − ω_d) + (z × v̇_k)·ω, ẍ_d = (z × v̇_k)·ω_d + (z × v_k)·ω̇_d —
   exact, so e → 0 as s² + k_v s + k_p. The roll about z is free.
+
+Every function takes ``frame``, the task frame (an index into :attr:`RobotModel.frames`, 0 by
+default: ``ee_frame``); with several oriented frames each has its own rows, stacked frame after frame
+(:attr:`RobotModel.oriented_frames`) after every position row.
 """
 
 from __future__ import annotations
@@ -28,13 +32,13 @@ from qpctl.errors import ConfigError
 from qpctl.robot.model import RobotModel
 
 
-def frame_terms(robot: RobotModel, q: np.ndarray, v: np.ndarray,
-                data: pin.Data | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """R (3, 3), ω [rad/s], α₀ [rad/s²] (angular acceleration at q̈ = 0) and J_ω (3, n) of the task
-    frame, world frame, from Pinocchio's frame functions."""
+def frame_terms(robot: RobotModel, q: np.ndarray, v: np.ndarray, data: pin.Data | None = None, *,
+                frame: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """R (3, 3), ω [rad/s], α₀ [rad/s²] (angular acceleration at q̈ = 0) and J_ω (3, n) of task frame
+    ``frame``, world frame, from Pinocchio's frame functions."""
     model = robot.model
     data = data or model.createData()
-    fid = robot.ee_frame_id
+    fid = robot.task_frame_ids[frame]
     pin.forwardKinematics(model, data, q, v, np.zeros(model.nv))
     pin.updateFramePlacements(model, data)
     R = data.oMf[fid].rotation.copy()
@@ -46,18 +50,19 @@ def frame_terms(robot: RobotModel, q: np.ndarray, v: np.ndarray,
 
 def orientation_rows(robot: RobotModel, R: np.ndarray, omega: np.ndarray, alpha: np.ndarray,
                      J_omega: np.ndarray, R_d: np.ndarray,
-                     omega_d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(x, ẋ, J, J̇q̇) of the orientation rows at the frame's R, ω, α₀, J_ω and the reference's R_d, ω_d
-    (the approach rows depend on the reference's orientation: see the module)."""
-    if robot.orientation == "pose":
-        axes = list(robot.orientation_axes)
+                     omega_d: np.ndarray, *, frame: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(x, ẋ, J, J̇q̇) of task frame ``frame``'s orientation rows at its R, ω, α₀, J_ω and the
+    reference's R_d, ω_d (the approach rows depend on the reference's orientation: see the module)."""
+    o = robot.frame_orientation(frame)
+    if o.kind == "pose":
+        axes = list(o.axes)
         return np.zeros(len(axes)), omega[axes], J_omega[axes], alpha[axes]
-    if robot.orientation != "approach":
+    if o.kind != "approach":
         return np.zeros(0), np.zeros(0), np.zeros((0, J_omega.shape[1])), np.zeros(0)
-    z = R @ robot.approach_axis
+    z = R @ np.asarray(o.approach_axis)
     zdot = np.cross(omega, z)
     x, xd, J, drift = np.zeros(2), np.zeros(2), np.zeros((2, J_omega.shape[1])), np.zeros(2)
-    for k, b in enumerate(robot.approach_basis()):
+    for k, b in enumerate(o.basis()):
         v = R_d @ b
         zv = np.cross(z, v)
         x[k], xd[k], J[k] = v @ z, zv @ omega, zv @ J_omega
@@ -66,16 +71,17 @@ def orientation_rows(robot: RobotModel, R: np.ndarray, omega: np.ndarray, alpha:
 
 
 def orientation_reference(robot: RobotModel, R: np.ndarray, R_d: np.ndarray, omega_d: np.ndarray,
-                          alpha_d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(x_d, ẋ_d, ẍ_d) of the orientation rows at the frame's R and the reference R_d, ω_d, ω̇_d."""
-    if robot.orientation == "pose":
-        axes = list(robot.orientation_axes)
+                          alpha_d: np.ndarray, *, frame: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(x_d, ẋ_d, ẍ_d) of task frame ``frame``'s orientation rows at its R and the reference R_d, ω_d, ω̇_d."""
+    o = robot.frame_orientation(frame)
+    if o.kind == "pose":
+        axes = list(o.axes)
         return pin.log3(R_d @ R.T)[axes], omega_d[axes], alpha_d[axes]
-    if robot.orientation != "approach":
+    if o.kind != "approach":
         return np.zeros(0), np.zeros(0), np.zeros(0)
-    z = R @ robot.approach_axis
+    z = R @ np.asarray(o.approach_axis)
     xd, xdd = np.zeros(2), np.zeros(2)
-    for k, b in enumerate(robot.approach_basis()):
+    for k, b in enumerate(o.basis()):
         v = R_d @ b
         zv = np.cross(z, v)
         xd[k] = zv @ omega_d
@@ -83,24 +89,26 @@ def orientation_reference(robot: RobotModel, R: np.ndarray, R_d: np.ndarray, ome
     return np.zeros(2), xd, xdd
 
 
-def rotation_error(robot: RobotModel, R: np.ndarray, R_d: np.ndarray) -> np.ndarray:
-    """The rotation vector [rad] (world frame) between the frame and its reference: log(R_d Rᵀ) for
-    a pose, the least rotation taking the approach axis z = R c onto d = R_d c for an approach."""
-    if robot.orientation == "pose":
+def rotation_error(robot: RobotModel, R: np.ndarray, R_d: np.ndarray, *, frame: int = 0) -> np.ndarray:
+    """The rotation vector [rad] (world frame) between task frame ``frame`` and its reference:
+    log(R_d Rᵀ) for a pose, the least rotation taking the approach axis z = R c onto d = R_d c for an
+    approach."""
+    o = robot.frame_orientation(frame)
+    if o.kind == "pose":
         return pin.log3(R_d @ R.T)
-    c = np.asarray(robot.approach_axis, float)
+    c = np.asarray(o.approach_axis, float)
     z, d = R @ c, R_d @ c
     w = np.cross(z, d)
     s, cos = float(np.linalg.norm(w)), float(z @ d)
     if s < 1e-12:
-        return np.zeros(3) if cos > 0 else np.pi * (R @ robot.approach_basis()[0])
+        return np.zeros(3) if cos > 0 else np.pi * (R @ o.basis()[0])
     return np.arctan2(s, cos) * w / s
 
 
-def orientation_error_deg(robot: RobotModel, R: np.ndarray, R_d: np.ndarray) -> float:
-    """The angle [deg] between the frame and its reference: the whole rotation for a pose task, the
-    approach axis's for an approach task (its roll is free)."""
-    return float(np.degrees(np.linalg.norm(rotation_error(robot, R, R_d))))
+def orientation_error_deg(robot: RobotModel, R: np.ndarray, R_d: np.ndarray, *, frame: int = 0) -> float:
+    """The angle [deg] between task frame ``frame`` and its reference: the whole rotation for a pose
+    task, the approach axis's for an approach task (its roll is free)."""
+    return float(np.degrees(np.linalg.norm(rotation_error(robot, R, R_d, frame=frame))))
 
 
 def approach_rotations(R0: np.ndarray, axis: np.ndarray, directions: np.ndarray) -> np.ndarray:

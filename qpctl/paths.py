@@ -70,13 +70,23 @@ class TaskConfig:
     one per ``path`` segment (every task has as many: they share ``[path]``'s durations and dwell);
     start [m]: its first point (None: the frame's position at q0); weights: its position rows' slack
     weights in the QP (one, or one per row; 1 by default: ``controller.task_weights``' rows).
-    The first task's frame is ``robot.ee_frame`` (and carries ``controller.task``'s orientation rows).
+    task: its frame's orientation task, "position" (none), "pose" or "approach", with the same keys as
+    the single frame's (``controller.task_mask``, ``controller.approach_axis``, ``path.orientations``,
+    ``path.approach``, ``path.start_orientation``): task_mask, approach_axis, orientations, approach,
+    start_orientation (:mod:`qpctl.scenario_orientation`). The first task's frame is ``robot.ee_frame``;
+    without a ``task`` of its own it carries ``controller.task``'s orientation rows.
     """
 
     frame: str = ""
     waypoints: list[list[float]] | None = None
     start: list[float] | None = None
     weights: float | list[float] | None = None
+    task: str | None = None
+    task_mask: list[float] | None = None
+    approach_axis: list[float] | None = None
+    orientations: list[list[float]] | None = None
+    approach: list[list[float]] | None = None
+    start_orientation: list[float] | None = None
 
 
 class WaypointPath:
@@ -151,8 +161,10 @@ ROTATION_LENGTH = 0.1
 
 class PosePath(WaypointPath):
     """A :class:`WaypointPath` with a rotation at every point ((k+1, 3, 3), world frame), slerped with
-    the same quintic timing. A total ``duration`` is shared by max(‖Δp‖, ROTATION_LENGTH·|θ|) per
-    segment. :meth:`orientation` gives R_d, ω_d [rad/s], ω̇_d [rad/s²]."""
+    the same quintic timing; with several oriented task frames, one set of rotations per frame
+    ((F, k+1, 3, 3), :attr:`RobotModel.oriented_frames`' order). A total ``duration`` is shared by
+    max(‖Δp‖, ROTATION_LENGTH·|θ|) per segment (the largest θ over the frames).
+    :meth:`orientation` gives R_d, ω_d [rad/s], ω̇_d [rad/s²]."""
 
     def __init__(self, points: Sequence[Sequence[float]] | np.ndarray,
                  rotations: Sequence[np.ndarray] | np.ndarray, **kwargs: Any) -> None:
@@ -160,25 +172,41 @@ class PosePath(WaypointPath):
 
         R = np.asarray(rotations, dtype=float)
         pts = np.asarray(points, dtype=float)
-        if R.ndim != 3 or R.shape[1:] != (3, 3) or pts.ndim != 2 or R.shape[0] != pts.shape[0]:
+        sets = R[None] if R.ndim == 3 else R
+        if sets.ndim != 4 or sets.shape[2:] != (3, 3) or pts.ndim != 2 or sets.shape[1] != pts.shape[0]:
             raise ConfigError(f"needs one rotation per point ({pts.shape[0] if pts.ndim == 2 else '?'}), "
                               f"got an array of shape {R.shape}", key="path.orientations")
-        for k, Rk in enumerate(R):
+        for k, Rk in enumerate(sets.reshape(-1, 3, 3)):
             if not (np.all(np.isfinite(Rk)) and np.allclose(Rk @ Rk.T, np.eye(3), atol=1e-6)
                     and np.linalg.det(Rk) > 0):
-                raise ConfigError(f"rotation {k} is not a rotation matrix", key="path.orientations")
-        self.rotations = np.array([pin.Quaternion(Rk).normalized().matrix() for Rk in R])
-        self.theta = np.array([pin.log3(self.rotations[k + 1] @ self.rotations[k].T) for k in range(len(R) - 1)])
+                raise ConfigError(f"rotation {k % sets.shape[1]} is not a rotation matrix", key="path.orientations")
+        #: (F, k+1, 3, 3) each oriented frame's rotations and (F, k, 3) its segments' rotation vectors
+        self.frame_rotations = np.array([[pin.Quaternion(Rk).normalized().matrix() for Rk in Rf] for Rf in sets])
+        self.frame_theta = np.array([[pin.log3(Rf[k + 1] @ Rf[k].T) for k in range(len(Rf) - 1)]
+                                     for Rf in self.frame_rotations]).reshape(len(sets), len(pts) - 1, 3)
+        self.rotations, self.theta = self.frame_rotations[0], self.frame_theta[0]  # the first frame's
         super().__init__(pts, **kwargs)
+
+    @property
+    def frames(self) -> int:
+        """How many frames' rotations it holds."""
+        return int(self.frame_rotations.shape[0])
+
+    def check_frames(self, oriented: int) -> None:
+        """A ConfigError (``path.orientations``) unless it holds rotations for ``oriented`` frames."""
+        if self.frames != oriented:
+            raise ConfigError(f"{oriented} task frames have orientation rows but the path holds rotations for "
+                              f"{self.frames}", key="path.orientations")
 
     def _lengths(self) -> np.ndarray:
         moves = np.linalg.norm(np.diff(self.points, axis=0), axis=1)
-        return np.maximum(moves, ROTATION_LENGTH * np.linalg.norm(self.theta, axis=1))
+        return np.maximum(moves, ROTATION_LENGTH * np.linalg.norm(self.frame_theta, axis=2).max(axis=0))
 
-    def orientation(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """R_d (3, 3), ω_d [rad/s] and ω̇_d [rad/s²] (world frame) at time t [s]."""
+    def orientation(self, t: float, frame: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """R_d (3, 3), ω_d [rad/s] and ω̇_d [rad/s²] (world frame) at time t [s], of the path's
+        ``frame``-th set of rotations."""
         import pinocchio as pin
 
         k, s, ds, dds = self.timing(t)
-        th = self.theta[k]
-        return pin.exp3(s * th) @ self.rotations[k], ds * th, dds * th
+        th = self.frame_theta[frame, k]
+        return pin.exp3(s * th) @ self.frame_rotations[frame, k], ds * th, dds * th

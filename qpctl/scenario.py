@@ -33,6 +33,7 @@ from qpctl.paths import PathConfig, PosePath, TaskConfig, WaypointPath
 from qpctl.perception.config import PerceptionConfig
 from qpctl.robot.config import RobotConfig
 from qpctl.robot.model import RobotModel, arm_reach, load_robot
+from qpctl.scenario_orientation import path_rotations, with_task_orientations
 from qpctl.scenes.canopy import Canopy, CanopyConfig, generate_canopy
 from qpctl.simulation.camera import CameraConfig
 from qpctl.simulation.faults import Faults, with_payload
@@ -545,7 +546,7 @@ class Scenario:
                 robot.frame_id(name)
             except UnknownFrameError as exc:
                 raise ConfigError(str(exc), key=f"tasks[{i}].frame") from None
-        return robot.with_task_frames(frames)
+        return with_task_orientations(self.data, robot.with_task_frames(frames))
 
     def _with_task(self, robot: RobotModel) -> RobotModel:
         """The robot's task rows: robot.task_axes, and controller.task's orientation rows."""
@@ -575,42 +576,6 @@ class Scenario:
             return robot
         axes = [i for i in range(3) if mask is None or mask[3 + i]]
         return robot.with_orientation(task, axes=axes, approach_axis=c["approach_axis"])
-
-    def _rotations(self, robot: RobotModel, q0: np.ndarray, count: int) -> np.ndarray:
-        """The PosePath's rotations: the start (path.start_orientation, or the task frame's at q0), then
-        one per waypoint (path.orientations for a pose, path.approach for an approach; held if absent)."""
-        import pinocchio as pin
-
-        from qpctl.orientation import approach_rotations
-
-        def rotation(quat: list[float], key: str) -> np.ndarray:
-            qv = np.asarray(quat, float)
-            if qv.shape != (4,) or not np.all(np.isfinite(qv)) or np.linalg.norm(qv) < 1e-9:
-                raise self._err(key, f"needs quaternions (x, y, z, w) of 4 finite numbers, not all 0; got {quat}")
-            return pin.Quaternion(qv[3], qv[0], qv[1], qv[2]).normalized().matrix()
-
-        p = self.data["path"]
-        if p["start_orientation"] is not None:
-            R0 = rotation(p["start_orientation"], "path.start_orientation")
-        else:
-            data = robot.model.createData()
-            pin.framesForwardKinematics(robot.model, data, q0)
-            R0 = data.oMf[robot.ee_frame_id].rotation.copy()
-        given = p["orientations"] if robot.orientation == "pose" else p["approach"]
-        key = "path.orientations" if robot.orientation == "pose" else "path.approach"
-        if given is None:
-            return np.array([R0] * count)
-        if len(given) != count - 1:
-            raise self._err(key, f"needs one entry per waypoint ({count - 1}), got {len(given)}")
-        if robot.orientation == "pose":
-            return np.array([R0] + [rotation(qv, key) for qv in given])
-        if any(len(d) != 3 for d in given):
-            raise self._err(key, "needs approach directions of 3 numbers (world frame)")
-        try:
-            assert robot.approach_axis is not None  # an approach task has its axis (RobotModel)
-            return approach_rotations(R0, robot.approach_axis, np.array(given))
-        except ConfigError as exc:
-            raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=key) from None
 
     def q0(self, robot: RobotModel) -> np.ndarray:
         q0 = self.data["robot"]["q0"]
@@ -657,10 +622,10 @@ class Scenario:
                   "dwell": p["dwell"]}
         try:
             if robot.m_orientation:
-                return PosePath(pts, self._rotations(robot, q0, len(pts)), **timing)
+                return PosePath(pts, path_rotations(self.data, robot, q0, len(pts)), **timing)
             return WaypointPath(pts, **timing)
         except ConfigError as exc:
-            raise ConfigError(str(exc).split(": ", 1)[-1], source=self.source, key=exc.key) from None
+            raise ConfigError(exc.message, source=self.source, key=exc.key) from None
 
     def _task_path(self, robot: RobotModel, q0: np.ndarray) -> WaypointPath:
         """The [[tasks]]' paths as one: each point the task frames' points stacked (their position

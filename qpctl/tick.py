@@ -266,16 +266,17 @@ class Workspace:
         self.tk_joint = np.array([int(f.parentJoint) for f in tk], dtype=np.int64)
         self.tk_local = np.array([f.placement.translation for f in tk], float).reshape(len(tk), 3)
         self.tk_support = np.array([_supports(model, int(f.parentJoint)) for f in tk]).reshape(len(tk), n)
-        self.ee_rot = robot.ee_rotation
-        if robot.orientation == "pose":
-            self.ori_rows = np.array(robot.orientation_axes, dtype=np.int64)
-        elif robot.orientation == "approach":
-            self.ori_rows = np.array([3, 4], dtype=np.int64)
-        else:
-            self.ori_rows = np.zeros(0, dtype=np.int64)
-        self.ori_basis = robot.approach_basis()
-        self.ori_axis = np.asarray(robot.approach_axis, float).copy()
-        self.ee_R, self.ee_w = np.eye(3), np.zeros(6)
+        # the oriented task frames' rows, frame after frame (ee_frame's alone with one: the first)
+        oriented = list(robot.oriented_frames) or [0]
+        specs = [robot.frame_orientation(i) for i in oriented]
+        codes_of = [o.codes() for o in specs]
+        self.ori_rows = np.concatenate(codes_of).astype(np.int64)
+        self.ori_start = np.concatenate([[0], np.cumsum([c.size for c in codes_of])]).astype(np.int64)
+        self.ori_tk = np.array(oriented, dtype=np.int64)
+        self.ee_rot = np.array([robot.frame_rotation(i) for i in oriented], float)
+        self.ori_basis = np.array([o.basis() for o in specs], float)
+        self.ori_axis = np.array([o.approach_axis for o in specs], float)
+        self.ee_R, self.ee_w = np.tile(np.eye(3), (len(oriented), 1, 1)), np.zeros((len(oriented), 6))
         self.task_w = np.ones(m)
         if spec is not None and spec.task_weights is not None:
             if spec.task_weights.shape != (m,):
@@ -320,9 +321,13 @@ class Workspace:
         else:  # None, or any callable t → Reference (evaluated in Python each tick)
             self.path_pts, self.path_t0, self.path_T = np.zeros((2, m_p)), np.zeros(1), np.ones(1)
         if isinstance(path, PosePath):
-            self.rot_pts, self.rot_theta = np.ascontiguousarray(path.rotations), np.ascontiguousarray(path.theta)
+            if len(self.ori_rows):
+                path.check_frames(len(self.ori_tk))
+            self.rot_pts = np.ascontiguousarray(path.frame_rotations)
+            self.rot_theta = np.ascontiguousarray(path.frame_theta)
         else:
-            self.rot_pts, self.rot_theta = np.tile(np.eye(3), (2, 1, 1)), np.zeros((1, 3))
+            F = len(self.ori_tk)
+            self.rot_pts, self.rot_theta = np.tile(np.eye(3), (F, 2, 1, 1)), np.zeros((F, 1, 3))
             if len(self.ori_rows) and path is not None:
                 raise ConfigError("an orientation task needs a PosePath (a rotation at every point)",
                                   key="path.orientations")
@@ -618,7 +623,8 @@ class Workspace:
                          self.segments.copy(), pairs, self.pr_jac[:k].copy(), self.pr_drift[:k].copy(),
                          float(self.fpar[codes.FP_CLEARANCE]), _barrier_drift=bdrift,
                          _jdot=self.Jdot.copy() if self.ipar[codes.IP_JDOT_EN] else None,  # Controller._state's
-                         R=self.ee_R.copy() if len(self.ori_rows) else None,
+                         R=self.ee_R[0].copy() if len(self.ori_rows) else None,
+                         rotations=self.ee_R.copy() if len(self.ori_rows) else None,
                          self_pairs=SelfPairState(self.sc_d.copy(), self.sc_n.copy(), self.sc_row.copy(),
                                                   self.sc_hdot.copy(), self.sc_drift.copy())
                          if len(self.sc_pairs) else None)

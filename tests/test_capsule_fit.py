@@ -23,6 +23,7 @@ from qpctl.robot.capsules import (
     Capsule,
     file_geometry,
     fit_capsule,
+    fit_link,
     fit_links,
     read_capsules,
     write_capsules,
@@ -107,7 +108,7 @@ def test_fit_holds_every_point_of_random_clouds(rng):
         assert fit.volume <= 4 / 3 * math.pi * np.linalg.norm(pts - pts.mean(0), axis=1).max() ** 3 + 1e-12
 
 
-PANDA_LINKS = [f"panda_link{i}" for i in range(1, 8)] + ["panda_hand"]
+PANDA_LINKS = [f"panda_link{i}" for i in range(8)] + ["panda_hand", "panda_leftfinger", "panda_rightfinger"]
 
 
 @pytest.fixture(scope="module")
@@ -117,9 +118,29 @@ def panda_fits():
     return {f.link: f for f in fit_links(geometry)}
 
 
+def panda_finger_corners(link: str) -> np.ndarray:
+    """The corners (k, 3) [m] of a finger's collision boxes, read from the URDF's XML (origin xyz, rpy
+    and size of each <box>) in the finger's frame."""
+    import xml.etree.ElementTree as ET
+
+    root = ET.parse(example_robot_data_path("panda_description/urdf/panda.urdf")).getroot()
+    node = next(n for n in root.iter("link") if n.get("name") == link)
+    out = []
+    for col in node.iter("collision"):
+        origin, box = col.find("origin"), col.find("geometry/box")
+        xyz = np.array([float(x) for x in origin.get("xyz").split()])
+        R = pin.rpy.rpyToMatrix(*[float(x) for x in origin.get("rpy").split()])
+        half = 0.5 * np.array([float(x) for x in box.get("size").split()])
+        signs = np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
+        out.append(xyz + (signs * half) @ R.T)
+    return np.vstack(out)
+
+
 def panda_mesh_vertices(link: str) -> np.ndarray:
     """The link's collision mesh as trimesh reads it from the package (link frame: the Panda's URDF
-    places every collision mesh at its link's origin)."""
+    places every collision mesh at its link's origin); a finger's box corners."""
+    if link.endswith("finger"):
+        return panda_finger_corners(link)
     name = link.removeprefix("panda_")
     path = example_robot_data_path(f"panda_description/meshes/collision/{name}.stl")
     return np.asarray(trimesh.load(path, force="mesh").vertices, float)
@@ -149,10 +170,21 @@ def test_panda_link_capsules_within_twice_the_hull(panda_fits, link):
 
 
 def test_panda_l_shaped_links_get_two_capsules(panda_fits):
-    # link 6 and the hand are where one capsule is poor (2.0 and 2.2 × their hulls)
+    # link 6, the hand and the fingers are where one capsule is poor (2.0, 2.2 and 2.3 × their hulls)
     assert len(panda_fits["panda_link6"].capsules) == 2
     assert len(panda_fits["panda_hand"].capsules) == 2
+    assert len(panda_fits["panda_leftfinger"].capsules) == 2
     assert len(panda_fits["panda_link4"].capsules) == 1
+
+
+def test_a_third_capsule_only_where_two_exceed_twice_the_hull(panda_fits):
+    """The base (a squat block: one capsule 2.36 ×, the best two 2.11 × its hull) gets three; no
+    other Panda link needs them."""
+    assert len(panda_fits["panda_link0"].capsules) == 3
+    assert all(len(f.capsules) <= 2 for link, f in panda_fits.items() if link != "panda_link0")
+    verts = panda_mesh_vertices("panda_link0")
+    two, v_two, hull = fit_link(verts, max_capsules=2)
+    assert len(two) == 2 and v_two > 2.0 * hull  # what two can do on it: not enough
 
 
 def test_capsules_file_round_trip(panda_fits, tmp_path):
@@ -174,7 +206,7 @@ def test_robot_reads_capsules_in_link_frames(panda_robot, panda_fits, tmp_path, 
                           command="test")
     robot = panda_robot.with_capsules(path)
     assert len(robot.capsules) == sum(len(f.capsules) for f in panda_fits.values())
-    assert robot.capsules[0].name == "panda_link1" and {c.links for c in robot.capsules} >= {("panda_hand",)}
+    assert robot.capsules[0].name == "panda_link0:0" and {c.links for c in robot.capsules} >= {("panda_hand",)}
     data = robot.model.createData()
     q = rng.uniform(robot.q_min, robot.q_max)
     pin.framesForwardKinematics(robot.model, data, q)

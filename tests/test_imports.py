@@ -41,7 +41,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("controllers", ("qpctl.controllers",)),
     ("simulation", ("qpctl.simulation", "qpctl.scenes", "qpctl.safety")),  # safety: brakes rolled out in the simulator
     ("adapters", ("qpctl.adapters",)),
-    ("scenario", ("qpctl.scenario",)),
+    ("scenario", ("qpctl.scenario", "qpctl.scenario_orientation")),
     ("replay", ("qpctl.replay",)),
     ("run", ("qpctl.run", "qpctl.plots")),
     ("applications", ("qpctl.cli", "qpctl.bench", "qpctl.sweep")),

@@ -171,7 +171,7 @@ def test_compiled_rows_match_the_python_ones(kind):
                 ws.ref[2, m_p:])
         for got, want in zip(mine, rows):
             np.testing.assert_allclose(got, want, atol=1e-12)
-        np.testing.assert_allclose(ws.ee_R, R, atol=1e-14)
+        np.testing.assert_allclose(ws.ee_R[0], R, atol=1e-14)
 
 
 @pytest.mark.parametrize("kind", ["pose", "approach"])

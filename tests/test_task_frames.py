@@ -9,6 +9,7 @@ block-diagonal and the stacked law must split into the two single-arm laws).
 from __future__ import annotations
 
 import copy
+import functools
 from pathlib import Path
 
 import numpy as np
@@ -79,9 +80,16 @@ def test_dual_arm_law_splits_into_each_arm_alone(kind: str) -> None:
     dual_sc = Scenario.from_dict(_raw(("left", "right"), kind, **extra))
     dual = dual_sc.build_controller()
     traj = Simulator(dual, dt=1e-3, duration=1.5).run(dual_sc.q0(dual.robot))
+    _assert_each_arm_alone(traj, kind, lambda side: _raw((side,), kind, **extra))
+
+
+def _assert_each_arm_alone(traj, kind: str, single_raw) -> None:  # type: ignore[no-untyped-def]
+    """Each arm's torques in ``traj`` (Baxter's two-task run) are what the one-task controller of
+    ``single_raw(side)`` gives that arm alone on the same states: Hsu's law bit for bit, the others
+    to 5e-5 of the torque."""
     assert np.abs(traj.tau).max() > 1.0
     for side, cols in (("left", slice(0, 7)), ("right", slice(7, 14))):
-        single = Scenario.from_dict(_raw((side,), kind, **extra)).build_controller()
+        single = Scenario.from_dict(single_raw(side)).build_controller()
         single.reset()
         tau = np.array([single.torque(q[cols].copy(), v[cols].copy(), float(t))
                         for t, q, v in zip(traj.t, traj.q, traj.v)])
@@ -185,3 +193,168 @@ def test_orientation_rows_ride_on_the_first_task_frame() -> None:
     tau = np.array([single.torque(q[:7].copy(), v[:7].copy(), float(t)) for t, q, v in zip(traj.t, traj.q, traj.v)])
     assert np.abs(traj.tau[:, :7]).max() > 1.0
     assert np.array_equal(tau, traj.tau[:, :7])
+
+
+# -- an orientation task per task frame ------------------------------------------------------------
+# the left gripper approaches along a tilted axis, the right one holds a pose turned about z
+LEFT_APPROACH = [[1.0, 0.0, -0.3]]
+RIGHT_TURN = np.array([0.0, 0.15, 0.4])  # [rad] the right gripper's pose: turned by this (world) from its start
+
+
+@functools.cache
+def _right_quat() -> tuple[float, ...]:
+    """The right gripper's pose target (x, y, z, w): its rotation at q0 turned by RIGHT_TURN."""
+    robot = Scenario.from_dict(_raw(("right",), "hsu")).build_robot()
+    data = robot.model.createData()
+    pin.framesForwardKinematics(robot.model, data, Scenario.from_dict(_raw(("right",), "hsu")).q0(robot))
+    return tuple(pin.Quaternion(pin.exp3(RIGHT_TURN) @ data.oMf[robot.ee_frame_id].rotation).coeffs().tolist())
+
+
+RIGHT_APPROACH = [[0.8, -0.3, -0.6]]
+
+
+def _oriented(sides: tuple[str, ...], kind: str, *, own: bool = True, right: str = "pose") -> dict:
+    """Each arm's orientation task: in its [[tasks]] table (``own``), or with the single frame's keys
+    (controller.task, controller.approach_axis, path.approach / path.orientations) on one arm; the
+    right arm's a pose (``right``) or an approach."""
+    r = _raw(sides, kind, **({"damping": 0.0} if kind == "qp" else {}))
+    spec = {"left": {"task": "approach", "approach_axis": [0.0, 0.0, 1.0], "approach": LEFT_APPROACH},
+            "right": ({"task": "pose", "orientations": [list(_right_quat())]} if right == "pose" else
+                      {"task": "approach", "approach_axis": [0.0, 0.0, 1.0], "approach": RIGHT_APPROACH})}
+    if own:
+        for t, s in zip(r["tasks"], sides):
+            t.update(spec[s])
+        return r
+    (side,) = sides
+    s = dict(spec[side])
+    r["controller"]["task"] = s.pop("task")
+    if "approach_axis" in s:
+        r["controller"]["approach_axis"] = s.pop("approach_axis")
+    r["path"].update(s)
+    return r
+
+
+def test_each_task_frame_takes_its_own_orientation_task() -> None:
+    robot = Scenario.from_dict(_oriented(("left", "right"), "qp")).build_robot()
+    assert robot.oriented_frames == (0, 1) and (robot.m_position, robot.m_orientation, robot.m) == (6, 5, 11)
+    assert [robot.frame_orientation(i).kind for i in (0, 1)] == ["approach", "pose"]
+    right_only = _oriented(("left", "right"), "qp")
+    for key in ("task", "approach_axis", "approach"):
+        right_only["tasks"][0].pop(key)
+    robot = Scenario.from_dict(right_only).build_robot()
+    assert robot.oriented_frames == (1,) and robot.m == 9 and robot.orientation == "none"
+
+
+def test_compiled_rows_of_two_oriented_frames_match_the_python_ones() -> None:
+    """The compiled tick's orientation rows (x, ẋ, J, J̇q̇, x_d, ẋ_d, ẍ_d), frame after frame after the
+    six position rows, against qpctl.orientation on Pinocchio's frame functions of each frame."""
+    from qpctl.orientation import frame_terms, orientation_reference, orientation_rows
+
+    scenario = Scenario.from_dict(_oriented(("left", "right"), "qp"))
+    ctrl = scenario.build_controller()
+    robot, path, ws = ctrl.robot, ctrl.path, ctrl.workspace()
+    rng = np.random.default_rng(1)
+    for _ in range(6):
+        q, v, t = rng.uniform(-1, 1, 14), rng.uniform(-1, 1, 14), float(rng.uniform(0.1, 1.4))
+        assert ws.state(q, v, t) == 0
+        r0 = robot.m_position
+        for j, f in enumerate(robot.oriented_frames):
+            R, w, a, J = frame_terms(robot, q, v, frame=f)
+            Rd, wd, ad = path.orientation(t, j)
+            want = (orientation_rows(robot, R, w, a, J, Rd, wd, frame=f)
+                    + orientation_reference(robot, R, Rd, wd, ad, frame=f))
+            rows = slice(r0, r0 + robot.frame_orientation(f).rows)
+            got = (ws.x[rows], ws.xdot[rows], ws.J[rows], ws.drift[rows], ws.ref[0, rows], ws.ref[1, rows],
+                   ws.ref[2, rows])
+            for mine, theirs in zip(got, want):
+                np.testing.assert_allclose(mine, theirs, atol=1e-11)
+            np.testing.assert_allclose(ws.ee_R[j], R, atol=1e-14)
+            r0 = rows.stop
+        assert np.abs(ws.J[6:]).max() > 0.1 and np.count_nonzero(ws.J[6:8, 7:]) == 0  # the left's rows: left joints
+
+
+@pytest.mark.parametrize("kind, right", [("hsu", "pose"), ("paper", "approach"), ("qp", "approach")])
+def test_two_orientation_tasks_split_into_each_arm_alone(kind: str, right: str) -> None:
+    """Both arms with their own orientation task ([[tasks]] keys) against the single-task law on each
+    arm alone (the single frame's keys: controller.task, path.approach / path.orientations), on the
+    states of the dual run: Hsu's law bit for bit, the paper's and the QP's (compiled tick) to 5e-5 of
+    the torque (W_b's ridge is the whole robot's, test_dual_arm_law_splits_into_each_arm_alone).
+
+    The paper's and the QP's with an approach on each arm, not a pose on the right: Ryu's W_b barely
+    weights Baxter's wrist roll, so with a full pose J_b⁺ is damped on every tick (σ_min/σ_max <
+    pinv_eps, the right arm alone too), and the damping's threshold is the whole stacked Jacobian's
+    (eps·σ_max over both arms): a damped stacked law does not split into the arms' (measured: 18 N·m
+    on the left arm). Here no tick is damped, which the test checks."""
+    dual_sc = Scenario.from_dict(_oriented(("left", "right"), kind, right=right))
+    dual = dual_sc.build_controller()
+    traj = Simulator(dual, dt=1e-3, duration=1.0).run(dual_sc.q0(dual.robot))
+    assert dual.robot.m == (11 if right == "pose" else 10)
+    if kind != "hsu":
+        assert not traj.singular.any()
+    _assert_each_arm_alone(traj, kind, lambda side: _oriented((side,), kind, own=False, right=right))
+
+
+def test_two_orientation_tasks_are_tracked_and_reported_per_task() -> None:
+    """The QP run of both orientation tasks: each frame's angle in trajectory.npz and metrics.json,
+    the largest of them as orientation_error_deg, each against the frames' own rotations."""
+    from qpctl.orientation import orientation_error_deg
+    from qpctl.simulation.metrics import compute_metrics
+    from qpctl.simulation.trajectory import finish_trajectory
+
+    scenario = Scenario.from_dict(_oriented(("left", "right"), "qp"))
+    ctrl = scenario.build_controller()
+    traj = finish_trajectory(Simulator(ctrl, dt=1e-3, duration=1.5).run(scenario.q0(ctrl.robot)), ctrl)
+    per = traj.orientation_error_deg_per_task
+    assert per is not None and per.shape == (traj.t.size, 2)
+    assert np.array_equal(traj.orientation_error_deg, per.max(axis=1))
+    robot, data = ctrl.robot, ctrl.robot.model.createData()
+    pin.framesForwardKinematics(robot.model, data, traj.q[-1])
+    R_right = data.oMf[robot.task_frame_ids[1]].rotation
+    x, y, z, w = _right_quat()
+    want = pin.Quaternion(w, x, y, z).matrix()
+    assert per[-1, 1] == pytest.approx(orientation_error_deg(robot, R_right, want, frame=1), abs=1e-9)
+    assert per[-1, 1] < 0.5  # [deg] the right gripper turned to its pose, 24.5° from where it started:
+    start = robot.model.createData()
+    pin.framesForwardKinematics(robot.model, start, traj.q[0])
+    assert np.degrees(np.linalg.norm(pin.log3(start.oMf[robot.task_frame_ids[1]].rotation.T @ R_right))) > 20.0
+    z = data.oMf[robot.task_frame_ids[0]].rotation[:, 2]
+    d = np.array(LEFT_APPROACH[0]) / np.linalg.norm(LEFT_APPROACH[0])
+    assert per[-1, 0] == pytest.approx(np.degrees(np.arccos(np.clip(z @ d, -1, 1))), abs=1e-6) and per[-1, 0] < 0.5
+    m = compute_metrics(traj, frames=2)
+    assert m["final_orientation_error_deg_per_task"] == per[-1].tolist()
+    assert m["max_orientation_error_deg"] == pytest.approx(per.max())
+
+
+@pytest.mark.parametrize("change, key, text", [
+    (lambda r: r["tasks"][1].update(orientations=[[0.0, 0.0, 0.0, 1.0]]), "tasks[1].orientations", "pose only"),
+    (lambda r: r["tasks"][1].update(task="pose", approach_axis=[1.0, 0.0, 0.0]), "tasks[1].approach_axis",
+     "approach only"),
+    (lambda r: r["tasks"][1].update(task="approach", task_mask=[1, 1, 1, 1, 1, 0]), "tasks[1].task_mask", "pose only"),
+    (lambda r: r["tasks"][1].update(task="pose", task_mask=[1, 1, 0, 1, 1, 1]), "tasks[1].task_mask",
+     "position axes"),
+    (lambda r: r["tasks"][1].update(task="twist"), "tasks[1].task", "twist"),
+    (lambda r: r["tasks"][1].update(task="approach", approach_axis=[0.0, 0.0, 0.0]), "tasks[1].approach_axis",
+     "non-zero"),
+    (lambda r: r["tasks"][1].update(task="pose", orientations=[[0.0, 0.0, 0.0, 1.0]] * 2), "tasks[1].orientations",
+     "one entry per waypoint"),
+    (lambda r: (r["tasks"][0].update(task="pose"), r["controller"].update(task="approach")), "tasks[0].task",
+     "give one of them"),
+    (lambda r: r["tasks"][0].update(start_orientation=[0.0, 0.0, 0.0, 1.0]), "tasks[0].start_orientation",
+     "pose or approach only"),
+])
+def test_bad_orientation_keys_of_a_task_name_the_key(change, key, text) -> None:  # type: ignore[no-untyped-def]
+    with pytest.raises(ConfigError) as err:
+        Scenario.from_dict(_edited(change), source="dual.toml")
+    assert err.value.key == key and text in str(err.value) and "\n" not in str(err.value)
+    assert "dual.toml" in str(err.value)
+
+
+def test_a_path_without_each_oriented_frames_rotations_is_refused() -> None:
+    from qpctl.controllers.qp import QPController
+    from qpctl.paths import PosePath
+
+    ctrl = Scenario.from_dict(_oriented(("left", "right"), "qp")).build_controller()
+    one = PosePath(ctrl.path.points, ctrl.path.frame_rotations[0], durations=[1.5])
+    with pytest.raises(ConfigError) as err:
+        QPController(ctrl.robot, one, [])
+    assert err.value.key == "path.orientations" and "2 task frames" in str(err.value)

@@ -238,8 +238,10 @@ class Controller(ABC):
             raise ConfigError(f"path points have {path.dim} coordinates but the robot's task has "
                               f"{robot.m_position}", key="path.waypoints")
         if robot.m_orientation and not isinstance(path, PosePath):
-            raise ConfigError(f"the {robot.orientation} task needs a PosePath (a rotation at every point)",
+            raise ConfigError("an orientation task needs a PosePath (a rotation at every point)",
                               key="path.orientations")
+        if robot.m_orientation:
+            path.check_frames(len(robot.oriented_frames))  # type: ignore[attr-defined]
         if robot.m_orientation and self.gains.jdot_en:
             raise ConfigError("the J̇e_N term is implemented for position tasks only", key="controller.jdot_en")
         self.broadphase = broadphase
@@ -264,9 +266,10 @@ class Controller(ABC):
             return ref
         from qpctl.orientation import orientation_reference
 
-        assert isinstance(self.path, PosePath) and state.R is not None
-        rows = orientation_reference(self.robot, state.R, *self.path.orientation(state.t))  # the kernel's too
-        return Reference(*(np.concatenate([a, b]) for a, b in zip(ref, rows)))
+        assert isinstance(self.path, PosePath) and state.rotations is not None
+        parts = [orientation_reference(self.robot, state.rotations[j], *self.path.orientation(state.t, j), frame=f)
+                 for j, f in enumerate(self.robot.oriented_frames)]  # the kernel's too
+        return Reference(*(np.concatenate([a, *(p[i] for p in parts)]) for i, a in enumerate(ref)))
 
     @property
     def cutoff(self) -> float:

@@ -1,5 +1,5 @@
 """Stage 1 of the tick, the rigid-body terms: M, N, the task points' x, ẋ, J, J̇q̇ (one per task
-frame, rows stacked) and the link
+frame, rows stacked), the oriented frames' R, ω, α₀ and the link
 capsules' world geometry, read from Pinocchio's arrays after ``computeAllTerms``.
 
 Pinocchio's data are bound once as numpy views (:func:`qpctl.tick.bind_pinocchio`): the joint
@@ -109,10 +109,12 @@ def rigid_terms(ws, v: np.ndarray) -> bool:  # type: ignore[no-untyped-def]
                 J[r, k] = J3[ax, k]
                 s += J3[ax, k] * v[k]
             xdot[r] = s
-        if tk == 0 and ws.ori_rows.shape[0]:  # the frame's R, ω, α₀ for the orientation rows
-            _frame_rotation(ws)
-            for c in range(3):
-                ws.ee_w[c], ws.ee_w[3 + c] = vel[3 + c], acc[3 + c]
+        if ws.ori_rows.shape[0]:  # an oriented frame's R, ω, α₀ for its orientation rows
+            for f in range(ws.ori_tk.shape[0]):
+                if ws.ori_tk[f] == tk:
+                    _frame_rotation(ws, f)
+                    for c in range(3):
+                        ws.ee_w[f, c], ws.ee_w[f, 3 + c] = vel[3 + c], acc[3 + c]
     # capsules
     cap_joint, cap_local, cap_support = ws.cap_joint, ws.cap_local, ws.cap_support
     segments, body_jac, body_vel = ws.segments, ws.body_jac, ws.body_vel
@@ -145,10 +147,10 @@ def rigid_terms(ws, v: np.ndarray) -> bool:  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def _frame_rotation(ws) -> None:  # type: ignore[no-untyped-def]
-    """ws.ee_R = the task frame's world rotation (its joint's, times the frame's in the joint)."""
-    P, Rl, R = ws.oMi, ws.ee_rot, ws.ee_R
-    j = ws.ee_joint
+def _frame_rotation(ws, f: int) -> None:  # type: ignore[no-untyped-def]
+    """ws.ee_R[f] = oriented task frame f's world rotation (its joint's, times the frame's in the joint)."""
+    P, Rl, R = ws.oMi, ws.ee_rot[f], ws.ee_R[f]
+    j = ws.tk_joint[ws.ori_tk[f]]
     for r in range(3):
         for c in range(3):
             R[r, c] = P[j, r] * Rl[0, c] + P[j, r + 3] * Rl[1, c] + P[j, r + 6] * Rl[2, c]

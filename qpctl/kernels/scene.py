@@ -34,10 +34,17 @@ def _rotate(R: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
 
 @njit(cache=True)
 def orientation_reference(ws, k: int, s: float, ds: float, dds: float) -> None:  # type: ignore[no-untyped-def]
-    """The orientation rows (qpctl.orientation) on path segment k at s, ṡ [1/s], s̈ [1/s²]: R_d, ω_d,
-    ω̇_d of the PosePath, then each row's x, ẋ, J, J̇q̇ (from the frame's R, ω, α₀ of
-    :func:`rigid_terms`) and x_d, ẋ_d, ẍ_d."""
-    th = ws.rot_theta[k]
+    """The orientation rows (qpctl.orientation) on path segment k at s, ṡ [1/s], s̈ [1/s²], oriented
+    frame after frame: R_d, ω_d, ω̇_d of the PosePath, then each row's x, ẋ, J, J̇q̇ (from the frame's
+    R, ω, α₀ of :func:`rigid_terms`) and x_d, ẋ_d, ẍ_d."""
+    for f in range(ws.ori_tk.shape[0]):
+        _frame_reference(ws, f, k, s, ds, dds)
+
+
+@njit(cache=True)
+def _frame_reference(ws, f: int, k: int, s: float, ds: float, dds: float) -> None:  # type: ignore[no-untyped-def]
+    """:func:`orientation_reference`'s rows of oriented frame f."""
+    th = ws.rot_theta[f, k]
     wd, ad, sv = np.empty(3), np.empty(3), np.empty(3)
     for c in range(3):
         wd[c] = ds * th[c]
@@ -45,15 +52,16 @@ def orientation_reference(ws, k: int, s: float, ds: float, dds: float) -> None: 
         sv[c] = s * th[c]
     E, Rd = np.empty((3, 3)), np.empty((3, 3))
     exp3(sv, E)
-    matmul3(E, ws.rot_pts[k], Rd)  # R_d = exp(s θ_k) R_k
-    R, Jt, support = ws.ee_R, ws.Jt, ws.ee_support
+    matmul3(E, ws.rot_pts[f, k], Rd)  # R_d = exp(s θ_k) R_k
+    R, Jt, support = ws.ee_R[f], ws.Jt, ws.tk_support[ws.ori_tk[f]]
     n, m_p = Jt.shape[0], ws.axes.shape[0]
-    w, a0 = ws.ee_w[:3], ws.ee_w[3:]
+    w, a0 = ws.ee_w[f, :3], ws.ee_w[f, 3:]
     u, err = np.empty(3), np.empty(3)
-    if ws.ori_rows.shape[0] and ws.ori_rows[0] < 3:  # pose: world axes, x = 0, x_d = log(R_d Rᵀ)
+    first, last = ws.ori_start[f], ws.ori_start[f + 1]
+    if ws.ori_rows[first] < 3:  # pose: world axes, x = 0, x_d = log(R_d Rᵀ)
         matmul3_bt(Rd, R, E)
         log3(E, err)
-        for i in range(ws.ori_rows.shape[0]):
+        for i in range(first, last):
             r, c = m_p + i, ws.ori_rows[i]
             ws.x[r], ws.xdot[r], ws.drift[r] = 0.0, w[c], a0[c]
             for j in range(n):
@@ -62,14 +70,14 @@ def orientation_reference(ws, k: int, s: float, ds: float, dds: float) -> None: 
         return
     # approach: y_k = v_k·z with z = R c, v_k = R_d b_k; J = (z × v_k)ᵀJ_ω, exact (qpctl.orientation)
     z, v, zw, vd, zdot, t1 = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
-    _rotate(R, ws.ori_axis, z)
+    _rotate(R, ws.ori_axis[f], z)
     _cross(w, z, zdot)  # ż = ω × z
     dw = np.empty(3)
     for c in range(3):
         dw[c] = w[c] - wd[c]
-    for i in range(ws.ori_rows.shape[0]):
+    for i in range(first, last):
         r = m_p + i
-        _rotate(Rd, ws.ori_basis[ws.ori_rows[i] - 3], v)
+        _rotate(Rd, ws.ori_basis[f, ws.ori_rows[i] - 3], v)
         _cross(z, v, zw)  # z × v_k
         _cross(wd, v, vd)  # v̇_k = ω_d × v_k
         ws.x[r] = _dot(v, z)

@@ -48,11 +48,13 @@ FIELDS = (
     "tk_joint",  # (F,) int: each task frame's parent joint (the first: ee_joint)
     "tk_local",  # (F, 3) its task point in that joint's frame [m]
     "tk_support",  # (F, n) 1 where joint k moves it
-    "ee_rot",  # (3, 3) the task frame's rotation in its parent joint's frame
+    "ee_rot",  # (Fo, 3, 3) each oriented task frame's rotation in its parent joint's frame (Fo ≥ 1)
     "ori_rows",  # (m_o,) int: the orientation rows after the position rows, 0–2 a pose's world axis,
-    #              3–4 an approach's row k = 1, 2 (qpctl.orientation)
-    "ori_basis",  # (2, 3) b_1, b_2 ⟂ the approach axis, in the task frame
-    "ori_axis",  # (3,) the approach axis c in the task frame
+    #              3–4 an approach's row k = 1, 2 (qpctl.orientation), oriented frame after frame
+    "ori_start",  # (Fo + 1,) int: oriented frame f's rows are ori_rows[ori_start[f]:ori_start[f + 1]]
+    "ori_tk",  # (Fo,) int: its task frame (an index into tk_*)
+    "ori_basis",  # (Fo, 2, 3) b_1, b_2 ⟂ its approach axis, in its task frame
+    "ori_axis",  # (Fo, 3) its approach axis c in its task frame
     # -- scene, built once (O obstacles) -------------------------------------------------------------
     "ob_kind",  # (O,) int: KIND_SPHERE, KIND_CAPSULE, KIND_BOX, KIND_CYLINDER or KIND_FCL (python-fcl's)
     "ob_radius",  # (O,) [m] (a box's or cylinder's: that of its bounding capsule, see ob_axis)
@@ -74,8 +76,8 @@ FIELDS = (
     "stamp",  # (O,) int: last link that saw obstacle j as a candidate (deduplicates grid hits)
     # -- path (WaypointPath: K segments with quintic timing) ----------------------------------------
     "path_pts",  # (K + 1, m_p) [m]
-    "rot_pts",  # (K + 1, 3, 3) a PosePath's rotations (world frame; unused without orientation rows)
-    "rot_theta",  # (K, 3) its segments' rotation vectors log(R_{k+1} R_kᵀ) [rad]
+    "rot_pts",  # (Fo, K + 1, 3, 3) a PosePath's rotations per oriented frame (world; unused without)
+    "rot_theta",  # (Fo, K, 3) its segments' rotation vectors log(R_{k+1} R_kᵀ) [rad]
     "path_t0",  # (K,) segment start times [s]
     "path_T",  # (K,) segment durations [s]
     # -- gains and settings --------------------------------------------------------------------------
@@ -103,8 +105,8 @@ FIELDS = (
     "xdot",  # (m,) [m/s] (ω's components [rad/s] on orientation rows)
     "J",  # (m, n)
     "drift",  # (m,) J̇q̇ [m/s²] ([rad/s²] on orientation rows)
-    "ee_R",  # (3, 3) the task frame's rotation in the world
-    "ee_w",  # (6,) its angular velocity ω [rad/s] and q̈ = 0 angular acceleration α₀ [rad/s²] (world)
+    "ee_R",  # (Fo, 3, 3) each oriented task frame's rotation in the world
+    "ee_w",  # (Fo, 6) its angular velocity ω [rad/s] and q̈ = 0 angular acceleration α₀ [rad/s²] (world)
     "task_w",  # (m,) the task rows' weights in the QP (EndEffectorTask.weights; 1 by default)
     "Jdot",  # (m, n) J̇, filled by Python only when the law's J̇e_N term is on
     "segments",  # (L, 2, 3) capsule axes in the world [m]

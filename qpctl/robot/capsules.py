@@ -15,13 +15,15 @@ SLSQP from the hull's two principal axes; the radius is then recomputed exactly 
 vertex-to-segment distance, so every vertex is inside whatever the solver did.
 
 **Two capsules** (:func:`fit_link`). Where one capsule exceeds ``try_split`` × the hull's volume
-(on links of at least :data:`SPLIT_MIN_VOLUME`),
-the link's mesh is cut by planes normal to the hull's principal axes and to the capsule's axis (7
-offsets each); each side's points, with the points where the mesh's edges cross the plane, get
-their own capsule — so every point of every triangle lies in one of the two. The splits are ranked
-by the union volume of capsules fitted to 48 well-spread hull vertices of each side; the best is
-fitted to every point and kept when it saves ``min_gain`` of the single capsule's volume, or when the
-single capsule exceeds ``max_ratio`` × the hull.
+(on links of at least :data:`SPLIT_MIN_VOLUME`), the link's mesh is cut by planes normal to the
+hull's principal axes, to the capsule's axis and to :data:`SPLIT_NORMALS` (at the
+:data:`SPLIT_OFFSETS` quantiles); each side's points, with the points where the mesh's edges cross
+the plane, get their own capsule — so every point of every triangle lies in one of the two. The
+splits are ranked by the union volume of capsules fitted to 48 well-spread hull vertices of each
+side; the best is fitted to every point and kept when it saves ``min_gain`` of the single capsule's
+volume, or when the single capsule exceeds ``max_ratio`` × the hull. **Three** where two still
+exceed ``max_ratio`` × the hull: the larger capsule's side (its convex hull as the mesh, which holds
+the side's part of the link's) is split again the same way.
 
 **Volumes.** A link's capsule volume is the volume of their union: exact for one capsule, a
 Monte Carlo estimate for two (2¹⁶ fixed-seed points in the union's bounding box, ≲ 1 % error). The report compares it with the convex hull's volume (trimesh) and gives the largest
@@ -57,7 +59,13 @@ else:  # pragma: no cover
 TRY_SPLIT = 1.5  # try two capsules where one exceeds this × the hull's volume
 MIN_GAIN = 0.10  # keep two when their union saves this fraction of the single capsule's volume
 MAX_RATIO = 2.0  # ... or when the single capsule exceeds this × the hull's volume (and two do better)
-SPLIT_MIN_VOLUME = 1e-4  # [m³] links smaller than this (a finger) keep one capsule
+SPLIT_MIN_VOLUME = 1e-5  # [m³] links smaller than this keep one capsule
+SPLIT_OFFSETS = np.linspace(0.1, 0.9, 9)  # the split planes' offsets, as quantiles of the vertices along the normal
+# the split planes' normals beside the hull's principal axes and the capsule's axis: the cube's 3 face,
+# 6 edge and 4 corner directions
+SPLIT_NORMALS = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [1, -1, 0], [1, 0, 1], [1, 0, -1], [0, 1, 1],
+                          [0, 1, -1], [1, 1, 1], [1, 1, -1], [1, -1, 1], [-1, 1, 1]], float)
+SPLIT_NORMALS /= np.linalg.norm(SPLIT_NORMALS, axis=1)[:, None]
 _SECTIONS = 48  # sides of the polygon that circumscribes a cylinder's or a sphere's circle
 DECIMALS = 5  # the file's precision [m]: 10 µm
 
@@ -275,42 +283,64 @@ def _sides(vertices: np.ndarray, faces: np.ndarray, normal: np.ndarray, offset: 
     return np.vstack([vertices[h > 0], cut]), np.vstack([vertices[h <= 0], cut])
 
 
+def _best_split(verts: np.ndarray, tris: np.ndarray, one: Capsule) -> tuple[np.ndarray, np.ndarray] | None:
+    """The two sides (points: vertices and edge crossings) of the plane whose sides' capsules, fitted
+    to 48 well-spread hull vertices each, have the least union volume (None: no plane splits it)."""
+    hull = _hull_vertices(verts)
+    centre = hull.mean(axis=0)
+    _, _, vt = np.linalg.svd(hull - centre, full_matrices=False)
+    normals = [*vt, *SPLIT_NORMALS]
+    axis = one.b - one.a
+    if np.linalg.norm(axis) > 1e-9:
+        normals.append(axis / np.linalg.norm(axis))
+    best: tuple[float, tuple[np.ndarray, np.ndarray]] | None = None
+    for n in normals:
+        proj = verts @ n
+        for q in SPLIT_OFFSETS:
+            left, right = _sides(verts, tris, n, float(np.quantile(proj, q)))
+            if len(left) < 2 or len(right) < 2:
+                continue
+            v = union_volume((fit_capsule(_thin(left), starts=1), fit_capsule(_thin(right), starts=1)), samples=2**12)
+            if best is None or v < best[0]:
+                best = (v, (left, right))
+    return None if best is None else best[1]
+
+
+def _hull_mesh(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The convex hull of ``points`` as (vertices, faces): a mesh holding every point, to split again."""
+    import trimesh
+
+    with np.errstate(invalid="ignore", divide="ignore"):
+        hull = trimesh.convex.convex_hull(np.unique(points, axis=0))
+    return np.asarray(hull.vertices, float), np.asarray(hull.faces, int)
+
+
 def fit_link(vertices: np.ndarray, faces: np.ndarray | None = None, *, try_split: float = TRY_SPLIT,
-             min_gain: float = MIN_GAIN, max_ratio: float = MAX_RATIO, max_capsules: int = 2
+             min_gain: float = MIN_GAIN, max_ratio: float = MAX_RATIO, max_capsules: int = 3
              ) -> tuple[tuple[Capsule, ...], float, float]:
-    """One capsule, or two where one fits poorly (module docstring): (capsules, union volume [m³],
-    hull volume [m³])."""
+    """One capsule, two where one fits poorly, three where two still exceed ``max_ratio`` × the
+    hull (module docstring): (capsules, union volume [m³], hull volume [m³])."""
     verts = np.asarray(vertices, float).reshape(-1, 3)
     tris = np.zeros((0, 3), int) if faces is None else np.asarray(faces, int).reshape(-1, 3)
     hull_v = hull_volume(verts)
     one = fit_capsule(verts)
     if max_capsules < 2 or hull_v < SPLIT_MIN_VOLUME or one.volume <= try_split * hull_v:
         return (one,), one.volume, hull_v
-    hull = _hull_vertices(verts)
-    centre = hull.mean(axis=0)
-    _, _, vt = np.linalg.svd(hull - centre, full_matrices=False)
-    normals = list(vt)
-    axis = one.b - one.a
-    if np.linalg.norm(axis) > 1e-9:
-        normals.append(axis / np.linalg.norm(axis))
-    best: tuple[float, tuple[Capsule, Capsule], tuple[np.ndarray, np.ndarray]] | None = None
-    for n in normals:
-        proj = verts @ n
-        for q in np.linspace(0.2, 0.8, 7):
-            left, right = _sides(verts, tris, n, float(np.quantile(proj, q)))
-            if len(left) < 2 or len(right) < 2:
-                continue
-            pair = (fit_capsule(_thin(left), starts=1), fit_capsule(_thin(right), starts=1))
-            v = union_volume(pair, samples=2**12)
-            if best is None or v < best[0]:
-                best = (v, pair, (left, right))
-    if best is None:
+    sides = _best_split(verts, tris, one)
+    if sides is None:
         return (one,), one.volume, hull_v
-    two = tuple(fit_capsule(side) for side in best[2])  # the best split, fitted from every start
+    two = tuple(fit_capsule(side) for side in sides)  # the best split, fitted from every start
     v_two = union_volume(two)
-    if v_two <= (1.0 - min_gain) * one.volume or (one.volume > max_ratio * hull_v and v_two < one.volume):
+    if not (v_two <= (1.0 - min_gain) * one.volume or (one.volume > max_ratio * hull_v and v_two < one.volume)):
+        return (one,), one.volume, hull_v
+    if max_capsules < 3 or v_two <= max_ratio * hull_v:
         return two, v_two, hull_v
-    return (one,), one.volume, hull_v
+    # a third: the larger capsule's side split again (its convex hull as the mesh: it holds the side)
+    k = int(np.argmax([c.volume for c in two]))
+    sub, _, _ = fit_link(*_hull_mesh(sides[k]), try_split=0.0, min_gain=0.0, max_ratio=max_ratio, max_capsules=2)
+    three = (two[1 - k], *sub)
+    v_three = union_volume(three)
+    return (three, v_three, hull_v) if len(sub) == 2 and v_three < v_two else (two, v_two, hull_v)
 
 
 def fit_links(geometry: Iterable[LinkGeometry], **options: Any) -> list[LinkFit]:

@@ -26,6 +26,7 @@ import pinocchio as pin
 from qpctl.errors import ConfigError, UnknownFrameError
 from qpctl.robot.config import RobotConfig
 from qpctl.robot.files import example_robot_data_path, read_model, resolve_package_uri
+from qpctl.robot.frame_orientation import FrameOrientation
 
 # Where a URDF names a link and a joint alike (example-robot-data's Z1: "gripperStator"), Pinocchio
 # has several frames of that name; the task point is then the first of these kinds.
@@ -87,6 +88,7 @@ class RobotModel:
             ``"pose"`` — its rotation about the world axes ``orientation_axes`` (the log map of
             R_d Rᵀ); ``"approach"`` — the direction of ``approach_axis`` (a unit vector in the task
             frame) only, 2 rows, the roll about it left free (see :mod:`qpctl.orientation`).
+        task_orientations: the orientation tasks of ``task_frames`` (one each; missing ones none).
     """
 
     name: str
@@ -110,8 +112,9 @@ class RobotModel:
     srdf: Path | None = None  # the SRDF whose disabled pairs the self-collision pairs leave out, if any
     disabled_pairs: frozenset[frozenset[str]] | None = None  # its <disable_collisions> link pairs
     # more task frames after ee_frame (several arms on one torso): each adds its position rows along
-    # task_axes, stacked in this order after ee_frame's; the orientation rows stay ee_frame's
+    # task_axes, stacked in this order after ee_frame's; then each oriented frame's orientation rows
     task_frames: tuple[str, ...] = ()
+    task_orientations: tuple[FrameOrientation, ...] = ()
 
     def __post_init__(self) -> None:
         self._joint_maps()
@@ -123,6 +126,10 @@ class RobotModel:
                 raise ConfigError(f"two tasks on frame {name!r}: give each task frame once", key="tasks")
             seen.add(name)
         self.task_frame_ids = [self.ee_frame_id] + [self.frame_id(f) for f in self.task_frames]
+        self.task_orientations = tuple(self.task_orientations)
+        if len(self.task_orientations) > len(self.task_frames):
+            raise ConfigError(f"{len(self.task_orientations)} orientation tasks for {len(self.task_frames)} more "
+                              "task frames", key="tasks")
         if not self.joint_names:
             self.joint_names = [self.model.names[i] for i in range(1, self.model.njoints)]
         for name in ("tau_rate_max", "qdd_max"):
@@ -288,43 +295,58 @@ class RobotModel:
         :class:`UnknownFrameError`, a frame given twice a :class:`ConfigError` naming ``tasks``."""
         if not frames:
             raise ConfigError("needs at least one task", key="tasks")
-        return replace(self, ee_frame=frames[0], task_frames=tuple(frames[1:]), capsules=list(self.capsules),
-                       joint_names=list(self.joint_names))
+        return replace(self, ee_frame=frames[0], task_frames=tuple(frames[1:]), task_orientations=(),
+                       capsules=list(self.capsules), joint_names=list(self.joint_names))
 
     @property
     def m_orientation(self) -> int:
-        """The task's orientation rows: 0, ``len(orientation_axes)`` (pose) or 2 (approach)."""
-        return {"none": 0, "pose": len(self.orientation_axes), "approach": 2}[self.orientation]
+        """The task's orientation rows: each task frame's (0, ``len(axes)`` for a pose, 2 for an approach)."""
+        return sum(self.frame_orientation(i).rows for i in range(len(self.task_frame_ids)))
+
+    def frame_orientation(self, i: int = 0) -> FrameOrientation:
+        """Task frame ``i``'s orientation task (0: ``ee_frame``'s, ``orientation`` and its keys)."""
+        if i == 0:
+            axis = np.asarray(self.approach_axis, float)
+            return FrameOrientation(self.orientation, tuple(self.orientation_axes),
+                                    (float(axis[0]), float(axis[1]), float(axis[2])))
+        return self.task_orientations[i - 1] if i - 1 < len(self.task_orientations) else FrameOrientation()
+
+    @property
+    def oriented_frames(self) -> tuple[int, ...]:
+        """The task frames (indices into :attr:`frames`) with orientation rows, in the rows' order."""
+        return tuple(i for i in range(len(self.task_frame_ids)) if self.frame_orientation(i).rows)
 
     @property
     def ee_rotation(self) -> np.ndarray:
         """The task frame's rotation in its parent joint's frame (3, 3)."""
-        return np.array(self.model.frames[self.ee_frame_id].placement.rotation, float)
+        return self.frame_rotation(0)
+
+    def frame_rotation(self, i: int) -> np.ndarray:
+        """Task frame ``i``'s rotation in its parent joint's frame (3, 3)."""
+        return np.array(self.model.frames[self.task_frame_ids[i]].placement.rotation, float)
 
     def approach_basis(self) -> np.ndarray:
         """(2, 3) two unit vectors of the task frame orthogonal to ``approach_axis`` and to each other:
         the directions, rotating with the gripper, of the approach task's two rows."""
-        a = np.asarray(self.approach_axis, float)
-        seed = np.eye(3)[int(np.argmin(np.abs(a)))]
-        b1 = np.cross(a, seed)
-        b1 /= np.linalg.norm(b1)
-        return np.array([b1, np.cross(a, b1)])
+        return self.frame_orientation(0).basis()
 
     def with_orientation(self, kind: str, *, axes: Sequence[int] = (0, 1, 2),
                          approach_axis: Sequence[float] = (0.0, 0.0, 1.0)) -> RobotModel:
         """A copy whose task adds the task frame's orientation (``kind`` "pose", "approach" or "none";
         ``axes``: the world rotation axes a pose task holds; ``approach_axis``: the gripper's approach
         direction in the task frame)."""
-        if kind not in ("none", "pose", "approach"):
-            raise ConfigError(f"must be position, pose or approach, got {kind!r}", key="controller.task")
-        axes = tuple(int(a) for a in axes)
-        axis = np.asarray(approach_axis, float).reshape(-1)
-        if axis.shape != (3,) or not np.all(np.isfinite(axis)) or np.linalg.norm(axis) < 1e-9:
-            raise ConfigError(f"must be a non-zero 3-vector, got {list(approach_axis)}", key="controller.approach_axis")
-        if kind == "pose" and (len(set(axes)) != len(axes) or any(not 0 <= a <= 2 for a in axes)):
-            raise ConfigError(f"pose axes must be distinct among 0, 1, 2, got {list(axes)}", key="controller.task_mask")
-        return replace(self, orientation=kind, orientation_axes=axes if kind == "pose" else (),
-                       approach_axis=axis / np.linalg.norm(axis), capsules=list(self.capsules),
+        o = FrameOrientation.make(kind, axes, approach_axis)
+        return replace(self, orientation=o.kind, orientation_axes=o.axes, approach_axis=np.array(o.approach_axis),
+                       capsules=list(self.capsules), joint_names=list(self.joint_names))
+
+    def with_frame_orientation(self, i: int, orientation: FrameOrientation) -> RobotModel:
+        """A copy whose task frame ``i`` (an index into :attr:`frames`) has ``orientation``."""
+        if i == 0:
+            return self.with_orientation(orientation.kind, axes=orientation.axes,
+                                         approach_axis=orientation.approach_axis)
+        extra = list(self.task_orientations) + [FrameOrientation()] * (len(self.task_frames) - len(self.task_orientations))
+        extra[i - 1] = orientation
+        return replace(self, task_orientations=tuple(extra), capsules=list(self.capsules),
                        joint_names=list(self.joint_names))
 
     def frame_id(self, name: str) -> int:

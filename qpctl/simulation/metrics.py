@@ -65,6 +65,9 @@ def compute_metrics(traj: Trajectory, *, d_safe: float = 0.0, frames: int = 1) -
     if traj.orientation_error_deg is not None:  # an orientation task (pose: the whole rotation; approach: the axis)
         out["max_orientation_error_deg"] = float(np.max(traj.orientation_error_deg))
         out["final_orientation_error_deg"] = float(traj.orientation_error_deg[-1])
+    if traj.orientation_error_deg_per_task is not None:  # several oriented task frames: each's
+        out["max_orientation_error_deg_per_task"] = traj.orientation_error_deg_per_task.max(axis=0).tolist()
+        out["final_orientation_error_deg_per_task"] = traj.orientation_error_deg_per_task[-1].tolist()
     qp = [i for i in traj.infos if "status" in i]
     if qp:
         out["qp_status_counts"] = dict(Counter(str(i["status"]) for i in qp))

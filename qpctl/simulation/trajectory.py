@@ -39,6 +39,8 @@ class Trajectory:
     quat: np.ndarray | None = None
     quat_ref: np.ndarray | None = None
     orientation_error_deg: np.ndarray | None = None  # (T,) the angle between them (approach: the axis's)
+    # with several oriented task frames (quat, quat_ref: the first's; orientation_error_deg: the largest)
+    orientation_error_deg_per_task: np.ndarray | None = None  # (T, F) each oriented frame's angle [deg]
     self_clearance: np.ndarray | None = None  # (T,) least distance between the self-collision pairs [m]
     tau_command: np.ndarray | None = None  # (T, n) the controller's command, with faults (tau: what acted)
     # with the QP: each tick's SolveStatus ("solved", "infeasible", ...) and the fallback that gave the
@@ -55,8 +57,8 @@ class Trajectory:
 
     ARRAYS = ("t", "q", "v", "tau", "x", "x_ref", "xd_ref", "xdd_ref", "clearance", "e_null", "tick_us",
               "singular")
-    OPTIONAL = ("quat", "quat_ref", "orientation_error_deg", "self_clearance", "tau_command", "qp_status",
-                "qp_fallback", "angles", "map_points", "map_stamps")
+    OPTIONAL = ("quat", "quat_ref", "orientation_error_deg", "orientation_error_deg_per_task", "self_clearance",
+                "tau_command", "qp_status", "qp_fallback", "angles", "map_points", "map_stamps")
 
     def save(self, path: str | Path) -> None:
         arrays = {k: getattr(self, k) for k in self.ARRAYS}
@@ -120,15 +122,21 @@ def finish_trajectory(traj: Trajectory, controller: Controller) -> Trajectory:
     for name in ("x", "x_ref", "xd_ref", "xdd_ref"):
         setattr(traj, name, np.ascontiguousarray(getattr(traj, name)[:, :m_p]))
     model, data = robot.model, robot.model.createData()
-    T = traj.t.size
-    traj.quat, traj.quat_ref, traj.orientation_error_deg = np.zeros((T, 4)), np.zeros((T, 4)), np.zeros(T)
+    T, oriented = traj.t.size, robot.oriented_frames
+    traj.quat, traj.quat_ref = np.zeros((T, 4)), np.zeros((T, 4))
+    errors = np.zeros((T, len(oriented)))
     for k in range(T):
         pin.framesForwardKinematics(model, data, traj.q[k])
-        R = data.oMf[robot.ee_frame_id].rotation
-        R_d = controller.path.orientation(float(traj.t[k]))[0]  # type: ignore[attr-defined]
-        traj.quat[k] = pin.Quaternion(R).coeffs()
-        traj.quat_ref[k] = pin.Quaternion(R_d).coeffs()
-        traj.orientation_error_deg[k] = orientation_error_deg(robot, R, R_d)
+        for j, f in enumerate(oriented):
+            R = data.oMf[robot.task_frame_ids[f]].rotation
+            R_d = controller.path.orientation(float(traj.t[k]), j)[0]  # type: ignore[attr-defined]
+            if j == 0:
+                traj.quat[k] = pin.Quaternion(R).coeffs()
+                traj.quat_ref[k] = pin.Quaternion(R_d).coeffs()
+            errors[k, j] = orientation_error_deg(robot, R, R_d, frame=f)
+    traj.orientation_error_deg = errors.max(axis=1)
+    if len(oriented) > 1:
+        traj.orientation_error_deg_per_task = errors
     return traj
 
 
