@@ -123,3 +123,59 @@ def test_lean_with_a_moving_obstacle_reads_it_at_each_steps_time():
     assert got.min_clearance == pytest.approx(want.min_clearance, abs=1e-9)
     assert got.min_clearance != pytest.approx(lean.run(q, v, tau_prev, 0.0, 25.0).min_clearance, abs=1e-3)
     assert (got.viable, got.steps) == (want.viable, want.steps)
+
+
+@pytest.mark.parametrize("which", ["planar", "panda"])
+def test_lever_arms_bound_every_capsule_points_motion(which, rng):
+    """Σρᵢ|dqᵢ| bounds how far any capsule point moves between two configurations (Pinocchio's
+    forward kinematics at 200 random pairs, each capsule's ends and midpoint), and is not loose by
+    more than 3× on the worst pair of a small step."""
+    from qpctl.safety.rollout import lever_arms
+
+    robot = planar_arm() if which == "planar" else panda()
+    rho = lever_arms(robot)
+    assert rho is not None and np.all(rho > 0)
+    data = robot.model.createData()
+
+    def points(q):
+        pin.forwardKinematics(robot.model, data, q)
+        return np.array([data.oMi[c.joint_id].act(p) for c in robot.capsules for p in (c.p0, c.p1, (c.p0 + c.p1) / 2)])
+
+    lo = np.where(np.isfinite(robot.q_min), robot.q_min, -np.pi)
+    hi = np.where(np.isfinite(robot.q_max), robot.q_max, np.pi)
+    tight = 0.0
+    for k in range(200):
+        q = rng.uniform(lo, hi)
+        dq = rng.normal(0.0, 0.5 if k % 2 else 1e-3, robot.nv)
+        moved = np.linalg.norm(points(q + dq) - points(q), axis=1).max()
+        bound = float(rho @ np.abs(dq))
+        assert moved <= bound * (1 + 1e-12)
+        if k % 2 == 0:
+            tight = max(tight, moved / bound)
+    assert tight > 1 / 3
+
+
+@pytest.mark.parametrize("case,gain,stop", [("planar", 4.0, 0.0), ("planar", 25.0, 0.0), ("panda", 10.0, 0.0),
+                                            ("contact", 4.0, 0.0), ("moving", 25.0, 0.0)])
+def test_lazy_clearance_keeps_the_verdict_and_bounds_the_least_clearance(case, gain, stop, monkeypatch):
+    """exact=False: the same verdict and steps as the exact rollout, the least clearance reported ≤
+    the exact one (a lower bound), and fewer clearance evaluations (counted)."""
+    if case == "panda":
+        ctrl, q, v = panda_case()
+    elif case == "contact":
+        ctrl, q, v = planar_case(obstacles=[Obstacle("sphere", [-0.72, -1.45], radius=0.1)])
+    elif case == "moving":
+        ctrl, q, v = planar_case(obstacles=[Obstacle("sphere", [-1.6, -1.0], radius=0.1, velocity=[0.3, -0.4])])
+    else:
+        ctrl, q, v = planar_case()
+    sim = Simulator(ctrl, dt=DT, duration=DT)
+    lean = BrakeRollout(ctrl.robot, sim.world, DT)
+    tau_prev = gravity(ctrl.robot, q)
+    exact = lean.run(q, v, tau_prev, 0.3, gain, stop_below=stop)
+    calls = []
+    world = lean.world
+    monkeypatch.setattr(lean, "world", lambda qq, t: calls.append(t) or world(qq, t))
+    lazy = lean.run(q, v, tau_prev, 0.3, gain, stop_below=stop, exact=False)
+    assert (lazy.viable, lazy.steps, lazy.t_rest) == (exact.viable, exact.steps, exact.t_rest)
+    assert lazy.min_clearance <= exact.min_clearance + 1e-12
+    assert len(calls) < exact.steps

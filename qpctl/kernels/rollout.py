@@ -58,3 +58,12 @@ def state_code(q, v, q_min, q_max, rest_speed):  # type: ignore[no-untyped-def]
         if abs(v[i]) > rest_speed:
             rest = False
     return AT_REST if rest else MOVING
+
+
+@njit(cache=True)
+def travel(dq, rho):  # type: ignore[no-untyped-def]
+    """Σᵢ ρᵢ|dqᵢ| [m]: a bound on how far any point of the links moves over a joint step dq [rad]."""
+    s = 0.0
+    for i in range(dq.shape[0]):
+        s += rho[i] * abs(dq[i])
+    return s

@@ -90,7 +90,7 @@ class BackupGuard:
         order = ([self._gain] if self._gain is not None else []) + [g for g in self.gains if g != self._gain]
         for g in order:
             if self.brake.run(q, v, tau_prev, t, g, horizon=self.horizon, margin=self.margin,
-                              stop_below=self.margin).viable:
+                              stop_below=self.margin, exact=False).viable:
                 return g
         return None
 

@@ -11,6 +11,16 @@ Per step at (q, q̇, t) after τ_prev, exactly as :func:`qpctl.safety.oracle.rol
 The arithmetic is rk4_step's operations in the same order, so the states equal the simulator's (the
 tests hold them to 1e-12 against the oracle); a robot with continuous or planar joints integrates on
 its configuration space through ``robot.integrate`` as the simulator does.
+
+**Lazy clearance** (``exact=False``, the guard's): the world clearance is a 1-Lipschitz function of
+every link point's and every obstacle's position, and over a step dq no point of a link moves farther
+than Σᵢ ρᵢ|dqᵢ| (revolute joints: ρᵢ bounds the distance of joint i's origin to any capsule point it
+carries, the joint placements' lengths along the chain plus the capsule's end, configuration-free)
+and no obstacle farther than its speed bound |v| + 2πf|amplitude| times Δt. So after a clearance c
+was evaluated, c minus the bounds accumulated since is a lower bound on the clearance; while it stays
+above the level the rollout tests (``margin``, ``stop_below``) the evaluation is skipped and the bound
+stands in for it. The verdict is then sound (the least clearance reported is a lower bound, not the
+exact value); robots with other joints evaluate every step.
 """
 
 from __future__ import annotations
@@ -48,6 +58,9 @@ class BrakeRollout:
         self._kq, self._ka = np.zeros((4, n)), np.zeros((4, n))  # the stages' k·q (velocities), k·v
         self._qs, self._vs, self._dq, self._dv = np.zeros(model.nq), np.zeros(n), np.zeros(n), np.zeros(n)
         self._angles = np.zeros(n)
+        self.rho = lever_arms(robot)  # None: a joint that is not revolute
+        self.obstacle_speed = max((float(np.linalg.norm(o.velocity) + 2 * np.pi * o.frequency * np.linalg.norm(o.amplitude))
+                                   for o in world.ws.obstacles), default=0.0)
 
     def torque(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, gain: float) -> np.ndarray:
         """The brake's torque [N·m] at (q, q̇) after τ_prev into ``self.tau`` (oracle.brake_torque)."""
@@ -89,16 +102,24 @@ class BrakeRollout:
         return qq, vv
 
     def run(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, *,
-            horizon: float = 3.0, margin: float = 0.0, stop_below: float = -np.inf) -> Certificate:
+            horizon: float = 3.0, margin: float = 0.0, stop_below: float = -np.inf,
+            exact: bool = True) -> Certificate:
         """The brake of gain κ [1/s] from (q, q̇ [rad/s], τ_prev [N·m]) at t [s]: the
         :class:`~qpctl.safety.oracle.Certificate` :func:`qpctl.safety.oracle.rollout` gives (the
-        arguments mean the same; a state that is not finite ends it, not viable). Inputs unchanged."""
-        dt, world = self.dt, self.world
+        arguments mean the same; a state that is not finite ends it, not viable). Inputs unchanged.
+        ``exact=False``: the lazy clearance (module docstring; the least clearance a lower bound)."""
+        dt, world, rho = self.dt, self.world, self.rho
+        lazy = not exact and rho is not None
+        level = max(margin, stop_below)
         qq, vv, prev = np.array(q, float), np.array(v, float), np.array(tau_prev, float)
-        worst, still = np.inf, 0.0
+        worst, still, last, drift = np.inf, 0.0, np.inf, np.inf
         steps = round(horizon / dt)
         for k in range(steps):
-            worst = min(worst, world(qq, t + k * dt))
+            if lazy and last - drift > level:
+                worst = min(worst, last - drift)
+            else:
+                last, drift = world(qq, t + k * dt), 0.0
+                worst = min(worst, last)
             code = K.state_code(self.robot.angles(qq, self._angles) if self.lie else qq, vv, self.q_min,
                                 self.q_max, REST_SPEED)
             if worst < stop_below or code == K.OUTSIDE:
@@ -109,4 +130,29 @@ class BrakeRollout:
             self.torque(qq, vv, prev, gain)
             prev[:] = self.tau
             self.step(qq, vv)
+            if lazy:
+                drift += K.travel(self._dq, rho) + self.obstacle_speed * dt
         return Certificate(False, gain, worst, np.inf, steps)
+
+
+REVOLUTE = ("JointModelRX", "JointModelRY", "JointModelRZ", "JointModelRevoluteUnaligned")
+
+
+def lever_arms(robot: Any) -> np.ndarray | None:
+    """ρᵢ [m] per degree of freedom: an upper bound, for every configuration, on the distance between
+    joint i's origin and any capsule point of the links it moves (the joint placements' translation
+    lengths from joint i to the capsule's joint, plus the farther capsule end); None unless every
+    joint is a one-degree-of-freedom revolute one (then ρᵢ|θ̇ᵢ| bounds joint i's share of a point's speed)."""
+    model = robot.model
+    if model.nq != model.nv or any(model.joints[j].shortname() not in REVOLUTE for j in range(1, model.njoints)):
+        return None
+    rho = np.zeros(model.nv)
+    for c in robot.capsules:
+        reach = max(float(np.linalg.norm(c.p0)), float(np.linalg.norm(c.p1)))
+        j = c.joint_id
+        while j > 0:  # joint j's origin is within `reach` of the capsule; walk up the chain
+            idx = model.joints[j].idx_v
+            rho[idx] = max(rho[idx], reach)
+            reach += float(np.linalg.norm(model.jointPlacements[j].translation))
+            j = model.parents[j]
+    return rho
