@@ -28,12 +28,13 @@ import pytest
 
 from qpctl import Scenario
 from qpctl.safety import certify
+from qpctl.safety.backup import GUARD_GAINS
 from qpctl.simulation import Simulator
 from qpctl.simulation.metrics import compute_metrics
 
 ORACLE_EVERY = 10
-#: The oracle's gains, hardest first: any certifies, and hard brakes end sooner (the same family).
-ORACLE_GAINS = (25.0, 60.0, 10.0, 4.0)
+#: The oracle's order of its family: any brake certifies, and the firm ones end sooner (the guard's order).
+ORACLE_GAINS = GUARD_GAINS
 
 
 def guarded(raw: dict[str, Any], *, check_distance: float | None = None) -> dict[str, Any]:

@@ -35,6 +35,12 @@ import numpy as np
 
 from qpctl.constraints.constraints import TorqueLimit
 from qpctl.safety.oracle import BRAKE_GAINS
+
+#: The guard's order of the family [1/s]: after the stored gain, the firm brakes first — they come to
+#: rest soonest, so their rollouts are the shortest (κ = 4 from 0.5 rad/s: ~530 steps of 2 ms, κ = 25:
+#: ~100 on the planar arm), and the first verified is the one stored and tried first next tick.
+GUARD_GAINS = (25.0, 60.0, 10.0, 4.0)
+assert sorted(GUARD_GAINS) == sorted(BRAKE_GAINS)
 from qpctl.safety.rollout import BrakeRollout
 from qpctl.tick import WorldClearance
 
@@ -56,7 +62,7 @@ class BackupGuard:
     the longest brake rolled out. A tick's ``compute_us`` is the controller's plus the check's."""
 
     def __init__(self, controller: Any, dt: float, *, check_distance: float = np.inf, margin: float = 0.0,
-                 horizon: float = 3.0, gains: tuple[float, ...] = BRAKE_GAINS) -> None:
+                 horizon: float = 3.0, gains: tuple[float, ...] = GUARD_GAINS) -> None:
         self.controller = controller
         self.dt, self.check_distance, self.margin, self.horizon = float(dt), float(check_distance), float(margin), \
             float(horizon)
