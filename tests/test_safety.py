@@ -196,3 +196,27 @@ def test_backup_key_builds_the_guard_and_the_metrics_count_it():
     m = run.metrics
     assert m["backup_checked_ticks"] == m["ticks"] and m["backup_ticks"] == 0 and m["backup_unverified_ticks"] == 0
     assert m["backup_check_us_median"] > 0 and "backup_ticks" not in plain.metrics
+
+
+def test_backup_guard_verifies_the_state_itself_when_nothing_is_stored():
+    """The first tick pushes at once (nothing stored yet): the push's successor has no verified brake,
+    so the guard rolls the brakes out from the state itself (at rest, no torque applied before: no rate
+    window) and applies the first verified one's torque; with a check distance shorter than the
+    clearance the same push is applied unchecked."""
+    robot = arm()
+    q = np.array([np.pi, np.pi / 2, 0.0])
+    data = robot.model.createData()
+    pin.forwardKinematics(robot.model, data, q)
+    tip = data.oMi[3].act(robot.capsules[2].p1)
+    inner = controller([Obstacle("sphere", tip[:2] + [-(0.05 + 0.04 + 0.1), 0.0], radius=0.1)])
+    guard = BackupGuard(Pusher(inner, t_push=0.0), dt=DT)  # type: ignore[arg-type]
+    guard._limit = None
+    v, none = np.zeros(3), np.full(3, np.nan)
+    out = guard.step(q, v, 0.0)
+    assert out.info["backup_checked"] and out.info.get("backup") == guard._gain is not None
+    assert np.array_equal(out.tau, brake_torque(robot, data, q, v, none, guard._gain, DT))
+    assert guard.stats["unverified"] == 0 and guard.stats["backup"] == 1
+    far = BackupGuard(Pusher(inner, t_push=0.0), dt=DT, check_distance=0.01)  # type: ignore[arg-type]
+    out = far.step(q, v, 0.0)
+    assert not out.info["backup_checked"] and "backup" not in out.info
+    assert np.array_equal(out.tau, Pusher(inner, 0.0).step(q, v, 0.0).tau)
