@@ -4,7 +4,7 @@ VENV   ?= .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: all env demo test soak robust bench bench-quick peers perception perception-canopies harvest simulators camera robots sweep-small sweep-1k sweep-throughput lint clean
+.PHONY: all env demo test soak soak-brake robust bench bench-quick peers perception perception-canopies harvest simulators camera robots sweep-small sweep-1k sweep-throughput lint clean
 
 all: test
 
@@ -26,6 +26,11 @@ test: $(STAMP)
 
 soak: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m pytest -q -m slow -p no:cacheprovider
+
+# Stop before contact on a fresh seeded set of 200 scenes behind the verified backup, two processes
+# (docs/reliability.md, "Stop before contact"): results/soak/summary_brake.json.
+soak-brake: $(STAMP)
+	MPLBACKEND=Agg $(PY) -m benchmarks.soak_brake --scenes 200 --jobs 2 --out results/soak
 
 # Every fault kind at three levels, paper / hsu / qp on 22 seeded scenes (docs/reliability.md, "Faults and robustness").
 robust: $(STAMP)

@@ -19,6 +19,13 @@ runs each scene with braking off and asks the oracle (:func:`qpctl.safety.certif
 visited state (the torque applied before it as τ_prev): how many it certifies viable, and in the scenes
 that collide when the first uncertified state came before the contact.
 
+    python -m benchmarks.braking --rollout
+
+times one brake's rollout per step [µs] from a moving state near obstacles (the states of
+``tests/test_rollout.py``: the planar arm with a rate limit, the Panda): the Simulator-based
+:func:`qpctl.safety.oracle.rollout` against :class:`qpctl.safety.rollout.BrakeRollout`, exact and with
+the lazy clearance, interleaved, 5 passes (medians; state the load beside them).
+
 ``--cost`` times ``ctrl.step`` with braking off and on alternately on every 5th state of one run of the scenario
 (braking off), three passes: medians and p99 [µs] (state the machine's load beside them).
 """
@@ -84,6 +91,30 @@ def tick_cost(name: str, overrides: list[str]) -> dict[str, float]:
             "on_median": float(np.median(t_on)), "on_p99": float(np.percentile(t_on, 99))}
 
 
+def rollout_cost(passes: int = 5) -> dict[str, dict[str, float]]:
+    """µs per step of the oracle's rollout and the lean one's (module docstring)."""
+    import test_rollout as cases
+
+    from qpctl.safety.oracle import rollout
+    from qpctl.safety.rollout import BrakeRollout
+
+    out = {}
+    for name, make in (("planar", cases.planar_case), ("panda", cases.panda_case)):
+        ctrl, q, v = make()
+        sim = Simulator(ctrl, dt=cases.DT, duration=cases.DT)
+        lean = BrakeRollout(ctrl.robot, sim.world, cases.DT)
+        tau = cases.gravity(ctrl.robot, q)
+        times: dict[str, list[float]] = {"oracle": [], "lean": [], "lean_lazy": []}
+        for _ in range(passes + 1):  # the first pass compiles and is dropped
+            for key, got in times.items():
+                a = time.perf_counter()
+                c = (rollout(sim, q, v, tau, 0.0, 25.0) if key == "oracle"
+                     else lean.run(q, v, tau, 0.0, 25.0, exact=key == "lean"))
+                got.append((time.perf_counter() - a) * 1e6 / max(c.steps, 1))
+        out[name] = {k: float(np.median(t[1:])) for k, t in times.items()} | {"steps": c.steps}
+    return out
+
+
 def oracle_sample(scenes: int, every: int = 10) -> int:
     """Every ``every``-th visited state of the braking-off runs, certified or not (module docstring)."""
     rng = np.random.default_rng(soak.SEED)
@@ -117,6 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cost", default=None, help="a scenario: time its QP ticks with braking off and on")
     ap.add_argument("--set", action="append", default=[], help="KEY=VALUE for the braking run of --cost")
     ap.add_argument("--oracle", action="store_true", help="certify every 10th visited state (braking off)")
+    ap.add_argument("--rollout", action="store_true", help="time a brake rollout per step: oracle vs lean")
     ap.add_argument("--no-budget", action="store_true", help="tick_budget_us = 0: runs independent of the load")
     ap.add_argument("--only", action="append", default=[], help="run only this scene (repeatable), e.g. soak-planar-238")
     args = ap.parse_args(argv)
@@ -124,6 +156,9 @@ def main(argv: list[str] | None = None) -> int:
     NO_BUDGET = args.no_budget
     if args.oracle:
         return oracle_sample(args.scenes)
+    if args.rollout:
+        print(rollout_cost())
+        return 0
     if args.cost is not None:
         print(args.cost, tick_cost(args.cost, args.set))
         return 0

@@ -129,6 +129,7 @@ RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "positive": (lambda v: math.isfinite(v) and v > 0, "a positive number"),
     "nonnegative": (lambda v: math.isfinite(v) and v >= 0, "a number >= 0"),
     "seconds": (lambda v: math.isfinite(v) and v > 0, "a positive number of seconds"),
+    "distance_or_inf": (lambda v: v >= 0, "a number >= 0 (inf: no limit)"),
 }
 
 

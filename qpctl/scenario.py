@@ -734,8 +734,14 @@ class Scenario:
         controller_class(c["kind"], self.source)  # a ConfigError naming the registered kinds
         bp = {"auto": None, "on": True, "off": False}[c["broadphase"]]  # ControllerConfig's choices
         scene = self.build_obstacles() if obstacles is None else obstacles
-        return make_controller(c, robot, self.build_path(robot, q0), scene, self._gains(margin, designed),
+        ctrl = make_controller(c, robot, self.build_path(robot, q0), scene, self._gains(margin, designed),
                                broadphase=bp, source=self.source)  # type: ignore[arg-type]
+        if not c["backup"]:
+            return ctrl
+        from qpctl.safety import BackupGuard
+
+        return BackupGuard(ctrl, self.data["sim"]["dt"], check_distance=c["backup_check_distance"],
+                           margin=c["backup_margin"])
 
     def to_toml(self, **changes: dict[str, Any]) -> str:
         """The validated scenario as a TOML file that :meth:`load` reads back to the same ``data``:

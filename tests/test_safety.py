@@ -164,3 +164,59 @@ def test_collisions_at_rest_counts_the_contacts_a_stop_cannot_avoid():
                       np.zeros((T, n)), np.zeros(T), np.zeros(T, bool), [{} for _ in range(T)])
     m = compute_metrics(traj)
     assert m["collided"] and m["collisions_at_rest"] == 1
+
+
+@pytest.mark.parametrize("override,key", [("controller.backup=1", "controller.backup"),
+                                          ("controller.backup_margin=-0.01", "controller.backup_margin"),
+                                          ("controller.backup_check_distance=nan", "controller.backup_check_distance"),
+                                          ('controller.backup_check_distance="far"', "controller.backup_check_distance")])
+def test_backup_keys_are_validated(override, key):
+    from qpctl import ConfigError, Scenario
+
+    with pytest.raises(ConfigError) as exc:
+        Scenario.load("paper", overrides=[override])
+    assert exc.value.key == key
+
+
+def test_backup_key_builds_the_guard_and_the_metrics_count_it():
+    """``controller.backup = true`` puts the scenario's controller behind the guard at the run's sim.dt
+    with its keys; on the paper's first 60 ms (at rest, far from the obstacles: every proposal verified)
+    the torques are bit-identical to the run without it, every tick is checked and none is on the brake."""
+    from qpctl import Scenario
+    from qpctl.run import simulate
+
+    sets = ["sim.duration=0.06", "controller.kind=\"qp\""]
+    plain = simulate(Scenario.load("paper", overrides=sets))
+    sc = Scenario.load("paper", overrides=[*sets, "controller.backup=true", "controller.backup_margin=0.01"])
+    guard = sc.build_controller()
+    assert isinstance(guard, BackupGuard) and guard.margin == 0.01 and guard.dt == sc.data["sim"]["dt"]
+    assert np.isinf(guard.check_distance)
+    run = simulate(sc)
+    assert np.array_equal(run.trajectory.tau, plain.trajectory.tau)
+    m = run.metrics
+    assert m["backup_checked_ticks"] == m["ticks"] and m["backup_ticks"] == 0 and m["backup_unverified_ticks"] == 0
+    assert m["backup_check_us_median"] > 0 and "backup_ticks" not in plain.metrics
+
+
+def test_backup_guard_verifies_the_state_itself_when_nothing_is_stored():
+    """The first tick pushes at once (nothing stored yet): the push's successor has no verified brake,
+    so the guard rolls the brakes out from the state itself (at rest, no torque applied before: no rate
+    window) and applies the first verified one's torque; with a check distance shorter than the
+    clearance the same push is applied unchecked."""
+    robot = arm()
+    q = np.array([np.pi, np.pi / 2, 0.0])
+    data = robot.model.createData()
+    pin.forwardKinematics(robot.model, data, q)
+    tip = data.oMi[3].act(robot.capsules[2].p1)
+    inner = controller([Obstacle("sphere", tip[:2] + [-(0.05 + 0.04 + 0.1), 0.0], radius=0.1)])
+    guard = BackupGuard(Pusher(inner, t_push=0.0), dt=DT)  # type: ignore[arg-type]
+    guard._limit = None
+    v, none = np.zeros(3), np.full(3, np.nan)
+    out = guard.step(q, v, 0.0)
+    assert out.info["backup_checked"] and out.info.get("backup") == guard._gain is not None
+    assert np.array_equal(out.tau, brake_torque(robot, data, q, v, none, guard._gain, DT))
+    assert guard.stats["unverified"] == 0 and guard.stats["backup"] == 1
+    far = BackupGuard(Pusher(inner, t_push=0.0), dt=DT, check_distance=0.01)  # type: ignore[arg-type]
+    out = far.step(q, v, 0.0)
+    assert not out.info["backup_checked"] and "backup" not in out.info
+    assert np.array_equal(out.tau, Pusher(inner, 0.0).step(q, v, 0.0).tau)

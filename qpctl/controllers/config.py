@@ -28,6 +28,10 @@ class ControllerConfig:
     approach speed that design assumes.
     d_safe_margin [m] (or "auto": from the faults' noise levels): added to d_safe by the controllers.
     broadphase: "auto", "on" or "off" — the distance engine's grid over static obstacles.
+    backup: the controller behind the verified backup (:class:`qpctl.safety.BackupGuard`, issue 22): its
+    torque applied only where a brake from the state it leads to is verified by rollout, at ``sim.dt``;
+    backup_margin [m]: the clearance kept all along the brake; backup_check_distance [m]: ticks whose
+    world clearance is at least this are not checked (inf: every tick, the default).
     """
 
     kind: str = "paper"
@@ -38,6 +42,9 @@ class ControllerConfig:
     approach_speed: float | str = setting("auto", valid="positive", unit="m/s")
     d_safe_margin: float | str = setting(0.0, valid="nonnegative", unit="m")
     broadphase: str = setting("auto", choices=("auto", "on", "off"))
+    backup: bool = False
+    backup_margin: float = setting(0.0, valid="nonnegative", unit="m")
+    backup_check_distance: float = setting(float("inf"), valid="distance_or_inf", unit="m")
 
     def __post_init__(self) -> None:
         check_fields(self, "controller")

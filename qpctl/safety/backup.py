@@ -2,21 +2,28 @@
 leads to, a brake of the family (:mod:`qpctl.safety.oracle`) brings the arm to rest without contact in
 a rollout on the controller's own model; otherwise the stored verified brake continues.
 
-Each tick at (q, q̇, t) with the torque τ_prev applied last:
+Each tick at (q, q̇, t) with the torque τ_prev applied last, the controller proposes τ (its ``step``);
+then, where the world clearance (exact, every pair: :class:`qpctl.tick.WorldClearance`) is below
+``check_distance`` [m] (default: everywhere):
 
-1. the controller proposes τ (its ``step``);
-2. where the arm's least clearance is below ``check_distance`` [m] (default: everywhere; farther, τ
-   is applied unchecked and the stored brake forgotten, since it was verified from another state),
-   the successor (q₁, q̇₁) — τ held over one step, the
-   built-in simulator's RK4 — is rolled out with the stored brake's gain first, then the others; the
-   first that comes to rest with the clearance above ``margin`` all along is stored and τ applied;
-3. if none does, the stored brake's torque from (q, q̇, τ_prev) is applied instead (the brake was
-   verified from this very state one tick ago, and the rollout is the simulator's own integration, so
-   under the exact model following it stays verified), and the tick's info says ``backup``.
+1. the successor (q₁, q̇₁) — τ held over one step, the built-in simulator's RK4 — is rolled out
+   (:class:`qpctl.safety.rollout.BrakeRollout`) with the stored brake's gain first, then the others; a
+   rollout ends at rest, on the first step below ``margin`` [m] or past a joint limit; the first that
+   comes to rest with the clearance above ``margin`` all along is stored and τ applied;
+2. if none does, the stored brake's torque from (q, q̇, τ_prev) is applied (``info["backup"]``: its
+   gain): it was verified from this very state one tick ago, and the rollout is the simulator's own
+   integration, so under the exact model following it stays verified;
+3. if no brake is stored (the start, or the first tick back within ``check_distance``), a brake is
+   rolled out from (q, q̇, τ_prev) itself; if one is verified its torque is applied and it is stored
+   (``info["backup"]``), else τ is applied unverified (``info["backup_unverified"]``).
 
-Before the first verified brake (the start) the controller's torque is applied. The rollouts are
-Python (Pinocchio and the simulator's step), milliseconds each: the guard is a measurement of what the
-guarantee costs and does, not yet a 1 kHz implementation.
+Beyond ``check_distance`` τ is applied unchecked and the stored brake forgotten. **What is proved**
+(exact model: the built-in simulator's RK4 at the guard's Δt; obstacles static or moving as the scene
+says): every state from a verified tick on admits a verified brake, so a run without an unverified tick
+has no contact: the states beyond ``check_distance`` are clear by the screen's own test, and at each
+return within it step 3 verifies the state before anything else. A screen that is too short can only
+cost an unverified tick, which the run counts (``stats["unverified"]``, the metrics'
+``backup_unverified_ticks``).
 """
 
 from __future__ import annotations
@@ -27,15 +34,22 @@ from typing import Any
 import numpy as np
 
 from qpctl.constraints.constraints import TorqueLimit
-from qpctl.safety.oracle import BRAKE_GAINS, brake_torque, rollout
-from qpctl.simulation.simulator import Simulator
+from qpctl.safety.oracle import BRAKE_GAINS
+
+#: The guard's order of the family [1/s]: after the stored gain, the firm brakes first — they come to
+#: rest soonest, so their rollouts are the shortest (κ = 4 from 0.5 rad/s: ~530 steps of 2 ms, κ = 25:
+#: ~100 on the planar arm), and the first verified is the one stored and tried first next tick.
+GUARD_GAINS = (25.0, 60.0, 10.0, 4.0)
+assert sorted(GUARD_GAINS) == sorted(BRAKE_GAINS)
+from qpctl.safety.rollout import BrakeRollout
+from qpctl.tick import WorldClearance
 
 
 class GuardedOutput:
     """A controller's output with the torque the guard applied (every other attribute the output's)."""
 
-    def __init__(self, out: Any, tau: np.ndarray, info: dict[str, Any]) -> None:
-        self._out, self.tau, self.info = out, tau, info
+    def __init__(self, out: Any, tau: np.ndarray, info: dict[str, Any], compute_us: float) -> None:
+        self._out, self.tau, self.info, self.compute_us = out, tau, info, compute_us
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._out, name)
@@ -44,16 +58,17 @@ class GuardedOutput:
 class BackupGuard:
     """A controller behind the verified backup (module docstring); every other attribute is the
     controller's, so it runs wherever the controller does. ``dt`` [s]: the control period (the
-    simulator's step), ``check_distance`` [m], ``margin`` [m] (kept at rest), ``horizon`` [s]."""
+    simulator's step), ``check_distance`` [m], ``margin`` [m] (kept along the brake), ``horizon`` [s]:
+    the longest brake rolled out. A tick's ``compute_us`` is the controller's plus the check's."""
 
     def __init__(self, controller: Any, dt: float, *, check_distance: float = np.inf, margin: float = 0.0,
-                 horizon: float = 3.0, gains: tuple[float, ...] = BRAKE_GAINS) -> None:
+                 horizon: float = 3.0, gains: tuple[float, ...] = GUARD_GAINS) -> None:
         self.controller = controller
         self.dt, self.check_distance, self.margin, self.horizon = float(dt), float(check_distance), float(margin), \
             float(horizon)
         self.gains = tuple(gains)
-        self._sim = Simulator(controller, dt=self.dt, duration=self.dt)
-        self._data = controller.robot.model.createData()
+        self.world = WorldClearance(controller.robot, controller.obstacles)  # obstacles only: no self pairs
+        self.brake = BrakeRollout(controller.robot, self.world, self.dt)
         self._limit = next((c for c in getattr(controller, "constraints", []) if isinstance(c, TorqueLimit)), None)
         self.stats: dict[str, Any] = {"checked": 0, "backup": 0, "unverified": 0, "check_us": []}
         self._reset_backup()
@@ -71,21 +86,17 @@ class BackupGuard:
 
     def warmup(self) -> float:
         out = self.controller.warmup()
+        self.brake.run(self.controller.robot.q_home, np.zeros(self.controller.robot.nv), self._tau_prev, 0.0,
+                       self.gains[0], horizon=2 * self.dt)  # the rollout's kernels compiled or loaded
         self._reset_backup()
-        return out
+        return float(out)
 
-    def _verified(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float) -> float | None:
-        """The gain of a brake verified from the successor of τ held at (q, q̇, t), or None."""
-        sim = self._sim
-        sim.reset(q, v)
-        sim.apply(tau)
-        sim.step(t)
-        q1, v1 = (a.copy() for a in sim.read())
+    def _first_verified(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float) -> float | None:
+        """The gain of the first brake (the stored one first) verified from (q, q̇) after τ_prev at t."""
         order = ([self._gain] if self._gain is not None else []) + [g for g in self.gains if g != self._gain]
         for g in order:
-            c = rollout(sim, q1, v1, tau, t + self.dt, g, horizon=self.horizon, margin=self.margin,
-                        stop_below=self.margin)
-            if c.viable:
+            if self.brake.run(q, v, tau_prev, t, g, horizon=self.horizon, margin=self.margin,
+                              stop_below=self.margin, exact=False).viable:
                 return g
         return None
 
@@ -93,27 +104,35 @@ class BackupGuard:
         out = self.controller.step(q, v, t)
         tau = np.array(out.tau, float)
         info = dict(out.info)
-        near = self._sim.clearance(q, t) < self.check_distance
+        t0 = time.perf_counter()
+        q, v = np.asarray(q, float), np.asarray(v, float)
+        near = self.world(q, t) < self.check_distance
+        info["backup_checked"] = near
         if near:
-            t0 = time.perf_counter()
-            gain = self._verified(q, v, tau, t)
-            self.stats["check_us"].append((time.perf_counter() - t0) * 1e6)
-            self.stats["checked"] += 1
-            if gain is not None:
+            q1, v1 = self.brake.successor(q, v, tau)
+            gain = self._first_verified(q1, v1, tau, t + self.dt)
+            if gain is None:
+                if self._gain is None:  # nothing stored: is the state itself verified? (step 3)
+                    self._gain = self._first_verified(q, v, self._tau_prev, t)
+                if self._gain is None:
+                    self.stats["unverified"] += 1
+                    info["backup_unverified"] = True
+                else:  # the stored brake continues
+                    tau = self.brake.torque(q, v, self._tau_prev, self._gain).copy()
+                    info["backup"] = self._gain
+                    self.stats["backup"] += 1
+                    if self._limit is not None:  # the rate window of the next tick is about the torque applied
+                        self._limit.remember(tau, t)
+            else:
                 self._gain = gain
-            elif self._gain is None:  # nothing verified yet (the start, or after unchecked ticks)
-                self.stats["unverified"] += 1
-            else:  # the stored brake continues
-                tau = brake_torque(self.controller.robot, self._data, np.asarray(q, float), np.asarray(v, float),
-                                   self._tau_prev, self._gain, self.dt)
-                info["backup"] = self._gain
-                self.stats["backup"] += 1
-                if self._limit is not None:  # the rate window of the next tick is about the torque applied
-                    self._limit.remember(tau, t)
+            us = (time.perf_counter() - t0) * 1e6
+            self.stats["check_us"].append(us)
+            self.stats["checked"] += 1
+            info["backup_check_us"] = us
         else:
             self._gain = None
         self._tau_prev = tau
-        return GuardedOutput(out, tau, info)
+        return GuardedOutput(out, tau, info, float(getattr(out, "compute_us", 0.0)) + (time.perf_counter() - t0) * 1e6)
 
     def torque(self, q: np.ndarray, v: np.ndarray, t: float) -> np.ndarray:
         return np.asarray(self.step(q, v, t).tau)

@@ -26,6 +26,17 @@ def collisions_at_rest(traj: Trajectory) -> int:
     return int(sum(bool(np.all(np.abs(traj.v[k]) <= REST_SPEED)) for k in onsets))
 
 
+def backup_metrics(infos: list[dict[str, Any]]) -> dict[str, Any]:
+    """The verified backup's counts: ticks checked, on the stored brake, unverified (the guarantee
+    holds for a run without one), and the check's cost per checked tick [µs]."""
+    us = [float(i["backup_check_us"]) for i in infos if "backup_check_us" in i]
+    return {"backup_checked_ticks": sum(bool(i["backup_checked"]) for i in infos),
+            "backup_ticks": sum("backup" in i for i in infos),
+            "backup_unverified_ticks": sum(bool(i.get("backup_unverified")) for i in infos),
+            "backup_check_us_median": float(np.median(us)) if us else 0.0,
+            "backup_check_us_p99": float(np.percentile(us, 99)) if us else 0.0}
+
+
 def compute_metrics(traj: Trajectory, *, d_safe: float = 0.0, frames: int = 1) -> dict[str, Any]:
     """Tracking [m], torque [N·m] and torque rate [N·m/s], clearance [m], compute time [µs], QP stats.
     With several task frames (``frames``, their position rows stacked in x) the tracking errors are
@@ -68,6 +79,8 @@ def compute_metrics(traj: Trajectory, *, d_safe: float = 0.0, frames: int = 1) -
     if traj.orientation_error_deg_per_task is not None:  # several oriented task frames: each's
         out["max_orientation_error_deg_per_task"] = traj.orientation_error_deg_per_task.max(axis=0).tolist()
         out["final_orientation_error_deg_per_task"] = traj.orientation_error_deg_per_task[-1].tolist()
+    if traj.infos and "backup_checked" in traj.infos[0]:  # behind the verified backup (qpctl.safety.BackupGuard)
+        out.update(backup_metrics(traj.infos))
     qp = [i for i in traj.infos if "status" in i]
     if qp:
         out["qp_status_counts"] = dict(Counter(str(i["status"]) for i in qp))

@@ -1,0 +1,158 @@
+"""The lean brake rollout (issue 22, item 2): the oracle's brake and the built-in simulator's RK4,
+with Pinocchio called directly on preallocated arrays, the step's arithmetic in compiled kernels
+(:mod:`qpctl.kernels.rollout`) and the world clearance of the simulator's own
+:class:`qpctl.tick.WorldClearance` — no :class:`~qpctl.simulation.Simulator` object stepped.
+
+Per step at (q, q̇, t) after τ_prev, exactly as :func:`qpctl.safety.oracle.rollout` does it:
+
+    clearance(q, t);  τ = clip(clip(RNEA(q, q̇, −κq̇), ±τ_max), τ_prev ± τ̇_max Δt)
+    (q, q̇) ← RK4 of q̇ = v, v̇ = ABA(q, v, τ) over Δt          (simulation.simulator.rk4_step's stages)
+
+The arithmetic is rk4_step's operations in the same order, so the states equal the simulator's (the
+tests hold them to 1e-12 against the oracle); a robot with continuous or planar joints integrates on
+its configuration space through ``robot.integrate`` as the simulator does.
+
+**Lazy clearance** (``exact=False``, the guard's): the world clearance is a 1-Lipschitz function of
+every link point's and every obstacle's position, and over a step dq no point of a link moves farther
+than Σᵢ ρᵢ|dqᵢ| (revolute joints: ρᵢ bounds the distance of joint i's origin to any capsule point it
+carries, the joint placements' lengths along the chain plus the capsule's end, configuration-free)
+and no obstacle farther than its speed bound |v| + 2πf|amplitude| times Δt. So after a clearance c
+was evaluated, c minus the bounds accumulated since is a lower bound on the clearance; while it stays
+above the level the rollout tests (``margin``, ``stop_below``) the evaluation is skipped and the bound
+stands in for it. The verdict is then sound (the least clearance reported is a lower bound, not the
+exact value); robots with other joints evaluate every step.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pinocchio as pin
+
+from qpctl.kernels import rollout as K
+from qpctl.safety.oracle import REST_SPEED, REST_TIME, Certificate
+from qpctl.tick import WorldClearance
+
+
+class BrakeRollout:
+    """Brake rollouts of one robot in one world at step ``dt`` [s] (module docstring).
+
+    Args:
+        robot: the controller's :class:`~qpctl.robot.RobotModel` (its model, limits, capsules).
+        world: the exact world clearance (a simulator's ``world``; its obstacles move with t).
+        dt: the step [s] (the run's: the guarantee is about the simulator's own integration).
+    """
+
+    def __init__(self, robot: Any, world: WorldClearance, dt: float) -> None:
+        self.robot, self.world, self.dt = robot, world, float(dt)
+        model = robot.model
+        self.model, self.data = model, model.createData()
+        n = robot.nv
+        self.tau_max = np.asarray(robot.tau_max, float)
+        rate = robot.tau_rate_max if robot.tau_rate_max is not None else np.full(n, np.inf)
+        self.window = np.asarray(rate, float) * self.dt
+        self.q_min, self.q_max = np.asarray(robot.q_min, float), np.asarray(robot.q_max, float)
+        self.lie = bool(robot.lie)
+        self.tau, self.qdd = np.zeros(n), np.zeros(n)
+        self._kq, self._ka = np.zeros((4, n)), np.zeros((4, n))  # the stages' k·q (velocities), k·v
+        self._qs, self._vs, self._dq, self._dv = np.zeros(model.nq), np.zeros(n), np.zeros(n), np.zeros(n)
+        self._angles = np.zeros(n)
+        self.rho = lever_arms(robot)  # None: a joint that is not revolute
+        self.obstacle_speed = max((float(np.linalg.norm(o.velocity) + 2 * np.pi * o.frequency * np.linalg.norm(o.amplitude))
+                                   for o in world.ws.obstacles), default=0.0)
+
+    def torque(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, gain: float) -> np.ndarray:
+        """The brake's torque [N·m] at (q, q̇) after τ_prev into ``self.tau`` (oracle.brake_torque)."""
+        np.multiply(v, -gain, out=self.qdd)
+        self.tau[:] = pin.rnea(self.model, self.data, q, v, self.qdd)
+        K.clip_brake(self.tau, self.tau_max, tau_prev, self.window)
+        return self.tau
+
+    def _stage(self, q: np.ndarray, v: np.ndarray, h: float, i: int) -> None:
+        """Stage i + 1 from stage i: its velocity kq[i+1] = v + h·ka[i], its acceleration ABA(q ⊕ h·kq[i], ·)."""
+        kq, ka, qs, vs = self._kq, self._ka, self._qs, self._vs
+        K.stage(q, v, kq[i], ka[i], h, self._dq, qs, vs)
+        if self.lie:
+            qs[:] = self.robot.integrate(q, self._dq)
+        kq[i + 1] = vs
+        ka[i + 1] = pin.aba(self.model, self.data, qs, vs, self.tau)
+
+    def step(self, q: np.ndarray, v: np.ndarray) -> None:
+        """One RK4 step of the held ``self.tau`` over dt; (q, v) updated in place (rk4_step's stages)."""
+        dt = self.dt
+        self._kq[0] = v
+        self._ka[0] = pin.aba(self.model, self.data, q, v, self.tau)
+        self._stage(q, v, 0.5 * dt, 0)
+        self._stage(q, v, 0.5 * dt, 1)
+        self._stage(q, v, dt, 2)
+        K.combine(self._kq, dt / 6, self._dq)
+        K.combine(self._ka, dt / 6, self._dv)
+        if self.lie:
+            q[:] = self.robot.integrate(q, self._dq)
+        else:
+            q += self._dq
+        v += self._dv
+
+    def successor(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(q₁, q̇₁): ``tau`` [N·m] held over one step from (q, q̇), as the simulator steps it (new arrays)."""
+        qq, vv = np.array(q, float), np.array(v, float)
+        self.tau[:] = tau
+        self.step(qq, vv)
+        return qq, vv
+
+    def run(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, *,
+            horizon: float = 3.0, margin: float = 0.0, stop_below: float = -np.inf,
+            exact: bool = True) -> Certificate:
+        """The brake of gain κ [1/s] from (q, q̇ [rad/s], τ_prev [N·m]) at t [s]: the
+        :class:`~qpctl.safety.oracle.Certificate` :func:`qpctl.safety.oracle.rollout` gives (the
+        arguments mean the same; a state that is not finite ends it, not viable). Inputs unchanged.
+        ``exact=False``: the lazy clearance (module docstring; the least clearance a lower bound)."""
+        dt, world, rho = self.dt, self.world, self.rho
+        lazy = not exact and rho is not None
+        level = max(margin, stop_below)
+        qq, vv, prev = np.array(q, float), np.array(v, float), np.array(tau_prev, float)
+        worst, still, last, drift = np.inf, 0.0, np.inf, np.inf
+        steps = round(horizon / dt)
+        for k in range(steps):
+            if lazy and last - drift > level:
+                worst = min(worst, last - drift)
+            else:
+                last, drift = world(qq, t + k * dt), 0.0
+                worst = min(worst, last)
+            code = K.state_code(self.robot.angles(qq, self._angles) if self.lie else qq, vv, self.q_min,
+                                self.q_max, REST_SPEED)
+            if worst < stop_below or code == K.OUTSIDE:
+                return Certificate(False, gain, worst, np.inf, k)
+            still = still + dt if code == K.AT_REST else 0.0
+            if still >= REST_TIME:
+                return Certificate(worst > margin, gain, worst, k * dt, k)
+            self.torque(qq, vv, prev, gain)
+            prev[:] = self.tau
+            self.step(qq, vv)
+            if lazy:
+                drift += K.travel(self._dq, rho) + self.obstacle_speed * dt
+        return Certificate(False, gain, worst, np.inf, steps)
+
+
+REVOLUTE = ("JointModelRX", "JointModelRY", "JointModelRZ", "JointModelRevoluteUnaligned")
+
+
+def lever_arms(robot: Any) -> np.ndarray | None:
+    """ρᵢ [m] per degree of freedom: an upper bound, for every configuration, on the distance between
+    joint i's origin and any capsule point of the links it moves (the joint placements' translation
+    lengths from joint i to the capsule's joint, plus the farther capsule end); None unless every
+    joint is a one-degree-of-freedom revolute one (then ρᵢ|θ̇ᵢ| bounds joint i's share of a point's speed)."""
+    model = robot.model
+    if model.nq != model.nv or any(model.joints[j].shortname() not in REVOLUTE for j in range(1, model.njoints)):
+        return None
+    rho = np.zeros(model.nv)
+    for c in robot.capsules:
+        reach = max(float(np.linalg.norm(c.p0)), float(np.linalg.norm(c.p1)))
+        j = c.joint_id
+        while j > 0:  # joint j's origin is within `reach` of the capsule; walk up the chain
+            idx = model.joints[j].idx_v
+            rho[idx] = max(rho[idx], reach)
+            reach += float(np.linalg.norm(model.jointPlacements[j].translation))
+            j = model.parents[j]
+    return rho

@@ -1,0 +1,145 @@
+"""Stop before contact, soaked (issue 22's Targets; ``make soak``): the soak's own scenes (the stream
+and the QP tick target of ``test_soak``) run with the controller behind the verified backup
+(``controller.backup = true``, every tick checked).
+
+It asserts, on every scene that starts at rest among static obstacles: no contact (0 collisions) and
+no unverified tick (so the guarantee held: docs/reliability.md, "Stop before contact"); on every
+scene: the applied torque within ±τ_max and the rate window. In the scenes with moving obstacles it
+counts the collisions and explains each by ``collisions_at_rest`` (the contact began with the arm at
+rest: an obstacle caught a stopped arm, which no brake avoids — certified unavoidable) or not (a
+finding, listed). The oracle (:func:`qpctl.safety.certify`, the Simulator-based rollouts, independent
+of the guard's lean ones) is asked about every ``ORACLE_EVERY``-th visited state; with the guard on
+every state should be certified — the uncertified are listed. Written to
+``results/soak/summary_brake_soak.json``.
+
+:func:`guarded_run` and :func:`summarise` are also the fresh ≥ 200-scene set's
+(``make soak-brake``, :mod:`benchmarks.soak_brake`).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections import Counter
+from typing import Any
+
+import numpy as np
+import pytest
+
+from qpctl import Scenario
+from qpctl.safety import certify
+from qpctl.safety.backup import GUARD_GAINS
+from qpctl.simulation import Simulator
+from qpctl.simulation.metrics import compute_metrics
+
+ORACLE_EVERY = 10
+#: The oracle's order of its family: any brake certifies, and the firm ones end sooner (the guard's order).
+ORACLE_GAINS = GUARD_GAINS
+
+
+def guarded(raw: dict[str, Any], *, check_distance: float | None = None) -> dict[str, Any]:
+    """The scene with the backup on (and its check distance [m], if given)."""
+    c = {**raw["controller"], "backup": True}
+    if check_distance is not None:
+        c["backup_check_distance"] = check_distance
+    return {**raw, "controller": c}
+
+
+def guarded_run(raw: dict[str, Any], oracle_every: int = ORACLE_EVERY,
+                check_distance: float | None = None) -> dict[str, Any]:
+    """One scene behind the guard in the built-in simulator: clearance, collisions (at rest or not),
+    the guard's counts and check cost [µs], the limits kept, and the oracle on every
+    ``oracle_every``-th visited state (0: none)."""
+    sc = Scenario.from_dict(guarded(raw, check_distance=check_distance), source=raw["name"])
+    ctrl = sc.build_controller()
+    dt = float(raw["sim"]["dt"])
+    t0 = time.perf_counter()
+    ctrl.warmup()
+    tr = Simulator(ctrl, dt=dt, duration=raw["sim"]["duration"]).run(sc.q0(ctrl.robot))
+    wall = time.perf_counter() - t0
+    m = compute_metrics(tr)
+    robot = ctrl.robot
+    rate = np.abs(np.diff(tr.tau, axis=0))
+    row: dict[str, Any] = {
+        "name": raw["name"], "robot": raw["name"].split("-")[1], "moving": any(o.moving for o in ctrl.obstacles),
+        "rate_limited": bool(np.isfinite(robot.tau_rate_max).any()), "ticks": m["ticks"],
+        "min_clearance": float(tr.clearance.min()), "collided": m["collided"],
+        "contacts": int(np.sum((tr.clearance[1:] < 0) & (tr.clearance[:-1] >= 0)) + (tr.clearance[0] < 0)),
+        "collisions_at_rest": m["collisions_at_rest"], "rms_tracking_error": m["rms_tracking_error"],
+        "checked": m["backup_checked_ticks"], "backup_ticks": m["backup_ticks"],
+        "unverified": m["backup_unverified_ticks"], "check_us": ctrl.stats["check_us"],
+        "torque_over_limit": bool(np.any(np.abs(tr.tau) > robot.tau_max + 1e-9)),
+        "rate_over_limit": bool(np.any(rate > robot.tau_rate_max * dt * (1 + 1e-6) + 1e-9)),
+        "wall_s": wall,
+    }
+    if oracle_every:
+        ks = range(oracle_every, len(tr.t), oracle_every)
+        bad = [float(tr.t[k]) for k in ks if not certify(ctrl, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), dt,
+                                                          gains=ORACLE_GAINS).viable]
+        row.update(oracle_sampled=len(ks), oracle_uncertified=bad)
+    return row
+
+
+def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Counts over the scenes: static / moving, collisions, the guard's share of ticks and its check
+    cost per checked tick (median, p99 [µs] over all checked ticks), the oracle's certified share."""
+    static = [r for r in rows if not r["moving"]]
+    moving = [r for r in rows if r["moving"]]
+    us = np.concatenate([np.asarray(r["check_us"], float) for r in rows]) if rows else np.zeros(0)
+    ticks = sum(r["ticks"] for r in rows)
+    out: dict[str, Any] = {
+        "scenes": len(rows), "by_robot": dict(Counter(r["robot"] for r in rows)),
+        "static_scenes": len(static), "static_collided": sum(r["collided"] for r in static),
+        "static_worst_clearance": min((r["min_clearance"] for r in static), default=None),
+        "moving_scenes": len(moving), "moving_collided": sum(r["collided"] for r in moving),
+        # a collision is certified unavoidable when every contact of its run began with the arm at rest
+        "moving_collided_certified_unavoidable": sum(r["collided"] and r["collisions_at_rest"] == r["contacts"]
+                                                     for r in moving),
+        "unexplained_collisions": [r["name"] for r in rows if r["collided"] and r["collisions_at_rest"] < r["contacts"]],
+        "unverified_ticks": sum(r["unverified"] for r in rows),
+        "scenes_with_unverified_ticks": [r["name"] for r in rows if r["unverified"]],
+        "ticks": ticks, "checked_share": sum(r["checked"] for r in rows) / max(ticks, 1),
+        "backup_share": sum(r["backup_ticks"] for r in rows) / max(ticks, 1),
+        "check_us_median": float(np.median(us)) if us.size else None,
+        "check_us_p99": float(np.percentile(us, 99)) if us.size else None,
+        "torque_over_limit_scenes": sum(r["torque_over_limit"] for r in rows),
+        "rate_over_limit_scenes": sum(r["rate_over_limit"] for r in rows),
+        "median_rms_tracking_error": float(np.median([r["rms_tracking_error"] for r in rows])) if rows else None,
+        "wall_s": sum(r["wall_s"] for r in rows),
+    }
+    if rows and "oracle_sampled" in rows[0]:
+        sampled = sum(r["oracle_sampled"] for r in rows)
+        out.update(oracle_sampled=sampled,
+                   oracle_certified=sampled - sum(len(r["oracle_uncertified"]) for r in rows),
+                   oracle_uncertified={r["name"]: r["oracle_uncertified"] for r in rows if r["oracle_uncertified"]})
+    return out
+
+
+def public(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The rows as written (the per-tick check times summarised)."""
+    return [{k: v for k, v in r.items() if k != "check_us"}
+            | {"check_us_median": float(np.median(r["check_us"])) if r["check_us"] else None} for r in rows]
+
+
+@pytest.mark.slow
+def test_soak_brake():
+    import test_soak as soak  # the soak's generator and tick target: the same scenes as test_soak
+
+    rows: list[dict[str, Any]] = []
+    ticks = 0
+    soak.OUT.mkdir(parents=True, exist_ok=True)
+    for _, _, raw in soak.valid_scenes(np.random.default_rng(soak.SEED), Counter()):
+        if ticks >= soak.TARGET_QP_TICKS:
+            break
+        rows.append(guarded_run(raw))
+        ticks += rows[-1]["ticks"]
+        summary = summarise(rows)  # written after every scene: a run cut short still reports
+        (soak.OUT / "summary_brake_soak.json").write_text(
+            json.dumps({"summary": summary, "runs": public(rows)}, indent=1, default=float) + "\n")
+        print(raw["name"], {k: rows[-1][k] for k in ("min_clearance", "backup_ticks", "unverified", "wall_s")},
+              flush=True)
+    print(json.dumps(summary, indent=1, default=float))
+    assert summary["static_scenes"] >= 10
+    assert summary["static_collided"] == 0, [r["name"] for r in rows if r["collided"] and not r["moving"]]
+    assert not [r["name"] for r in rows if r["unverified"] and not r["moving"]]
+    assert summary["torque_over_limit_scenes"] == 0 and summary["rate_over_limit_scenes"] == 0
