@@ -78,8 +78,9 @@ def classify_point(x: float, y: float, z: float, segments: np.ndarray, radii: np
     the leaf a link pushes through stays in the map), :data:`TARGET` (not ``soft`` and within
     ``target_radius`` of the grasp target: the fruit goes, the leaves in front of it stay soft
     obstacles) or :data:`KEPT`.
-    (The integrating kernels test the boxes in scalars first and call this only for the points in them:
-    a call per point that passes arrays costs more than the whole back-projection.)"""
+    (The integrating kernels test the boxes in scalars first and call this only for the unlabelled or
+    rigid points in them — a soft point is always KEPT: a call per point that passes arrays costs
+    more than the whole back-projection.)"""
     if (not soft and x >= robot_box[0] and y >= robot_box[1] and z >= robot_box[2] and x <= robot_box[3]
             and y <= robot_box[4] and z <= robot_box[5] and in_capsules(x, y, z, segments, radii, boxes)):
         return SELF
@@ -205,7 +206,7 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
                 w = r20 * xc + r21 * yc + r22 * z + tz
                 st = KEPT
                 is_soft = has_labels and labels[v, u] == SOFT_LABEL
-                if x >= zx0 and y >= zy0 and w >= zz0 and x <= zx1 and y <= zy1 and w <= zz1:
+                if not is_soft and x >= zx0 and y >= zy0 and w >= zz0 and x <= zx1 and y <= zy1 and w <= zz1:
                     st = classify_point(x, y, w, segments, radii, boxes, robot_box, target, target_radius, is_soft)
                 if st == KEPT:
                     idx = voxel_index(x, y, w, ox, oy, oz, inv, nx, ny, nz)
@@ -254,7 +255,7 @@ def integrate_points(points: np.ndarray, labels: np.ndarray, segments: np.ndarra
         else:
             st = KEPT
             is_soft = has_labels and labels[i] == SOFT_LABEL
-            if x >= zx0 and y >= zy0 and w >= zz0 and x <= zx1 and y <= zy1 and w <= zz1:
+            if not is_soft and x >= zx0 and y >= zy0 and w >= zz0 and x <= zx1 and y <= zy1 and w <= zz1:
                 st = classify_point(x, y, w, segments, radii, boxes, robot_box, target, target_radius, is_soft)
             if st == KEPT:
                 idx = voxel_index(x, y, w, ox, oy, oz, inv, nx, ny, nz)

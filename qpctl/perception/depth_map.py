@@ -86,7 +86,7 @@ class DepthMap:
         self.last = np.full((2, nx, ny, nz), -np.inf)  # per channel, the stamp each voxel was last seen [s]
         self._occupied = np.zeros((2, nx, ny, nz), bool)
         self._hits = np.zeros((2, nx, ny, nz), np.uint16)
-        self._work = np.empty((nx, ny, nz))
+        self._work = np.empty((2, nx, ny, nz), np.float32)  # the EDT's scratch
         self.robot = robot
         self.self_filter = SelfFilter(robot, c.self_margin) if robot is not None else None
         if history is None and robot is not None:  # q: the configuration (nq), interpolated on its group
