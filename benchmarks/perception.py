@@ -103,9 +103,9 @@ def frame_to_field(frames: list[DepthFrame], cfg: PerceptionConfig, robot: Any) 
 
 def transforms(m: DepthMap, reps: int) -> dict[str, Any]:
     occ = m._occupied[1] | m._occupied[0]
-    work = np.empty(occ.shape)
+    work = np.empty((2, *occ.shape), np.float32)
     dist = np.empty(occ.shape, np.float32)
-    fns = {"qpctl numba (FH)": lambda: KE.distance_field(occ, m.grid.voxel, m.config.truncation, work, dist),
+    fns = {"qpctl numba (windowed)": lambda: KE.distance_field(occ, m.grid.voxel, m.config.truncation, work, dist),
            "scipy distance_transform_edt": lambda: ndimage.distance_transform_edt(~occ)}
     try:
         import edt  # type: ignore[import-not-found]

@@ -70,7 +70,7 @@ def voxel_index(x: float, y: float, z: float, ox: float, oy: float, oz: float, i
     return (i * ny + j) * nz + k
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def classify_point(x: float, y: float, z: float, segments: np.ndarray, radii: np.ndarray, boxes: np.ndarray,
                    robot_box: np.ndarray, target: np.ndarray, target_radius: float, soft: bool) -> int:
     """A base-frame point's status before the bounds: :data:`SELF` (not ``soft`` and in an inflated
@@ -78,8 +78,9 @@ def classify_point(x: float, y: float, z: float, segments: np.ndarray, radii: np
     the leaf a link pushes through stays in the map), :data:`TARGET` (not ``soft`` and within
     ``target_radius`` of the grasp target: the fruit goes, the leaves in front of it stay soft
     obstacles) or :data:`KEPT`.
-    (The integrating kernels test the boxes in scalars first and call this only for the points in them:
-    a call per point that passes arrays costs more than the whole back-projection.)"""
+    (The integrating kernels test the boxes in scalars first and call this only for the unlabelled or
+    rigid points in them — a soft point is always KEPT: a call per point that passes arrays costs
+    more than the whole back-projection.)"""
     if (not soft and x >= robot_box[0] and y >= robot_box[1] and z >= robot_box[2] and x <= robot_box[3]
             and y <= robot_box[4] and z <= robot_box[5] and in_capsules(x, y, z, segments, radii, boxes)):
         return SELF
@@ -119,33 +120,44 @@ def _valid(z: float) -> bool:
     return z > 0.0 and z < math.inf  # NaN fails both
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _behind(z: float, zn: float, thr: float) -> bool:
-    """A 4-neighbour returns nearer than z by more than thr: z is behind a depth edge."""
-    return zn > 0.0 and zn < z - thr  # NaN and no-return neighbours fail
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _unsupported(depth: np.ndarray, scale: float, v: int, u: int, z: float, thr: float, support: int) -> bool:
-    """Fewer than ``support`` of pixel (v, u)'s 8 neighbours return a depth within thr of its z [m]:
-    a return on no surface (a flying pixel whose neighbours across the edge are themselves flying or
-    lost to a dropout, so that no neighbour is nearer than it)."""
+@njit(cache=True, nogil=True)
+def metric_depth(depth: np.ndarray, scale: float, z: np.ndarray) -> None:
+    """``z`` (H + 2, W + 2) float64: the image's depths [m] (``depth`` × ``scale``) with a border of one
+    pixel, 0 for no return (NaN, ±inf, 0, negative) and on the border — so that the neighbour tests
+    read any neighbour without a bounds test, and a missing one, like a no-return one, never counts."""
     H, W = depth.shape
-    found = 0
-    for dv in range(-1, 2):
-        a = v + dv
-        if a < 0 or a >= H:
-            continue
-        for du in range(-1, 2):
-            b = u + du
-            if (dv == 0 and du == 0) or b < 0 or b >= W:
-                continue
-            zn = depth[a, b] * scale
-            if zn > 0.0 and abs(zn - z) <= thr:  # NaN and no-return neighbours fail
-                found += 1
-                if found >= support:
-                    return False
-    return True
+    for v in range(H):
+        zv = z[v + 1]
+        zv[0] = 0.0
+        zv[W + 1] = 0.0
+        for u in range(W):
+            d = depth[v, u] * scale
+            zv[u + 1] = d if _valid(d) else 0.0
+    z[0, :] = 0.0
+    z[H + 1, :] = 0.0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _near(zn: float, zc: float, thr: float) -> int:
+    """1 when the neighbour's return zn [m] lies within thr [m] of zc (a missing one, 0, never does)."""
+    return 1 if zn > 0.0 and abs(zn - zc) <= thr else 0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _flying(z: np.ndarray, a: int, b: int, zc: float, thr: float, support: int) -> bool:
+    """Whether the return zc [m] at padded pixel (a, b) of ``z`` (:func:`metric_depth`) is flying: a
+    4-neighbour returns nearer than it by more than thr [m] (it lies behind a depth edge), or fewer
+    than ``support`` of its 8 neighbours return within thr of it (a return on no surface: a flying
+    pixel whose neighbours across the edge are flying too, or lost to a dropout)."""
+    near = zc - thr
+    zl, zr, zu, zd = z[a, b - 1], z[a, b + 1], z[a - 1, b], z[a + 1, b]
+    if (0.0 < zl < near) or (0.0 < zr < near) or (0.0 < zu < near) or (0.0 < zd < near):
+        return True
+    if support <= 0:
+        return False
+    return (_near(zl, zc, thr) + _near(zr, zc, thr) + _near(zu, zc, thr) + _near(zd, zc, thr)
+            + _near(z[a - 1, b - 1], zc, thr) + _near(z[a - 1, b + 1], zc, thr) + _near(z[a + 1, b - 1], zc, thr)
+            + _near(z[a + 1, b + 1], zc, thr)) < support
 
 
 @njit(cache=True, nogil=True)
@@ -153,17 +165,19 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
                     cy: float, pose: np.ndarray, min_range: float, max_range: float, flying: float,
                     support: int, segments: np.ndarray, radii: np.ndarray, target: np.ndarray, target_radius: float,
                     origin: np.ndarray, voxel: float, last: np.ndarray, stamp: float, status: np.ndarray,
-                    counts: np.ndarray, hits: np.ndarray, min_points: int, soft_depth: float) -> None:
+                    counts: np.ndarray, hits: np.ndarray, min_points: int, soft_depth: float,
+                    zbuf: np.ndarray) -> None:
     """Back-project a depth image (H×W, × ``scale`` [m]) through the pinhole (fx, fy, cx, cy) and the
     camera ``pose`` (4×4, optical frame in the base frame), classify every pixel into ``status``
     (H×W uint8; a return is :data:`FLYING` when a 4-neighbour is nearer than it by more than
     ``flying`` × z, or when fewer than ``support`` of its 8 neighbours lie within ``flying`` × z of it:
-    :func:`_unsupported`) and count them (``counts``, one per status), and stamp the voxels of the kept points
+    :func:`_flying`) and count them (``counts``, one per status), and stamp the voxels of the kept points
     in ``last`` (2, nx, ny, nz): channel 1 where ``labels`` (H×W, or 0×0 for none) says soft, else 0 —
     once ``min_points`` of this frame's points fall in it (``hits``, (2, nx, ny, nz) uint16 scratch,
     counts them): a lone point in free space is the noise's tail, not an obstacle. A soft voxel also
     stamps the voxels behind it along the pixel's ray, ``soft_depth`` [m] deep: a camera sees a
-    leaf's front, and a link that passed it would otherwise be free of it inside.
+    leaf's front, and a link that passed it would otherwise be free of it inside. ``zbuf``
+    (H + 2, W + 2) float64 is scratch (:func:`metric_depth`).
 
     ``segments`` (L, 2, 3) and ``radii`` (L,) are the robot's capsules at the frame's stamp, already
     inflated by the self-filter's margin."""
@@ -180,32 +194,33 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
     r10, r11, r12, ty = pose[1, 0], pose[1, 1], pose[1, 2], pose[1, 3]
     r20, r21, r22, tz = pose[2, 0], pose[2, 1], pose[2, 2], pose[2, 3]
     ifx, ify = 1.0 / fx, 1.0 / fy
+    back_steps = int(soft_depth / (0.5 * voxel)) if soft_depth > 0.0 else 0  # half a voxel each
+    step = 0.5 * voxel * inv  # [voxels]
+    metric_depth(depth, scale, zbuf)
     counts[:] = 0
     hit = hits.reshape(-1)
     hit[:] = 0
     for v in range(H):
         yn = (v - cy) * ify
+        zrow = zbuf[v + 1]
         for u in range(W):
-            z = depth[v, u] * scale
-            if not _valid(z):
+            z = zrow[u + 1]
+            if z == 0.0:
                 st = NO_RETURN
             elif z < min_range or z > max_range:
                 st = OUT_OF_RANGE
-            elif flying > 0.0 and ((u > 0 and _behind(z, depth[v, u - 1] * scale, flying * z))
-                                   or (u < W - 1 and _behind(z, depth[v, u + 1] * scale, flying * z))
-                                   or (v > 0 and _behind(z, depth[v - 1, u] * scale, flying * z))
-                                   or (v < H - 1 and _behind(z, depth[v + 1, u] * scale, flying * z))
-                                   or (support > 0 and _unsupported(depth, scale, v, u, z, flying * z, support))):
+            elif flying > 0.0 and _flying(zbuf, v + 1, u + 1, z, flying * z, support):
                 st = FLYING
             else:
-                xc = (u - cx) * ifx * z
+                xn = (u - cx) * ifx
+                xc = xn * z
                 yc = yn * z
                 x = r00 * xc + r01 * yc + r02 * z + tx
                 y = r10 * xc + r11 * yc + r12 * z + ty
                 w = r20 * xc + r21 * yc + r22 * z + tz
                 st = KEPT
                 is_soft = has_labels and labels[v, u] == SOFT_LABEL
-                if x >= zx0 and y >= zy0 and w >= zz0 and x <= zx1 and y <= zy1 and w <= zz1:
+                if not is_soft and x >= zx0 and y >= zy0 and w >= zz0 and x <= zx1 and y <= zy1 and w <= zz1:
                     st = classify_point(x, y, w, segments, radii, boxes, robot_box, target, target_radius, is_soft)
                 if st == KEPT:
                     idx = voxel_index(x, y, w, ox, oy, oz, inv, nx, ny, nz)
@@ -217,16 +232,18 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
                             hit[idx] += 1
                         if hit[idx] >= min_points:
                             flat[idx] = stamp
-                            if is_soft and soft_depth > 0.0:  # a leaf seen from the front has a back
-                                dx = r00 * xc / z + r01 * yc / z + r02
-                                dy = r10 * xc / z + r11 * yc / z + r12
-                                dz = r20 * xc / z + r21 * yc / z + r22
-                                step = 0.5 * voxel
-                                for kk in range(1, int(soft_depth / step) + 1):
-                                    e = kk * step
-                                    j2 = voxel_index(x + e * dx, y + e * dy, w + e * dz, ox, oy, oz, inv, nx, ny, nz)
-                                    if j2 >= 0:
-                                        flat[j2 + soft] = stamp
+                            if is_soft and back_steps > 0:  # a leaf seen from the front has a back
+                                # along the unit-depth ray (xn, yn, 1) rotated, in voxels a step
+                                sx = (r00 * xn + r01 * yn + r02) * step
+                                sy = (r10 * xn + r11 * yn + r12) * step
+                                sz = (r20 * xn + r21 * yn + r22) * step
+                                fi, fj, fk = (x - ox) * inv, (y - oy) * inv, (w - oz) * inv
+                                for kk in range(1, back_steps + 1):
+                                    i2 = math.floor(fi + kk * sx)
+                                    j2 = math.floor(fj + kk * sy)
+                                    k2 = math.floor(fk + kk * sz)
+                                    if 0 <= i2 < nx and 0 <= j2 < ny and 0 <= k2 < nz:
+                                        flat[soft + (i2 * ny + j2) * nz + k2] = stamp
             status[v, u] = st
             counts[st] += 1
 
@@ -254,7 +271,7 @@ def integrate_points(points: np.ndarray, labels: np.ndarray, segments: np.ndarra
         else:
             st = KEPT
             is_soft = has_labels and labels[i] == SOFT_LABEL
-            if x >= zx0 and y >= zy0 and w >= zz0 and x <= zx1 and y <= zy1 and w <= zz1:
+            if not is_soft and x >= zx0 and y >= zy0 and w >= zz0 and x <= zx1 and y <= zy1 and w <= zz1:
                 st = classify_point(x, y, w, segments, radii, boxes, robot_box, target, target_radius, is_soft)
             if st == KEPT:
                 idx = voxel_index(x, y, w, ox, oy, oz, inv, nx, ny, nz)

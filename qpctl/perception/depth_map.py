@@ -86,7 +86,8 @@ class DepthMap:
         self.last = np.full((2, nx, ny, nz), -np.inf)  # per channel, the stamp each voxel was last seen [s]
         self._occupied = np.zeros((2, nx, ny, nz), bool)
         self._hits = np.zeros((2, nx, ny, nz), np.uint16)
-        self._work = np.empty((nx, ny, nz))
+        self._work = np.empty((2, nx, ny, nz), np.float32)  # the EDT's scratch
+        self._zbuf = np.empty((0, 0))  # the depth image's (_depth_scratch)
         self.robot = robot
         self.self_filter = SelfFilter(robot, c.self_margin) if robot is not None else None
         if history is None and robot is not None:  # q: the configuration (nq), interpolated on its group
@@ -125,6 +126,12 @@ class DepthMap:
         return self.self_filter.segments(q), self.self_filter.radii
 
     # -- frames -------------------------------------------------------------------------------------
+    def _depth_scratch(self, shape: tuple[int, ...]) -> np.ndarray:
+        """The (H + 2, W + 2) metric-depth scratch of an H×W image (kept: a camera's images keep their shape)."""
+        if self._zbuf.shape != (shape[0] + 2, shape[1] + 2):
+            self._zbuf = np.empty((shape[0] + 2, shape[1] + 2))
+        return self._zbuf
+
     def integrate(self, frame: Frame) -> FrameReport:
         """Add one frame to the map (module docstring, steps 1–5). :class:`PerceptionError` when its
         stamp is older than the last frame's."""
@@ -151,7 +158,7 @@ class DepthMap:
                 KD.integrate_depth(depth, scale, labels, K.fx, K.fy, K.cx, K.cy, frame.pose, c.min_range,
                                    c.max_range, c.flying_pixel, c.flying_support, segs, radii, target, target_r, g.origin, g.voxel,
                                    self.last, frame.stamp, status, counts, self._hits, c.min_points,
-                                   c.soft_depth)
+                                   c.soft_depth, self._depth_scratch(depth.shape))
                 cleared = KD.clear_depth(depth, scale, status, K.fx, K.fy, K.cx, K.cy, frame.pose, margin,
                                          g.origin, g.voxel, self.last, frame.stamp)
             else:
