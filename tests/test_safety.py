@@ -7,6 +7,7 @@ allow for a state the oracle must not certify."""
 from __future__ import annotations
 
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pinocchio as pin
@@ -123,18 +124,25 @@ class Pusher:
         return SimpleNamespace(tau=tau, info={})
 
 
-def test_backup_guard_applies_the_stored_brake_when_the_proposal_cannot_stop():
-    """A stand-in controller holds the arm, then pushes it into an obstacle: the held ticks are verified
-    and applied as proposed; once the push's successor has no verified brake, the guard applies the
-    stored brake's torque (from the state and the torque applied last) and says so."""
+def pushed_arm(t_push: float) -> tuple[Any, np.ndarray, Any, BackupGuard]:
+    """The arm at q = (π, π/2, 0) with a sphere 0.1 m beyond its tip's capsule, behind the guard, and the
+    stand-in controller that pushes it from ``t_push`` [s]: (robot, q, the inner controller, the guard)."""
     robot = arm()
     q = np.array([np.pi, np.pi / 2, 0.0])
     data = robot.model.createData()
     pin.forwardKinematics(robot.model, data, q)
     tip = data.oMi[3].act(robot.capsules[2].p1)
     inner = controller([Obstacle("sphere", tip[:2] + [-(0.05 + 0.04 + 0.1), 0.0], radius=0.1)])
-    guard = BackupGuard(Pusher(inner, t_push=2 * DT), dt=DT)  # type: ignore[arg-type]
+    guard = BackupGuard(Pusher(inner, t_push=t_push), dt=DT)  # type: ignore[arg-type]
     guard._limit = None  # the stand-in has no torque limit to tell
+    return robot, q, inner, guard
+
+
+def test_backup_guard_applies_the_stored_brake_when_the_proposal_cannot_stop():
+    """A stand-in controller holds the arm, then pushes it into an obstacle: the held ticks are verified
+    and applied as proposed; once the push's successor has no verified brake, the guard applies the
+    stored brake's torque (from the state and the torque applied last) and says so."""
+    robot, q, _, guard = pushed_arm(2 * DT)
     v, tau_prev = np.zeros(3), np.full(3, np.nan)
     for k in range(2):
         out = guard.step(q, v, k * DT)
@@ -142,7 +150,7 @@ def test_backup_guard_applies_the_stored_brake_when_the_proposal_cannot_stop():
         tau_prev = out.tau
     out = guard.step(q, v, 2 * DT)
     assert out.info.get("backup") == guard._gain
-    want = brake_torque(robot, data, q, v, tau_prev, guard._gain, DT)
+    want = brake_torque(robot, robot.model.createData(), q, v, tau_prev, guard._gain, DT)
     assert np.array_equal(out.tau, want)
     assert guard.stats == {**guard.stats, "checked": 3, "backup": 1}
 
@@ -203,18 +211,11 @@ def test_backup_guard_verifies_the_state_itself_when_nothing_is_stored():
     so the guard rolls the brakes out from the state itself (at rest, no torque applied before: no rate
     window) and applies the first verified one's torque; with a check distance shorter than the
     clearance the same push is applied unchecked."""
-    robot = arm()
-    q = np.array([np.pi, np.pi / 2, 0.0])
-    data = robot.model.createData()
-    pin.forwardKinematics(robot.model, data, q)
-    tip = data.oMi[3].act(robot.capsules[2].p1)
-    inner = controller([Obstacle("sphere", tip[:2] + [-(0.05 + 0.04 + 0.1), 0.0], radius=0.1)])
-    guard = BackupGuard(Pusher(inner, t_push=0.0), dt=DT)  # type: ignore[arg-type]
-    guard._limit = None
+    robot, q, inner, guard = pushed_arm(0.0)
     v, none = np.zeros(3), np.full(3, np.nan)
     out = guard.step(q, v, 0.0)
     assert out.info["backup_checked"] and out.info.get("backup") == guard._gain is not None
-    assert np.array_equal(out.tau, brake_torque(robot, data, q, v, none, guard._gain, DT))
+    assert np.array_equal(out.tau, brake_torque(robot, robot.model.createData(), q, v, none, guard._gain, DT))
     assert guard.stats["unverified"] == 0 and guard.stats["backup"] == 1
     far = BackupGuard(Pusher(inner, t_push=0.0), dt=DT, check_distance=0.01)  # type: ignore[arg-type]
     out = far.step(q, v, 0.0)
