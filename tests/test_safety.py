@@ -148,10 +148,13 @@ def test_backup_guard_applies_the_stored_brake_when_the_proposal_cannot_stop():
         out = guard.step(q, v, k * DT)
         assert "backup" not in out.info and guard._gain is not None
         tau_prev = out.tau
+    v = np.array([0.3, -0.3, 0.3])  # moving: the brake's torque is beyond the rate window of the held one
     out = guard.step(q, v, 2 * DT)
     assert out.info.get("backup") == guard._gain
-    want = brake_torque(robot, robot.model.createData(), q, v, tau_prev, guard._gain, DT)
+    data = robot.model.createData()
+    want = brake_torque(robot, data, q, v, tau_prev, guard._gain, DT)
     assert np.array_equal(out.tau, want)
+    assert not np.allclose(want, brake_torque(robot, data, q, v, np.full(3, np.nan), guard._gain, DT))
     assert guard.stats == {**guard.stats, "checked": 3, "backup": 1}
 
 
