@@ -52,9 +52,8 @@ class TickState:
     pair_drift: np.ndarray  # (k, 3) J̇_p q̇ of the link witness points
     clearance: float  # least signed distance over the pairs (inf when none within the cutoff)
     timing: dict[str, float] = field(default_factory=dict)  # stage wall times [µs]
-    # where the task has orientation rows: the first oriented task frame's rotation (3, 3, world), and
-    # every oriented frame's (F, 3, 3; RobotModel.oriented_frames)
-    R: np.ndarray | None = None
+    # where the task has orientation rows: every oriented task frame's rotation (F, 3, 3, world;
+    # RobotModel.oriented_frames' order)
     rotations: np.ndarray | None = None
     self_pairs: SelfPairState | None = None  # where the controller keeps links apart
     _barrier_drift: np.ndarray | None = field(default=None, repr=False)  # (k,) set by the workspace

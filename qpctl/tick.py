@@ -623,7 +623,6 @@ class Workspace:
                          self.segments.copy(), pairs, self.pr_jac[:k].copy(), self.pr_drift[:k].copy(),
                          float(self.fpar[codes.FP_CLEARANCE]), _barrier_drift=bdrift,
                          _jdot=self.Jdot.copy() if self.ipar[codes.IP_JDOT_EN] else None,  # Controller._state's
-                         R=self.ee_R[0].copy() if len(self.ori_rows) else None,
                          rotations=self.ee_R.copy() if len(self.ori_rows) else None,
                          self_pairs=SelfPairState(self.sc_d.copy(), self.sc_n.copy(), self.sc_row.copy(),
                                                   self.sc_hdot.copy(), self.sc_drift.copy())

@@ -179,3 +179,45 @@ def test_lazy_clearance_keeps_the_verdict_and_bounds_the_least_clearance(case, g
     assert (lazy.viable, lazy.steps, lazy.t_rest) == (exact.viable, exact.steps, exact.t_rest)
     assert lazy.min_clearance <= exact.min_clearance + 1e-12
     assert len(calls) < exact.steps
+
+
+@pytest.mark.parametrize("case,gain", [("planar", 4.0), ("contact", 4.0), ("moving", 25.0)])
+def test_lazy_clearance_skips_only_the_steps_its_bound_clears(case, gain, monkeypatch):
+    """Step by step along the lazy rollout (every state recorded): a step whose clearance is not
+    evaluated has the last evaluated clearance minus the travel since — Σᵢρᵢ|Δqᵢ| over the recorded
+    states' differences plus the obstacles' speed bound × Δt, computed here — above the level (0), and
+    the true clearance at that step is above that bound."""
+    obstacles = {"contact": [Obstacle("sphere", [-0.72, -1.45], radius=0.1)],
+                 "moving": [Obstacle("sphere", [-1.6, -1.0], radius=0.1, velocity=[0.3, -0.4])]}.get(case)
+    ctrl, q, v = planar_case(obstacles=obstacles)
+    sim = Simulator(ctrl, dt=DT, duration=DT)
+    lean = BrakeRollout(ctrl.robot, sim.world, DT)
+    world, step = lean.world, lean.step
+    states, evaluated = [q.copy()], set()
+
+    def recorded_world(qq, t):
+        evaluated.add(len(states) - 1)
+        return world(qq, t)
+
+    def recorded_step(qq, vv):
+        step(qq, vv)
+        states.append(qq.copy())
+
+    monkeypatch.setattr(lean, "world", recorded_world)
+    monkeypatch.setattr(lean, "step", recorded_step)
+    c = lean.run(q, v, gravity(ctrl.robot, q), 0.3, gain, stop_below=0.0, exact=False)
+    speed = max((np.linalg.norm(o.velocity) + 2 * np.pi * o.frequency * np.linalg.norm(o.amplitude)
+                 for o in ctrl.obstacles), default=0.0)
+    last = drift = np.nan
+    skipped = 0
+    for k in range(min(len(states), c.steps + 1)):
+        true = world(states[k], 0.3 + k * DT)
+        if k in evaluated:
+            last, drift = true, 0.0
+        else:
+            skipped += 1
+            assert last - drift > -1e-12, k
+            assert true >= last - drift - 1e-12, k
+        if k + 1 < len(states):
+            drift += float(lean.rho @ np.abs(states[k + 1] - states[k])) + speed * DT
+    assert skipped > 10 and 0 in evaluated

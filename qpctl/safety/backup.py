@@ -35,14 +35,14 @@ import numpy as np
 
 from qpctl.constraints.constraints import TorqueLimit
 from qpctl.safety.oracle import BRAKE_GAINS
+from qpctl.safety.rollout import BrakeRollout
+from qpctl.tick import WorldClearance
 
 #: The guard's order of the family [1/s]: after the stored gain, the firm brakes first — they come to
 #: rest soonest, so their rollouts are the shortest (κ = 4 from 0.5 rad/s: ~530 steps of 2 ms, κ = 25:
 #: ~100 on the planar arm), and the first verified is the one stored and tried first next tick.
 GUARD_GAINS = (25.0, 60.0, 10.0, 4.0)
-assert sorted(GUARD_GAINS) == sorted(BRAKE_GAINS)
-from qpctl.safety.rollout import BrakeRollout
-from qpctl.tick import WorldClearance
+assert sorted(GUARD_GAINS) == sorted(BRAKE_GAINS)  # the oracle's family, in another order
 
 
 class GuardedOutput:
@@ -106,7 +106,8 @@ class BackupGuard:
         info = dict(out.info)
         t0 = time.perf_counter()
         q, v = np.asarray(q, float), np.asarray(v, float)
-        near = self.world(q, t) < self.check_distance
+        # every tick is checked by default: the world clearance is only needed for a finite check distance
+        near = self.check_distance == np.inf or self.world(q, t) < self.check_distance
         info["backup_checked"] = near
         if near:
             q1, v1 = self.brake.successor(q, v, tau)
@@ -125,14 +126,15 @@ class BackupGuard:
                         self._limit.remember(tau, t)
             else:
                 self._gain = gain
-            us = (time.perf_counter() - t0) * 1e6
+        else:
+            self._gain = None
+        us = (time.perf_counter() - t0) * 1e6
+        if near:
             self.stats["check_us"].append(us)
             self.stats["checked"] += 1
             info["backup_check_us"] = us
-        else:
-            self._gain = None
         self._tau_prev = tau
-        return GuardedOutput(out, tau, info, float(getattr(out, "compute_us", 0.0)) + (time.perf_counter() - t0) * 1e6)
+        return GuardedOutput(out, tau, info, float(getattr(out, "compute_us", 0.0)) + us)
 
     def torque(self, q: np.ndarray, v: np.ndarray, t: float) -> np.ndarray:
         return np.asarray(self.step(q, v, t).tau)
