@@ -128,7 +128,7 @@ class FieldSpec:
 
     source: Any
     owner: Any
-    rows: int  # 2 channels × links × rows_per_link
+    rows: int  # 2 channels × links × rows_per_link pairs, then 2 soft speed rows per link
     samples: int
     rows_per_link: int
     margin: float  # the rigid rows' margin [m]
@@ -137,6 +137,8 @@ class FieldSpec:
     k0: float  # [1/s²]
     k1: float  # [1/s]
     soft_margin: float = 0.0  # the soft rows' margin [m]
+    speed_margin: float = 0.0  # within this of a leaf's voxels the soft speed rows bound soft_speed [m]
+    horizon: float = 1e-3  # the soft speed rows' horizon [s]
 
 
 @dataclass
@@ -393,13 +395,14 @@ class Workspace:
         else:
             snap = fs.source.snapshot
             shape, origin = tuple(snap.grid.shape), np.asarray(snap.grid.origin, float).copy()
-            R, S, rpl = fs.rows, fs.samples, fs.rows_per_link
-            if R != 2 * L * rpl:
-                raise ValueError(f"the field's {R} rows are not 2 channels × {L} links × {rpl}")
+            R, S, rpl = 2 * L * fs.rows_per_link, fs.samples, fs.rows_per_link
+            if fs.rows != R + 2 * L:
+                raise ValueError(f"the field's {fs.rows} rows are not 2 channels × {L} links × {rpl} and 2 × {L} speed rows")
             fp, ip = self.fpar, self.ipar
             fp[codes.FP_FD_VOXEL], fp[codes.FP_FD_TRUNC] = snap.grid.voxel, snap.truncation
             fp[codes.FP_FD_MARGIN], fp[codes.FP_FD_VS], fp[codes.FP_FD_CUT] = fs.margin, fs.soft_speed, fs.cutoff
             fp[codes.FP_FD_K0], fp[codes.FP_FD_K1], fp[codes.FP_FD_SMARGIN] = fs.k0, fs.k1, fs.soft_margin
+            fp[codes.FP_FD_VMARGIN], fp[codes.FP_FD_HORIZON] = fs.speed_margin, fs.horizon
             ip[codes.IP_FD_SAMPLES], ip[codes.IP_FD_RPL] = S, rpl
         self.fd_dist = np.zeros((2, *shape), np.float32)
         self.fd_grad = np.zeros((2, *shape, 3), np.float32)
@@ -408,6 +411,9 @@ class Workspace:
         self.fd_d, self.fd_n, self.fd_p = np.zeros(R), np.zeros((R, 3)), np.zeros((R, 3))
         self.fd_s, self.fd_ds = np.zeros(L * rpl), np.zeros(S)
         self.fd_jac, self.fd_drift = np.zeros((R, 3, n)), np.zeros((R, 3))
+        self.fd_vp, self.fd_vu, self.fd_vb, self.fd_vd = np.zeros((2 * L, 3)), np.zeros((2 * L, 3)), np.zeros(2 * L), \
+            np.zeros(2 * L)
+        self.fd_vjac = np.zeros((3, n))
         if fs is None:
             self.ipar[codes.IP_FD_RPL], self.ipar[codes.IP_FD_SAMPLES] = rpl, S
 

@@ -54,7 +54,7 @@ def test_compiled_field_rows_equal_the_python_rows() -> None:
     ctrl, bar = _controller(rng)
     ws = ctrl.workspace()
     assert ws.spec is not None and ws.spec.field is not None  # the compiled path, with the field
-    rigid_active = soft_active = primitive_active = 0
+    rigid_active = soft_active = primitive_active = speed_active = 0
     for q, v, t in _states(ctrl, rng, 10):
         ctrl.step(q, v, t)
         problem = ctrl.last_problem
@@ -62,8 +62,12 @@ def test_compiled_field_rows_equal_the_python_rows() -> None:
         rows = np.flatnonzero(names == bar.name)
         assert rows.size == bar.rows
         got_C, got_l = np.array(problem.C[rows]), np.array(problem.l[rows])
-        # the soft rows' shared slack σ: the last column, 1 on the soft rows, 0 on the rigid ones
-        assert np.array_equal(got_C[:, -1], np.repeat([0.0, 1.0], bar.rows // 2))
+        # the soft rows' shared slack σ: the last column, 0 on the rigid pairs' rows, 1 on the soft pairs'
+        # and on the speed rows (two per link)
+        L = len(ctrl.robot.capsules)
+        P = 2 * L * CFG.rows_per_link
+        assert bar.rows == P + 2 * L
+        assert np.array_equal(got_C[:, -1], np.r_[np.zeros(P // 2), np.ones(P // 2 + 2 * L)])
         assert not got_C[:, ctrl.n:-1].any()
         got_C = got_C[:, :ctrl.n]
         compiled = bar.last
@@ -76,11 +80,12 @@ def test_compiled_field_rows_equal_the_python_rows() -> None:
         fin = np.isfinite(want.lower)
         assert np.abs(got_C - want.C).max() <= 1e-12
         assert np.abs(got_l[fin] - want.lower[fin]).max() <= 1e-12 * max(1.0, np.abs(want.lower[fin]).max())
+        speed_active += int(np.isfinite(want.lower[P:]).any())
         rigid_active += int((python.active & ~python.soft).any())
         soft_active += int((python.active & python.soft).any())
         obst = np.flatnonzero(names == "obstacles")
         primitive_active += int(np.isfinite(np.array(problem.l[obst])).any())
-    assert rigid_active >= 5 and soft_active >= 5 and primitive_active >= 1
+    assert rigid_active >= 5 and soft_active >= 5 and primitive_active >= 1 and speed_active >= 5
     assert problem.c[-1] == CFG.soft_weight and problem.lb[-1] == 0.0 and problem.ub[-1] == np.inf
 
 
@@ -135,9 +140,135 @@ def test_the_soft_rows_slack_keeps_the_qp_feasible_where_a_leaf_cannot_be_stoppe
     assert sigma > 1.0  # [m/s²] the leaf gives way
     problem = ctrl.last_problem
     rows = np.flatnonzero(np.array(problem.row_names) == bar.name)
-    soft = rows[bar.rows // 2:]
+    soft = rows[bar.pairs // 2:]  # the soft pairs' rows and the speed rows
     active = soft[np.isfinite(problem.l[soft])]
     assert active.size >= 1
     Cq = problem.C[active, :ctrl.n] @ x[:ctrl.n]
     assert np.all(Cq + sigma >= problem.l[active] - 1e-6)  # they hold with the slack
     assert np.any(Cq < problem.l[active] - 1.0)  # and only with it
+
+
+def _soft_blob(robot, rng: np.random.Generator):  # type: ignore[no-untyped-def]
+    """A filled soft ball (a leaf's voxels) around the hand at q_home, and the Python path's rows."""
+    from qpctl.dynamics import Dynamics
+
+    seg = Dynamics(robot).compute(robot.q_home, np.zeros(robot.nv)).segments
+    d = rng.normal(size=(6000, 3))
+    ball = seg[-1, 1] + [0.0, 0.0, -0.06] + 0.06 * d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(
+        0.0, 1.0, (6000, 1)) ** (1 / 3)
+    p = Perception(CFG)
+    p.submit(PointCloud(ball, 0.0, labels=np.full(len(ball), 2, np.uint8)))
+    return p, FieldBarrier(p, robot, CFG, d_safe=0.05, cutoff=0.2, k0=400.0, k1=40.0)
+
+
+def _body_point(robot, q: np.ndarray, joint: int, p: np.ndarray):  # type: ignore[no-untyped-def]
+    """x(q') [m] of the point of body ``joint`` that is at p at q: Pinocchio's forward kinematics."""
+    import pinocchio as pin
+
+    data = robot.model.createData()
+    pin.forwardKinematics(robot.model, data, q)
+    local = data.oMi[joint].actInv(p)
+
+    def at(qq: np.ndarray) -> np.ndarray:
+        pin.forwardKinematics(robot.model, data, qq)
+        return data.oMi[joint].act(local)
+
+    return at
+
+
+def _fd_velocity(at, q: np.ndarray, v: np.ndarray, eps: float = 1e-6) -> np.ndarray:  # type: ignore[no-untyped-def]
+    return (at(q + eps * v) - at(q - eps * v)) / (2 * eps)
+
+
+def test_speed_rows_bound_the_points_velocity_a_horizon_ahead_by_finite_differences(panda_robot) -> None:
+    """Each active speed row is the point's velocity h ahead along u, uᵀ(J_p q̇ + (J_p q̈ + J̇_p q̇)h),
+    at most b: its value b − h(C q̈ − lower) against the velocity of the same body point after h of
+    q(t) = q + q̇t + ½q̈t², by central differences of Pinocchio's forward kinematics; u is that point's
+    velocity's direction now."""
+    from qpctl.dynamics import Dynamics
+
+    robot = panda_robot
+    rng = np.random.default_rng(8)
+    p, bar = _soft_blob(robot, rng)
+    dyn = Dynamics(robot)
+    h = CFG.soft_horizon
+    P = bar.pairs
+    checked = 0
+    for _ in range(4):
+        q = robot.q_home + rng.normal(0.0, 0.05, robot.nv)
+        v = rng.uniform(-0.6, 0.6, robot.nv)
+        st = dyn.compute(q, v, 0.0)
+        ineq = bar.compute(st, None)  # type: ignore[arg-type]
+        pts, u, b, _ = bar.speed_points(p.snapshot, st.segments, q, v)
+        for r in np.flatnonzero(np.isfinite(b)):
+            at = _body_point(robot, q, robot.capsules[r // 2].joint_id, pts[r])
+            w0 = _fd_velocity(at, q, v)
+            assert u[r] == pytest.approx(w0 / np.linalg.norm(w0), abs=1e-6)
+            for qdd in (np.zeros(robot.nv), rng.normal(0.0, 8.0, robot.nv)):
+                # the velocity's rate along q(t) by central differences over ±h (no second-order term)
+                ahead = [u[r] @ _fd_velocity(at, q + s * v * h + 0.5 * qdd * h * h, v + s * qdd * h) for s in (1, -1)]
+                rate = (ahead[0] - ahead[1]) / (2 * h)
+                got = b[r] - h * (ineq.C[P + r] @ qdd - ineq.lower[P + r])
+                assert got == pytest.approx(u[r] @ w0 + h * rate, abs=1e-3 * h * abs(rate) + 1e-9)
+                checked += 1
+        assert np.all(np.isinf(ineq.lower[P:][~np.isfinite(b)])) and not ineq.C[P:][~np.isfinite(b)].any()
+    assert checked >= 16
+
+
+def test_speed_rows_take_each_links_samples_whose_fastest_point_most_exceeds_its_bound(panda_robot) -> None:
+    """Brute force: for each sample along a link's axis, the fastest of 20,000 points of the capsule's
+    ball about it (body velocities by finite differences of the placements) and its bound
+    b(d) = v_s + (k₀/k₁)·max(d − (√3/2 voxel + depth noise), 0), d the field there by scipy's
+    map_coordinates less the radius; the two rows of the link are the two largest excesses."""
+    import pinocchio as pin
+
+    from qpctl.dynamics import Dynamics
+    from qpctl.perception import reference as ref
+
+    robot = panda_robot
+    rng = np.random.default_rng(9)
+    p, bar = _soft_blob(robot, rng)
+    snap = p.snapshot
+    e = rng.normal(size=(20000, 3))
+    e /= np.linalg.norm(e, axis=1, keepdims=True)
+    m_v = np.sqrt(3) / 2 * CFG.voxel + CFG.depth_noise
+    S, eps = CFG.samples, 1e-6
+    data = robot.model.createData()
+    links_checked = stretch = funnel = 0
+    for _ in range(3):
+        q = robot.q_home + rng.normal(0.0, 0.05, robot.nv)
+        v = rng.uniform(-0.6, 0.6, robot.nv)
+        st = Dynamics(robot).compute(q, v, 0.0)
+        pts, _, b, _ = bar.speed_points(snap, st.segments, q, v)
+        for link, cap in enumerate(robot.capsules):
+            if not np.isfinite(b[2 * link]):
+                continue
+            pin.forwardKinematics(robot.model, data, q + eps * v)
+            Mp = data.oMi[cap.joint_id].copy()
+            pin.forwardKinematics(robot.model, data, q - eps * v)
+            Mm = data.oMi[cap.joint_id].copy()
+            omega = pin.log3(Mp.rotation @ Mm.rotation.T) / (2 * eps)
+            o_dot = (Mp.translation - Mm.translation) / (2 * eps)
+            pin.forwardKinematics(robot.model, data, q)
+            o = data.oMi[cap.joint_id].translation
+
+            def speed(x: np.ndarray, o: np.ndarray = o, o_dot: np.ndarray = o_dot, omega: np.ndarray = omega
+                      ) -> np.ndarray:
+                return np.linalg.norm(o_dot + np.cross(omega, x - o), axis=-1)
+
+            a, c = st.segments[link]
+            axis = a + np.linspace(0.0, 1.0, S)[:, None] * (c - a)
+            d = ref.field_at(snap.dist[1], snap.grad[1], snap.grid, snap.truncation, axis)[0] - cap.radius
+            seen = (d < bar.cutoff) & (d + cap.radius < snap.truncation)
+            excess = np.array([speed(x + cap.radius * e).max() for x in axis]) - (
+                CFG.soft_speed + 10.0 * np.maximum(d - m_v, 0.0))
+            top = np.sort(excess[seen])[::-1]
+            got = [speed(pts[2 * link + k]) - b[2 * link + k] for k in range(2) if np.isfinite(b[2 * link + k])]
+            assert len(got) == min(2, seen.sum())
+            # (the samples' excesses differ by ~5e-3 m/s here; the brute force's directions miss the
+            # fastest point by less than 1e-4)
+            assert got == pytest.approx(top[:len(got)], abs=3e-4)
+            stretch += int(np.any(b[2 * link:2 * link + 2] == CFG.soft_speed))
+            funnel += int(np.any(b[2 * link:2 * link + 2] > CFG.soft_speed))
+            links_checked += 1
+    assert links_checked >= 6 and stretch >= 2 and funnel >= 2

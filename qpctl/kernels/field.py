@@ -18,6 +18,18 @@ grid (continuous across voxel faces). Without it: the best sample as it is, and 
 gradient of the trilinear distance, which jumps at every voxel face; ``benchmarks/perception.py``
 measures the difference in |τ̇|.
 
+Inside an obstacle's voxels the field is flat (zero, and so is its gradient): such a pair keeps its
+distance (−r) and the axis point as its witness point, with a zero normal — no barrier row (there is
+no direction to push along).
+
+:func:`speed_points` gives the soft channel's speed rows their points (:mod:`qpctl.kernels.field_rows`,
+:mod:`qpctl.perception.rows`): each sample along a link's axis (within the cutoff) has the speed
+bound b(d) = v_s + g·max(d − vmargin, 0) [m/s] — v_s where the capsule's surface may be inside a
+leaf (within ``vmargin`` of its voxels), opening farther out — and a fastest point, the point of
+the capsule's ball about the sample that moves fastest now; per link the two samples whose fastest
+points exceed their bounds the most (or fall short the least) give the rows their points, with the
+direction of each point's velocity now.
+
 References: :func:`qpctl.perception.reference.field_pairs` (scipy's ``map_coordinates``) and finite
 differences, in ``tests/test_field.py``.
 """
@@ -142,7 +154,14 @@ def _pair(segments: np.ndarray, radii: np.ndarray, l: int, s: float, dist: np.nd
     gn = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
     r = radii[l]
     out_s[row] = s
-    if d >= truncation or gn < 1e-9:  # nothing within the truncation: an inactive row
+    if d < truncation and gn < 1e-9:  # inside the voxels, where the field is flat: no normal
+        out_d[row] = d - r
+        out_n[row, 0] = 0.0
+        out_n[row, 1] = 0.0
+        out_n[row, 2] = 0.0
+        out_p[row, 0], out_p[row, 1], out_p[row, 2] = px, py, pz
+        return
+    if d >= truncation:  # nothing within the truncation: an inactive row
         out_d[row] = truncation - r
         out_n[row, 0] = 0.0
         out_n[row, 1] = 0.0
@@ -207,3 +226,73 @@ def field_pairs(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, grad:
         else:
             _pair(segments, radii, l, _refine(ds, second, samples, smooth), dist, grad, origin, voxel,
                   truncation, smooth, g, l * rows + 1, out_d, out_n, out_p, out_s)
+
+
+@njit(cache=True, nogil=True)
+def speed_points(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, origin: np.ndarray, voxel: float,
+                 truncation: float, samples: int, body_vel: np.ndarray, soft_speed: float, gain: float,
+                 vmargin: float, cutoff: float, ds: np.ndarray, out_p: np.ndarray, out_u: np.ndarray,
+                 out_b: np.ndarray, out_d: np.ndarray) -> None:
+    """The speed rows' points of one channel (module docstring): for link l, rows 2l and 2l + 1 of
+    ``out_p`` (2L, 3) the body point [m], ``out_u`` (2L, 3) the unit direction of its velocity now
+    (from ``body_vel`` (L, 6): each body's world velocity at the origin and ω), ``out_b`` (2L,) its
+    bound b(d) [m/s] (inf: no row), ``out_d`` (2L,) the field's distance d from the capsule's surface
+    at its sample [m]. ``ds`` (samples,) is scratch."""
+    for l in range(segments.shape[0]):
+        r = radii[l]
+        ax, ay, az = segments[l, 0, 0], segments[l, 0, 1], segments[l, 0, 2]
+        ux, uy, uz = segments[l, 1, 0] - ax, segments[l, 1, 1] - ay, segments[l, 1, 2] - az
+        for k in range(2):
+            out_b[2 * l + k] = math.inf
+            out_d[2 * l + k] = truncation - r
+            out_p[2 * l + k, 0], out_p[2 * l + k, 1], out_p[2 * l + k, 2] = ax, ay, az
+            out_u[2 * l + k, :] = 0.0
+        half = 0.5 * math.sqrt(ux * ux + uy * uy + uz * uz)
+        if trilinear_distance(dist, origin, voxel, truncation, ax + 0.5 * ux, ay + 0.5 * uy,
+                              az + 0.5 * uz) >= truncation + half:
+            continue  # nothing within the truncation on this axis (1-Lipschitz)
+        vx, vy, vz = body_vel[l, 0], body_vel[l, 1], body_vel[l, 2]
+        wx, wy, wz = body_vel[l, 3], body_vel[l, 4], body_vel[l, 5]
+        best, second = -1, -1
+        e1 = e2 = -math.inf
+        for j in range(samples):
+            f = j / (samples - 1.0)
+            px, py, pz = ax + f * ux, ay + f * uy, az + f * uz
+            d = trilinear_distance(dist, origin, voxel, truncation, px, py, pz) - r
+            ds[j] = d
+            if d + r >= truncation or d >= cutoff:
+                continue
+            # the fastest point of the ball about the sample (radius r, inside the capsule): the axis
+            # point's velocity c plus r ω × e, e = (c × ω)/|c × ω| maximising cᵀ(ω × e): |c| + r|ω ⊥ c|
+            cx, cy, cz = vx + wy * pz - wz * py, vy + wz * px - wx * pz, vz + wx * py - wy * px
+            c = math.sqrt(cx * cx + cy * cy + cz * cz)
+            ex, ey, ez = cy * wz - cz * wy, cz * wx - cx * wz, cx * wy - cy * wx
+            excess = c + r * math.sqrt(ex * ex + ey * ey + ez * ez) / max(c, 1e-300) \
+                - (soft_speed + gain * max(d - vmargin, 0.0))
+            if excess > e1:
+                second, e2 = best, e1
+                best, e1 = j, excess
+            elif excess > e2:
+                second, e2 = j, excess
+        for k in range(2):
+            j = best if k == 0 else second
+            if j < 0:
+                continue
+            f = j / (samples - 1.0)
+            px, py, pz = ax + f * ux, ay + f * uy, az + f * uz
+            cx, cy, cz = vx + wy * pz - wz * py, vy + wz * px - wx * pz, vz + wx * py - wy * px
+            c = math.sqrt(cx * cx + cy * cy + cz * cz)
+            if c > 1e-12:
+                ex, ey, ez = cy * wz - cz * wy, cz * wx - cx * wz, cx * wy - cy * wx
+                e = math.sqrt(ex * ex + ey * ey + ez * ez)
+                if e > 1e-12 * c:
+                    px, py, pz = px + r * ex / e, py + r * ey / e, pz + r * ez / e
+            cx, cy, cz = vx + wy * pz - wz * py, vy + wz * px - wx * pz, vz + wx * py - wy * px
+            c = math.sqrt(cx * cx + cy * cy + cz * cz)
+            row = 2 * l + k
+            out_p[row, 0], out_p[row, 1], out_p[row, 2] = px, py, pz
+            out_d[row] = ds[j]
+            if c <= 1e-9:  # at rest: no direction to bound (the next tick's point has one)
+                continue
+            out_u[row, 0], out_u[row, 1], out_u[row, 2] = cx / c, cy / c, cz / c
+            out_b[row] = soft_speed + gain * max(ds[j] - vmargin, 0.0)

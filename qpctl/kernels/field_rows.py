@@ -12,7 +12,13 @@ acceleration from the capsule body's, :func:`qpctl.kernels.rigid.point_jacobian`
 * soft (channel 1): nᵀJ_p q̈ ≥ −k₁(ḣ + v_s) − k₀ max(d − m_s, 0) − nᵀJ̇_p q̇, v_s = ``soft_speed``,
   m_s the soft margin (``perception.soft_margin``).
 
-A pair farther than the cutoff, or without a normal, is an inactive row (zero, −∞). Reference:
+Then two soft speed rows per link (:func:`speed_rows`), for the points of
+:func:`qpctl.kernels.field.speed_points` (where the link may be inside a leaf, or the nearest to
+one): the point's velocity a horizon h ahead, w⁺ = J_p q̇ + (J_p q̈ + J̇_p q̇)h, along the direction u
+of its velocity now no faster than the bound b: −uᵀJ_p q̈ ≥ (uᵀJ_p q̇ − b)/h + uᵀJ̇_p q̇.
+
+A pair farther than the cutoff, or without a normal, is an inactive row (zero, −∞), and so is a
+speed row without a point (inf bound). Reference:
 :class:`qpctl.perception.rows.FieldBarrier` (the Python path), in ``tests/test_field_rows.py``.
 """
 
@@ -25,17 +31,19 @@ from numba import njit
 
 from qpctl.kernels.codes import (
     FP_FD_CUT,
+    FP_FD_HORIZON,
     FP_FD_K0,
     FP_FD_K1,
     FP_FD_MARGIN,
     FP_FD_SMARGIN,
     FP_FD_TRUNC,
+    FP_FD_VMARGIN,
     FP_FD_VOXEL,
     FP_FD_VS,
     IP_FD_RPL,
     IP_FD_SAMPLES,
 )
-from qpctl.kernels.field import field_pairs
+from qpctl.kernels.field import field_pairs, speed_points
 from qpctl.kernels.rigid import point_jacobian
 
 
@@ -62,8 +70,45 @@ def field_pairs_both(ws) -> None:  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
+def speed_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no-untyped-def]
+    """The soft speed rows (module docstring) into ``C`` (2L, n) and ``lower`` (2L,)."""
+    n = ws.N.shape[0]
+    fp = ws.fpar
+    k0, k1 = fp[FP_FD_K0], fp[FP_FD_K1]
+    speed_points(ws.segments, ws.cap_radius, ws.fd_dist[1], ws.fd_origin, fp[FP_FD_VOXEL], fp[FP_FD_TRUNC],
+                 ws.ipar[IP_FD_SAMPLES], ws.body_vel, fp[FP_FD_VS], k0 / k1, fp[FP_FD_VMARGIN], fp[FP_FD_CUT],
+                 ws.fd_ds, ws.fd_vp, ws.fd_vu, ws.fd_vb, ws.fd_vd)
+    h = fp[FP_FD_HORIZON]
+    Jp = ws.fd_vjac
+    for r in range(C.shape[0]):
+        b = ws.fd_vb[r]
+        if not (b < math.inf):
+            for c in range(n):
+                C[r, c] = 0.0
+            lower[r] = -math.inf
+            continue
+        link = r // 2
+        p = ws.fd_vp[r]
+        point_jacobian(ws, ws.cap_support[link], p, Jp)
+        K, off = ws.acc_K[link], ws.acc_off[link]
+        ux, uy, uz = ws.fd_vu[r, 0], ws.fd_vu[r, 1], ws.fd_vu[r, 2]
+        drift = 0.0
+        for c in range(3):
+            drift += ws.fd_vu[r, c] * (off[c] + K[c, 0] * p[0] + K[c, 1] * p[1] + K[c, 2] * p[2])
+        w = 0.0
+        for c in range(n):
+            val = ux * Jp[0, c] + uy * Jp[1, c] + uz * Jp[2, c]
+            C[r, c] = -val
+            w += val * ws.v[c]
+        lower[r] = (w - b) / h + drift
+
+
+@njit(cache=True)
 def field_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no-untyped-def]
-    """The field's rows (module docstring) into ``C`` (R, n) and ``lower`` (R,)."""
+    """The field's rows (module docstring) into ``C`` (R + 2L, n) and ``lower`` (R + 2L,): the R pair
+    rows (both channels), then the soft speed rows."""
+    R = ws.fd_d.shape[0]
+    speed_rows(ws, C[R:], lower[R:])
     field_pairs_both(ws)
     n = ws.N.shape[0]
     L = ws.segments.shape[0]
@@ -71,7 +116,7 @@ def field_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no
     k = L * rpl
     cut, margin, vs = ws.fpar[FP_FD_CUT], ws.fpar[FP_FD_MARGIN], ws.fpar[FP_FD_VS]
     k0, k1, ms = ws.fpar[FP_FD_K0], ws.fpar[FP_FD_K1], ws.fpar[FP_FD_SMARGIN]
-    for r in range(C.shape[0]):
+    for r in range(R):
         nx, ny, nz = ws.fd_n[r, 0], ws.fd_n[r, 1], ws.fd_n[r, 2]
         d = ws.fd_d[r]
         if not (d < cut) or (nx == 0.0 and ny == 0.0 and nz == 0.0):

@@ -148,7 +148,7 @@ def qp_finish(ws, x: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarra
     active = 0
     mask = 0
     t0, b0, cap = ip[IP_TORQUE_ROW0], ip[IP_BARRIER_ROW0], ip[IP_CAPACITY]
-    f0, nf = ip[IP_FIELD_ROW0], ws.fd_d.shape[0]
+    f0, nf = ip[IP_FIELD_ROW0], ws.fd_d.shape[0] + ws.fd_vb.shape[0]  # the pairs' rows and the speed rows
     for r in range(n_in):
         cx = Cx[r]
         if min(abs(cx - bl[nv + r]), abs(cx - bu[nv + r])) <= 1e-6 * (1.0 + abs(cx)):

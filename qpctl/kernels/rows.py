@@ -169,7 +169,7 @@ def qp_build(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray,
     # the depth map's field rows (FieldBarrier; qpctl.kernels.field_rows)
     f0 = ws.ipar[IP_FIELD_ROW0]
     if f0 >= 0:
-        R = ws.fd_d.shape[0]
+        R = ws.fd_d.shape[0] + ws.fd_vb.shape[0]  # the pairs' rows, then the soft speed rows
         field_rows(ws, rows[f0:f0 + R], bl[nv + f0:nv + f0 + R])
 
 

@@ -148,6 +148,11 @@ FIELDS = (
     "fd_ds",  # (samples,) scratch: the distances along one axis
     "fd_jac",  # (R, 3, n) witness points' Jacobians (active rows)
     "fd_drift",  # (R, 3) their J̇_p q̇ [m/s²]
+    "fd_vp",  # (2L, 3) the soft speed rows' points [m] (qpctl.kernels.field.speed_points)
+    "fd_vu",  # (2L, 3) the unit directions of their velocities
+    "fd_vb",  # (2L,) their speed bounds [m/s] (inf: no row)
+    "fd_vd",  # (2L,) the field's distance there [m]
+    "fd_vjac",  # (3, n) scratch: a speed point's Jacobian
     # -- per tick: law terms -------------------------------------------------------------------------
     "e",  # (m,) x_d − x [m]
     "edot",  # (m,) [m/s]

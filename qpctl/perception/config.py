@@ -48,6 +48,9 @@ class PerceptionConfig:
     soft_margin: float = setting(0.0, valid="nonnegative", unit="m")  # the soft rows slow a link to soft_speed
     #                                  from this far from the leaf's voxels [m] (√3/2 voxel + depth_noise would
     #                                  reach the leaf's true surface at soft_speed; see docs/perception.md)
+    soft_horizon: float = setting(0.001, valid="seconds", unit="s")  # the speed rows bound a soft contact's
+    #                                  point velocity this far ahead, J_p(q̇ + q̈·h) + J̇_p q̇·h [s] (one control
+    #                                  period at 1 kHz: the next tick's velocity)
     soft_weight: float = setting(1e7, valid="nonnegative", unit="(N·m)²/(m/s²)")  # ℓ₁ weight of the slack the soft
     #                                  rows share (above the task's slack_l1: the task lags before a leaf is
     #                                  pushed faster; 0: the soft rows are hard)
@@ -89,3 +92,8 @@ class PerceptionConfig:
         """The rigid rows' margin [m]: d_safe + √3/2 voxel (an occupied voxel's centre to its farthest
         point) + the depth noise."""
         return float(d_safe) + SQRT3_2 * self.voxel + self.depth_noise
+
+    def soft_speed_margin(self) -> float:
+        """Where the speed rows reach ``soft_speed`` [m]: √3/2 voxel + the depth noise from a leaf's voxel
+        centres, as far as its true surface may be in front of them."""
+        return SQRT3_2 * self.voxel + self.depth_noise

@@ -16,8 +16,25 @@ rigid-point drift ḧ = nᵀ(J_p q̈ + J̇_p q̇):
   one slack column all soft rows share (:attr:`~qpctl.constraints.Constraint.slack`, ℓ₁ weight
   ``soft_weight``): where the soft rows conflict with the hard ones the QP stays feasible.
 
-A row is active where d is within the controller's influence distance, inactive (−inf bound)
-elsewhere; the number of rows is fixed (2 channels × links × ``rows_per_link``).
+* **soft speed** (the metric ``soft_contact_max_speed`` is a link point's total speed, not its normal
+  component; inside a leaf's voxels the field is flat and has no normal at all): two rows per link
+  for the points of :func:`qpctl.kernels.field.speed_points` — the two ends of the stretch of the
+  link within m_v = √3/2·voxel + depth noise of a leaf's voxels (:meth:`PerceptionConfig.soft_speed_margin`:
+  where the link's surface may already be inside the leaf), each moved by the capsule's radius to
+  the point about it that moves fastest, or, with no such stretch, the link's nearest point to a
+  leaf. A rigid body's point velocities are affine in the point, so the two ends bound the stretch
+  between them. Each row keeps the point's velocity a horizon h ahead (``soft_horizon``, one
+  control period: the next tick's), w⁺ = J_p q̇ + (J_p q̈ + J̇_p q̇)h, no faster than b along the
+  direction u of its velocity now: uᵀw⁺ ≤ b + σh — the tangent half-space of the ball |w⁺| ≤ b at
+  the current velocity, which |w⁺| exceeds by at most |w⁺ − w|²/(2|w|), second order in the tick's
+  change of velocity (the next tick's row is tangent at the new direction). b = v_s on the stretch;
+  at the nearest point b(d) = v_s + (k₀/k₁)·max(d − m_v, 0) (a funnel the link slows along as it
+  nears a leaf, at the barrier's own slope, not a wall). As rows on q̈:
+  −uᵀJ_p q̈ + σ ≥ (uᵀJ_p q̇ − b)/h + uᵀJ̇_p q̇, sharing the soft rows' slack σ.
+
+A row is active where d is within the controller's influence distance (a barrier row only with a
+normal), inactive (−inf bound) elsewhere; the number of rows is fixed: 2 channels × links ×
+``rows_per_link`` pairs, then 2 speed rows per link.
 
 :class:`FieldBarrier` is the constraint on the Python path (:class:`~qpctl.formulation.Formulation`):
 the reference the compiled rows (:mod:`qpctl.kernels.field_rows`, through :meth:`FieldBarrier.field_spec`)
@@ -112,7 +129,10 @@ class FieldBarrier(Constraint):
         self.k0, self.k1 = float(k0), float(k1)
         self.radii = np.array([c.radius for c in robot.capsules], float)
         self.joints = np.array([c.joint_id for c in robot.capsules], int)
-        self.rows = 2 * len(robot.capsules) * config.rows_per_link
+        self.speed_margin = config.soft_speed_margin()
+        self.horizon = float(config.soft_horizon)
+        self.pairs = 2 * len(robot.capsules) * config.rows_per_link
+        self.rows = self.pairs + 2 * len(robot.capsules)
         self._data = robot.model.createData()
         self._last: FieldPairs | None = None
         self._ws: Any = None  # the compiled tick's workspace, when its arrays hold the last tick's pairs
@@ -129,8 +149,8 @@ class FieldBarrier(Constraint):
         return self._last
 
     def slack_column(self) -> np.ndarray:
-        """1 on the soft rows (the second half), 0 on the rigid ones."""
-        return self._soft.astype(float)
+        """1 on the soft rows (the pairs' second half) and the speed rows, 0 on the rigid ones."""
+        return np.r_[self._soft.astype(float), np.ones(self.rows - self.pairs)]
 
     def field_spec(self) -> FieldSpec:
         """These rows in the compiled tick (:mod:`qpctl.kernels.field_rows`; held to :meth:`compute`;
@@ -138,7 +158,8 @@ class FieldBarrier(Constraint):
         if not self.smooth:
             raise ValueError("the compiled field rows are smooth: a raw FieldBarrier needs the Python path")
         return FieldSpec(self.source, self, self.rows, self.config.samples, self.config.rows_per_link, self.margin,
-                         self.config.soft_speed, self.cutoff, self.k0, self.k1, self.soft_margin)
+                         self.config.soft_speed, self.cutoff, self.k0, self.k1, self.soft_margin,
+                         self.speed_margin, self.horizon)
 
     def bind(self, ws: Any) -> None:
         """A compiled tick runs on ``ws``: its arrays hold this tick's pairs (:attr:`last`)."""
@@ -174,8 +195,32 @@ class FieldBarrier(Constraint):
         a = dJ6[:, :3] @ v + np.cross(dJ6[:, 3:] @ v, r) + np.cross(w, np.cross(w, r))
         return J, a
 
+    def body_velocities(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """(L, 6) each capsule body's world velocity at the world origin [m/s] and ω [rad/s] (Pinocchio)."""
+        model, data = self.robot.model, self._data
+        pin.forwardKinematics(model, data, q, v)
+        out = np.empty((len(self.joints), 6))
+        for i, j in enumerate(self.joints):
+            m = pin.getVelocity(model, data, int(j), pin.LOCAL_WORLD_ALIGNED)
+            w = m.angular
+            out[i, :3] = m.linear - np.cross(w, data.oMi[int(j)].translation)
+            out[i, 3:] = w
+        return out
+
+    def speed_points(self, snap: MapSnapshot, segments: np.ndarray, q: np.ndarray, v: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The speed rows' points (2L, 3) [m], directions (2L, 3), bounds (2L,) [m/s] (inf: no row) and
+        field distances (2L,) [m]: :func:`qpctl.kernels.field.speed_points` on the soft channel."""
+        L, g = len(segments), snap.grid
+        p, u, b, d = np.empty((2 * L, 3)), np.empty((2 * L, 3)), np.empty(2 * L), np.empty(2 * L)
+        KF.speed_points(np.ascontiguousarray(segments, float), self.radii, snap.dist[1], g.origin, g.voxel,
+                        snap.truncation, self.config.samples, self.body_velocities(q, v), self.config.soft_speed,
+                        self.k0 / self.k1, self.speed_margin, self.cutoff, np.empty(self.config.samples), p, u, b, d)
+        return p, u, b, d
+
     def compute(self, state: TickState, terms: LawTerms) -> Inequality:
         n = state.n
+        P = self.pairs
         C = np.zeros((self.rows, n))
         lower = np.full(self.rows, -np.inf)
         upper = np.full(self.rows, np.inf)
@@ -183,17 +228,24 @@ class FieldBarrier(Constraint):
         pairs = field_pairs(snap, state.segments, self.radii, self.config, self.cutoff, smooth=self.smooth)
         self._last, self._ws = pairs, None
         idx = np.flatnonzero(pairs.active)
-        if idx.size == 0:
-            return Inequality(C, lower, upper)
-        J, drift = self.jacobians(state.q, state.v, pairs.link[idx], pairs.point[idx])
-        nrm = pairs.normal[idx]
-        rows = np.einsum("ri,rin->rn", nrm, J)
-        hdot = rows @ state.v
-        d = pairs.distance[idx]
-        soft = pairs.soft[idx]
-        vs = self.config.soft_speed
-        rhs = np.where(soft, -self.k1 * (hdot + vs) - self.k0 * np.maximum(d - self.soft_margin, 0.0),
-                       -self.k1 * hdot - self.k0 * (d - self.margin)) - np.einsum("ri,ri->r", nrm, drift)
-        C[idx] = rows
-        lower[idx] = rhs
+        if idx.size:
+            J, drift = self.jacobians(state.q, state.v, pairs.link[idx], pairs.point[idx])
+            nrm = pairs.normal[idx]
+            rows = np.einsum("ri,rin->rn", nrm, J)
+            hdot = rows @ state.v
+            d = pairs.distance[idx]
+            soft = pairs.soft[idx]
+            vs = self.config.soft_speed
+            rhs = np.where(soft, -self.k1 * (hdot + vs) - self.k0 * np.maximum(d - self.soft_margin, 0.0),
+                           -self.k1 * hdot - self.k0 * (d - self.margin)) - np.einsum("ri,ri->r", nrm, drift)
+            C[idx] = rows
+            lower[idx] = rhs
+        # the soft speed rows: the point's velocity h ahead along u no faster than b
+        p, u, b, _ = self.speed_points(snap, state.segments, state.q, state.v)
+        sp = np.flatnonzero(np.isfinite(b))
+        if sp.size:
+            J, drift = self.jacobians(state.q, state.v, sp // 2, p[sp])
+            uJ = np.einsum("ri,rin->rn", u[sp], J)
+            C[P + sp] = -uJ
+            lower[P + sp] = (uJ @ state.v - b[sp]) / self.horizon + np.einsum("ri,ri->r", u[sp], drift)
         return Inequality(C, lower, upper)
