@@ -20,7 +20,7 @@ def law(request):
     return ctrl
 
 
-@pytest.mark.parametrize("bad", ["nan q", "inf v", "short q", "nan t", "text"])
+@pytest.mark.parametrize("bad", ["nan q", "inf v", "short q", "nan t", "text", "bool t", "2-D q"])
 def test_bad_states_raise_invalid_state_error(law, bad):
     q, v, t = Q0.copy(), V0.copy(), 0.3
     if bad == "nan q":
@@ -31,6 +31,10 @@ def test_bad_states_raise_invalid_state_error(law, bad):
         q = q[:2]
     elif bad == "nan t":
         t = float("nan")
+    elif bad == "bool t":
+        t = True  # numba would take it as 1.0: a bool is no time
+    elif bad == "2-D q":
+        q = q[None, :]
     else:
         v = "fast"
     with pytest.raises(InvalidStateError):
