@@ -56,3 +56,23 @@ def test_outputs_reused_only_when_nobody_holds_them(law):
     del kept
     first = id(law.step(Q0, V0, 0.31))
     assert id(law.step(Q0, V0, 0.32)) == first
+
+
+def test_the_common_tick_goes_past_the_dispatcher(law, monkeypatch):
+    """After its first tick, a float64 state with a Python or numpy float time is one call of the
+    kernel's compiled entry point: the dispatcher (here made to fail) is not called, and the torque is
+    the dispatcher's own; a list state still goes through it."""
+    from qpctl.kernels import tick as K
+
+    ref = law.step(Q0, V0, 0.3).tau.copy()
+
+    def refuse(*args):
+        raise AssertionError("the dispatcher was called")
+
+    refuse.disable_compile = lambda *args: None  # type: ignore[attr-defined]  # as a dispatcher's (lock_compilation)
+
+    monkeypatch.setattr(K, "tick_closed_form", refuse)
+    for t in (0.3, np.float64(0.3)):
+        np.testing.assert_array_equal(law.step(Q0, V0, t).tau, ref)
+    with pytest.raises(AssertionError, match="dispatcher"):
+        law.step(Q0.tolist(), V0, 0.3)

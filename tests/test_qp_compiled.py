@@ -183,7 +183,7 @@ def test_the_fast_tick_equals_the_general_one_field_by_field(scene_and_states):
         ctrl.step(states.q[99], states.v[99], float(states.t[99]))
     taken = 0
     for k in range(100, 400):
-        q, v, t = states.q[k], states.v[k], float(states.t[k])
+        q, v, t = states.q[k], states.v[k], (float(states.t[k]) if k % 2 else states.t[k])  # numpy's floats too
         a = fast.qp_path().fast_step(q, v, t, 0.0)
         assert a is not None
         fast.last, fast._last_from = a, fast.qp_path()
@@ -202,3 +202,27 @@ def test_the_fast_tick_equals_the_general_one_field_by_field(scene_and_states):
     first = id(fast.step(states.q[0], states.v[0], 0.0))
     assert id(fast.step(states.q[1], states.v[1], 1e-3)) == first
     assert id(fast.qp_path().fast_step(states.q[2], states.v[2], 2e-3, 0.0)) == first
+
+
+def test_the_common_tick_goes_past_the_dispatcher(scene_and_states, monkeypatch):
+    """After the tick that sets DAQP up, a float64 state with a Python or numpy float time is one call
+    of the one-call kernel's compiled entry point: the dispatcher (here made to fail) is not called;
+    a list state still goes through it."""
+    from qpctl.kernels import tick as K
+
+    scene, states = scene_and_states
+    ctrl = _controller(scene)
+    ctrl.step(states.q[60], states.v[60], float(states.t[60]))
+
+    def refuse(*args):
+        raise AssertionError("the dispatcher was called")
+
+    refuse.disable_compile = lambda *args: None  # type: ignore[attr-defined]  # as a dispatcher's (lock_compilation)
+
+    monkeypatch.setattr(K, "tick_qp", refuse)
+    for k in range(61, 90):
+        out = ctrl.step(states.q[k], states.v[k], states.t[k] if k % 2 else float(states.t[k]))
+        assert np.isfinite(out.tau).all()
+    del out
+    with pytest.raises(AssertionError, match="dispatcher"):
+        ctrl.step(states.q[90].tolist(), states.v[90], float(states.t[90]))

@@ -86,7 +86,7 @@ class PaperController(Controller):
             except Exception:  # noqa: BLE001 — not a state Pinocchio takes: the checks below say why
                 ok = False
             t1 = _now()
-            if ok and type(q) is _ND and type(v) is _ND and type(t) is float and q.dtype is _F64 and \
+            if ok and type(q) is _ND and type(v) is _ND and isinstance(t, float) and q.dtype is _F64 and \
                     v.dtype is _F64 and q.ndim == 1 and v.ndim == 1 and q.flags.c_contiguous and v.flags.c_contiguous:
                 code = entry(ws.work, q, v, t, self.weighted)
                 if code == 0:

@@ -358,7 +358,7 @@ class CompiledTick:
         except Exception:  # noqa: BLE001 — not a state Pinocchio takes: step() checks it and says why
             return None
         t1 = _now()
-        if not (type(q) is _ND and type(v) is _ND and type(t) is float and q.dtype is _F64 and v.dtype is _F64
+        if not (type(q) is _ND and type(v) is _ND and isinstance(t, float) and q.dtype is _F64 and v.dtype is _F64
                 and q.ndim == 1 and v.ndim == 1 and q.flags.c_contiguous and v.flags.c_contiguous):
             return None
         relax, nat_h, nat_r = self.relax, self.hard.nat, self.relaxed.nat
