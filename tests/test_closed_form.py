@@ -20,7 +20,7 @@ def law(request):
     return ctrl
 
 
-@pytest.mark.parametrize("bad", ["nan q", "inf v", "short q", "nan t", "text"])
+@pytest.mark.parametrize("bad", ["nan q", "inf v", "short q", "nan t", "text", "bool t", "2-D q"])
 def test_bad_states_raise_invalid_state_error(law, bad):
     q, v, t = Q0.copy(), V0.copy(), 0.3
     if bad == "nan q":
@@ -31,6 +31,10 @@ def test_bad_states_raise_invalid_state_error(law, bad):
         q = q[:2]
     elif bad == "nan t":
         t = float("nan")
+    elif bad == "bool t":
+        t = True  # numba would take it as 1.0: a bool is no time
+    elif bad == "2-D q":
+        q = q[None, :]
     else:
         v = "fast"
     with pytest.raises(InvalidStateError):
@@ -52,3 +56,23 @@ def test_outputs_reused_only_when_nobody_holds_them(law):
     del kept
     first = id(law.step(Q0, V0, 0.31))
     assert id(law.step(Q0, V0, 0.32)) == first
+
+
+def test_the_common_tick_goes_past_the_dispatcher(law, monkeypatch):
+    """After its first tick, a float64 state with a Python or numpy float time is one call of the
+    kernel's compiled entry point: the dispatcher (here made to fail) is not called, and the torque is
+    the dispatcher's own; a list state still goes through it."""
+    from qpctl.kernels import tick as K
+
+    ref = law.step(Q0, V0, 0.3).tau.copy()
+
+    def refuse(*args):
+        raise AssertionError("the dispatcher was called")
+
+    refuse.disable_compile = lambda *args: None  # type: ignore[attr-defined]  # as a dispatcher's (lock_compilation)
+
+    monkeypatch.setattr(K, "tick_closed_form", refuse)
+    for t in (0.3, np.float64(0.3)):
+        np.testing.assert_array_equal(law.step(Q0, V0, t).tau, ref)
+    with pytest.raises(AssertionError, match="dispatcher"):
+        law.step(Q0.tolist(), V0, 0.3)

@@ -8,6 +8,7 @@ kept neither it nor a view of its arrays: after warm-up a tick allocates nothing
 
 from __future__ import annotations
 
+import dataclasses
 import tracemalloc
 
 import numpy as np
@@ -119,7 +120,7 @@ def test_other_array_types_give_the_same_torque(scene_and_states):
     assert np.isfinite(ints.step(q, v, round(t)).tau).all()  # an int time is a time
 
 
-@pytest.mark.parametrize("bad", ["nan q", "inf v", "short q", "long v", "2-D q", "text", "nan t"])
+@pytest.mark.parametrize("bad", ["nan q", "inf v", "short q", "long v", "2-D q", "text", "nan t", "bool t"])
 def test_bad_states_raise_invalid_state_error(scene_and_states, bad):
     """Each bad state raises InvalidStateError (the kernel reports NaN, inf and wrong lengths; the
     shell's checks refuse what the dispatcher cannot take), and the controller then steps on."""
@@ -138,9 +139,90 @@ def test_bad_states_raise_invalid_state_error(scene_and_states, bad):
         q = q[None, :]
     elif bad == "text":
         q = "not a state"
+    elif bad == "bool t":
+        t = True  # numba would take it as 1.0: a bool is no time
     else:
         t = float("nan")
+    ctrl.step(states.q[48], states.v[48], float(states.t[48]))  # DAQP set up again after warmup's reset
+    assert ctrl.qp_path().fast_step(states.q[49], states.v[49], float(states.t[49]), 0.0) is not None
     with pytest.raises(InvalidStateError):
         ctrl.step(q, v, t)
     good = ctrl.step(states.q[51], states.v[51], float(states.t[51]))
     assert np.isfinite(good.tau).all()
+
+
+INFO_TIMES = ("rigid_us", "state_us", "build_us", "solve_us")
+
+
+def _fields(ctrl, out):
+    """Every field a user or the bench reads of a QP tick's output and of the controller after it,
+    timings aside (``compute_us`` and info's *_us)."""
+    sol = ctrl.last_solution
+    return {"tau": out.tau.copy(), "qdd": out.qdd.copy(), "x": out.x.copy(), "e_null": out.e_null.copy(),
+            "ref": tuple(a.copy() for a in out.ref), "clearance": out.clearance, "singular": out.singular,
+            "status": out.status, "iterations": out.iterations,
+            "info": {k: val for k, val in out.info.items() if k not in INFO_TIMES},
+            "outcome": dataclasses.replace(out.outcome, solve_us=0.0),
+            "solution": (sol.found, sol.x.copy(), sol.status, sol.iterations, sol.solver),
+            "problem": (ctrl.last_problem.n_var, ctrl.last_problem.P.copy(), ctrl.last_problem.C.copy(),
+                        ctrl.last_problem.u.copy())}
+
+
+def test_the_fast_tick_equals_the_general_one_field_by_field(scene_and_states):
+    """Two controllers on the same 300 closed-loop states: one's ticks through :meth:`CompiledTick.
+    fast_step` (the common tick, its output's record and the solver's answer read lazily), the other's
+    through :meth:`CompiledTick.step` (the general tick: the dispatcher, the outcome and the output
+    built as before). Every field of the outputs and of the controllers' last solve is the same, the
+    timings present in both; and the fast one ran on every tick (the general one's output is not reused
+    by the fast one: different objects)."""
+    scene, states = scene_and_states
+    fast, slow = _controller(scene), _controller(scene)
+    slow_path = slow.qp_path()
+    assert isinstance(slow_path, CompiledTick)
+    for ctrl in (fast, slow):  # DAQP set up again after warmup's reset
+        ctrl.step(states.q[99], states.v[99], float(states.t[99]))
+    taken = 0
+    for k in range(100, 400):
+        q, v, t = states.q[k], states.v[k], (float(states.t[k]) if k % 2 else states.t[k])  # numpy's floats too
+        a = fast.qp_path().fast_step(q, v, t, 0.0)
+        assert a is not None
+        fast.last, fast._last_from = a, fast.qp_path()
+        taken += 1
+        b = slow_path.step(q, v, t, 0.0)
+        slow.last, slow._last_from = b, slow_path
+        fa, fb = _fields(fast, a), _fields(slow, b)
+        for key in fa:
+            np.testing.assert_equal(fa[key], fb[key], err_msg=f"tick {k}: {key}")
+        assert set(a.info) == set(b.info) and all(a.info[key] >= 0 for key in INFO_TIMES if key in a.info)
+        assert a.iterations == int(fast.qp_path().hard.nat.flag[1] if a.info.get("relaxed") is None
+                                   else fast.qp_path().relaxed.nat.flag[1])  # the solver's own count
+        del a, b
+    assert taken == 300
+    # the controller's step takes the fast tick: its last output is the fast path's reused object
+    first = id(fast.step(states.q[0], states.v[0], 0.0))
+    assert id(fast.step(states.q[1], states.v[1], 1e-3)) == first
+    assert id(fast.qp_path().fast_step(states.q[2], states.v[2], 2e-3, 0.0)) == first
+
+
+def test_the_common_tick_goes_past_the_dispatcher(scene_and_states, monkeypatch):
+    """After the tick that sets DAQP up, a float64 state with a Python or numpy float time is one call
+    of the one-call kernel's compiled entry point: the dispatcher (here made to fail) is not called;
+    a list state still goes through it."""
+    from qpctl.kernels import tick as K
+
+    scene, states = scene_and_states
+    ctrl = _controller(scene)
+    ctrl.step(states.q[60], states.v[60], float(states.t[60]))
+
+    def refuse(*args):
+        raise AssertionError("the dispatcher was called")
+
+    refuse.disable_compile = lambda *args: None  # type: ignore[attr-defined]  # as a dispatcher's (lock_compilation)
+
+    monkeypatch.setattr(K, "tick_qp", refuse)
+    for k in range(61, 90):
+        out = ctrl.step(states.q[k], states.v[k], states.t[k] if k % 2 else float(states.t[k]))
+        assert np.isfinite(out.tau).all()
+    del out
+    with pytest.raises(AssertionError, match="dispatcher"):
+        ctrl.step(states.q[90].tolist(), states.v[90], float(states.t[90]))

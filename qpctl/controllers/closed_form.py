@@ -56,6 +56,10 @@ from qpctl.law import closed_form_acceleration, law_terms
 from qpctl.state import TickState
 from qpctl.tick import Workspace
 
+_ND, _F64 = np.ndarray, np.dtype(np.float64)
+_now = time.perf_counter
+getrefcount, copyto = sys.getrefcount, np.copyto
+
 
 class PaperController(Controller):
     """The paper's inertia-weighted law (eq. 19); ``weighted = False`` gives Hsu's law."""
@@ -73,8 +77,32 @@ class PaperController(Controller):
         """One compiled tick: state, law terms and the closed form; ``compute_us`` its wall time. On the
         one-call path nothing checks a good state in Python (the kernel checks length and finiteness,
         the dispatcher the types; anything else goes through :func:`fast_state`'s checks)."""
-        start = time.perf_counter()
-        ws = self._ws if self._ws is not None else self.workspace()
+        start = _now()
+        ws, entry = self._ws, self._entry
+        if entry is not None and ws is not None and not ws.lie:  # the common tick first, in few statements
+            try:
+                pin.computeAllTerms(ws.model, ws.data, q, v)
+                ok = True
+            except Exception:  # noqa: BLE001 — not a state Pinocchio takes: the checks below say why
+                ok = False
+            t1 = _now()
+            if ok and type(q) is _ND and type(v) is _ND and isinstance(t, float) and q.dtype is _F64 and \
+                    v.dtype is _F64 and q.ndim == 1 and v.ndim == 1 and q.flags.c_contiguous and v.flags.c_contiguous:
+                code = entry(ws.work, q, v, t, self.weighted)
+                if code == 0:
+                    out = self._out
+                    if out is not None and getrefcount(out) <= IDLE_REFS and getrefcount(out._rec) <= IDLE_REC_REFS:
+                        copyto(out._rec, ws.rec)  # nobody kept the last output nor a view of it: reuse it
+                        out._extra = out._info = None
+                        out._stages = (t1 - start, -1.0, -1.0, 0.0)
+                    else:
+                        out = self._out = RecordOutput(ws.rec.copy(), ws.layout, None, 0.0, (t1 - start, -1.0, -1.0, 0.0))
+                    out.compute_us = (_now() - start) * 1e6
+                    self.last = out
+                    return out
+                return self._after_kernel(code, q, v, t, start, (t1 - start, -1.0, -1.0, 0.0))
+        if ws is None:
+            ws = self.workspace()
         if ws.fast:  # computeAllTerms, then one kernel call (stage times measured in it)
             try:
                 if not isinstance(t, float):  # a bool or an int would pass numba's conversions
@@ -97,21 +125,25 @@ class PaperController(Controller):
             lock_compilation(K.tick_closed_form)
             if self._entry is None:
                 self._entry = entry_point(K.tick_closed_form, ws.work, weighted=self.weighted)
-            if code == codes.STATE_PYTHON:
-                ws.finish_state(q, v, t)
-                t2 = time.perf_counter()
-                code = K.closed_form_tick(ws.work, self.weighted)
-                ws.rec[ws.layout.scalars + codes.R_BUILD_US] = (time.perf_counter() - t2) * 1e6
-            elif code == codes.BAD_SHAPE:
-                raise InvalidStateError(f"q and v must have shapes ({self.robot.nq},) and ({self.n},), "
-                                        f"got {np.shape(q)} and {np.shape(v)}")
-            stages = (t1 - t0, -1.0, -1.0, 0.0)
-        else:
-            q, v, t = fast_state(q, v, t, self.n, self.robot.nq)
-            self._state(q, v, t)
-            mid = time.perf_counter()
+            return self._after_kernel(code, q, v, t, start, (t1 - t0, -1.0, -1.0, 0.0))
+        q, v, t = fast_state(q, v, t, self.n, self.robot.nq)
+        self._state(q, v, t)
+        mid = time.perf_counter()
+        code = K.closed_form_tick(ws.work, self.weighted)
+        return self._after_kernel(code, q, v, t, start, (ws.pin_s, ws.state_s, time.perf_counter() - mid, 0.0))
+
+    def _after_kernel(self, code: int, q: Any, v: Any, t: Any, start: float,
+                      stages: tuple[float, float, float, float]) -> ControlOutput:
+        """The tick after its kernel: a state Python must finish, a refused state's error, the output."""
+        ws = self.workspace()
+        if code == codes.STATE_PYTHON:
+            ws.finish_state(q, v, t)
+            t2 = time.perf_counter()
             code = K.closed_form_tick(ws.work, self.weighted)
-            stages = (ws.pin_s, ws.state_s, time.perf_counter() - mid, 0.0)
+            ws.rec[ws.layout.scalars + codes.R_BUILD_US] = (time.perf_counter() - t2) * 1e6
+        elif code == codes.BAD_SHAPE:
+            raise InvalidStateError(f"q and v must have shapes ({self.robot.nq},) and ({self.n},), "
+                                    f"got {np.shape(q)} and {np.shape(v)}")
         if code < 0:
             self._bad_state(np.asarray(q, float), np.asarray(v, float), float(t))
         if code == 1:

@@ -44,7 +44,7 @@ from qpctl.controllers.base import (
     plain_vectors,
 )
 from qpctl.controllers.qp_failure import Failures
-from qpctl.controllers.relaxation import REFUSALS, TaskRelaxation
+from qpctl.controllers.relaxation import REFUSALS, SLACK_ZERO, TaskRelaxation
 from qpctl.errors import ConfigError, InvalidStateError
 from qpctl.fallbacks import FallbackContext
 from qpctl.kernels import codes
@@ -148,11 +148,16 @@ class QPOutput(RecordOutput):
     def iterations(self) -> int:
         if self._extra:
             return int(self._extra["iterations"])
-        return int(self._words[1]) if self._words else 0
+        if not self._words:
+            return 0
+        iters = self._words[1]  # None: a fast tick's, in the record
+        return int(self._rec[self._layout.scalars + codes.R_ITERATIONS] if iters is None else iters)
 
     def _get_info(self) -> dict[str, Any]:
         if self._info is None and self._extra is None and self._words:
             status, iters, solver, hard_first, used_hard, refusal, relaxed_iters, exhausted = self._words
+            if iters is None:
+                iters = int(self._rec[self._layout.scalars + codes.R_ITERATIONS])
             extra: dict[str, Any] = {"status": status, "iterations": iters, "solver": solver}
             TaskRelaxation.report(extra, hard_first, used_hard, refusal, relaxed_iters)
             if exhausted:
@@ -186,6 +191,11 @@ class QPOutput(RecordOutput):
         mask = int(r[s + codes.R_ACTIVE_MASK])
         info["active_rows"] = [name for bit, name in ((2, "field"), (1, "obstacles"), (0, "torque_limits"))
                                if mask >> bit & 1]
+
+
+_ND, _F64 = np.ndarray, np.dtype(np.float64)
+_now = time.perf_counter
+getrefcount, copyto = sys.getrefcount, np.copyto
 
 
 def daqp_word(flag: int) -> str:
@@ -304,8 +314,14 @@ class CompiledTick:
             self.native_args = (*nh.kernel_args, nh.lam, *nr.kernel_args, SOLUTION_RTOL, float(ws.spec.slack_l1))
         # the one-call tick's QP arguments as one compiled argument (qpctl.kernels.native_qp)
         self.packed: Any = None if self.native_args is None else new_native_qp(*self.native_args)
-        self.last_problem: Problem | None = None
-        self.last: tuple[np.ndarray | None, str, int, str] | Solution | None = None
+        self._last_problem: Problem | None = None
+        self._last: tuple[np.ndarray | None, str, int, str] | Solution | None = None
+        self._last_lay: _Layout | None = None  # the layout whose answer a fast tick used (last, when read)
+        self._slack_at = ws.layout.scalars + codes.R_SLACK
+        # a fast tick's words (QPOutput): iterations None, read from the record
+        self._words_hard = ("solved", None, self.hard.solver.name, self.relax.hard_first(True), True, "", None, False)
+        self._words_relaxed = ("solved", None, self.relaxed.solver.name, self.relax.hard_first(True), False, "", None,
+                               False)
         self._out: QPOutput | None = None  # the last output, reused when nobody else holds it
         self._entry: Any = None  # K.tick_qp's compiled entry point for these argument types (_entry_point)
 
@@ -327,6 +343,81 @@ class CompiledTick:
         self._out = out
         return out
 
+    def fast_step(self, q: Any, v: Any, t: Any, start: float) -> QPOutput | None:
+        """The common tick in as few Python statements as it takes, or None (before anything ran that
+        :meth:`step` would not run again) when this tick is not one: computeAllTerms, then the one-call
+        kernel through its compiled entry point (q and v float64 C vectors, t a float, no tick budget,
+        both DAQP workspaces set up), then the output. A tick whose kernel reports anything but a solve
+        on the first QP it tried goes on in :meth:`_after_native`, as :meth:`step`'s would; one before
+        the entry point exists (the first), or of other types, goes to :meth:`step`."""
+        entry, ws = self._entry, self.ws
+        if entry is None or ws.lie:  # (an angle view of q: step's)
+            return None
+        try:
+            pin.computeAllTerms(ws.model, ws.data, q, v)
+        except Exception:  # noqa: BLE001 — not a state Pinocchio takes: step() checks it and says why
+            return None
+        t1 = _now()
+        if not (type(q) is _ND and type(v) is _ND and isinstance(t, float) and q.dtype is _F64 and v.dtype is _F64
+                and q.ndim == 1 and v.ndim == 1 and q.flags.c_contiguous and v.flags.c_contiguous):
+            return None
+        relax, nat_h, nat_r = self.relax, self.hard.nat, self.relaxed.nat
+        try_hard = relax.always_hard or (relax.skip_rule and relax._try_hard)
+        if not nat_r.ready or (try_hard and not nat_h.ready) or self.budget_us() > 0:  # type: ignore[union-attr]
+            return None
+        if ws._field is not None:
+            ws.sync_field()
+        code, hard = entry(ws.work, self.packed, q, v, t, try_hard)
+        if code or hard > 0:
+            code, hard = self._state_python(code, hard, q, v, t, try_hard)
+            if hard in (3, 4):
+                nat_h.free()  # type: ignore[union-attr]  # as in _native: no warm start from a failed working set
+            return self._after_native(code, hard, (t1 - start, -1.0, -1.0, -1.0), q, start)
+        used_hard = hard == 0
+        if relax.skip_rule:  # TaskRelaxation.after: a solved tick of zero slack tries the task hard again
+            relax._try_hard = used_hard or ws.rec[self._slack_at] <= SLACK_ZERO
+        self._last_lay = self.hard if used_hard else self.relaxed  # last and last_problem, when read
+        out = self._out
+        words = self._words_hard if used_hard else self._words_relaxed
+        if out is not None and getrefcount(out) <= IDLE_REFS and getrefcount(out._rec) <= IDLE_REC_REFS:
+            copyto(out._rec, ws.rec)
+            out._extra = out._info = None
+            out._stages, out._solved, out._words = (t1 - start, -1.0, -1.0, -1.0), True, words
+            out.compute_us = (_now() - start) * 1e6
+            return out
+        out = self._out = QPOutput(ws.rec.copy(), ws.layout, None, 0.0, (t1 - start, -1.0, -1.0, -1.0), True, words)
+        out.compute_us = (_now() - start) * 1e6
+        return out
+
+    @property
+    def last(self) -> tuple[np.ndarray | None, str, int, str] | Solution | None:
+        """The last tick's answer: (x or None, status, iterations, solver), or the fallback's Solution."""
+        lay = self._last_lay
+        if lay is not None:  # a fast tick's: read now, before the next tick overwrites it
+            self._last_lay = None
+            nat = lay.nat
+            assert nat is not None
+            lay.last = self._last = (nat.x, "solved", int(nat.flag[1]), lay.solver.name)
+            self._last_problem = lay.buf.problem
+        return self._last
+
+    @last.setter
+    def last(self, value: tuple[np.ndarray | None, str, int, str] | Solution | None) -> None:
+        self._last_lay, self._last = None, value
+
+    @property
+    def last_problem(self) -> Problem | None:
+        """The last tick's QP (views onto the workspace's arrays)."""
+        if self._last_lay is not None:
+            self.last  # noqa: B018 — resolves the fast tick's lazy answer and problem
+        return self._last_problem
+
+    @last_problem.setter
+    def last_problem(self, value: Problem | None) -> None:
+        if self._last_lay is not None:
+            self.last  # noqa: B018
+        self._last_problem = value
+
     def step(self, q: np.ndarray, v: np.ndarray, t: float, start: float) -> QPOutput:
         """One tick (module docstring); ``start``: when the controller's step began (the budget's
         clock, and ``compute_us``'s). On the one-call path nothing checks a good state in Python: the
@@ -343,10 +434,7 @@ class CompiledTick:
         deadline = start + budget * 1e-6 if budget > 0 else math.inf
         if one_call:
             code, hard, stages, q = self._native(q, v, t, try_hard)
-            used_hard = hard == 0
-            lay = self.hard if used_hard else self.relaxed
-            code, status, iters = lay.native_outcome(code)
-            refusal = "" if hard <= 0 else REFUSALS.get(hard) or daqp_word(self.hard.nat.flag[0])  # type: ignore[union-attr]
+            return self._after_native(code, hard, stages, q, start)
         else:
             q, v, t = fast_state(q, v, t, ws.n, ws.nq)
             self._state(q, v, t)
@@ -358,8 +446,27 @@ class CompiledTick:
             if try_hard and code == 3:  # the task conflicts with the hard rows, or its answer was refused: relax
                 refusal, lay = status, self.relaxed
                 code, status, relaxed_iters = lay.solve(deadline, terms_done=True)
+        return self._finish(code, status, iters, lay, used_hard, refusal, relaxed_iters, hard_first, one_call, stages,
+                            deadline, start, q)
+
+    def _after_native(self, code: int, hard: int, stages: tuple[float, float, float, float], q: np.ndarray,
+                      start: float) -> QPOutput:
+        """The one-call tick after its kernel: what became of the hard QP and the answer used, the
+        relaxation's memory, a failure's fallback, the output."""
+        used_hard = hard == 0
+        lay = self.hard if used_hard else self.relaxed
+        code, status, iters = lay.native_outcome(code)
+        refusal = "" if hard <= 0 else REFUSALS.get(hard) or daqp_word(self.hard.nat.flag[0])  # type: ignore[union-attr]
+        return self._finish(code, status, iters, lay, used_hard, refusal, None, self.relax.hard_first(True), True,
+                            stages, math.inf, start, q)
+
+    def _finish(self, code: int, status: str, iters: int, lay: _Layout, used_hard: bool, refusal: str,
+                relaxed_iters: int | None, hard_first: bool, one_call: bool,
+                stages: tuple[float, float, float, float], deadline: float, start: float,
+                q: np.ndarray) -> QPOutput:
+        ws, relax = self.ws, self.relax
         if code == 1:
-            raise InvalidStateError(f"the inertia matrix is not positive definite at q={q.tolist()}")
+            raise InvalidStateError(f"the inertia matrix is not positive definite at q={np.asarray(q).tolist()}")
         self.last_problem, self.last = lay.buf.problem, lay.last
         ok = code == 0
         relax.after(one_call, used_hard, ok, float(ws.rec[ws.layout.scalars + codes.R_SLACK]))
@@ -405,14 +512,7 @@ class CompiledTick:
             lock_compilation(K.tick_qp)
             if self._entry is None:
                 self._entry = entry_point(K.tick_qp, ws.work, self.packed, try_hard=True)
-            if code == codes.STATE_PYTHON:
-                ws.finish_state(q, v, t)
-                code, hard = K.qp_tick_native_hard_first(ws.work, *self.native_args, try_hard)  # type: ignore[misc]
-            elif code < 0:
-                if code == codes.BAD_SHAPE:
-                    raise InvalidStateError(f"q and v must have shapes ({ws.nq},) and ({ws.n},), "
-                                            f"got {np.shape(q)} and {np.shape(v)}")
-                self._bad_state(q, v, t)
+            code, hard = self._state_python(code, hard, q, v, t, try_hard)
             stages = (t1 - t0, -1.0, -1.0, -1.0)
         else:
             q, v, t = fast_state(q, v, t, ws.n, ws.nq)
@@ -427,6 +527,21 @@ class CompiledTick:
         if hard in (3, 4):
             nat_h.free()  # a failed or rejected working set is no warm start: cold the next time it is tried
         return code, hard, stages, q
+
+    def _state_python(self, code: int, hard: int, q: np.ndarray, v: np.ndarray, t: float,
+                      try_hard: bool) -> tuple[int, int]:
+        """The one-call kernel's (code, hard) after Python finished a state it waited for (STATE_PYTHON:
+        python-fcl's pairs, a look-ahead drift) and the rest of the tick ran; InvalidStateError for
+        a state it refused."""
+        if code == codes.STATE_PYTHON:
+            self.ws.finish_state(q, v, t)
+            return K.qp_tick_native_hard_first(self.ws.work, *self.native_args, try_hard)  # type: ignore[misc, no-any-return]
+        if code < 0:
+            if code == codes.BAD_SHAPE:
+                raise InvalidStateError(f"q and v must have shapes ({self.ws.nq},) and ({self.ws.n},), "
+                                        f"got {np.shape(q)} and {np.shape(v)}")
+            self._bad_state(q, v, t)
+        return code, hard
 
     def _setup(self, try_hard: bool) -> tuple[int, bool]:
         """DAQP's workspaces set up where they are not (the first tick, and after a failure freed one):

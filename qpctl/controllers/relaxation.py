@@ -72,6 +72,8 @@ class TaskRelaxation:
         self.native = native
         self.always_hard = mode == "on_failure" or (mode == "auto" and solver == "osqp")
         self._try_hard = True
+        # the skip rule applies to the one-call ticks (after(True, ...) below, read by the fast tick)
+        self.skip_rule = not self.always_hard and mode == "auto" and native
 
     @property
     def strategy(self) -> str:

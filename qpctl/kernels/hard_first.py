@@ -74,8 +74,6 @@ def qp_tick_native_hard_first(ws, Hh: np.ndarray, fh: np.ndarray, rowsh: np.ndar
             ws.rec[s + R_BUILD_US], ws.rec[s + R_SOLVE_US] = build, 0.0
             return code, hard
         ok = native_solve(workh, problemh, resulth, flagh) > 0
-        t2 = now_us(ts)
-        solve += t2 - t1
         nvh = Hh.shape[0]
         n_in = ws.ipar[IP_N_IN]
         m = ws.a.shape[0]
@@ -87,11 +85,12 @@ def qp_tick_native_hard_first(ws, Hh: np.ndarray, fh: np.ndarray, rowsh: np.ndar
             hard = 7
         elif not qp_finish(ws, xh, rowsh, buh, blh, tol):
             hard = 4
-        else:
-            ws.rec[s + R_BUILD_US], ws.rec[s + R_SOLVE_US] = build, solve
+        else:  # the solve and the check of its answer (the relaxed QP's below, the same)
+            ws.rec[s + R_BUILD_US], ws.rec[s + R_SOLVE_US] = build, now_us(ts) - t1
             ws.rec[s + R_ITERATIONS] = flagh[1]
             return 0, 0
         t0 = now_us(ts)
+        solve += t0 - t1
         code = qp_rebuild(ws, Hr, fr, rowsr, bur, blr)
     else:
         code = qp_terms_and_build(ws, Hr, fr, rowsr, bur, blr)
