@@ -34,7 +34,7 @@ from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels import codes
 from qpctl.kernels import tick as K
 from qpctl.kernels.lie import joint_angles
-from qpctl.kernels.work import FIELDS, new_tick_work
+from qpctl.kernels.work import FIELDS, SJ_ROWS, SV_ROWS, new_tick_work
 from qpctl.law import LawGains, LawTerms
 from qpctl.paths import PosePath, Reference, WaypointPath
 from qpctl.qp import Problem
@@ -376,6 +376,7 @@ class Workspace:
         self.Lm, self.Lb, self.S = np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, n))
         self.Bt, self.Vm = np.zeros((n, m)), np.zeros((m, m))
         self.w1, self.w2, self.w3 = np.zeros(n), np.zeros(n), np.zeros(max(n, 6))
+        self.sv, self.sj, self.ts = np.zeros((SV_ROWS, 6)), np.zeros((SJ_ROWS, 3, n)), np.zeros(2, np.int64)
         self.flags = np.zeros(codes.FLAG_SIZE, np.int64)
         self._field_arrays(spec.field if spec is not None else None, L, n)
         self.layout = RecordLayout(n, m)

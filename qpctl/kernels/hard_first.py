@@ -61,7 +61,7 @@ def qp_tick_native_hard_first(ws, Hh: np.ndarray, fh: np.ndarray, rowsh: np.ndar
     (code, hard): code as :func:`qp_tick_native`'s, for the answer used; hard: −1 not tried, 0 the
     hard answer used, 3 DAQP failed on it, 4 rejected by the check of its rows (the task rows,
     :func:`task_rows_hold`, or the others, :func:`qp_finish`), 7 not the relaxed QP's answer."""
-    ts = np.empty(2, np.int64)
+    ts = ws.ts
     s = record_scalars(ws.N.shape[0], ws.a.shape[0])
     build = solve = 0.0
     hard = -1

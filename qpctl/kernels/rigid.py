@@ -19,6 +19,8 @@ import math
 import numpy as np
 from numba import njit
 
+from qpctl.kernels.work import SJ_TASK, SV_A3, SV_P, SV_VEL
+
 
 @njit(cache=True)
 def _world_acceleration(ws, j: int, out: np.ndarray) -> None:  # type: ignore[no-untyped-def]
@@ -81,12 +83,10 @@ def rigid_terms(ws, v: np.ndarray) -> bool:  # type: ignore[no-untyped-def]
         for j in range(i + 1):
             M[i, j] = M[j, i] = Mt[i, j]
     acc = ws.w3  # scratch (≥ 6)
-    vel = np.empty(6)
-    p = np.empty(3)
-    J3 = np.empty((3, n))
+    vel, p, J3 = ws.sv[SV_VEL], ws.sv[SV_P], ws.sj[SJ_TASK]
     # task points: one per task frame (tk_*; the first is ee_*), their rows stacked in ws.axes' order
     axes, x, drift, J, xdot = ws.axes, ws.x, ws.drift, ws.J, ws.xdot
-    a3 = np.empty(3)
+    a3 = ws.sv[SV_A3]
     frames = ws.tk_joint.shape[0]
     per = axes.shape[0] // frames
     for tk in range(frames):

@@ -15,6 +15,7 @@ from numba import njit
 from qpctl.kernels.codes import FP_SCUT, FP_SELF_CLEARANCE
 from qpctl.kernels.geometry import segment_params
 from qpctl.kernels.rigid import body_point, point_jacobian
+from qpctl.kernels.work import SJ_SP, SJ_SQ, SV_SAP, SV_SAQ, SV_SP, SV_SQ, SV_SVP, SV_SVQ
 
 
 @njit(cache=True)
@@ -33,8 +34,9 @@ def self_pairs(ws) -> None:  # type: ignore[no-untyped-def]
     n = ws.v.shape[0]
     cut = ws.fpar[FP_SCUT]
     seg, cap_support = ws.segments, ws.cap_support
-    Jp, Jq = np.empty((3, n)), np.empty((3, n))
-    p, q, vp, vq, ap, aq = np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3), np.empty(3)
+    Jp, Jq = ws.sj[SJ_SP], ws.sj[SJ_SQ]
+    sv = ws.sv
+    p, q, vp, vq, ap, aq = sv[SV_SP], sv[SV_SQ], sv[SV_SVP], sv[SV_SVQ], sv[SV_SAP], sv[SV_SAQ]
     best = np.inf
     for r in range(P):
         i, j = ws.sc_pairs[r, 0], ws.sc_pairs[r, 1]

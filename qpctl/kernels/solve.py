@@ -46,7 +46,7 @@ def qp_tick_native(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.nd
     (with the build and solve times [µs]). 0: solved and accepted; 1: M not positive definite;
     2: non-finite problem (not solved); 3: DAQP failed (its exit flag in ``flag[0]``); 4: x violates a
     hard row or is not finite."""
-    ts = np.empty(2, np.int64)
+    ts = ws.ts
     t0 = now_us(ts)
     code = qp_terms_and_build(ws, H, f, rows, bu, bl)
     t1 = now_us(ts)

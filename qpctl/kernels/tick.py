@@ -119,7 +119,7 @@ def tick_closed_form(ws, q: np.ndarray, v: np.ndarray, t: float, weighted: bool)
         return BAD_SHAPE
     if not abs(t) < np.inf:
         return -1
-    ts = np.empty(2, np.int64)
+    ts = ws.ts
     code = state_timed(ws, q, v, t, ts)
     if code != 0:
         return code
@@ -135,7 +135,7 @@ def tick_qp_native(ws, q: np.ndarray, v: np.ndarray, t: float, H: np.ndarray, f:
                    flag: np.ndarray, x: np.ndarray, tol: float) -> int:
     """State and :func:`qp_tick_native` in one call: its codes, or −1 (the dynamics overflow) or
     STATE_PYTHON (the state is waiting for Python; then call :func:`qp_tick_native`)."""
-    ts = np.empty(2, np.int64)
+    ts = ws.ts
     code = state_timed(ws, q, v, t, ts)
     if code != 0:
         return code
@@ -151,7 +151,7 @@ def tick_qp_native_hard_first(ws, q: np.ndarray, v: np.ndarray, t: float, Hh: np
                               l1: float, try_hard: bool) -> tuple[int, int]:
     """State and :func:`qp_tick_native_hard_first` in one call: its pair, or (−1 | STATE_PYTHON, −1)
     as :func:`tick_qp_native`."""
-    ts = np.empty(2, np.int64)
+    ts = ws.ts
     code = state_timed(ws, q, v, t, ts)
     if code != 0:
         return code, -1
@@ -171,7 +171,7 @@ def tick_qp(ws, nq, q: np.ndarray, v: np.ndarray, t: float, try_hard: bool) -> t
         return BAD_SHAPE, -1
     if not abs(t) < np.inf:  # NaN or ±inf; q and v: the state's overflow test (rigid_terms)
         return -1, -1
-    ts = np.empty(2, np.int64)
+    ts = ws.ts
     code = state_timed(ws, q, v, t, ts)
     if code != 0:
         return code, -1

@@ -172,9 +172,21 @@ FIELDS = (
     "w1",  # (n,) scratch
     "w2",  # (n,) scratch
     "w3",  # (max(n, 3),) scratch
+    "sv",  # (SV_ROWS, 6) scratch vectors of the state kernels (rows SV_*: no allocation per tick)
+    "sj",  # (SJ_ROWS, 3, n) scratch point Jacobians of the state kernels (SJ_*)
+    "ts",  # (2,) int: the clock's timespec (qpctl.kernels.clock.now_us)
     "flags",  # (FLAG_SIZE,) int: per-tick flags, indexed by the FLAG_* constants
     "rec",  # (record size,) the tick's output record (qpctl.tick.RecordLayout)
 )
+
+
+# Rows of the scratch arrays sv and sj: rigid_terms' (a body's spatial velocity, the task point, its
+# acceleration; its Jacobian) and self_pairs' (the witness points, their velocities and accelerations;
+# their Jacobians)
+SV_VEL, SV_P, SV_A3, SV_SP, SV_SQ, SV_SVP, SV_SVQ, SV_SAP, SV_SAQ = range(9)
+SV_ROWS = 9
+SJ_TASK, SJ_SP, SJ_SQ = range(3)
+SJ_ROWS = 3
 
 
 def _make_proxy() -> None:
