@@ -44,11 +44,55 @@ def fresh_scenes(count: int) -> Iterator[dict[str, Any]]:
         yield next(drawn)[2]
 
 
-def _run(raw: dict[str, Any], oracle_every: int = brake.ORACLE_EVERY) -> dict[str, Any]:
+def soak_scenes(count: int) -> Iterator[dict[str, Any]]:
+    """The soak's own scenes (``make soak``'s stream, tests/test_soak_brake.py), in draw order."""
+    drawn = soak.valid_scenes(np.random.default_rng(soak.SEED), Counter())
+    for _ in range(count):
+        yield next(drawn)[2]
+
+
+def _run(job: tuple[dict[str, Any], int, bool]) -> dict[str, Any]:
+    raw, oracle_every, backup = job
     try:
-        return brake.guarded_run(raw, oracle_every)
+        return brake.guarded_run(raw, oracle_every, backup=backup)
     except Exception as exc:  # noqa: BLE001 — reported with the scene, the run goes on
         return {"name": raw["name"], "error": f"{type(exc).__name__}: {exc}"}
+
+
+def compare(guarded: list[dict[str, Any]], bare: list[dict[str, Any]]) -> dict[str, Any]:
+    """Issue 22 item 6 on the scenes both runs finished: median RMS tracking [m] with the guard vs
+    without over the scenes that were collision-free without it (and over those free in both), the
+    collisions each way, and the per-tick cost of the guard (every tick, and the checked ones) [µs]."""
+    by = {r["name"]: r for r in bare}
+    pairs = [(g, by[g["name"]]) for g in guarded if g["name"] in by]
+    free = [(g, b) for g, b in pairs if not b["collided"]]
+    both = [(g, b) for g, b in free if not g["collided"]]
+    ticks = np.concatenate([np.asarray(g["tick_us"], float) for g, _ in pairs]) if pairs else np.zeros(0)
+    checked = np.concatenate([np.asarray(g["check_us"], float) for g, _ in pairs]) if pairs else np.zeros(0)
+
+    def med(rows: list[dict[str, Any]]) -> float | None:
+        return float(np.median([r["rms_tracking_error"] for r in rows])) if rows else None
+
+    out: dict[str, Any] = {
+        "scenes": len(pairs), "collided_without": sum(b["collided"] for _, b in pairs),
+        "collided_with": sum(g["collided"] for g, _ in pairs),
+        "static_collided_without": sum(b["collided"] and not b["moving"] for _, b in pairs),
+        "static_collided_with": sum(g["collided"] and not g["moving"] for g, _ in pairs),
+        "free_without": len(free), "rms_median_without": med([b for _, b in free]),
+        "rms_median_with": med([g for g, _ in free]),
+        "free_both": len(both), "rms_median_without_free_both": med([b for _, b in both]),
+        "rms_median_with_free_both": med([g for g, _ in both]),
+        "rms_ratio_per_scene_median": float(np.median([g["rms_tracking_error"] / max(b["rms_tracking_error"], 1e-12)
+                                                      for g, b in free])) if free else None,
+        "tick_us_median": float(np.median(ticks)) if ticks.size else None,
+        "tick_us_p99": float(np.percentile(ticks, 99)) if ticks.size else None,
+        "checked_us_median": float(np.median(checked)) if checked.size else None,
+        "checked_us_p99": float(np.percentile(checked, 99)) if checked.size else None,
+        "intervention_share": sum(g["backup_ticks"] for g, _ in pairs) / max(sum(g["ticks"] for g, _ in pairs), 1),
+    }
+    if out["rms_median_with"] is not None and out["rms_median_without"]:
+        out["rms_change"] = out["rms_median_with"] / out["rms_median_without"] - 1
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -57,20 +101,37 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--oracle-every", type=int, default=brake.ORACLE_EVERY, help="0: no oracle")
     ap.add_argument("--out", type=Path, default=soak.OUT)
+    ap.add_argument("--scene-set", choices=("fresh", "soak"), default="fresh",
+                    help="fresh: issue 22's seeded set (summary_brake.json); soak: make soak's own scenes")
+    ap.add_argument("--compare", action="store_true",
+                    help="each scene with and without the guard (no oracle): item 6's tracking, collisions "
+                         "both ways, the per-tick cost (summary_brake_compare_<set>.json)")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
+    scenes = list((fresh_scenes if args.scene_set == "fresh" else soak_scenes)(args.scenes))
+    if args.compare:
+        jobs = [(raw, 0, b) for raw in scenes for b in (True, False)]
+        path = args.out / f"summary_brake_compare_{args.scene_set}.json"
+    else:
+        jobs = [(raw, args.oracle_every, True) for raw in scenes]
+        path = args.out / ("summary_brake.json" if args.scene_set == "fresh" else "summary_brake_soakset.json")
     rows: list[dict[str, Any]] = []
+    bare: list[dict[str, Any]] = []
     errors: list[dict[str, Any]] = []
     start = time.time()
     with mp.get_context("spawn").Pool(args.jobs) as pool:
-        for row in pool.imap(_run, fresh_scenes(args.scenes), chunksize=1):
-            (errors if "error" in row else rows).append(row)
-            summary = {"seed": [soak.SEED, STREAM], "scenes_requested": args.scenes, "elapsed_s": time.time() - start,
-                       "jobs": args.jobs, "errors": errors, **brake.summarise(rows)}
-            (args.out / "summary_brake.json").write_text(
-                json.dumps({"summary": summary, "runs": brake.public(rows)}, indent=1, default=float) + "\n")
-            print(row["name"], {k: row.get(k) for k in ("min_clearance", "backup_ticks", "unverified",
-                                                        "oracle_uncertified", "wall_s", "error")}, flush=True)
+        for (_, _, backup), row in zip(jobs, pool.imap(_run, jobs, chunksize=1), strict=True):
+            (errors if "error" in row else rows if backup else bare).append(row)
+            summary = {"seed": [soak.SEED, STREAM] if args.scene_set == "fresh" else soak.SEED,
+                       "scene_set": args.scene_set, "scenes_requested": args.scenes,
+                       "elapsed_s": time.time() - start, "jobs": args.jobs, "errors": errors, **brake.summarise(rows)}
+            if args.compare:
+                summary["compare"] = compare(rows, bare)
+            path.write_text(json.dumps({"summary": summary, "runs": brake.public(rows), "runs_without": brake.public(bare)},
+                                       indent=1, default=float) + "\n")
+            print(row["name"], "guard" if backup else "bare",
+                  {k: row.get(k) for k in ("min_clearance", "collided", "rms_tracking_error", "backup_ticks",
+                                           "unverified", "oracle_uncertified", "wall_s", "error")}, flush=True)
     print(json.dumps(summary, indent=1, default=float))
     return 0
 

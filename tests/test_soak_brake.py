@@ -37,20 +37,21 @@ ORACLE_EVERY = 10
 ORACLE_GAINS = GUARD_GAINS
 
 
-def guarded(raw: dict[str, Any], *, check_distance: float | None = None) -> dict[str, Any]:
-    """The scene with the backup on (and its check distance [m], if given)."""
-    c = {**raw["controller"], "backup": True}
+def guarded(raw: dict[str, Any], *, check_distance: float | None = None, backup: bool = True) -> dict[str, Any]:
+    """The scene with the backup on (and its check distance [m], if given); ``backup=False``: off."""
+    c = {**raw["controller"], "backup": backup}
     if check_distance is not None:
         c["backup_check_distance"] = check_distance
     return {**raw, "controller": c}
 
 
 def guarded_run(raw: dict[str, Any], oracle_every: int = ORACLE_EVERY,
-                check_distance: float | None = None) -> dict[str, Any]:
+                check_distance: float | None = None, backup: bool = True) -> dict[str, Any]:
     """One scene behind the guard in the built-in simulator: clearance, collisions (at rest or not),
     the guard's counts and check cost [µs], the limits kept, and the oracle on every
-    ``oracle_every``-th visited state (0: none)."""
-    sc = Scenario.from_dict(guarded(raw, check_distance=check_distance), source=raw["name"])
+    ``oracle_every``-th visited state (0: none). ``backup=False``: the same scene without the guard
+    (its counts zero), for the comparison of tracking and collisions."""
+    sc = Scenario.from_dict(guarded(raw, check_distance=check_distance, backup=backup), source=raw["name"])
     ctrl = sc.build_controller()
     dt = float(raw["sim"]["dt"])
     t0 = time.perf_counter()
@@ -66,8 +67,9 @@ def guarded_run(raw: dict[str, Any], oracle_every: int = ORACLE_EVERY,
         "min_clearance": float(tr.clearance.min()), "collided": m["collided"],
         "contacts": int(np.sum((tr.clearance[1:] < 0) & (tr.clearance[:-1] >= 0)) + (tr.clearance[0] < 0)),
         "collisions_at_rest": m["collisions_at_rest"], "rms_tracking_error": m["rms_tracking_error"],
-        "checked": m["backup_checked_ticks"], "backup_ticks": m["backup_ticks"],
-        "unverified": m["backup_unverified_ticks"], "check_us": ctrl.stats["check_us"],
+        "checked": m.get("backup_checked_ticks", 0), "backup_ticks": m.get("backup_ticks", 0),
+        "unverified": m.get("backup_unverified_ticks", 0), "check_us": ctrl.stats["check_us"] if backup else [],
+        "tick_us": [float(i.get("backup_check_us", 0.0)) for i in tr.infos] if backup else [],
         "torque_over_limit": bool(np.any(np.abs(tr.tau) > robot.tau_max + 1e-9)),
         "rate_over_limit": bool(np.any(rate > robot.tau_rate_max * dt * (1 + 1e-6) + 1e-9)),
         "wall_s": wall,
@@ -117,7 +119,7 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
 
 def public(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """The rows as written (the per-tick check times summarised)."""
-    return [{k: v for k, v in r.items() if k != "check_us"}
+    return [{k: v for k, v in r.items() if k not in ("check_us", "tick_us")}
             | {"check_us_median": float(np.median(r["check_us"])) if r["check_us"] else None} for r in rows]
 
 
