@@ -91,10 +91,8 @@ def tick_cost(name: str, overrides: list[str]) -> dict[str, float]:
             "on_median": float(np.median(t_on)), "on_p99": float(np.percentile(t_on, 99))}
 
 
-def rollout_cost(passes: int = 21) -> dict[str, dict[str, float]]:
-    """µs per step of the oracle's rollout and the lean one's (module docstring): the compiled loop
-    (``lean``, ``lean_lazy``) and the same rollout through Pinocchio's rnea/aba from Python
-    (``pinocchio_lazy``, ``BrakeRollout.compiled = False``), interleaved pass by pass, medians."""
+def rollout_cost(passes: int = 5) -> dict[str, dict[str, float]]:
+    """µs per step of the oracle's rollout and the lean one's (module docstring)."""
     import test_rollout as cases
 
     from qpctl.safety.oracle import rollout
@@ -106,10 +104,9 @@ def rollout_cost(passes: int = 21) -> dict[str, dict[str, float]]:
         sim = Simulator(ctrl, dt=cases.DT, duration=cases.DT)
         lean = BrakeRollout(ctrl.robot, sim.world, cases.DT)
         tau = cases.gravity(ctrl.robot, q)
-        times: dict[str, list[float]] = {"oracle": [], "lean": [], "lean_lazy": [], "pinocchio_lazy": []}
+        times: dict[str, list[float]] = {"oracle": [], "lean": [], "lean_lazy": []}
         for _ in range(passes + 1):  # the first pass compiles and is dropped
             for key, got in times.items():
-                lean.compiled = key != "pinocchio_lazy"
                 a = time.perf_counter()
                 c = (rollout(sim, q, v, tau, 0.0, 25.0) if key == "oracle"
                      else lean.run(q, v, tau, 0.0, 25.0, exact=key == "lean"))

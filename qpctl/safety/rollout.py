@@ -1,20 +1,15 @@
-"""The lean brake rollout (issue 22, item 2): the oracle's brake and the built-in simulator's RK4 in
-one compiled loop (:func:`qpctl.kernels.rollout.advance`, with its own RNEA and ABA for revolute
-one-degree-of-freedom joints, equal to Pinocchio's to rounding) that returns to Python only for the
-world clearance of the simulator's own :class:`qpctl.tick.WorldClearance` — no
-:class:`~qpctl.simulation.Simulator` object stepped. Robots with other joints (``compiled`` False)
-call Pinocchio's ``rnea``/``aba`` from Python on preallocated arrays with the step's arithmetic in
-the same module's small kernels.
+"""The lean brake rollout (issue 22, item 2): the oracle's brake and the built-in simulator's RK4,
+with Pinocchio called directly on preallocated arrays, the step's arithmetic in compiled kernels
+(:mod:`qpctl.kernels.rollout`) and the world clearance of the simulator's own
+:class:`qpctl.tick.WorldClearance` — no :class:`~qpctl.simulation.Simulator` object stepped.
 
 Per step at (q, q̇, t) after τ_prev, exactly as :func:`qpctl.safety.oracle.rollout` does it:
 
     clearance(q, t);  τ = clip(clip(RNEA(q, q̇, −κq̇), ±τ_max), τ_prev ± τ̇_max Δt)
     (q, q̇) ← RK4 of q̇ = v, v̇ = ABA(q, v, τ) over Δt          (simulation.simulator.rk4_step's stages)
 
-The arithmetic is rk4_step's operations in the same order; the compiled RNEA/ABA group their sums
-differently from Pinocchio's, so the states equal the simulator's to rounding, not bit for bit (the
-tests hold them to 1e-12 against the oracle over 300 steps: 4.5e-14 rad measured on the planar arm,
-the torques to 1e-12·τ_max; the verdicts and steps equal); a robot with continuous or planar joints integrates on
+The arithmetic is rk4_step's operations in the same order, so the states equal the simulator's (the
+tests hold them to 1e-12 against the oracle); a robot with continuous or planar joints integrates on
 its configuration space through ``robot.integrate`` as the simulator does.
 
 **Lazy clearance** (``exact=False``, the guard's): the world clearance is a 1-Lipschitz function of
@@ -66,28 +61,9 @@ class BrakeRollout:
         self.rho = lever_arms(robot)  # None: a joint that is not revolute
         self.obstacle_speed = max((float(np.linalg.norm(o.velocity) + 2 * np.pi * o.frequency * np.linalg.norm(o.amplitude))
                                    for o in world.ws.obstacles), default=0.0)
-        self.arrays = model_arrays(model) if self.rho is not None else None
-        self.compiled = self.arrays is not None  # False: Pinocchio's rnea/aba from Python (the reference path)
-        if self.arrays is not None:  # the compiled loop's arrays, packed (K.advance_packed); the views below share them
-            self._S66, self._Rs, self._S6 = np.zeros((2, n, 6, 6)), np.zeros((n, 3, 3)), np.zeros((6, n, 6))
-            self._tmp, self._Sn, self._K4 = np.zeros((2, 6)), np.zeros((8, n)), np.zeros((2, 4, n))
-            self._L = np.array([self.q_min, self.q_max, self.rho, self.tau_max, self.window], float)
-            self._par, self._st, self._none = np.zeros(8), np.zeros(4), np.zeros((0, n))
-            self._qs, self._vs, self._dq, self._dv, self.qdd, self.tau = (self._Sn[i] for i in range(2, 8))
-            self._kq, self._ka = self._K4[0], self._K4[1]
-            X, IA = self._S66
-            vel, acc, frc, c, pA, U = self._S6
-            self._dyn = self.arrays + (X, self._Rs, vel, acc)
-            self._frc = frc
-            self._aba = (c, pA, IA, U, self._Sn[0], self._Sn[1], self._tmp)
-            self._rk = (self._kq, self._ka, self._qs, self._vs, self._dq, self._dv)
 
     def torque(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, gain: float) -> np.ndarray:
         """The brake's torque [N·m] at (q, q̇) after τ_prev into ``self.tau`` (oracle.brake_torque)."""
-        if self.compiled:
-            K.brake_torque(q, v, tau_prev, gain, self.tau_max, self.window, *self._dyn, self._frc, self._tmp, self.qdd,
-                           self.tau)
-            return self.tau
         np.multiply(v, -gain, out=self.qdd)
         self.tau[:] = pin.rnea(self.model, self.data, q, v, self.qdd)
         K.clip_brake(self.tau, self.tau_max, tau_prev, self.window)
@@ -105,9 +81,6 @@ class BrakeRollout:
     def step(self, q: np.ndarray, v: np.ndarray) -> None:
         """One RK4 step of the held ``self.tau`` over dt; (q, v) updated in place (rk4_step's stages)."""
         dt = self.dt
-        if self.compiled:
-            K.rk4(q, v, self.tau, dt, *self._dyn, *self._aba, *self._rk)
-            return
         self._kq[0] = v
         self._ka[0] = pin.aba(self.model, self.data, q, v, self.tau)
         self._stage(q, v, 0.5 * dt, 0)
@@ -130,14 +103,11 @@ class BrakeRollout:
 
     def run(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, *,
             horizon: float = 3.0, margin: float = 0.0, stop_below: float = -np.inf,
-            exact: bool = True, trace: np.ndarray | None = None) -> Certificate:
+            exact: bool = True) -> Certificate:
         """The brake of gain κ [1/s] from (q, q̇ [rad/s], τ_prev [N·m]) at t [s]: the
         :class:`~qpctl.safety.oracle.Certificate` :func:`qpctl.safety.oracle.rollout` gives (the
         arguments mean the same; a state that is not finite ends it, not viable). Inputs unchanged.
-        ``exact=False``: the lazy clearance (module docstring; the least clearance a lower bound).
-        ``trace``: an array of rows (steps + 1, nq) the compiled loop writes each step's q into (a test's record)."""
-        if self.compiled:
-            return self._run_compiled(q, v, tau_prev, t, gain, horizon, margin, stop_below, exact, trace)
+        ``exact=False``: the lazy clearance (module docstring; the least clearance a lower bound)."""
         dt, world, rho = self.dt, self.world, self.rho
         lazy = not exact and rho is not None
         level = max(margin, stop_below)
@@ -163,58 +133,6 @@ class BrakeRollout:
             if lazy:
                 drift += K.travel(self._dq, rho) + self.obstacle_speed * dt
         return Certificate(False, gain, worst, np.inf, steps)
-
-    def _run_compiled(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, horizon: float,
-                      margin: float, stop_below: float, exact: bool, trace: np.ndarray | None) -> Certificate:
-        """:meth:`run` as one compiled loop (:func:`qpctl.kernels.rollout.advance`) that returns here only
-        for the world clearance it needs."""
-        dt, world = self.dt, self.world
-        qq, vv, prev = np.array(q, float), np.array(v, float), np.array(tau_prev, float)
-        st = self._st
-        st[:] = (np.inf, 0.0, np.inf, np.inf)  # worst, still, last, drift
-        steps = round(horizon / dt)
-        rec = self._none if trace is None else trace
-        if rec.shape[0]:
-            rec[0] = qq
-        self._par[:] = (gain, dt, 0.0 if exact else 1.0, max(margin, stop_below), stop_below, REST_SPEED, REST_TIME,
-                        self.obstacle_speed)
-        args = (st, self._par, self._L, *self.arrays, self._S66, self._Rs, self._S6, self._tmp, self._Sn, self._K4, rec)
-        k, have = 0, False
-        while True:
-            ans, k = K.advance_packed(qq, vv, prev, k, steps, have, *args)
-            if ans != K.NEED:
-                break
-            last = world(qq, t + k * dt)
-            st[2], st[3], st[0] = last, 0.0, min(st[0], last)
-            have = True
-        worst = float(st[0])
-        if ans == K.RESTED:
-            return Certificate(worst > margin, gain, worst, k * dt, k)
-        return Certificate(False, gain, worst, np.inf, k)
-
-
-def model_arrays(model: pin.Model) -> tuple[np.ndarray, ...] | None:
-    """The arrays of :mod:`qpctl.kernels.rollout`'s RNEA and ABA for a model of one-degree-of-freedom
-    revolute joints (parent, placement rotation and translation, axis, spatial inertia, armature, the
-    base's acceleration −g); None for any other joint."""
-    axes = {"JointModelRX": (1.0, 0.0, 0.0), "JointModelRY": (0.0, 1.0, 0.0), "JointModelRZ": (0.0, 0.0, 1.0)}
-    rows = []
-    for j in range(1, model.njoints):
-        name = model.joints[j].shortname()
-        if name in axes:
-            rows.append(axes[name])
-        elif name == "JointModelRevoluteUnaligned":
-            rows.append(tuple(np.asarray(model.joints[j].extract().axis, float)))
-        else:
-            return None
-    if model.nq != model.nv or [model.joints[j].idx_v for j in range(1, model.njoints)] != list(range(model.nv)):
-        return None
-    g = model.gravity
-    return (np.array([model.parents[j] - 1 for j in range(1, model.njoints)], np.int64),
-            np.array([model.jointPlacements[j].rotation for j in range(1, model.njoints)], float),
-            np.array([model.jointPlacements[j].translation for j in range(1, model.njoints)], float),
-            np.array(rows, float), np.array([model.inertias[j].matrix() for j in range(1, model.njoints)], float),
-            np.asarray(model.armature, float).copy(), -np.concatenate([g.linear, g.angular]))
 
 
 REVOLUTE = ("JointModelRX", "JointModelRY", "JointModelRZ", "JointModelRevoluteUnaligned")
