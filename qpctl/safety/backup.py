@@ -68,6 +68,7 @@ class BackupGuard:
             float(horizon)
         self.gains = tuple(gains)
         self.exact = False  # the lazy clearance (True: every step's clearance evaluated; the same verdicts)
+        self.tries: int | None = None  # gains tried from a proposal's successor (None: the whole family)
         self.world = WorldClearance(controller.robot, controller.obstacles)  # obstacles only: no self pairs
         self.brake = BrakeRollout(controller.robot, self.world, self.dt)
         self._limit = next((c for c in getattr(controller, "constraints", []) if isinstance(c, TorqueLimit)), None)
@@ -92,10 +93,12 @@ class BackupGuard:
         self._reset_backup()
         return float(out)
 
-    def _first_verified(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float) -> float | None:
-        """The gain of the first brake (the stored one first) verified from (q, q̇) after τ_prev at t."""
+    def _first_verified(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float,
+                        tries: int | None = None) -> float | None:
+        """The gain of the first brake (the stored one first) verified from (q, q̇) after τ_prev at t,
+        trying at most ``tries`` gains (None: all)."""
         order = ([self._gain] if self._gain is not None else []) + [g for g in self.gains if g != self._gain]
-        for g in order:
+        for g in order[:tries]:
             if self.brake.run(q, v, tau_prev, t, g, horizon=self.horizon, margin=self.margin,
                               stop_below=self.margin, exact=self.exact).viable:
                 return g
@@ -106,7 +109,7 @@ class BackupGuard:
         proposal ``tau`` at (q, q̇, t), the stored gain and the torque applied last; ``info`` gets
         ``backup`` / ``backup_unverified`` where they apply."""
         q1, v1 = self.brake.successor(q, v, tau)
-        gain = self._first_verified(q1, v1, tau, t + self.dt)
+        gain = self._first_verified(q1, v1, tau, t + self.dt, self.tries)
         if gain is not None:
             self._gain = gain
             return tau
