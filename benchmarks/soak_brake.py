@@ -44,11 +44,175 @@ def fresh_scenes(count: int) -> Iterator[dict[str, Any]]:
         yield next(drawn)[2]
 
 
-def _run(raw: dict[str, Any], oracle_every: int = brake.ORACLE_EVERY) -> dict[str, Any]:
+def soak_scenes(count: int) -> Iterator[dict[str, Any]]:
+    """The soak's own scenes (``make soak``'s stream, tests/test_soak_brake.py), in draw order."""
+    drawn = soak.valid_scenes(np.random.default_rng(soak.SEED), Counter())
+    for _ in range(count):
+        yield next(drawn)[2]
+
+
+def _run(job: tuple[dict[str, Any], int, bool]) -> dict[str, Any]:
+    raw, oracle_every, backup = job
     try:
-        return brake.guarded_run(raw, oracle_every)
+        return brake.guarded_run(raw, oracle_every, backup=backup)
     except Exception as exc:  # noqa: BLE001 — reported with the scene, the run goes on
         return {"name": raw["name"], "error": f"{type(exc).__name__}: {exc}"}
+
+
+def compare(guarded: list[dict[str, Any]], bare: list[dict[str, Any]]) -> dict[str, Any]:
+    """Issue 22 item 6 on the scenes both runs finished: median RMS tracking [m] with the guard vs
+    without over the scenes that were collision-free without it (and over those free in both), the
+    collisions each way, and the per-tick cost of the guard (every tick, and the checked ones) [µs]."""
+    by = {r["name"]: r for r in bare}
+    pairs = [(g, by[g["name"]]) for g in guarded if g["name"] in by]
+    free = [(g, b) for g, b in pairs if not b["collided"]]
+    both = [(g, b) for g, b in free if not g["collided"]]
+    ticks = np.concatenate([np.asarray(g["tick_us"], float) for g, _ in pairs]) if pairs else np.zeros(0)
+    checked = np.concatenate([np.asarray(g["check_us"], float) for g, _ in pairs]) if pairs else np.zeros(0)
+
+    def med(rows: list[dict[str, Any]]) -> float | None:
+        return float(np.median([r["rms_tracking_error"] for r in rows])) if rows else None
+
+    out: dict[str, Any] = {
+        "scenes": len(pairs), "collided_without": sum(b["collided"] for _, b in pairs),
+        "collided_with": sum(g["collided"] for g, _ in pairs),
+        "static_collided_without": sum(b["collided"] and not b["moving"] for _, b in pairs),
+        "static_collided_with": sum(g["collided"] and not g["moving"] for g, _ in pairs),
+        "free_without": len(free), "rms_median_without": med([b for _, b in free]),
+        "rms_median_with": med([g for g, _ in free]),
+        "free_both": len(both), "rms_median_without_free_both": med([b for _, b in both]),
+        "rms_median_with_free_both": med([g for g, _ in both]),
+        "rms_ratio_per_scene_median": float(np.median([g["rms_tracking_error"] / max(b["rms_tracking_error"], 1e-12)
+                                                      for g, b in free])) if free else None,
+        "tick_us_median": float(np.median(ticks)) if ticks.size else None,
+        "tick_us_p99": float(np.percentile(ticks, 99)) if ticks.size else None,
+        "checked_us_median": float(np.median(checked)) if checked.size else None,
+        "checked_us_p99": float(np.percentile(checked, 99)) if checked.size else None,
+        "intervention_share": sum(g["backup_ticks"] for g, _ in pairs) / max(sum(g["ticks"] for g, _ in pairs), 1),
+    }
+    if out["rms_median_with"] is not None and out["rms_median_without"]:
+        out["rms_change"] = out["rms_median_with"] / out["rms_median_without"] - 1
+    return out
+
+
+def check_cost(scenes: int, every: int = 3, passes: int = 1) -> dict[str, Any]:
+    """The guard's check, replayed (``--cost``): each of the first ``scenes`` soak scenes runs behind
+    the guard and every ``every``-th tick's check inputs are recorded (state, proposal, stored gain,
+    torque applied last); each recorded check is then replayed, in turn, by the guard as configured
+    (``guard``) and by the reference (``exact``: every step's clearance evaluated, no early end, every
+    gain tried; the previous code's verdict). It reports per mode the CPU time of a check (``time.thread_time``: independent of the
+    other processes' load on a shared machine; the wall time too) as median / p99 [µs], and counts the
+    checks whose outcome (the torque applied, the gain stored) differs from the reference's."""
+    from qpctl import Scenario
+    from qpctl.simulation import Simulator
+
+    modes = {"guard": False, "exact": True}
+    cpu: dict[str, list[float]] = {m: [] for m in modes}
+    wall: dict[str, list[float]] = {m: [] for m in modes}
+    differ = dict.fromkeys(modes, 0)
+    replayed = 0
+    for raw in soak_scenes(scenes):
+        sc = Scenario.from_dict(brake.guarded(raw), source=raw["name"])
+        guard = sc.build_controller()
+        guard.warmup()
+        rec: list[tuple[Any, ...]] = []
+        check = guard.check
+        tick = [0]
+
+        def recording(q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float, info: dict[str, Any],
+                      check: Any = check, guard: Any = guard, rec: list[tuple[Any, ...]] = rec,
+                      tick: list[int] = tick) -> np.ndarray:
+            tick[0] += 1
+            if tick[0] % every == 0:
+                rec.append((q.copy(), v.copy(), tau.copy(), t, guard._gain, guard._tau_prev.copy()))
+            return check(q, v, tau, t, info)
+
+        guard.check = recording
+        Simulator(guard, dt=raw["sim"]["dt"], duration=raw["sim"]["duration"]).run(sc.q0(guard.robot))
+        del guard.check
+        guard._limit = None  # no side effect on the controller's rate window in the replay
+        for q, v, tau, t, gain, prev in rec:
+            outcome = {}
+            for _ in range(passes):
+                for m, exact in modes.items():
+                    guard.exact = exact
+                    guard._gain, guard._tau_prev = gain, prev
+                    c0, w0 = time.thread_time(), time.perf_counter()
+                    applied = guard.check(q, v, tau, t, {})
+                    cpu[m].append((time.thread_time() - c0) * 1e6)
+                    wall[m].append((time.perf_counter() - w0) * 1e6)
+                    outcome[m] = (applied.copy(), guard._gain)
+            ref_tau, ref_gain = outcome["exact"]
+            for m, (got_tau, got_gain) in outcome.items():
+                differ[m] += bool(got_gain != ref_gain or not np.allclose(got_tau, ref_tau, rtol=1e-9, atol=1e-9))
+            replayed += 1
+        guard.exact = False
+        print(raw["name"], len(rec), {m: round(float(np.median(cpu[m][-len(rec):])), 1) for m in modes}, flush=True)
+    return {"scenes": scenes, "every": every, "checks_replayed": replayed,
+            **{m: {"cpu_us_median": float(np.median(cpu[m])), "cpu_us_p99": float(np.percentile(cpu[m], 99)),
+                   "wall_us_median": float(np.median(wall[m])), "wall_us_p99": float(np.percentile(wall[m], 99)),
+                   "outcomes_differing_from_exact": differ[m]} for m in modes}}
+
+
+def faults_run(raw: dict[str, Any], backup: bool) -> dict[str, Any]:
+    """One faults-soak scene (its ``[faults]`` table: the simulator applies them, the controller runs
+    on its perceived map and measured state) with or without the guard; tick budgets off."""
+    from qpctl import Scenario
+    from qpctl.simulation import Simulator
+    from qpctl.simulation.metrics import compute_metrics
+
+    raw = {**raw, "controller": {**raw["controller"], "tick_budget_us": 0.0}}
+    scen = Scenario.from_dict(brake.guarded(raw, backup=backup), source=raw["name"])
+    faults = scen.faults()
+    robot = scen.build_robot()
+    truth = scen.build_obstacles()
+    ctrl = scen.build_controller(robot=robot, obstacles=faults.perceived(truth, robot.task_axes))
+    ctrl.warmup()
+    try:
+        tr = Simulator(ctrl, dt=raw["sim"]["dt"], duration=raw["sim"]["duration"], faults=faults,
+                       obstacles=truth).run(scen.q0(robot))
+    except Exception as exc:  # noqa: BLE001 — a diverged run is reported with its scene
+        return {"name": raw["name"], "backup": backup, "error": f"{type(exc).__name__}: {exc}"}
+    m = compute_metrics(tr)
+    return {"name": raw["name"], "backup": backup, "faults": faults.kinds(),
+            "moving": any(o.moving for o in truth), "collided": bool(tr.clearance.min() < 0),
+            "min_clearance": float(tr.clearance.min()), "collisions_at_rest": m["collisions_at_rest"],
+            "backup_ticks": m.get("backup_ticks", 0), "unverified": m.get("backup_unverified_ticks", 0),
+            "rms_tracking_error": m["rms_tracking_error"]}
+
+
+def faults_compare(count: int) -> dict[str, Any]:
+    """The faults soak's scenes (``test_soak.test_soak_with_faults``: stream [SEED, 12], its random
+    faults), the first ``count``, each without and with the guard (``--faults``)."""
+    def with_faults(raw: dict[str, Any], k: int) -> None:
+        raw["faults"] = soak.random_faults(np.random.default_rng([soak.SEED, 12, k]), raw, k)
+
+    drawn = soak.valid_scenes(np.random.default_rng([soak.SEED, 12]), Counter(), with_faults)
+    rows: dict[bool, list[dict[str, Any]]] = {False: [], True: []}
+    for _ in range(count):
+        raw = next(drawn)[2]
+        for backup in (False, True):
+            row = faults_run(raw, backup)
+            rows[backup].append(row)
+            print(row["name"], "guard" if backup else "bare",
+                  {k: row.get(k) for k in ("min_clearance", "collided", "backup_ticks", "unverified", "error")}, flush=True)
+
+    def count_of(rs: list[dict[str, Any]], pred: Any) -> int:
+        return sum(1 for r in rs if "error" not in r and pred(r))
+
+    out: dict[str, Any] = {"seed": [soak.SEED, 12], "scenes": count}
+    for backup, rs in rows.items():
+        out["with_guard" if backup else "without_guard"] = {
+            "errors": [r["name"] for r in rs if "error" in r],
+            "collided": count_of(rs, lambda r: r["collided"]),
+            "static_scenes": count_of(rs, lambda r: not r["moving"]),
+            "static_collided": count_of(rs, lambda r: r["collided"] and not r["moving"]),
+            "collided_names": [r["name"] for r in rs if r.get("collided")],
+            "unverified_ticks": sum(r.get("unverified", 0) for r in rs),
+            "scenes_with_unverified": count_of(rs, lambda r: r["unverified"] > 0),
+            "backup_ticks": sum(r.get("backup_ticks", 0) for r in rs)}
+    out["runs"] = rows[False] + rows[True]
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -57,20 +221,56 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--oracle-every", type=int, default=brake.ORACLE_EVERY, help="0: no oracle")
     ap.add_argument("--out", type=Path, default=soak.OUT)
+    ap.add_argument("--scene-set", choices=("fresh", "soak"), default="fresh",
+                    help="fresh: issue 22's seeded set (summary_brake.json); soak: make soak's own scenes")
+    ap.add_argument("--compare", action="store_true",
+                    help="each scene with and without the guard (no oracle): item 6's tracking, collisions "
+                         "both ways, the per-tick cost (summary_brake_compare_<set>.json)")
+    ap.add_argument("--cost", action="store_true",
+                    help="replay every 3rd tick's check of the first --scenes soak scenes: the guard's vs the "
+                         "exact reference, CPU µs per check and the outcomes that differ")
+    ap.add_argument("--no-budget", action="store_true",
+                    help="tick_budget_us = 0 in every scene: the runs do not depend on the machine's load")
+    ap.add_argument("--faults", action="store_true",
+                    help="the faults soak's first --scenes scenes without and with the guard (summary_brake_faults.json)")
     args = ap.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.faults:
+        out = faults_compare(args.scenes)
+        (args.out / "summary_brake_faults.json").write_text(json.dumps(out, indent=1, default=float) + "\n")
+        print(json.dumps({k: v for k, v in out.items() if k != "runs"}, indent=1, default=float))
+        return 0
+    if args.cost:
+        out = check_cost(args.scenes)
+        (args.out / "brake_check_cost.json").write_text(json.dumps(out, indent=1) + "\n")
+        print(json.dumps(out, indent=1))
+        return 0
+    scenes = list((fresh_scenes if args.scene_set == "fresh" else soak_scenes)(args.scenes))
+    if args.no_budget:
+        scenes = [{**raw, "controller": {**raw["controller"], "tick_budget_us": 0.0}} for raw in scenes]
+    if args.compare:
+        jobs = [(raw, 0, b) for raw in scenes for b in (True, False)]
+        path = args.out / f"summary_brake_compare_{args.scene_set}.json"
+    else:
+        jobs = [(raw, args.oracle_every, True) for raw in scenes]
+        path = args.out / ("summary_brake.json" if args.scene_set == "fresh" else "summary_brake_soakset.json")
     rows: list[dict[str, Any]] = []
+    bare: list[dict[str, Any]] = []
     errors: list[dict[str, Any]] = []
     start = time.time()
     with mp.get_context("spawn").Pool(args.jobs) as pool:
-        for row in pool.imap(_run, fresh_scenes(args.scenes), chunksize=1):
-            (errors if "error" in row else rows).append(row)
-            summary = {"seed": [soak.SEED, STREAM], "scenes_requested": args.scenes, "elapsed_s": time.time() - start,
-                       "jobs": args.jobs, "errors": errors, **brake.summarise(rows)}
-            (args.out / "summary_brake.json").write_text(
-                json.dumps({"summary": summary, "runs": brake.public(rows)}, indent=1, default=float) + "\n")
-            print(row["name"], {k: row.get(k) for k in ("min_clearance", "backup_ticks", "unverified",
-                                                        "oracle_uncertified", "wall_s", "error")}, flush=True)
+        for (_, _, backup), row in zip(jobs, pool.imap(_run, jobs, chunksize=1), strict=True):
+            (errors if "error" in row else rows if backup else bare).append(row)
+            summary = {"seed": [soak.SEED, STREAM] if args.scene_set == "fresh" else soak.SEED,
+                       "scene_set": args.scene_set, "scenes_requested": args.scenes, "no_budget": args.no_budget,
+                       "elapsed_s": time.time() - start, "jobs": args.jobs, "errors": errors, **brake.summarise(rows)}
+            if args.compare:
+                summary["compare"] = compare(rows, bare)
+            path.write_text(json.dumps({"summary": summary, "runs": brake.public(rows), "runs_without": brake.public(bare)},
+                                       indent=1, default=float) + "\n")
+            print(row["name"], "guard" if backup else "bare",
+                  {k: row.get(k) for k in ("min_clearance", "collided", "rms_tracking_error", "backup_ticks",
+                                           "unverified", "oracle_uncertified", "wall_s", "error")}, flush=True)
     print(json.dumps(summary, indent=1, default=float))
     return 0
 

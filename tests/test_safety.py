@@ -224,3 +224,29 @@ def test_backup_guard_verifies_the_state_itself_when_nothing_is_stored():
     out = far.step(q, v, 0.0)
     assert not out.info["backup_checked"] and "backup" not in out.info
     assert np.array_equal(out.tau, Pusher(inner, 0.0).step(q, v, 0.0).tau)
+
+
+def test_backup_guard_tries_only_as_many_gains_as_told():
+    """``tries``: the gains tried from the proposal's successor, the stored one first. With a soft
+    stored brake (κ = 4) that the successor's rollout refutes while κ = 25 verifies it (both checked
+    here on the Simulator-based rollout), one try falls back to the stored brake and the whole family
+    applies the proposal and stores 25."""
+    robot, q, inner, guard = pushed_arm(1.0)  # the stand-in holds gravity until t = 1 s
+    v = np.array([-0.5, 0.0, 0.0])  # the tip closing on the sphere
+    data = robot.model.createData()
+    hold = pin.computeGeneralizedGravity(robot.model, data, q)
+    sim = Simulator(inner, dt=DT, duration=DT)
+    sim.reset(q, v)
+    sim.apply(hold)
+    sim.step(0.0)
+    q1, v1 = (x.copy() for x in sim.read())
+    assert not rollout(sim, q1, v1, hold, DT, 4.0, stop_below=0.0).viable
+    assert rollout(sim, q1, v1, hold, DT, 25.0, stop_below=0.0).viable
+    for tries, falls_back in ((1, True), (None, False)):
+        guard._gain, guard._tau_prev, guard.tries = 4.0, hold.copy(), tries
+        out = guard.step(q, v, 0.0)
+        assert ("backup" in out.info) is falls_back
+        if falls_back:
+            assert guard._gain == 4.0 and np.array_equal(out.tau, brake_torque(robot, data, q, v, hold, 4.0, DT))
+        else:
+            assert guard._gain == 25.0 and np.array_equal(out.tau, hold)

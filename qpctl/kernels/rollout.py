@@ -67,3 +67,29 @@ def travel(dq, rho):  # type: ignore[no-untyped-def]
     for i in range(dq.shape[0]):
         s += rho[i] * abs(dq[i])
     return s
+
+
+@njit(cache=True)
+def stage_into(q, v, kq, ka, i, h, qs):  # type: ignore[no-untyped-def]
+    """RK4 stage i + 1's state in one call (vector-space configurations): kq[0] ← v when i = 0,
+    kq[i+1] ← v + h·ka[i] (its velocity), qs ← q + h·kq[i] (:func:`stage`'s operations)."""
+    if i == 0:
+        for j in range(v.shape[0]):
+            kq[0, j] = v[j]
+    for j in range(v.shape[0]):
+        kq[i + 1, j] = v[j] + h * ka[i, j]
+    for j in range(q.shape[0]):
+        qs[j] = q[j] + h * kq[i, j]
+
+
+@njit(cache=True)
+def finish(q, v, kq, ka, c, dq, dv, rho):  # type: ignore[no-untyped-def]
+    """The step's end in one call: dq, dv ← :func:`combine` of kq, ka; q += dq; v += dv; returns
+    :func:`travel` (Σᵢ ρᵢ|dqᵢ|)."""
+    combine(kq, c, dq)
+    combine(ka, c, dv)
+    for j in range(q.shape[0]):
+        q[j] += dq[j]
+    for j in range(v.shape[0]):
+        v[j] += dv[j]
+    return travel(dq, rho)

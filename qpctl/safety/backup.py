@@ -67,6 +67,8 @@ class BackupGuard:
         self.dt, self.check_distance, self.margin, self.horizon = float(dt), float(check_distance), float(margin), \
             float(horizon)
         self.gains = tuple(gains)
+        self.exact = False  # the lazy clearance (True: every step's clearance evaluated; the same verdicts)
+        self.tries: int | None = None  # gains tried from a proposal's successor (None: the whole family)
         self.world = WorldClearance(controller.robot, controller.obstacles)  # obstacles only: no self pairs
         self.brake = BrakeRollout(controller.robot, self.world, self.dt)
         self._limit = next((c for c in getattr(controller, "constraints", []) if isinstance(c, TorqueLimit)), None)
@@ -91,14 +93,38 @@ class BackupGuard:
         self._reset_backup()
         return float(out)
 
-    def _first_verified(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float) -> float | None:
-        """The gain of the first brake (the stored one first) verified from (q, q̇) after τ_prev at t."""
+    def _first_verified(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float,
+                        tries: int | None = None) -> float | None:
+        """The gain of the first brake (the stored one first) verified from (q, q̇) after τ_prev at t,
+        trying at most ``tries`` gains (None: all)."""
         order = ([self._gain] if self._gain is not None else []) + [g for g in self.gains if g != self._gain]
-        for g in order:
+        for g in order[:tries]:
             if self.brake.run(q, v, tau_prev, t, g, horizon=self.horizon, margin=self.margin,
-                              stop_below=self.margin, exact=False).viable:
+                              stop_below=self.margin, exact=self.exact).viable:
                 return g
         return None
+
+    def check(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float, info: dict[str, Any]) -> np.ndarray:
+        """The check of one tick (module docstring, steps 1–3): the torque to apply [N·m] given the
+        proposal ``tau`` at (q, q̇, t), the stored gain and the torque applied last; ``info`` gets
+        ``backup`` / ``backup_unverified`` where they apply."""
+        q1, v1 = self.brake.successor(q, v, tau)
+        gain = self._first_verified(q1, v1, tau, t + self.dt, self.tries)
+        if gain is not None:
+            self._gain = gain
+            return tau
+        if self._gain is None:  # nothing stored: is the state itself verified? (step 3)
+            self._gain = self._first_verified(q, v, self._tau_prev, t)
+        if self._gain is None:
+            self.stats["unverified"] += 1
+            info["backup_unverified"] = True
+            return tau
+        tau = self.brake.torque(q, v, self._tau_prev, self._gain).copy()  # the stored brake continues
+        info["backup"] = self._gain
+        self.stats["backup"] += 1
+        if self._limit is not None:  # the rate window of the next tick is about the torque applied
+            self._limit.remember(tau, t)
+        return tau
 
     def step(self, q: np.ndarray, v: np.ndarray, t: float) -> Any:
         out = self.controller.step(q, v, t)
@@ -110,22 +136,7 @@ class BackupGuard:
         near = self.check_distance == np.inf or self.world(q, t) < self.check_distance
         info["backup_checked"] = near
         if near:
-            q1, v1 = self.brake.successor(q, v, tau)
-            gain = self._first_verified(q1, v1, tau, t + self.dt)
-            if gain is None:
-                if self._gain is None:  # nothing stored: is the state itself verified? (step 3)
-                    self._gain = self._first_verified(q, v, self._tau_prev, t)
-                if self._gain is None:
-                    self.stats["unverified"] += 1
-                    info["backup_unverified"] = True
-                else:  # the stored brake continues
-                    tau = self.brake.torque(q, v, self._tau_prev, self._gain).copy()
-                    info["backup"] = self._gain
-                    self.stats["backup"] += 1
-                    if self._limit is not None:  # the rate window of the next tick is about the torque applied
-                        self._limit.remember(tau, t)
-            else:
-                self._gain = gain
+            tau = self.check(q, v, tau, t, info)
         else:
             self._gain = None
         us = (time.perf_counter() - t0) * 1e6

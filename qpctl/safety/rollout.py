@@ -58,7 +58,11 @@ class BrakeRollout:
         self._kq, self._ka = np.zeros((4, n)), np.zeros((4, n))  # the stages' k·q (velocities), k·v
         self._qs, self._vs, self._dq, self._dv = np.zeros(model.nq), np.zeros(n), np.zeros(n), np.zeros(n)
         self._angles = np.zeros(n)
+        self._kq_rows = [self._kq[i] for i in range(4)]  # the stages' velocities, as Pinocchio's arguments
+        self.travel = 0.0
+        self.fused = not self.lie  # the stages in two kernel calls (False: one call per operation, as before)
         self.rho = lever_arms(robot)  # None: a joint that is not revolute
+        self._rho = self.rho if self.rho is not None else np.zeros(n)
         self.obstacle_speed = max((float(np.linalg.norm(o.velocity) + 2 * np.pi * o.frequency * np.linalg.norm(o.amplitude))
                                    for o in world.ws.obstacles), default=0.0)
 
@@ -79,8 +83,18 @@ class BrakeRollout:
         ka[i + 1] = pin.aba(self.model, self.data, qs, vs, self.tau)
 
     def step(self, q: np.ndarray, v: np.ndarray) -> None:
-        """One RK4 step of the held ``self.tau`` over dt; (q, v) updated in place (rk4_step's stages)."""
+        """One RK4 step of the held ``self.tau`` over dt; (q, v) updated in place (rk4_step's stages);
+        ``self.travel`` ← Σᵢρᵢ|Δqᵢ| of the step (vector-space robots; their stages in two kernel calls
+        around Pinocchio's aba)."""
         dt = self.dt
+        if self.fused:
+            model, data, tau, kq, ka, qs = self.model, self.data, self.tau, self._kq, self._ka, self._qs
+            ka[0] = pin.aba(model, data, q, v, tau)
+            for i, h in ((0, 0.5 * dt), (1, 0.5 * dt), (2, dt)):
+                K.stage_into(q, v, kq, ka, i, h, qs)
+                ka[i + 1] = pin.aba(model, data, qs, self._kq_rows[i + 1], tau)
+            self.travel = K.finish(q, v, kq, ka, dt / 6, self._dq, self._dv, self._rho)
+            return
         self._kq[0] = v
         self._ka[0] = pin.aba(self.model, self.data, q, v, self.tau)
         self._stage(q, v, 0.5 * dt, 0)
@@ -131,7 +145,7 @@ class BrakeRollout:
             prev[:] = self.tau
             self.step(qq, vv)
             if lazy:
-                drift += K.travel(self._dq, rho) + self.obstacle_speed * dt
+                drift += (self.travel if self.fused else K.travel(self._dq, rho)) + self.obstacle_speed * dt
         return Certificate(False, gain, worst, np.inf, steps)
 
 
