@@ -139,6 +139,7 @@ class FieldSpec:
     soft_margin: float = 0.0  # the soft rows' margin [m]
     speed_margin: float = 0.0  # within this of a leaf's voxels the soft speed rows bound soft_speed [m]
     horizon: float = 1e-3  # the soft speed rows' horizon [s]
+    funnel: float = 10.0  # the slope of their bound beyond speed_margin [1/s]
 
 
 @dataclass
@@ -403,7 +404,8 @@ class Workspace:
             fp[codes.FP_FD_VOXEL], fp[codes.FP_FD_TRUNC] = snap.grid.voxel, snap.truncation
             fp[codes.FP_FD_MARGIN], fp[codes.FP_FD_VS], fp[codes.FP_FD_CUT] = fs.margin, fs.soft_speed, fs.cutoff
             fp[codes.FP_FD_K0], fp[codes.FP_FD_K1], fp[codes.FP_FD_SMARGIN] = fs.k0, fs.k1, fs.soft_margin
-            fp[codes.FP_FD_VMARGIN], fp[codes.FP_FD_HORIZON] = fs.speed_margin, fs.horizon
+            fp[codes.FP_FD_VMARGIN], fp[codes.FP_FD_HORIZON], fp[codes.FP_FD_VSLOPE] = fs.speed_margin, fs.horizon, \
+                fs.funnel
             ip[codes.IP_FD_SAMPLES], ip[codes.IP_FD_RPL] = S, rpl
         self.fd_dist = np.zeros((2, *shape), np.float32)
         self.fd_grad = np.zeros((2, *shape, 3), np.float32)

@@ -40,6 +40,7 @@ from qpctl.kernels.codes import (
     FP_FD_VMARGIN,
     FP_FD_VOXEL,
     FP_FD_VS,
+    FP_FD_VSLOPE,
     IP_FD_RPL,
     IP_FD_SAMPLES,
 )
@@ -74,9 +75,8 @@ def speed_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no
     """The soft speed rows (module docstring) into ``C`` (2L, n) and ``lower`` (2L,)."""
     n = ws.N.shape[0]
     fp = ws.fpar
-    k0, k1 = fp[FP_FD_K0], fp[FP_FD_K1]
     speed_points(ws.segments, ws.cap_radius, ws.fd_dist[1], ws.fd_origin, fp[FP_FD_VOXEL], fp[FP_FD_TRUNC],
-                 ws.ipar[IP_FD_SAMPLES], ws.body_vel, fp[FP_FD_VS], k0 / k1, fp[FP_FD_VMARGIN], fp[FP_FD_CUT],
+                 ws.ipar[IP_FD_SAMPLES], ws.body_vel, fp[FP_FD_VS], fp[FP_FD_VSLOPE], fp[FP_FD_VMARGIN], fp[FP_FD_CUT],
                  ws.fd_ds, ws.fd_vp, ws.fd_vu, ws.fd_vb, ws.fd_vd)
     h = fp[FP_FD_HORIZON]
     Jp = ws.fd_vjac

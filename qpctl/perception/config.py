@@ -51,6 +51,9 @@ class PerceptionConfig:
     soft_horizon: float = setting(0.001, valid="seconds", unit="s")  # the speed rows bound a soft contact's
     #                                  point velocity this far ahead, J_p(q̇ + q̈·h) + J̇_p q̇·h [s] (one control
     #                                  period at 1 kHz: the next tick's velocity)
+    soft_funnel: float = setting(10.0, valid="nonnegative", unit="1/s")  # beyond soft_speed_margin() of a leaf's
+    #                                  voxels the speed rows' bound opens by this per metre, soft_speed + g·(d − m_v)
+    #                                  (10: the barrier's k0/k1 at its defaults; larger: faster near leaves, a harder brake)
     soft_weight: float = setting(1e7, valid="nonnegative", unit="(N·m)²/(m/s²)")  # ℓ₁ weight of the slack the soft
     #                                  rows share (above the task's slack_l1: the task lags before a leaf is
     #                                  pushed faster; 0: the soft rows are hard)

@@ -18,18 +18,17 @@ rigid-point drift ḧ = nᵀ(J_p q̈ + J̇_p q̇):
 
 * **soft speed** (the metric ``soft_contact_max_speed`` is a link point's total speed, not its normal
   component; inside a leaf's voxels the field is flat and has no normal at all): two rows per link
-  for the points of :func:`qpctl.kernels.field.speed_points` — the two ends of the stretch of the
-  link within m_v = √3/2·voxel + depth noise of a leaf's voxels (:meth:`PerceptionConfig.soft_speed_margin`:
-  where the link's surface may already be inside the leaf), each moved by the capsule's radius to
-  the point about it that moves fastest, or, with no such stretch, the link's nearest point to a
-  leaf. A rigid body's point velocities are affine in the point, so the two ends bound the stretch
-  between them. Each row keeps the point's velocity a horizon h ahead (``soft_horizon``, one
-  control period: the next tick's), w⁺ = J_p q̇ + (J_p q̈ + J̇_p q̇)h, no faster than b along the
-  direction u of its velocity now: uᵀw⁺ ≤ b + σh — the tangent half-space of the ball |w⁺| ≤ b at
-  the current velocity, which |w⁺| exceeds by at most |w⁺ − w|²/(2|w|), second order in the tick's
-  change of velocity (the next tick's row is tangent at the new direction). b = v_s on the stretch;
-  at the nearest point b(d) = v_s + (k₀/k₁)·max(d − m_v, 0) (a funnel the link slows along as it
-  nears a leaf, at the barrier's own slope, not a wall). As rows on q̈:
+  for the points of :func:`qpctl.kernels.field.speed_points`. Each sample along the link's axis has
+  a bound b(d) = v_s + g·max(d − m_v, 0), m_v = √3/2·voxel + depth noise
+  (:meth:`PerceptionConfig.soft_speed_margin`: within m_v of a leaf's voxels the capsule's surface may
+  already be inside the leaf, and b = v_s), g = ``soft_funnel`` (a funnel the link slows along as it
+  nears a leaf, not a wall), and a fastest point (of the capsule's ball about the sample, the one
+  that moves fastest now); the two samples whose fastest points most exceed their bounds are the
+  rows' points. Each row keeps the point's velocity a horizon h ahead (``soft_horizon``, one control
+  period: the next tick's), w⁺ = J_p q̇ + (J_p q̈ + J̇_p q̇)h, no faster than b along the direction u
+  of its velocity now: uᵀw⁺ ≤ b + σh — the tangent half-space of the ball |w⁺| ≤ b at the current
+  velocity, which |w⁺| exceeds by at most |w⁺ − w|²/(2|w|), second order in the tick's change of
+  velocity (the next tick's row is tangent at the new direction). As rows on q̈:
   −uᵀJ_p q̈ + σ ≥ (uᵀJ_p q̇ − b)/h + uᵀJ̇_p q̇, sharing the soft rows' slack σ.
 
 A row is active where d is within the controller's influence distance (a barrier row only with a
@@ -131,6 +130,7 @@ class FieldBarrier(Constraint):
         self.joints = np.array([c.joint_id for c in robot.capsules], int)
         self.speed_margin = config.soft_speed_margin()
         self.horizon = float(config.soft_horizon)
+        self.funnel = float(config.soft_funnel)
         self.pairs = 2 * len(robot.capsules) * config.rows_per_link
         self.rows = self.pairs + 2 * len(robot.capsules)
         self._data = robot.model.createData()
@@ -159,7 +159,7 @@ class FieldBarrier(Constraint):
             raise ValueError("the compiled field rows are smooth: a raw FieldBarrier needs the Python path")
         return FieldSpec(self.source, self, self.rows, self.config.samples, self.config.rows_per_link, self.margin,
                          self.config.soft_speed, self.cutoff, self.k0, self.k1, self.soft_margin,
-                         self.speed_margin, self.horizon)
+                         self.speed_margin, self.horizon, self.funnel)
 
     def bind(self, ws: Any) -> None:
         """A compiled tick runs on ``ws``: its arrays hold this tick's pairs (:attr:`last`)."""
@@ -215,7 +215,7 @@ class FieldBarrier(Constraint):
         p, u, b, d = np.empty((2 * L, 3)), np.empty((2 * L, 3)), np.empty(2 * L), np.empty(2 * L)
         KF.speed_points(np.ascontiguousarray(segments, float), self.radii, snap.dist[1], g.origin, g.voxel,
                         snap.truncation, self.config.samples, self.body_velocities(q, v), self.config.soft_speed,
-                        self.k0 / self.k1, self.speed_margin, self.cutoff, np.empty(self.config.samples), p, u, b, d)
+                        self.funnel, self.speed_margin, self.cutoff, np.empty(self.config.samples), p, u, b, d)
         return p, u, b, d
 
     def compute(self, state: TickState, terms: LawTerms) -> Inequality:
