@@ -154,15 +154,9 @@ def _pair(segments: np.ndarray, radii: np.ndarray, l: int, s: float, dist: np.nd
     gn = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
     r = radii[l]
     out_s[row] = s
-    if d < truncation and gn < 1e-9:  # inside the voxels, where the field is flat: no normal
-        out_d[row] = d - r
-        out_n[row, 0] = 0.0
-        out_n[row, 1] = 0.0
-        out_n[row, 2] = 0.0
-        out_p[row, 0], out_p[row, 1], out_p[row, 2] = px, py, pz
-        return
-    if d >= truncation:  # nothing within the truncation: an inactive row
-        out_d[row] = truncation - r
+    # nothing within the truncation (an inactive row), or inside the voxels where the field is flat: no normal
+    if d >= truncation or gn < 1e-9:
+        out_d[row] = min(d, truncation) - r
         out_n[row, 0] = 0.0
         out_n[row, 1] = 0.0
         out_n[row, 2] = 0.0
