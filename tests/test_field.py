@@ -179,3 +179,24 @@ def test_smooth_rows_do_not_jump_as_the_nearest_voxel_changes() -> None:
     assert smooth[1] < 0.004 and smooth[0] < 0.1
     assert raw[1] > 0.01 and raw[0] > 3 * smooth[0]
     assert smooth[2] < 0.002  # the distance is continuous
+
+
+def test_a_link_inside_a_solid_block_reports_its_depth_not_the_truncation() -> None:
+    """Deep inside occupied voxels the field is flat (zero, no gradient): the row has no normal (no
+    barrier) but its distance is still what the map believes, about −r (the capsule's axis on occupied
+    voxels: cKDTree's distance from the axis samples to the occupied centres is 0), not the inactive
+    row's truncation − r (a link buried in a branch reported as far away)."""
+    from scipy.spatial import cKDTree
+
+    occ = np.zeros(GRID.shape, bool)
+    occ[8:22, 6:18, 5:15] = True  # a block 0.28 × 0.24 × 0.20 m
+    dist, grad = _field(occ)
+    centres = GRID.centres(np.argwhere(occ))
+    mid = centres.mean(axis=0)
+    segs = np.array([[mid - [0.04, 0.0, 0.0], mid + [0.04, 0.0, 0.0]]])
+    radii = np.array([0.03])
+    axis = segs[0, 0] + np.linspace(0, 1, 16)[:, None] * (segs[0, 1] - segs[0, 0])
+    assert cKDTree(centres).query(axis)[0].max() < GRID.voxel  # the whole axis on occupied voxels
+    d, n, _, _ = _pairs(segs, radii, dist, grad, rows=1)
+    assert not n.any()  # flat: no normal, so no barrier row
+    assert d[0] == pytest.approx(-radii[0], abs=GRID.voxel)
