@@ -226,3 +226,29 @@ def test_the_common_tick_goes_past_the_dispatcher(scene_and_states, monkeypatch)
     del out
     with pytest.raises(AssertionError, match="dispatcher"):
         ctrl.step(states.q[90].tolist(), states.v[90], float(states.t[90]))
+
+
+def test_the_fast_tick_keeps_the_skip_rule(scene_and_states):
+    """After a tick on which the task gave way the hard QP is skipped; a relaxed tick whose slack is
+    back to zero (the record's slack ≤ SLACK_ZERO) makes the next fast tick try the task hard again, one
+    that is not does not. (Dropping the rule's update from the fast tick passed the suite: the 300
+    states above never give way.)"""
+    from qpctl.controllers.relaxation import SLACK_ZERO
+
+    scene, states = scene_and_states
+    ctrl = _controller(scene)
+    ctrl.step(states.q[99], states.v[99], float(states.t[99]))  # DAQP set up again after warmup's reset
+    path = ctrl.qp_path()
+    assert isinstance(path, CompiledTick) and path.relax.skip_rule
+    again = 0
+    for k in range(100, 300):
+        path.relax._try_hard = False  # as after a tick on which the task gave way
+        a = path.fast_step(states.q[k], states.v[k], float(states.t[k]), 0.0)
+        assert a is not None and a.info.get("relaxed") is not None  # the relaxed QP only
+        zero = float(path.ws.rec[path._slack_at]) <= SLACK_ZERO
+        assert path.relax.try_hard(True) == zero, f"tick {k}"
+        again += zero
+        del a
+    assert again > 0  # some relaxed ticks came back to zero slack (the rule's case was met)
+    b = path.fast_step(states.q[300], states.v[300], float(states.t[300]), 0.0)
+    assert b is not None and (b.info.get("relaxed") is None) == zero  # the hard QP tried as the rule said
