@@ -56,7 +56,6 @@ from qpctl.law import closed_form_acceleration, law_terms
 from qpctl.state import TickState
 from qpctl.tick import Workspace
 
-_ND, _F64 = np.ndarray, np.dtype(np.float64)
 _now = time.perf_counter
 getrefcount, copyto = sys.getrefcount, np.copyto
 
@@ -86,8 +85,7 @@ class PaperController(Controller):
             except Exception:  # noqa: BLE001 — not a state Pinocchio takes: the checks below say why
                 ok = False
             t1 = _now()
-            if ok and type(q) is _ND and type(v) is _ND and isinstance(t, float) and q.dtype is _F64 and \
-                    v.dtype is _F64 and q.ndim == 1 and v.ndim == 1 and q.flags.c_contiguous and v.flags.c_contiguous:
+            if ok and isinstance(t, float) and plain_vectors(q, v):
                 code = entry(ws.work, q, v, t, self.weighted)
                 if code == 0:
                     out = self._out

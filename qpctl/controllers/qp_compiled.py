@@ -193,7 +193,6 @@ class QPOutput(RecordOutput):
                                if mask >> bit & 1]
 
 
-_ND, _F64 = np.ndarray, np.dtype(np.float64)
 _now = time.perf_counter
 getrefcount, copyto = sys.getrefcount, np.copyto
 
@@ -358,8 +357,7 @@ class CompiledTick:
         except Exception:  # noqa: BLE001 — not a state Pinocchio takes: step() checks it and says why
             return None
         t1 = _now()
-        if not (type(q) is _ND and type(v) is _ND and isinstance(t, float) and q.dtype is _F64 and v.dtype is _F64
-                and q.ndim == 1 and v.ndim == 1 and q.flags.c_contiguous and v.flags.c_contiguous):
+        if not (isinstance(t, float) and plain_vectors(q, v)):
             return None
         relax, nat_h, nat_r = self.relax, self.hard.nat, self.relaxed.nat
         try_hard = relax.always_hard or (relax.skip_rule and relax._try_hard)
