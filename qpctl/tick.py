@@ -376,6 +376,8 @@ class Workspace:
         self.Jb, self.Jp, self.qdd, self.tau = np.zeros((n, m)), np.zeros((n, m)), np.zeros(n), np.zeros(n)
         self.Lm, self.Lb, self.S = np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, n))
         self.Bt, self.Vm = np.zeros((n, m)), np.zeros((m, m))
+        self.Gm = np.zeros((m, m + 2))
+        self.gA = np.zeros((n, 3 * max(KC, L)))
         self.w1, self.w2, self.w3 = np.zeros(n), np.zeros(n), np.zeros(max(n, 6))
         self.sv, self.sj, self.ts = np.zeros((SV_ROWS, 6)), np.zeros((SJ_ROWS, 3, n)), np.zeros(2, np.int64)
         self.flags = np.zeros(codes.FLAG_SIZE, np.int64)

@@ -359,7 +359,7 @@ def test_pinv_t_normal_equals_pinv_t(case):
                 B1, B2 = np.ascontiguousarray(A.T), np.ascontiguousarray(A.T)
                 o1, o2 = np.full((n, m), 7.0), np.full((n, m), 7.0)
                 s1, _ = S.pinv_t(B1, eps, np.zeros((m, m)), o1)
-                s2, bound = S.pinv_t_normal(B2, eps, np.zeros((m, m)), o2)
+                s2, bound = S.pinv_t_normal(B2, eps, np.zeros((m, m)), o2, np.zeros((m, m + 2)))
                 assert s1 == s2, f"m={m} n={n}: singular {s2} != {s1}"
                 np.testing.assert_allclose(o2, o1, rtol=0, atol=1e-9 * max(np.abs(o1).max(), 1e-300))
                 G = A @ A.T  # the fast path's condition, from numpy

@@ -31,6 +31,7 @@ from qpctl.kernels.small import (
     add_trace_ridge,
     chol_solve,
     cholesky,
+    gram_lower,
     pinv_t_normal,
     solve_lower,
     solve_lower_t,
@@ -47,10 +48,10 @@ def reference_velocity(ws) -> None:  # type: ignore[no-untyped-def]
     di, ds = ws.fpar[FP_DI], ws.fpar[FP_DS]
     v_ref = ws.fpar[FP_VREF]
     pr_d, pr_obs, pr_n, pr_jac, ob_vref = ws.pr_d, ws.pr_obs, ws.pr_n, ws.pr_jac, ws.ob_vref
-    H, rhs = ws.S, ws.g
-    H[:, :] = 0.0
+    H, rhs, A = ws.S, ws.g, ws.gA
     rhs[:] = 0.0
     any_moving = False
+    k = 0  # the weighted rows √α J_c, packed as A's columns (then H = A Aᵀ)
     for r in range(ws.cnt[CNT_PAIRS]):
         d = pr_d[r]
         if not d < di:
@@ -64,12 +65,13 @@ def reference_velocity(ws) -> None:  # type: ignore[no-untyped-def]
             b = w * ((vr * alpha) * pr_n[r, c])
             for i in range(n):
                 ai = w * pr_jac[r, c, i]
+                A[i, k] = ai
                 rhs[i] += ai * b
-                for j in range(i + 1):
-                    H[i, j] += ai * (w * pr_jac[r, c, j])
+            k += 1
     if not any_moving:
         rhs[:] = 0.0
         return
+    gram_lower(A, k, H)
     lam2 = ws.fpar[FP_GDAMP] ** 2
     for i in range(n):
         H[i, i] += lam2
@@ -92,7 +94,7 @@ def _weighted_pinv(ws, L: np.ndarray, out: np.ndarray, mode: int) -> bool:  # ty
         solve_lower(L, Bt)  # J̃ᵀ = L⁻¹ Jᵀ
     elif mode == 2:
         chol_solve(L, Bt)  # J̃ᵀ = M⁻¹ Jᵀ
-    singular, _ratio = pinv_t_normal(Bt, ws.fpar[FP_PINV_EPS], ws.Vm, out)
+    singular, _ratio = pinv_t_normal(Bt, ws.fpar[FP_PINV_EPS], ws.Vm, out, ws.Gm)
     if mode == 1:
         solve_lower_t(L, out)  # L⁻ᵀ J̃⁺
     elif mode == 2:
@@ -113,14 +115,15 @@ def law_terms(ws, weighted: bool) -> bool:  # type: ignore[no-untyped-def]
         return False
     reference_velocity(ws)
     if weighted:  # Ryu's W_b = Σ J_iᵀJ_i over the links' mid-points, + 1e-9·max(tr, 1)·I
-        W = ws.S
-        W[:, :] = 0.0
+        W, A = ws.S, ws.gA
+        k = 0
         for i in range(ws.link_jac.shape[0]):
             Jl = ws.link_jac[i]
             for c in range(3):
                 for a in range(n):
-                    for b in range(a + 1):
-                        W[a, b] += Jl[c, a] * Jl[c, b]
+                    A[a, k] = Jl[c, a]
+                k += 1
+        gram_lower(A, k, W)
         add_trace_ridge(W)
         cholesky(W, ws.Lb)
         singular = _weighted_pinv(ws, ws.Lb, ws.Jb, 1)

@@ -7,6 +7,8 @@ Their references are numpy's own routines and :func:`qpctl.linalg.weighted_pinv`
 
 * :func:`cholesky`, :func:`solve_lower`, :func:`solve_lower_t`, :func:`chol_solve` — A = L Lᵀ and
   the triangular solves, in place (column by column for matrix right-hand sides).
+* :func:`gram_lower` — H = A Aᵀ (lower triangle) of a short-and-wide matrix, for the normal matrices of
+  the reference velocity and of Ryu's W_b (rows packed once, then one dot product per entry).
 * :func:`pinv_t` — the damped pseudo-inverse of a wide matrix given by its transpose, by one-sided
   (Hestenes) Jacobi SVD: accurate to rounding like LAPACK's SVD, without squaring the condition
   number as the normal equations would; with the variable damping of :mod:`qpctl.linalg`.
@@ -44,6 +46,22 @@ def cholesky(A: np.ndarray, L: np.ndarray) -> bool:
         for i in range(j):
             L[i, j] = 0.0
     return True
+
+
+@njit(cache=True, fastmath={"reassoc", "contract"})
+def gram_lower(A: np.ndarray, k: int, H: np.ndarray) -> None:
+    """H[i, j] = Σ_{c < k} A[i, c] A[j, c] for j ≤ i (the lower triangle of A Aᵀ over A's first k
+    columns; the upper triangle is not written). A's rows are contiguous, so each entry is one dot
+    product the compiler may reassociate into SIMD lanes (``reassoc``: the sum's order, a rounding-level
+    change; no ``nnan``/``ninf``, non-finite values propagate as without fastmath). 0.2 µs at n = 7,
+    k = 33 against 1.6 µs for the rank-one updates of each row."""
+    n = H.shape[0]
+    for i in range(n):
+        for j in range(i + 1):
+            s = 0.0
+            for c in range(k):
+                s += A[i, c] * A[j, c]
+            H[i, j] = s
 
 
 @njit(cache=True)
@@ -171,15 +189,16 @@ def pinv_t(B: np.ndarray, eps: float, V: np.ndarray, out: np.ndarray) -> tuple[b
 
 
 @njit(cache=True)
-def pinv_t_normal(B: np.ndarray, eps: float, V: np.ndarray, out: np.ndarray) -> tuple[bool, float]:
+def pinv_t_normal(B: np.ndarray, eps: float, V: np.ndarray, out: np.ndarray,
+                  G: np.ndarray) -> tuple[bool, float]:
     """:func:`pinv_t`, by the normal equations where that is certainly undamped: A⁺ = B (BᵀB)⁻¹ by
     Cholesky when the lower bound √(1/(tr G · tr G⁻¹)) ≤ σ_min/σ_max of G = BᵀB = A Aᵀ (tr G ≥ λ_max,
     tr G⁻¹ ≥ 1/λ_min) is at least ``eps`` (then :func:`pinv_t` would not damp either); otherwise, and
     where G is not positive definite, :func:`pinv_t` itself. The bound is loose by at most a factor
     m, so the Jacobi SVD runs only within a factor m of the damping threshold. Returns (singular,
-    that lower bound) on the fast path, :func:`pinv_t`'s pair otherwise; B is kept on the fast path."""
+    that lower bound) on the fast path, :func:`pinv_t`'s pair otherwise; B is kept on the fast path.
+    G is an (m, m + 2) scratch (the Gram matrix, then two vectors): nothing is allocated."""
     n, m = B.shape
-    G = np.empty((m, m))
     tr = 0.0
     for p in range(m):
         for q in range(p + 1):
@@ -191,7 +210,7 @@ def pinv_t_normal(B: np.ndarray, eps: float, V: np.ndarray, out: np.ndarray) -> 
     if not (tr > 0.0 and cholesky(G, V)):
         return pinv_t(B, eps, V, out)
     # tr G⁻¹ = ‖L⁻¹‖_F², column by column of L⁻¹ (forward substitution on the unit vectors)
-    col = np.empty(m)
+    col = G[:, m]
     tr_inv = 0.0
     for j in range(m):
         for i in range(m):
@@ -205,7 +224,7 @@ def pinv_t_normal(B: np.ndarray, eps: float, V: np.ndarray, out: np.ndarray) -> 
     if bound < eps:
         return pinv_t(B, eps, V, out)
     # out = B G⁻¹, row by row: G y = B[i, :]
-    y = np.empty(m)
+    y = G[:, m + 1]
     for i in range(n):
         for j in range(m):
             s = B[i, j]

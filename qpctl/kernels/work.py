@@ -169,6 +169,8 @@ FIELDS = (
     "S",  # (n, n) scratch
     "Bt",  # (n, m) scratch: the transposed weighted Jacobian
     "Vm",  # (m, m) scratch: Jacobi rotations
+    "Gm",  # (m, m + 2) scratch: pinv_t_normal's Gram matrix and vectors
+    "gA",  # (n, 3 max(KC, L)) scratch: the weighted rows of g's and W_b's normal matrices, packed
     "w1",  # (n,) scratch
     "w2",  # (n,) scratch
     "w3",  # (max(n, 3),) scratch
