@@ -343,6 +343,28 @@ def test_pinv_t_equals_numpy_svd_damped_pseudo_inverse(case):
     assert checked == 3 * sum(10 - m for m in range(1, 7))
 
 
+def test_gram_lower_equals_numpy():
+    """gram_lower (the reference velocity's and W_b's normal matrices) against numpy's A Aᵀ over the
+    first k columns, lower triangle, to rounding (its sum is reassociated): shapes from 1×0 to 9×40,
+    k below the array's width (the rest of A is garbage it must not read), the upper triangle left as
+    it was, and a NaN in A reaching H (no fastmath flag may assume finite values)."""
+    rng = np.random.default_rng(SEED + 77)
+    for n in (1, 3, 7, 9):
+        for k in (0, 1, 5, 21, 33, 40):
+            A = rng.standard_normal((n, k + 7)) * 10.0 ** rng.uniform(-3, 3)
+            H = np.full((n, n), 5.0)
+            S.gram_lower(A, k, H)
+            want = A[:, :k] @ A[:, :k].T
+            low = np.tril_indices(n)
+            np.testing.assert_allclose(H[low], want[low], rtol=1e-13, atol=1e-13 * max(np.abs(want).max(), 1e-300))
+            assert np.all(H[np.triu_indices(n, 1)] == 5.0)
+    A = rng.standard_normal((4, 6))
+    A[2, 3] = np.nan
+    H = np.zeros((4, 4))
+    S.gram_lower(A, 6, H)
+    assert np.isnan(H[2, :3]).all() and np.isnan(H[3, 2]) and np.isnan(H[2, 2]) and np.isfinite(H[1, 0])
+
+
 @pytest.mark.parametrize("case", PINV_CASES)
 def test_pinv_t_normal_equals_pinv_t(case):
     """pinv_t_normal (the normal equations where the bound certainly says undamped) against pinv_t on

@@ -114,11 +114,19 @@ def find_pairs(ws) -> int:  # type: ignore[no-untyped-def]
         ux, uy, uz = segments[i, 1, 0] - ax, segments[i, 1, 1] - ay, segments[i, 1, 2] - az
         uu = ux * ux + uy * uy + uz * uz
         rl = cap_radius[i]
+        # the cheap rejection: the capsule lies in the ball about its mid-point of radius |u|/2 + r,
+        # the obstacle in its bounding ball, so a centre farther than both radii + the cutoff (+ 1e-9
+        # for rounding) is a pair beyond the cutoff, without its closest points
+        mx, my, mz = ax + 0.5 * ux, ay + 0.5 * uy, az + 0.5 * uz
+        reach = 0.5 * math.sqrt(uu) + rl + cutoff + 1e-9
         nc = _candidates(ws, i, cand) if grid else O
         for e in range(nc):
             j = cand[e] if grid else e
-            kind = ob_kind[j]
             cx, cy, cz = ob_c[j, 0], ob_c[j, 1], ob_c[j, 2]
+            far = reach + ob_bound[j]
+            if (cx - mx) ** 2 + (cy - my) ** 2 + (cz - mz) ** 2 >= far * far:
+                continue
+            kind = ob_kind[j]
             if kind == KIND_SPHERE:
                 sx = sy = sz = 0.0
             else:
