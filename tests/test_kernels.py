@@ -358,6 +358,11 @@ def test_gram_lower_equals_numpy():
             low = np.tril_indices(n)
             np.testing.assert_allclose(H[low], want[low], rtol=1e-13, atol=1e-13 * max(np.abs(want).max(), 1e-300))
             assert np.all(H[np.triu_indices(n, 1)] == 5.0)
+    A = rng.standard_normal((3, 4))  # H larger than A A^T (the QP's cost): only its n x n block written
+    H = np.full((5, 5), 5.0)
+    S.gram_lower(A, 4, H)
+    np.testing.assert_allclose(H[np.tril_indices(3)], (A @ A.T)[np.tril_indices(3)], rtol=1e-13)
+    assert np.all(H[3:, :] == 5.0) and np.all(H[:, 3:] == 5.0)
     A = rng.standard_normal((4, 6))
     A[2, 3] = np.nan
     H = np.zeros((4, 4))

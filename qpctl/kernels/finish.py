@@ -133,7 +133,7 @@ def qp_finish(ws, x: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarra
     for c in range(nv):
         if not math.isfinite(x[c]):
             return False
-    Cx = np.empty(n_in)
+    Cx = ws.cx
     viol = violation(x, n, n_in, rows, bu, bl, Cx)
     if viol > tol:
         return False

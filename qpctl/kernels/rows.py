@@ -58,6 +58,23 @@ from qpctl.kernels.field_rows import field_rows
 
 
 @njit(cache=True)
+def nearest_first(d: np.ndarray, k: int, order: np.ndarray) -> np.ndarray:
+    """``order[:k]`` = the indices of d[:k] by increasing d, ties in index order (numpy's stable
+    argsort): an insertion sort in place for the few pairs of a tick, numpy's mergesort beyond 64."""
+    if k > 64:
+        order[:k] = np.argsort(d[:k], kind="mergesort")
+        return order
+    for u in range(k):
+        val = d[u]
+        w = u - 1
+        while w >= 0 and d[order[w]] > val:
+            order[w + 1] = order[w]
+            w -= 1
+        order[w + 1] = u
+    return order
+
+
+@njit(cache=True)
 def joint_bounds(ws, lo: np.ndarray, hi: np.ndarray) -> None:  # type: ignore[no-untyped-def]
     """JointLimit's bounds on q̈ [rad/s²]: ḧ + k₁ḣ + k₀h ≥ 0 on the positions, ḣ + k_v h ≥ 0 on the
     speeds; ∞ − ∞ (NaN) counts as no bound; braking-aware, each tightened so that the next state can
@@ -182,7 +199,7 @@ def barrier_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[
     n = ws.N.shape[0]
     k = ws.cnt[CNT_PAIRS]
     cap = C.shape[0]
-    order = np.argsort(ws.pr_d[:k], kind="mergesort")
+    order = nearest_first(ws.pr_d, k, ws.order)
     used = min(k, cap)
     ws.cnt[CNT_DROPPED] = k - used
     k0, k1, ds = ws.fpar[FP_BK0], ws.fpar[FP_BK1], ws.fpar[FP_DS]
@@ -190,7 +207,6 @@ def barrier_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[
     braking, di = ws.ipar[IP_BRAKING] != 0, ws.fpar[FP_DI]
     for r in range(used):
         p = order[r]
-        ws.order[r] = p
         j = ws.pr_obs[p]
         nx, ny, nz = ws.pr_n[p, 0], ws.pr_n[p, 1], ws.pr_n[p, 2]
         Jp = ws.pr_jac[p]

@@ -177,6 +177,7 @@ FIELDS = (
     "sv",  # (SV_ROWS, 6) scratch vectors of the state kernels (rows SV_*: no allocation per tick)
     "sj",  # (SJ_ROWS, 3, n) scratch point Jacobians of the state kernels (SJ_*)
     "ts",  # (2,) int: the clock's timespec (qpctl.kernels.clock.now_us)
+    "cx",  # (max(n_in, 1),) scratch: C x of the QP's inequality rows (qp_finish)
     "flags",  # (FLAG_SIZE,) int: per-tick flags, indexed by the FLAG_* constants
     "rec",  # (record size,) the tick's output record (qpctl.tick.RecordLayout)
 )
