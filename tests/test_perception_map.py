@@ -294,7 +294,8 @@ def test_snapshots_are_immutable_and_independent() -> None:
 @pytest.mark.parametrize("key,value,match", [
     ("voxel", 0.0, "voxel"), ("bounds_min", [0.0, 0.0], "bounds_min"), ("bounds_max", [0.0, 0.0, 0.0], "bounds_max"),
     ("max_range", 0.05, "max_range"), ("stale_stop", 0.1, "stale_stop"), ("samples", 1, "samples"),
-    ("rows_per_link", 3, "rows_per_link"), ("truncation", 0.01, "truncation"), ("decay", -1.0, "decay")])
+    ("rows_per_link", 3, "rows_per_link"), ("truncation", 0.01, "truncation"), ("decay", -1.0, "decay"),
+    ("lag_stop", 0.005, "lag_stop"), ("lag_slow", -0.01, "lag_slow"), ("lag_rate", 0.0, "lag_rate")])
 def test_bad_settings_name_the_key(key: str, value: object, match: str) -> None:
     with pytest.raises(ConfigError, match=f"perception.{match}"):
         PerceptionConfig(**{key: value})
