@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import threading
 import time
@@ -350,7 +351,8 @@ def tau_dot(duration: float, out: Path) -> dict[str, Any]:
 CLOSED_LOOP_KEYS = ("collided", "min_clearance", "min_soft_clearance", "soft_contact_max_speed",
                     "soft_contact_max_approach_speed", "map_min_clearance", "map_age_ms_max", "map_update_cpu_ms_median",
                     "map_update_cpu_ms_p99", "map_latency_ms_p99", "phantom_rows", "phantom_rows_checked",
-                    "stale_stop_ticks", "tick_us_median", "fruit_errors_mm")
+                    "stale_stop_ticks", "tick_us_median", "fruit_errors_mm", "lag_ticks", "lag_max_m", "path_end_s",
+                    "path_extra_s")
 
 
 def closed_loops(seeds: list[int], duration: float | None = None) -> list[dict[str, Any]]:
@@ -377,14 +379,17 @@ def closed_loops(seeds: list[int], duration: float | None = None) -> list[dict[s
 
 def closed_loop_markdown(rows: list[dict[str, Any]]) -> str:
     lines = [("| seed | collided | min clearance [m] | ≥ d_safe − voxel | min soft clearance [m] | soft contact speed "
-             "[m/s] (into the leaf) | fruits within 5 mm | map p99 [ms CPU] | stamp → rows p99 [ms] | phantom rows |"),
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "[m/s] (into the leaf) | fruits within 5 mm | path end [s] (extra) | map p99 [ms CPU] | stamp → rows p99 [ms] | "
+             "phantom rows |"),
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         errs = r["fruit_errors_mm"] or []
         ok = r["min_clearance"] >= r["d_safe"] - r["voxel"]
+        end = r.get("path_end_s")
+        ends = "not reached" if end is None or not math.isfinite(end) else f"{end:.1f} (+{r['path_extra_s']:.1f})"
         lines.append(f"| {r['seed']} | {r['collided']} | {r['min_clearance']:.3f} | {'yes' if ok else 'NO'} | "
                      f"{r['min_soft_clearance']:.3f} | {r['soft_contact_max_speed']:.2f} "
-                     f"({r['soft_contact_max_approach_speed']:.2f}) | {sum(e <= 5.0 for e in errs)} of {len(errs)} | "
+                     f"({r['soft_contact_max_approach_speed']:.2f}) | {sum(e <= 5.0 for e in errs)} of {len(errs)} | {ends} | "
                      f"{r['map_update_cpu_ms_p99']:.1f} | {r['map_latency_ms_p99']:.1f} | "
                      f"{r['phantom_rows']} of {r['phantom_rows_checked']} |")
     return "\n".join(lines) + "\n"

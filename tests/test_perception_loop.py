@@ -16,6 +16,7 @@ from qpctl.dynamics import Dynamics
 from qpctl.perception import Perception, PerceptionConfig, PointCloud
 from qpctl.perception.closed_loop import attach
 from qpctl.perception.rows import FieldBarrier, field_pairs
+from qpctl.perception.stale import OK, SLOW, StalePolicy
 from qpctl.simulation.camera import CameraConfig, DepthCamera
 from qpctl.simulation.simulator import Simulator
 
@@ -204,9 +205,14 @@ def test_few_rows_come_from_what_is_not_there() -> None:
     assert m["phantom_rows"] <= 0.01 * m["phantom_rows_checked"]
 
 
-def _hand_through_a_leaf(duration: float, cfg: PerceptionConfig) -> dict:
+FRUIT1 = np.array([0.55, 0.25, 0.45])  # panda_spheres' first waypoint, reached at t = 1.5 s on its nominal clock
+
+
+def _hand_through_a_leaf(duration: float, cfg: PerceptionConfig, *, time_scaled: bool = False
+                         ) -> tuple[dict, np.ndarray, np.ndarray]:
     """panda_spheres without its spheres; a filled soft ball (r = 6 cm) on the hand's way to the first
-    fruit, known to the map as a cloud of soft points and to the metrics as a soft sphere."""
+    fruit, known to the map as a cloud of soft points and to the metrics as a soft sphere. The
+    metrics (with ``solved``), the times [s] and the hand's distances to the first fruit [m]."""
     from qpctl.geometry.obstacles import Obstacle
 
     scen = Scenario.load("panda_spheres")
@@ -214,7 +220,7 @@ def _hand_through_a_leaf(duration: float, cfg: PerceptionConfig) -> dict:
     q0 = scen.q0(robot)
     ctrl = scen.build_controller("qp", robot=robot, obstacles=[])
     start = ctrl.dynamics.compute(q0, np.zeros(robot.nv)).segments[-1, 1]
-    centre = start + 0.4 * (np.array([0.55, 0.25, 0.45]) - start)
+    centre = start + 0.4 * (FRUIT1 - start)
     rng = np.random.default_rng(0)
     d = rng.normal(size=(6000, 3))
     pts = centre + 0.06 * d / np.linalg.norm(d, axis=1, keepdims=True) * rng.uniform(0, 1, (6000, 1)) ** (1 / 3)
@@ -222,9 +228,10 @@ def _hand_through_a_leaf(duration: float, cfg: PerceptionConfig) -> dict:
     sim = Simulator(ctrl, dt=1e-3, duration=duration, obstacles=[leaf])
     p = Perception(cfg, robot)
     p.submit(PointCloud(pts, 0.0, labels=np.full(len(pts), 2, np.uint8)))
-    loop = attach(ctrl, sim, cfg, world=[leaf], perception=p, time_scaled=False)  # a static map: no stale stop
+    loop = attach(ctrl, sim, cfg, world=[leaf], perception=p, time_scaled=time_scaled)
     traj = sim.run(q0)
-    return {**loop.metrics(), "solved": bool(np.all(traj.qp_status == "solved"))}
+    m = {**loop.metrics(), "solved": bool(np.all(traj.qp_status == "solved"))}
+    return m, traj.t, np.linalg.norm(traj.x[:, :3] - FRUIT1, axis=1)
 
 
 def test_the_hand_passes_through_a_leaf_no_faster_than_soft_speed() -> None:
@@ -232,6 +239,53 @@ def test_the_hand_passes_through_a_leaf_no_faster_than_soft_speed() -> None:
     python-fcl's witness points) to soft_speed: 0.0536 m/s measured against 0.05 (the tangent rows'
     second-order error, the points between the axis samples and the slack where the drives' rate limit
     binds), against 0.078 m/s with the rows bounding each sample's own speed in 14 fixed directions."""
-    m = _hand_through_a_leaf(0.7, CFG)
+    m, _, _ = _hand_through_a_leaf(0.7, CFG)
     assert m["solved"] and m["min_soft_clearance"] < -0.03  # the hand went well into the leaf
     assert m["soft_contact_max_speed"] <= 1.1 * CFG.soft_speed
+
+
+def test_the_path_waits_for_the_hand_in_a_leaf() -> None:
+    """The waiting reference (qpctl.perception.stale, the lag): the soft speed rows hold the arm to
+    soft_speed while its links pass through the ball, and the path slows with the tracking error
+    instead of running on. The hand reaches the first fruit within 5 mm (1.0 mm measured, at t = 7.1 s
+    against the nominal 1.5 s: the forearm is in the ball most of the way), never faster than
+    soft_speed (+20 %: 0.058 m/s measured) inside; with the path's waiting off (lag_stop = 0) the
+    reference runs on to the second fruit and the hand passes the first no nearer than 5 mm
+    (0.24 m at t = 4 s). A static map: the stale policy's thresholds out of the way."""
+    cfg = dataclasses.replace(CFG, stale_slow=100.0, stale_stop=200.0)
+    m, t, err = _hand_through_a_leaf(7.5, cfg, time_scaled=True)
+    assert m["solved"] and m["min_soft_clearance"] < -0.03 and m["lag_ticks"] > 1000
+    reached = np.flatnonzero(err <= 0.005)
+    assert reached.size and t[reached[0]] > 1.5 + 2.0  # reached, seconds later than the nominal path
+    assert m["soft_contact_max_speed"] <= 1.2 * cfg.soft_speed
+    assert m["lag_max_m"] <= cfg.lag_stop + 0.01  # the path waited: it never ran away from the hand
+    m0, _, err0 = _hand_through_a_leaf(7.5, dataclasses.replace(cfg, lag_stop=0.0), time_scaled=True)
+    assert m0["lag_ticks"] == 0 and err0.min() > 0.005
+
+
+def test_lag_policy_slows_the_path_with_the_tracking_error() -> None:
+    """κ_lag against its definition: 1 up to lag_slow, linear to 0 at lag_stop, rate-limited at
+    lag_rate both ways; κ is the lesser of the age's and the lag's; the map's mode is the age's."""
+    p = StalePolicy(0.1, 0.3, lag_slow=0.01, lag_stop=0.05, lag_rate=5.0)
+    assert p.lag_target(0.005) == 1.0 and p.lag_target(0.03) == pytest.approx(0.5) and p.lag_target(0.06) == 0.0
+    dt = 0.001
+    kap, lagk = [], []
+    for k in range(1000):
+        t = k * dt
+        lag = 0.08 if 0.1 <= t < 0.5 else 0.0  # the arm held back from 0.1 s to 0.5 s; the map always fresh
+        v = p(t, 0.0, lag)
+        assert v.mode == OK
+        kap.append(v.kappa)
+        lagk.append(v.lag_kappa)
+    kap = np.array(kap)
+    assert np.all(np.abs(np.diff(kap)) <= 5.0 * dt + 1e-12)
+    # κ falls from the first tick of the lag (t = 0.1 s) by lag_rate·dt a tick, and climbs back likewise
+    assert kap[99] == 1.0 and kap[200] == pytest.approx(1.0 - 5.0 * 0.101, abs=1e-9) and kap[400] == 0.0
+    assert kap[600] == pytest.approx(5.0 * 0.101, abs=1e-9) and kap[900] == 1.0 and np.array_equal(kap, lagk)
+    # an old map and a lag together: the lesser factor
+    q = StalePolicy(0.1, 0.3, lag_slow=0.01, lag_stop=0.05, lag_rate=5.0)
+    v = q(0.0, 0.2, 0.02)
+    assert v.kappa == pytest.approx(min(0.5, 0.75)) and v.mode == SLOW and v.lag_kappa == pytest.approx(0.75)
+    assert StalePolicy(0.1, 0.3)(0.0, 0.0, 1.0).kappa == 1.0  # without lag thresholds the lag is ignored
+    with pytest.raises(ValueError):
+        StalePolicy(0.1, 0.3, lag_slow=0.05, lag_stop=0.01)

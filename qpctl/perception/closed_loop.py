@@ -23,7 +23,17 @@ after the first), ``map_updates_over_latency``, ``map_update_ms_median``/``_p99`
 what the soft rows bound), ``phantom_rows`` (active rigid rows, checked every ``PHANTOM_EVERY`` ticks, whose field value at
 their link's axis point is short of the true distance from there to the world's obstacles by more
 than ``phantom_tolerance``: the map saw something where nothing is, the robot included),
-``stale_slow_ticks`` and ``stale_stop_ticks``.
+``stale_slow_ticks`` and ``stale_stop_ticks``; ``lag_ticks`` (ticks at which the path waited for
+the arm, κ_lag < 1), ``lag_max_m`` (the largest tracking error passed to the policy [m]),
+``path_end_s`` (when the time-scaled path reached its end [s], NaN if not within the run) and
+``path_extra_s`` (that, less the path's nominal end time [s]).
+
+**The waiting reference** (:mod:`qpctl.perception.stale`): before each tick the loop passes the
+stale policy the task's tracking error e = |x(q) − x_d(s)| [m] — the task point at this tick's q
+(Pinocchio's forward kinematics) against the reference at this tick's path time — when the last
+tick's soft pairs put a link within :meth:`~qpctl.perception.config.PerceptionConfig.lag_reach`
+of a leaf's voxels (where the soft speed rows hold it to at most 2·``soft_speed``), and 0
+elsewhere; κ_lag then slows the path while the arm lags in the leaves.
 """
 
 from __future__ import annotations
@@ -36,6 +46,7 @@ from typing import Any
 
 import fcl
 import numpy as np
+import pinocchio as pin
 
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.perception.config import SQRT3_2
@@ -75,6 +86,8 @@ class MapLoop:
         self.rigid, self.soft = list(rigid), list(soft)
         cfg = perception.config
         self.phantom_tolerance = 2 * SQRT3_2 * cfg.voxel + cfg.depth_noise  # [m]
+        self.lag_reach = cfg.lag_reach()  # [m] a link this near a leaf's voxels: its lag slows the path
+        self._data = robot.model.createData()
         self._pending: list[tuple[float, MapSnapshot]] = []
         self._soft_world: Any = None
         self._soft_dyn: Any = None
@@ -105,12 +118,15 @@ class MapLoop:
         self.checked_rows = 0
         self.slow_ticks = 0
         self.stop_ticks = 0
+        self.lag_ticks = 0
+        self.lag_max = 0.0
+        self.path_end = math.nan
         self.frames = 0
         self.soft_approach_max = 0.0
         self.sample: tuple[Any, np.ndarray, MapSnapshot, np.ndarray] | None = None
         self._sample_self = -1
         self._used: float = -math.inf
-        self.series: dict[str, list[float]] = {"t": [], "map_clearance": [], "age_ms": [], "kappa": []}
+        self.series: dict[str, list[float]] = {"t": [], "map_clearance": [], "age_ms": [], "kappa": [], "lag": []}
         self._map_points: list[np.ndarray] = []
         self._map_stamps: list[np.ndarray] = []
         self._next_record = -math.inf
@@ -149,9 +165,15 @@ class MapLoop:
         if snap.stamp != self._used and math.isfinite(snap.stamp):
             self._used = snap.stamp
             self.latency_ms.append((t - snap.stamp) * 1e3)
-        st = p.staleness(t)
+        lag = self._lag(t, q)
+        st = p.staleness(t, lag)
         if self.path is not None:
             self.path.advance(t, st.kappa)
+            end = getattr(self.path.path, "end_time", math.nan)
+            if math.isnan(self.path_end) and self.path.s >= end - 1e-9:
+                self.path_end = t
+        self.lag_ticks += st.lag_kappa < 1.0
+        self.lag_max = max(self.lag_max, lag)
         if math.isfinite(st.age):
             self.age_ms.append(st.age * 1e3)
         self.slow_ticks += st.mode == SLOW
@@ -159,6 +181,25 @@ class MapLoop:
         self.series["t"].append(t)
         self.series["age_ms"].append(st.age * 1e3 if math.isfinite(st.age) else np.nan)
         self.series["kappa"].append(st.kappa)
+        self.series["lag"].append(lag)
+
+    def _lag(self, t: float, q: np.ndarray) -> float:
+        """The tracking error |x(q) − x_d(s)| [m] the policy is given (module docstring): 0 without a
+        time-scaled path or while the last tick's soft pairs keep every link farther than
+        ``lag_reach`` from a leaf's voxels."""
+        pairs = self.barrier.last
+        if self.path is None or pairs is None:
+            return 0.0
+        soft = pairs.distance[pairs.soft]
+        if not soft.size or not float(soft.min()) <= self.lag_reach:
+            return 0.0
+        ref = self.path.path(self.path.time_at(t))
+        pin.framesForwardKinematics(self.robot.model, self._data, np.asarray(q, float))
+        x = self.robot.task_positions(self._data)
+        xd = np.asarray(ref.x, float)
+        if x.shape != xd.shape:
+            return 0.0
+        return float(np.linalg.norm(x - xd))
 
     def after(self, k: int, t: float, q: np.ndarray, v: np.ndarray) -> None:
         pairs = self.barrier.last
@@ -257,6 +298,11 @@ class MapLoop:
             "phantom_rows_checked": self.checked_rows,
             "stale_slow_ticks": self.slow_ticks,
             "stale_stop_ticks": self.stop_ticks,
+            "lag_ticks": self.lag_ticks,
+            "lag_max_m": self.lag_max,
+            "path_end_s": self.path_end,
+            "path_extra_s": (self.path_end - float(getattr(self.path.path, "end_time", math.nan))
+                             if self.path is not None else math.nan),
         }
 
 

@@ -59,6 +59,12 @@ class PerceptionConfig:
     #                                  pushed faster; 0: the soft rows are hard)
     stale_slow: float = setting(0.15, valid="seconds", unit="s")  # a map older than this slows the task [s]
     stale_stop: float = setting(0.5, valid="seconds", unit="s")  # older than this, the arm stops [s]
+    lag_slow: float = setting(0.01, valid="nonnegative", unit="m")  # with a link within the soft speed rows'
+    #                                  reach of a leaf, a tracking error |x − x_d| above this slows the path [m]
+    lag_stop: float = setting(0.05, valid="nonnegative", unit="m")  # ... and at this it waits for the arm [m]
+    #                                  (0: the path never waits; docs/perception.md, "The waiting reference")
+    lag_rate: float = setting(5.0, valid="positive", unit="1/s")  # the most the lag's time scale κ_lag moves
+    #                                  per second, both ways [1/s] (1 → 0 in 1/lag_rate s)
     latency: float = setting(0.03, valid="nonnegative", unit="s")  # in a simulated loop, a frame's map reaches
     #                                  the rows this long after its stamp [s]: fixed, so a run is the same on
     #                                  every machine (the build's measured cost is reported beside it)
@@ -87,6 +93,9 @@ class PerceptionConfig:
         if self.stale_stop <= self.stale_slow:
             raise ConfigError(f"must exceed stale_slow ({self.stale_slow}), got {self.stale_stop}",
                               key="perception.stale_stop")
+        if self.lag_stop and self.lag_stop <= self.lag_slow:
+            raise ConfigError(f"must exceed lag_slow ({self.lag_slow}) or be 0 (the path never waits), got "
+                              f"{self.lag_stop}", key="perception.lag_stop")
         if self.truncation < 2 * self.voxel:
             raise ConfigError(f"must be at least two voxels ({2 * self.voxel}), got {self.truncation}",
                               key="perception.truncation")
@@ -95,6 +104,14 @@ class PerceptionConfig:
         """The rigid rows' margin [m]: d_safe + √3/2 voxel (an occupied voxel's centre to its farthest
         point) + the depth noise."""
         return float(d_safe) + SQRT3_2 * self.voxel + self.depth_noise
+
+    def lag_reach(self) -> float:
+        """How near a leaf's voxels [m] a link's surface must be for its lag to slow the path: where the
+        soft speed rows' bound b(d) = soft_speed + soft_funnel·(d − m_v) is at most twice soft_speed,
+        d ≤ m_v + soft_speed/soft_funnel (every distance with the funnel off)."""
+        if self.soft_funnel <= 0.0:
+            return math.inf
+        return self.soft_speed_margin() + self.soft_speed / self.soft_funnel
 
     def soft_speed_margin(self) -> float:
         """Where the speed rows reach ``soft_speed`` [m]: √3/2 voxel + the depth noise from a leaf's voxel

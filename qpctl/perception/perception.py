@@ -40,7 +40,9 @@ class Perception:
                  threaded: bool = False) -> None:
         self.config = config or PerceptionConfig()
         self.map = DepthMap(self.config, robot)
-        self.policy = StalePolicy(self.config.stale_slow, self.config.stale_stop)
+        c = self.config
+        self.policy = StalePolicy(c.stale_slow, c.stale_stop, lag_slow=c.lag_slow, lag_stop=c.lag_stop or None,
+                                  lag_rate=c.lag_rate)
         self._latest = MapSnapshot.empty(self.map.grid, self.config.truncation)
         self.build_ms: list[float] = []  # each snapshot's build time (frame arrival to snapshot) [ms]
         self.worker = MapWorker(self.map, on_snapshot=self._built).start() if threaded else None
@@ -96,9 +98,11 @@ class Perception:
         """The grasp target [m] (its zone is not an obstacle), or None."""
         self.map.set_target(target)
 
-    def staleness(self, t: float) -> Staleness:
-        """The stale-map policy's verdict at t [s] for the newest snapshot."""
-        return self.policy(t, self.snapshot.age(t))
+    def staleness(self, t: float, lag: float = 0.0) -> Staleness:
+        """The stale-map policy's verdict at t [s] for the newest snapshot and the task's tracking error
+        ``lag`` [m] (pass it while a link is within :meth:`PerceptionConfig.lag_reach` of a leaf, 0
+        elsewhere: the path then waits for an arm held back in the leaves; :mod:`qpctl.perception.stale`)."""
+        return self.policy(t, self.snapshot.age(t), lag)
 
     def close(self) -> None:
         """Stop the worker thread, if any."""
