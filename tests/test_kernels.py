@@ -345,7 +345,7 @@ def test_pinv_t_equals_numpy_svd_damped_pseudo_inverse(case):
 
 def test_gram_lower_equals_numpy():
     """gram_lower (the reference velocity's and W_b's normal matrices) against numpy's A Aᵀ over the
-    first k columns, lower triangle, to rounding (its sum is reassociated): shapes from 1×0 to 9×40,
+    first k columns, lower triangle, to rounding: shapes from 1×0 to 9×40,
     k below the array's width (the rest of A is garbage it must not read), the upper triangle left as
     it was, and a NaN in A reaching H (no fastmath flag may assume finite values)."""
     rng = np.random.default_rng(SEED + 77)
