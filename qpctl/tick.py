@@ -166,6 +166,11 @@ class QPSpec:
     # entries in its rows, ℓ₁, ℓ₂), in both layouts
     slack_columns: list[tuple[int, np.ndarray, float, float]] | None = None
 
+    @property
+    def n_in(self) -> int:
+        """The QP's inequality rows, every constraint's."""
+        return sum(r for _, r in self.rows)
+
 
 class QPBuffers:
     """One QP layout in DAQP's convention, and a :class:`~qpctl.qp.Problem` of views onto it.
@@ -181,7 +186,7 @@ class QPBuffers:
         k = m if soft else 0
         cols = spec.slack_columns or []
         nv = n + 2 * k + len(cols)
-        n_in = sum(r for _, r in spec.rows)
+        n_in = spec.n_in
         self.n, self.nv, self.n_in, self.n_eq, self.relaxed = n, nv, n_in, m, soft
         self.H = np.zeros((nv, nv))
         self.f = np.zeros(nv)
@@ -380,7 +385,7 @@ class Workspace:
         self.gA = np.zeros((n, 3 * max(KC, L)))
         self.w1, self.w2, self.w3 = np.zeros(n), np.zeros(n), np.zeros(max(n, 6))
         self.sv, self.sj, self.ts = np.zeros((SV_ROWS, 6)), np.zeros((SJ_ROWS, 3, n)), np.zeros(2, np.int64)
-        self.cx = np.zeros(max(sum(r for _, r in spec.rows) if spec is not None else 0, 1))
+        self.cx = np.zeros(max(spec.n_in if spec is not None else 0, 1))
         self.flags = np.zeros(codes.FLAG_SIZE, np.int64)
         self._field_arrays(spec.field if spec is not None else None, L, n)
         self.layout = RecordLayout(n, m)

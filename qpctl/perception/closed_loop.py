@@ -29,9 +29,9 @@ the arm, κ_lag < 1), ``lag_max_m`` (the largest tracking error passed to the po
 ``path_extra_s`` (that, less the path's nominal end time [s]).
 
 **The waiting reference** (:mod:`qpctl.perception.stale`): before each tick the loop passes the
-stale policy the task's tracking error e = |x(q) − x_d(s)| [m] — the task point at this tick's q
-(Pinocchio's forward kinematics) against the reference at this tick's path time — when the last
-tick's soft pairs put a link within :meth:`~qpctl.perception.config.PerceptionConfig.lag_reach`
+stale policy the task's tracking error e = |x − x_d| [m] of the controller's last tick (the task
+point and the reference its output carries, over the position rows) when that tick's soft pairs put
+a link within :meth:`~qpctl.perception.config.PerceptionConfig.lag_reach`
 of a leaf's voxels (where the soft speed rows hold it to at most 2·``soft_speed``), and 0
 elsewhere; κ_lag then slows the path while the arm lags in the leaves.
 """
@@ -46,7 +46,6 @@ from typing import Any
 
 import fcl
 import numpy as np
-import pinocchio as pin
 
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.perception.config import SQRT3_2
@@ -71,6 +70,8 @@ class MapLoop:
         robot: the robot.
         rigid, soft: the world's true rigid and soft obstacles (perceived and known).
         path: the controller's time-scaled reference (None: the stale policy is only recorded).
+        controller: the controller, whose last output's tracking error the waiting reference reads
+            (None: the path never waits for the arm).
         dt: the control period [s].
         targets: the grasp targets in order (the path's waypoints) and the path times [s] from which
             each is current; None: no target exclusion.
@@ -78,16 +79,17 @@ class MapLoop:
 
     def __init__(self, perception: Perception, barrier: FieldBarrier, camera: Any, robot: RobotModel,
                  rigid: Sequence[Obstacle], soft: Sequence[Obstacle], *, path: TimeScaledPath | None = None,
-                 dt: float = 1e-3, targets: tuple[np.ndarray, np.ndarray] | None = None) -> None:
+                 dt: float = 1e-3, targets: tuple[np.ndarray, np.ndarray] | None = None,
+                 controller: Any = None) -> None:
         self.perception, self.barrier, self.camera, self.robot = perception, barrier, camera, robot
-        self.path = path
+        self.path, self.controller = path, controller
+        self.path_nominal_end = float(getattr(path.path, "end_time", math.nan)) if path is not None else math.nan
         self.dt = float(dt)
         self.targets = targets
         self.rigid, self.soft = list(rigid), list(soft)
         cfg = perception.config
         self.phantom_tolerance = 2 * SQRT3_2 * cfg.voxel + cfg.depth_noise  # [m]
         self.lag_reach = cfg.lag_reach()  # [m] a link this near a leaf's voxels: its lag slows the path
-        self._data = robot.model.createData()
         self._pending: list[tuple[float, MapSnapshot]] = []
         self._soft_world: Any = None
         self._soft_dyn: Any = None
@@ -165,12 +167,11 @@ class MapLoop:
         if snap.stamp != self._used and math.isfinite(snap.stamp):
             self._used = snap.stamp
             self.latency_ms.append((t - snap.stamp) * 1e3)
-        lag = self._lag(t, q)
+        lag = self._lag()
         st = p.staleness(t, lag)
         if self.path is not None:
             self.path.advance(t, st.kappa)
-            end = getattr(self.path.path, "end_time", math.nan)
-            if math.isnan(self.path_end) and self.path.s >= end - 1e-9:
+            if math.isnan(self.path_end) and self.path.s >= self.path_nominal_end - 1e-9:
                 self.path_end = t
         self.lag_ticks += st.lag_kappa < 1.0
         self.lag_max = max(self.lag_max, lag)
@@ -183,23 +184,19 @@ class MapLoop:
         self.series["kappa"].append(st.kappa)
         self.series["lag"].append(lag)
 
-    def _lag(self, t: float, q: np.ndarray) -> float:
-        """The tracking error |x(q) − x_d(s)| [m] the policy is given (module docstring): 0 without a
-        time-scaled path or while the last tick's soft pairs keep every link farther than
-        ``lag_reach`` from a leaf's voxels."""
+    def _lag(self) -> float:
+        """The tracking error |x − x_d| [m] the policy is given (module docstring): the controller's last
+        output's, over the position rows; 0 before the first tick, without a time-scaled path or while
+        the last tick's soft pairs keep every link farther than ``lag_reach`` from a leaf's voxels."""
         pairs = self.barrier.last
-        if self.path is None or pairs is None:
+        last = getattr(self.controller, "last", None)
+        if self.path is None or pairs is None or last is None:
             return 0.0
         soft = pairs.distance[pairs.soft]
         if not soft.size or not float(soft.min()) <= self.lag_reach:
             return 0.0
-        ref = self.path.path(self.path.time_at(t))
-        pin.framesForwardKinematics(self.robot.model, self._data, np.asarray(q, float))
-        x = self.robot.task_positions(self._data)
-        xd = np.asarray(ref.x, float)
-        if x.shape != xd.shape:
-            return 0.0
-        return float(np.linalg.norm(x - xd))
+        m = self.robot.m_position
+        return float(np.linalg.norm(last.x[:m] - last.ref.x[:m]))
 
     def after(self, k: int, t: float, q: np.ndarray, v: np.ndarray) -> None:
         pairs = self.barrier.last
@@ -301,8 +298,7 @@ class MapLoop:
             "lag_ticks": self.lag_ticks,
             "lag_max_m": self.lag_max,
             "path_end_s": self.path_end,
-            "path_extra_s": (self.path_end - float(getattr(self.path.path, "end_time", math.nan))
-                             if self.path is not None else math.nan),
+            "path_extra_s": self.path_end - self.path_nominal_end,
         }
 
 
@@ -344,7 +340,8 @@ def attach(controller: Any, simulator: Any, config: Any, *, camera: Any = None, 
     controller.warm = False
     rigid = [o for o in world if o.material != "soft"]
     soft = [o for o in world if o.material == "soft"]
-    loop = MapLoop(p, barrier, camera, robot, rigid, soft, path=scaled, dt=simulator.dt, targets=targets)
+    loop = MapLoop(p, barrier, camera, robot, rigid, soft, path=scaled, dt=simulator.dt, targets=targets,
+                   controller=controller)
     loop.warmup(robot.q_home)
     simulator.hooks.append(loop)
     return loop

@@ -14,8 +14,8 @@ error e = |x − x_d| [m] while a link is in a leaf's reach (the caller passes e
 ``lag_stop`` [m], moving at most ``lag_rate`` [1/s] both ways. κ = min(κ_age, κ_lag): the path's
 progress ṡ = κ drops while the arm lags in the leaves, so the reference waits for it instead of
 running on to the next waypoint, and resumes at full rate when the arm has caught up (e ≤ lag_slow)
-or has left the leaves. Causal: e is this tick's (the task point at this tick's q against the
-reference at this tick's path time), the leaves' reach the last tick's field pairs.
+or has left the leaves. Causal: e and the leaves' reach are the controller's last tick's (its
+output's task point and reference; its field pairs).
 
 :class:`TimeScaledPath` is the time-scaled reference: path time s advances at ṡ = κ, and the
 reference is x_d(s), κ x_d'(s), κ² x_d''(s) + κ̇ x_d'(s).
