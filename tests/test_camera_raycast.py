@@ -2,7 +2,7 @@
 
 * qpctl's kernel (:mod:`qpctl.kernels.raycast`): its z-buffered image (each shape's rays only, inside
   the shape's screen bound) against its own brute force (every ray against every shape), so the
-  culling is exact; and sampled rays against :func:`~qpctl.kernels.raycast.reference_depth`, which
+  culling is exact; and sampled rays against :func:`~qpctl.simulation.raycast_reference.reference_depth`, which
   sphere-traces python-fcl's distance and knows no intersection formula.
 * The hit normals: a point backed off the surface along the normal by h is python-fcl's h away,
   with the hit point its nearest.
@@ -23,6 +23,7 @@ from qpctl import ConfigError, Scenario
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels import raycast as K
 from qpctl.simulation.camera import CameraConfig, DepthCamera, NumbaCaster
+from qpctl.simulation.raycast_reference import reference_depth
 
 
 def random_obstacles(rng: np.random.Generator, count: int, lo: tuple[float, ...], hi: tuple[float, ...]) -> list[Obstacle]:
@@ -110,7 +111,7 @@ def test_rays_against_fcl_sphere_tracing(seed):
     dirs, t, who = dirs[pick], t[pick], who[pick]
     grazing = 0
     for k, d in enumerate(dirs):
-        t_ref, j_ref = K.reference_depth(origin, d, obstacles, t_max=5.0)
+        t_ref, j_ref = reference_depth(origin, d, obstacles, t_max=5.0)
         if math.isnan(t_ref):
             grazing += 1
             continue
@@ -133,7 +134,7 @@ def test_origin_inside_a_shape_is_not_seen():
     t, who = np.empty(1), np.empty(1, np.int32)
     K.cast_rays(np.zeros(3), np.array([[0.0, 0.0, 1.0]]), *scene, 5.0, t, who)
     assert who[0] == 3 and abs(t[0] - 0.8) < 1e-12
-    assert K.reference_depth(np.zeros(3), np.array([0.0, 0.0, 1.0]), obstacles)[1] == 3
+    assert reference_depth(np.zeros(3), np.array([0.0, 0.0, 1.0]), obstacles)[1] == 3
 
 
 def test_contains_against_fcl(rng):
