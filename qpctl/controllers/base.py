@@ -192,13 +192,16 @@ def entry_point(kernel: Any, *leading: Any, **trailing: Any) -> Any:
 
 
 _F64 = np.dtype(np.float64)
+_ND = np.ndarray
+_STRIDES = (8,)  # one dimension, its float64 entries adjacent: C-contiguous
 
 
 def plain_vectors(q: Any, v: Any) -> bool:
     """q and v as a one-call tick's compiled entry point (:func:`entry_point`) takes them unchecked:
-    float64, one-dimensional, C-contiguous ndarrays (anything else goes through numba's dispatcher)."""
-    return (type(q) is np.ndarray and type(v) is np.ndarray and q.dtype is _F64 and v.dtype is _F64
-            and q.ndim == 1 and v.ndim == 1 and q.flags.c_contiguous and v.flags.c_contiguous)
+    float64, one-dimensional, C-contiguous ndarrays (anything else goes through numba's dispatcher).
+    The strides say both of the last two at once (a tuple, where ``flags`` builds an object)."""
+    return (type(q) is _ND and type(v) is _ND and q.dtype is _F64 and v.dtype is _F64
+            and q.strides == _STRIDES and v.strides == _STRIDES)
 
 
 def fast_state(q: Any, v: Any, t: Any, n: int, nq: int | None = None) -> tuple[np.ndarray, np.ndarray, float]:
