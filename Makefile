@@ -57,7 +57,7 @@ perception: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks.perception --out results/perception
 
 perception-canopies: $(STAMP)
-	MPLBACKEND=Agg $(PY) -m benchmarks.perception --canopies 20 --out results/perception-canopies
+	MPLBACKEND=Agg $(PY) -m benchmarks.perception --canopies 20 --duration 30 --jobs 2 --out results/perception-canopies
 
 # The harvesting scenario under every law, approach and pose tasks: results/harvest/harvest.md (docs/harvesting.md).
 harvest: $(STAMP)

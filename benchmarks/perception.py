@@ -355,26 +355,35 @@ CLOSED_LOOP_KEYS = ("collided", "min_clearance", "min_soft_clearance", "soft_con
                     "path_extra_s")
 
 
-def closed_loops(seeds: list[int], duration: float | None = None) -> list[dict[str, Any]]:
-    """``panda_canopy_depth`` under each canopy seed (seed 1 is the packaged scenario), noise on: the
+def closed_loop(seed: int, duration: float | None = None) -> dict[str, Any]:
+    """``panda_canopy_depth`` under one canopy seed (seed 1 is the packaged scenario), noise on: the
     closed-loop metrics of issue 21's targets, and the canopy's unreachable fruits with their reasons."""
     from qpctl import Scenario
     from qpctl.run import simulate
 
-    out = []
-    for seed in seeds:
-        extra = [f"sim.duration={duration}"] if duration else []
-        scen = Scenario.load("panda_canopy_depth", overrides=[f"canopy.seed={seed}", *extra])
-        t0 = time.perf_counter()
-        m = simulate(scen).metrics
-        row = {"seed": seed, "wall_s": time.perf_counter() - t0, "d_safe": float(scen.data["controller"]["d_safe"]),
-               "voxel": scen.perception_config().voxel, "soft_speed": scen.perception_config().soft_speed}
-        row.update({k: m.get(k) for k in CLOSED_LOOP_KEYS})
-        canopy = m.get("canopy", {})
-        row["unreachable"] = [f.get("reason", "") for f in canopy.get("fruits", []) if not f.get("reachable", True)]
-        out.append(row)
-        print(json.dumps(row, default=str), flush=True)
-    return out
+    extra = [f"sim.duration={duration}"] if duration else []
+    scen = Scenario.load("panda_canopy_depth", overrides=[f"canopy.seed={seed}", *extra])
+    t0 = time.perf_counter()
+    m = simulate(scen).metrics
+    row = {"seed": seed, "wall_s": time.perf_counter() - t0, "d_safe": float(scen.data["controller"]["d_safe"]),
+           "voxel": scen.perception_config().voxel, "soft_speed": scen.perception_config().soft_speed,
+           "duration_s": float(scen.data["sim"]["duration"])}
+    row.update({k: m.get(k) for k in CLOSED_LOOP_KEYS})
+    canopy = m.get("canopy", {})
+    row["unreachable"] = [f.get("reason", "") for f in canopy.get("fruits", []) if not f.get("reachable", True)]
+    print(json.dumps(row, default=str), flush=True)
+    return row
+
+
+def closed_loops(seeds: list[int], duration: float | None = None, jobs: int = 1) -> list[dict[str, Any]]:
+    """:func:`closed_loop` on each seed, in seed order; ``jobs`` > 1: that many processes at once (each
+    run is independent of the others; a map's costs then share the cores, its latency is fixed)."""
+    if jobs <= 1:
+        return [closed_loop(seed, duration) for seed in seeds]
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(jobs) as pool:
+        return list(pool.map(closed_loop, seeds, [duration] * len(seeds)))
 
 
 def closed_loop_markdown(rows: list[dict[str, Any]]) -> str:
@@ -445,13 +454,16 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--tau-dot", type=float, default=0.0, help="instead: |τ̇| with smooth and raw rows over S seconds")
     ap.add_argument("--only-tick", action="store_true", help="only the frames' map and the tick with the field")
     ap.add_argument("--duration", type=float, default=None, help="with --canopies: simulated seconds")
+    ap.add_argument("--jobs", type=int, default=1, help="with --canopies: runs at once (processes)")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.canopies:
-        rows = closed_loops(list(range(1, args.canopies + 1)), args.duration)
+        load = " ".join(f"{x:.2f}" for x in os.getloadavg())
+        rows = closed_loops(list(range(1, args.canopies + 1)), args.duration, args.jobs)
         (out / "canopies.json").write_text(json.dumps(rows, indent=2, default=str))
-        md = f"Load before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}\n\n" + closed_loop_markdown(rows)
+        md = (f"Load before: {load}, after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}; {args.jobs} job(s); "
+              f"{rows[0]['duration_s']:g} s each.\n\n" + closed_loop_markdown(rows))
         (out / "canopies.md").write_text(md)
         print(md)
         return {"canopies": rows}
