@@ -26,8 +26,8 @@ the true least distance between the link capsules and the obstacles (:class:`qpc
 along each run, tracking the task point's distance to x_d(t).
 
 TSID is not run here (its pip wheel crashes against pin 4.1 unless rebuilt from its sdist): its
-figure is quoted from issue 23, measured side by side in one process on the same canopy path by an
-earlier session (:data:`TSID_QUOTE`).
+figure is quoted (:data:`TSID_QUOTE`) from ``benchmarks/tsid_tick.py``, which runs it beside qpctl in
+one process in a scratch environment with TSID built from source.
 """
 
 from __future__ import annotations
@@ -48,10 +48,12 @@ from qpctl.tick import WorldClearance
 
 BLOCK = 25  # ticks a controller runs before the next one takes over
 SCENARIO = "panda_canopy"
-#: TSID's figure, with its provenance: issue 23 ("Why"), measured by an earlier session.
-TSID_QUOTE = ("TSID 1.10's C++ torque QP (eiquadprog, no obstacle avoidance): 23 µs median per tick on the "
-              "Panda canopy path, side by side in one process with qpctl (then 29 µs with 10 spheres); "
-              "issue 23, bindings rebuilt from TSID's sdist against pin 4.1")
+#: TSID's figure, with its provenance (``benchmarks/tsid_tick.py``; docs/performance.md).
+TSID_QUOTE = ("TSID 1.10's C++ torque QP (eiquadprog-fast, the end-effector position task with posture, "
+              "actuation and joint bounds, no obstacle avoidance): 9.8 µs median per tick on the panda_spheres "
+              "states, side by side in one process with qpctl's QP at 15.7–16.1 µs with its 10 spheres "
+              "(benchmarks/tsid_tick.py, TSID built from its sdists against pin 4.1, 2026-12-03; issue 23 "
+              "quoted 23 against 29 µs on the canopy path, another machine)")
 
 
 class Loop:

@@ -257,7 +257,7 @@ def _targets(res: dict[str, Any]) -> list[dict[str, Any]]:
         t["spheres_paper_median_us"], v, f"{v:.1f} µs" if v is not None else "", "µs")
     v = us("free", TARGET_QP)
     add("free_qp_median", f"{GROUP_TITLES['free']}: {qp_name} median ≤ {t['free_qp_median_us']:g} µs "
-        "(TSID's tick on the equivalent task, see below)",
+        "(issue #10's figure for TSID's tick; TSID measured since: see below)",
         t["free_qp_median_us"], v, f"{v:.1f} µs" if v is not None else "", "µs")
     a, b = us("canopy", TARGET_QP), us("spheres", TARGET_QP)
     v = a / b if a is not None and b is not None else None
