@@ -120,6 +120,35 @@ def test_other_array_types_give_the_same_torque(scene_and_states):
     assert np.isfinite(ints.step(q, v, round(t)).tau).all()  # an int time is a time
 
 
+@pytest.mark.parametrize("kind", ["qp", "paper"])
+def test_other_array_types_on_the_fast_tick_give_the_same_torque(scene_and_states, kind):
+    """The same once a tick has run: the next ticks call the kernel's compiled entry point, which reads
+    q and v as float64 C vectors without a check of its own, so :func:`plain_vectors` must turn away a
+    strided view, a view with negative strides and float32 (each would be read as other numbers)."""
+    scene, states = scene_and_states
+    k = 200
+    q, v, t = states.q[k], states.v[k], float(states.t[k])
+    before = (states.q[k - 1], states.v[k - 1], float(states.t[k - 1]))
+    wide = np.zeros((2 * q.size,))
+    wide[::2] = q
+    q_back, v_back = np.ascontiguousarray(q[::-1])[::-1], np.ascontiguousarray(v[::-1])[::-1]
+    assert not q_back.flags.c_contiguous and np.array_equal(q_back, q) and np.array_equal(v_back, v)
+
+    def warm():
+        ctrl = scene.controller(kind, "daqp" if kind == "qp" else None)
+        ctrl.warmup()
+        ctrl.step(*before)
+        assert (ctrl.qp_path() if kind == "qp" else ctrl)._entry is not None  # the fast tick from now on
+        return ctrl
+
+    ref = warm().step(q, v, t).tau.copy()
+    cases = {"q strided": (wide[::2], v, 0.0), "q backwards": (q_back, v, 0.0), "v backwards": (q, v_back, 0.0),
+             "float32": (q.astype(np.float32), v.astype(np.float32), 1e-3)}
+    for name, (qq, vv, rtol) in cases.items():
+        got = warm().step(qq, vv, t).tau
+        np.testing.assert_allclose(got, ref, rtol=rtol, atol=rtol * np.abs(ref).max() + 1e-12, err_msg=name)
+
+
 @pytest.mark.parametrize("bad", ["nan q", "inf v", "short q", "long v", "2-D q", "text", "nan t", "bool t"])
 def test_bad_states_raise_invalid_state_error(scene_and_states, bad):
     """Each bad state raises InvalidStateError (the kernel reports NaN, inf and wrong lengths; the
