@@ -43,6 +43,8 @@ from qpctl.kernels import field as KF
 from qpctl.perception import DepthFrame, DepthMap, Intrinsics, MapWorker, PerceptionConfig
 from qpctl.perception.synthetic import canopy, look_at, render
 from qpctl.robot.model import panda
+from qpctl.sweep.backends import LocalBackend
+from qpctl.sweep.engine import map_ordered
 
 K640 = Intrinsics.from_fov(640, 480, 58.0)  # a RealSense D435-like depth stream
 EYE = look_at([-0.35, 0.05, 0.75], [0.55, 0.0, 0.45])
@@ -376,14 +378,10 @@ def closed_loop(seed: int, duration: float | None = None) -> dict[str, Any]:
 
 
 def closed_loops(seeds: list[int], duration: float | None = None, jobs: int = 1) -> list[dict[str, Any]]:
-    """:func:`closed_loop` on each seed, in seed order; ``jobs`` > 1: that many processes at once (each
-    run is independent of the others; a map's costs then share the cores, its latency is fixed)."""
-    if jobs <= 1:
-        return [closed_loop(seed, duration) for seed in seeds]
-    from concurrent.futures import ProcessPoolExecutor
-
-    with ProcessPoolExecutor(jobs) as pool:
-        return list(pool.map(closed_loop, seeds, [duration] * len(seeds)))
+    """:func:`closed_loop` on each seed, in seed order, on the sweep engine's local backend (``jobs``
+    processes; 1: one after another in this process). A map's costs then share the cores; its latency
+    is fixed."""
+    return map_ordered(closed_loop, [(seed, duration) for seed in seeds], LocalBackend(jobs), desc="canopies")
 
 
 def closed_loop_markdown(rows: list[dict[str, Any]]) -> str:

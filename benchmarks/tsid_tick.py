@@ -45,9 +45,11 @@ speed and acceleration limits, dt = the scenario's; left out with ``--no-joint-b
 constraints (priority 0); solved by eiquadprog-fast (``SolverHQuadProgFast``: the 1.10 bindings do not
 expose ``SolverHQPFactory``).
 
-The ticks run in blocks of 25 states, the three in a rotating order; each block's first tick of each
-is the "cold" tick (the others ran in between), reported apart; medians and p99 are over the other
-ticks. Prints one JSON line.
+The timing is the bench's own (:func:`qpctl.bench.timing.time_on_states`, with its
+:class:`~qpctl.bench.timing.PinocchioFloor`): blocks of 25 states, the three in a rotating order, the
+garbage collector off, each block opened by an untimed tick that replays the previous state (its time
+is the "cold" tick). TSID's ``solve_us`` stage is its three calls without the reference update. Then an
+untimed pass over the same states checks both controllers' answers. Prints one JSON line.
 """
 
 from __future__ import annotations
@@ -63,9 +65,9 @@ import pinocchio as pin
 import tsid
 
 from qpctl import Scenario
+from qpctl.bench.timing import FLOOR, FloorOutput, PinocchioFloor, StateSequence, summary, time_on_states
 from qpctl.run import simulate
 
-BLOCK = 25
 KP, KD = 100.0, 20.0  # the task's gains (panda_spheres' controller.kp, kv)
 POSTURE_KP, POSTURE_KD, POSTURE_WEIGHT = 25.0, 10.0, 1e-3
 
@@ -111,6 +113,7 @@ class TsidTick:
         self.solver = tsid.SolverHQuadProgFast("eiquadprog-fast")
         self.solver.resize(inv.nVar, inv.nEq, inv.nIn)
         self.sol: Any = None
+        self.refs: dict[float, tuple[Any, np.ndarray, np.ndarray]] = {}  # t → reference(t), made before timing
 
     def reference(self, t: float) -> tuple[Any, np.ndarray, np.ndarray]:
         """The path at t [s] as TSID's SE3 sample parts: the placement, its velocity and acceleration (6)."""
@@ -129,15 +132,28 @@ class TsidTick:
         self.sol = self.solver.solve(hqp)
         return self.formulation.getActuatorForces(self.sol)
 
+    def step(self, q: np.ndarray, v: np.ndarray, t: float) -> FloorOutput:
+        """One tick as the bench's timing loop steps a controller: the reference at t (from
+        :attr:`refs`, made before the timing), then :meth:`solve`; ``info["solve_us"]`` the latter alone."""
+        s = time.perf_counter()
+        self.set_reference(self.refs[t])
+        m = time.perf_counter()
+        self.solve(q, v, t)
+        e = time.perf_counter()
+        return FloorOutput((e - s) * 1e6, {"solve_us": (e - m) * 1e6})
+
+    def reset(self) -> None:
+        """Nothing to forget: eiquadprog-fast starts every solve cold."""
+
     def task_residual(self) -> float:
         """‖achieved − desired‖ of the position rows' acceleration [m/s²] at the last solution."""
         dv = self.formulation.getAccelerations(self.sol)
         return float(np.linalg.norm(self.ee.getAcceleration(dv) - self.ee.getDesiredAcceleration))
 
 
-def _stats(samples: list[float]) -> dict[str, float]:
-    a = np.asarray(samples)
-    return {"median_us": round(float(np.median(a)), 2), "p99_us": round(float(np.percentile(a, 99)), 2)}
+def _stats(samples: np.ndarray) -> dict[str, float]:
+    st = summary(samples)
+    return {"median_us": round(st["median"], 2), "p99_us": round(st["p99"], 2)}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -150,81 +166,39 @@ def main(argv: list[str] | None = None) -> int:
     scen = Scenario.load("panda_spheres")
     traj = simulate(scen, kind="qp").trajectory
     idx = np.arange(0, len(traj.t), args.stride)[:args.states]
-    ts, qs, vs = traj.t[idx], np.ascontiguousarray(traj.q[idx]), np.ascontiguousarray(traj.v[idx])
-    n = len(idx)
+    states = StateSequence(np.asarray(traj.t)[idx], np.ascontiguousarray(traj.q[idx]), np.ascontiguousarray(traj.v[idx]))
+    n = len(states)
 
     ctrl = scen.build_controller("qp")
-    if hasattr(ctrl, "warmup"):
-        ctrl.warmup()
-    model = ctrl.robot.model
-    data = model.createData()
     tk = TsidTick(ctrl, float(scen.data["sim"]["dt"]), joint_bounds=not args.no_joint_bounds)
-    refs = [tk.reference(float(t)) for t in ts]
+    tk.refs = {float(t): tk.reference(float(t)) for t in states.t}
+    times = time_on_states({FLOOR: PinocchioFloor(ctrl.robot), "qpctl": ctrl, "tsid": tk}, states)
 
-    tau_q = np.zeros((n, model.nv))
-    tau_t = np.zeros((n, model.nv))
+    stats = {name: _stats(tt.wall) for name, tt in times.items()}
+    stats["tsid_core"] = _stats(times["tsid"].stages["solve_us"])
+    base = stats[FLOOR]["median_us"]
+
+    # untimed: what each answered on the same states
+    tau_q, tau_t, residual = np.zeros((n, ctrl.robot.nv)), np.zeros((n, ctrl.robot.nv)), np.zeros(n)
     qp_status: dict[str, int] = {}
     tsid_status: dict[int, int] = {}
-    residual = np.zeros(n)
-
-    def floor(k: int) -> float:
-        s = time.perf_counter()
-        pin.computeAllTerms(model, data, qs[k], vs[k])
-        return time.perf_counter() - s
-
-    def qpctl_tick(k: int) -> float:
-        s = time.perf_counter()
-        out = ctrl.step(qs[k], vs[k], ts[k])
-        e = time.perf_counter() - s
+    ctrl.reset()
+    for k in range(n):
+        q, v, t = states.q[k], states.v[k], float(states.t[k])
+        out = ctrl.step(q, v, t)
         tau_q[k] = out.tau
         qp_status[out.status.value] = qp_status.get(out.status.value, 0) + 1
-        return e
-
-    core: list[float] = []
-    core_cold: list[float] = []
-
-    def tsid_tick(k: int) -> float:
-        s = time.perf_counter()
-        tk.set_reference(refs[k])
-        m = time.perf_counter()
-        tau = tk.solve(qs[k], vs[k], ts[k])
-        e = time.perf_counter()
-        (core_cold if k % BLOCK == 0 else core).append((e - m) * 1e6)
-        tau_t[k] = tau
+        tk.set_reference(tk.refs[t])
+        tau_t[k] = tk.solve(q, v, t)
         tsid_status[tk.sol.status] = tsid_status.get(tk.sol.status, 0) + 1
         residual[k] = tk.task_residual()
-        return e - s
-
-    ticks = {"floor": floor, "qpctl": qpctl_tick, "tsid": tsid_tick}
-    for k in range(min(BLOCK, n)):  # untimed: first calls, caches, the solvers' allocations
-        for f in ticks.values():
-            f(k)
-    core.clear()
-    core_cold.clear()
-    qp_status.clear()
-    tsid_status.clear()
-    ctrl.reset()
-
-    warm: dict[str, list[float]] = {name: [] for name in ticks}
-    cold: dict[str, list[float]] = {name: [] for name in ticks}
-    names = list(ticks)
-    for b, start in enumerate(range(0, n, BLOCK)):
-        for name in names[b % 3:] + names[:b % 3]:
-            f = ticks[name]
-            for k in range(start, min(start + BLOCK, n)):
-                (cold if k == start else warm)[name].append(f(k) * 1e6)
-    warm["tsid_core"], cold["tsid_core"] = core, core_cold
-
-    stats = {name: _stats(v) for name, v in warm.items()}
-    base = stats["floor"]["median_us"]
     diff = np.linalg.norm(tau_t - tau_q, axis=1)
     print(json.dumps({
-        "ticks": n, "stride": args.stride, "block": BLOCK,
-        "tsid_version": version("tsid"), "pin_version": pin.__version__, "qpctl_solver": ctrl.solver,
-        "tsid_joint_bounds": tk.joint_bounds,
+        "ticks": n, "stride": args.stride, "tsid_version": version("tsid"), "pin_version": pin.__version__,
+        "qpctl_solver": ctrl.solver, "tsid_joint_bounds": tk.joint_bounds,
         **{name: s | {"ratio_to_floor": round(s["median_us"] / base, 2)} for name, s in stats.items()},
         "ratio_tsid_to_qpctl": round(stats["tsid"]["median_us"] / stats["qpctl"]["median_us"], 3),
-        "cold_median_us": {name: round(float(np.median(v)), 2) for name, v in cold.items()},
+        "cold_median_us": {name: round(summary(tt.cold)["median"], 2) for name, tt in times.items()},
         "checks": {
             "tsid_tau_finite": bool(np.all(np.isfinite(tau_t))),
             "tsid_status": {str(s): c for s, c in sorted(tsid_status.items())},  # 0: HQP_STATUS_OPTIMAL

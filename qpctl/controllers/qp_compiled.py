@@ -36,7 +36,7 @@ from qpctl.controllers.base import (
 )
 from qpctl.controllers.qp_failure import Failures
 from qpctl.controllers.qp_layout import QPLayout, QPOutput, daqp_word
-from qpctl.controllers.relaxation import REFUSALS, SLACK_ZERO, TaskRelaxation
+from qpctl.controllers.relaxation import REFUSALS, TaskRelaxation
 from qpctl.errors import InvalidStateError
 from qpctl.fallbacks import FallbackContext
 from qpctl.kernels import codes
@@ -135,8 +135,8 @@ class CompiledTick:
                 nat_h.free()  # type: ignore[union-attr]  # as in _native: no warm start from a failed working set
             return self._after_native(code, hard, (t1 - start, -1.0, -1.0, -1.0), q, start)
         used_hard = hard == 0
-        if relax.skip_rule:  # the skip rule's memory: relax.after(True, used_hard, True, slack), inlined
-            relax._try_hard = used_hard or ws.rec[self._slack_at] <= SLACK_ZERO
+        if relax.skip_rule:  # the skip rule's memory, in its one place (a solved tick of zero slack: hard again)
+            relax.after(True, used_hard, True, ws.rec[self._slack_at])
         self._last_lay = self.hard if used_hard else self.relaxed  # last and last_problem, when read
         out = self._out
         words = self._words_hard if used_hard else self._words_relaxed

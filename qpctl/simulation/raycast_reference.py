@@ -10,6 +10,8 @@ from collections.abc import Sequence
 import fcl
 import numpy as np
 
+from qpctl.geometry.obstacles import Obstacle
+
 
 def _trace(point: fcl.CollisionObject, shape: fcl.CollisionObject, request: fcl.DistanceRequest, o: np.ndarray,
            unit: np.ndarray, s_max: float, tol: float, max_steps: int) -> float:
@@ -33,7 +35,7 @@ def _trace(point: fcl.CollisionObject, shape: fcl.CollisionObject, request: fcl.
     return math.nan
 
 
-def reference_depth(origin: np.ndarray, direction: np.ndarray, obstacles: Sequence[object], t: float = 0.0,
+def reference_depth(origin: np.ndarray, direction: np.ndarray, obstacles: Sequence[Obstacle], t: float = 0.0,
                     t_max: float = 10.0, tol: float = 1e-9, max_steps: int = 5000) -> tuple[float, int]:
     """(t, index) of the first obstacle the ray origin + t·direction meets within t_max (inf, −1: none)
     by sphere tracing each obstacle (:class:`~qpctl.geometry.obstacles.Obstacle`, at time ``t`` [s])
@@ -42,8 +44,6 @@ def reference_depth(origin: np.ndarray, direction: np.ndarray, obstacles: Sequen
     the distance until it is below ``tol`` [m] (a hit) or the point passes t_max (a miss); an obstacle
     holding the origin (python-fcl: −1, in collision) is not seen. NaN when some trace neither hit nor
     missed within ``max_steps`` (a ray grazing a surface)."""
-    from qpctl.geometry.obstacles import Obstacle
-
     o = np.asarray(origin, float)
     d = np.asarray(direction, float)
     scale = float(np.linalg.norm(d))
@@ -52,7 +52,6 @@ def reference_depth(origin: np.ndarray, direction: np.ndarray, obstacles: Sequen
     request = fcl.DistanceRequest()
     best, who = math.inf, -1
     for j, obs in enumerate(obstacles):
-        assert isinstance(obs, Obstacle)
         s = _trace(point, fcl.CollisionObject(obs.geometry(), obs.transform(t)), request, o, unit, t_max * scale, tol,
                    max_steps)
         if math.isnan(s):
