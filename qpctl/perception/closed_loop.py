@@ -25,8 +25,18 @@ their link's axis point is short of the true distance from there to the world's 
 than ``phantom_tolerance``: the map saw something where nothing is, the robot included),
 ``stale_slow_ticks`` and ``stale_stop_ticks``; ``lag_ticks`` (ticks at which the path waited for
 the arm, κ_lag < 1), ``lag_max_m`` (the largest tracking error passed to the policy [m]),
-``path_end_s`` (when the time-scaled path reached its end [s], NaN if not within the run) and
-``path_extra_s`` (that, less the path's nominal end time [s]).
+``path_end_s`` (when the time-scaled path reached its end [s], NaN if not within the run),
+``path_extra_s`` (that, less the path's nominal end time [s]) and ``fruits_picked``.
+
+**Picking.** A grasp target that is one of the camera's scenery spheres (a canopy's fruit) is
+picked when the controller's task point comes within the sphere's radius of its centre while it is
+the current target (the gripper closes about it): the camera no longer sees it (it is harvested,
+:attr:`~qpctl.simulation.camera.DepthCamera.visible`), so when the path moves on to the next fruit
+the one just picked does not become a rigid obstacle at the hand. (Scenery is unlabelled, and an
+unlabelled point is rigid: before this the picked fruit, still on its tree in the simulation,
+reappeared in the rigid channel a few centimetres from the hand the moment the target moved on —
+inside the rigid rows' margin, where the QP was infeasible for up to 1.3 s of safe stop.) A fruit
+the hand never got that near stays on the tree and in the map.
 
 **The waiting reference** (:mod:`qpctl.perception.stale`): before each tick the loop passes the
 stale policy the task's tracking error e = |x − x_d| [m] of the controller's last tick (the task
@@ -94,7 +104,22 @@ class MapLoop:
         self._soft_world: Any = None
         self._soft_dyn: Any = None
         self._manager: Any = None
+        self._pick_shape = self._pick_shapes()
         self.reset()
+
+    def _pick_shapes(self) -> list[tuple[int, float]]:
+        """Per grasp target, the camera's scenery shape at it (index, radius [m]), or (−1, 0)."""
+        if self.targets is None or self.camera is None or not getattr(self.camera, "scenery", None):
+            return []
+        base = len(self.camera.obstacles)
+        out = []
+        for p in self.targets[0]:
+            match = (-1, 0.0)
+            for j, o in enumerate(self.camera.scenery):
+                if o.shape == "sphere" and float(np.linalg.norm(o.position - p)) <= 1e-9 + 1e-6 * o.radius:
+                    match = (base + j, float(o.radius))
+            out.append(match)
+        return out
 
     def warmup(self, q: np.ndarray) -> None:
         """Compile (or load) the map's kernels on a frame at q, in a map of its own: the run's first
@@ -132,6 +157,11 @@ class MapLoop:
         self._map_points: list[np.ndarray] = []
         self._map_stamps: list[np.ndarray] = []
         self._next_record = -math.inf
+        self._target_index = -1
+        self.picked = 0
+        for idx, _ in self._pick_shape:  # every fruit back on its tree
+            if idx >= 0:
+                self.camera.visible[idx] = True
         self.perception.policy.reset()
 
     # -- the hook -------------------------------------------------------------------------------
@@ -142,7 +172,8 @@ class MapLoop:
             points, starts = self.targets
             s = self.path.s if self.path is not None else t
             i = int(np.searchsorted(starts, s, side="right")) - 1
-            p.set_target(points[max(i, 0)])
+            self._target_index = max(i, 0)
+            p.set_target(points[self._target_index])
         if self.camera is not None and self.camera.due(t, self.dt):
             frame = self.camera.capture(q, t)
             c0 = time.thread_time()
@@ -213,6 +244,19 @@ class MapLoop:
         self.series["map_clearance"].append(believed)
         if self.soft:
             self._measure_soft(q, v, t)
+        if self._pick_shape and self._target_index >= 0:
+            self._try_pick()
+
+    def _try_pick(self) -> None:
+        """Pick the current target's fruit when the task point is within its radius (module docstring)."""
+        idx, radius = self._pick_shape[self._target_index]
+        last = getattr(self.controller, "last", None)
+        if idx < 0 or last is None or not self.camera.visible[idx]:
+            return
+        centre = self.targets[0][self._target_index]  # type: ignore[index]
+        if float(np.linalg.norm(np.asarray(last.x[:3]) - centre)) <= radius:
+            self.camera.visible[idx] = False
+            self.picked += 1
 
     def _record_map(self, snap: MapSnapshot, t: float) -> None:
         """Keep the snapshot's occupied voxel centres (both channels) [m], from t [s] on."""
@@ -298,6 +342,7 @@ class MapLoop:
             "lag_ticks": self.lag_ticks,
             "lag_max_m": self.lag_max,
             "path_end_s": self.path_end,
+            "fruits_picked": self.picked,
             "path_extra_s": self.path_end - self.path_nominal_end,
         }
 
