@@ -55,8 +55,12 @@ def test_compiled_field_rows_equal_the_python_rows() -> None:
     ws = ctrl.workspace()
     assert ws.spec is not None and ws.spec.field is not None  # the compiled path, with the field
     rigid_active = soft_active = primitive_active = speed_active = 0
+    window = bar.torque  # the Python rows read its window as it was at the tick (before it remembers τ)
+    assert window is not None
     for q, v, t in _states(ctrl, rng, 10):
+        before = window.previous.copy(), window.t_previous.copy()
         ctrl.step(q, v, t)
+        after = window.previous.copy(), window.t_previous.copy()
         problem = ctrl.last_problem
         names = np.array(problem.row_names)
         rows = np.flatnonzero(names == bar.name)
@@ -72,7 +76,9 @@ def test_compiled_field_rows_equal_the_python_rows() -> None:
         got_C = got_C[:, :ctrl.n]
         compiled = bar.last
         state = ctrl.dynamics.compute(q, v, t)
+        window.previous[:], window.t_previous[:] = before
         want = bar.compute(state, None)  # type: ignore[arg-type]
+        window.previous[:], window.t_previous[:] = after
         python = bar.last
         assert np.array_equal(compiled.active, python.active)
         assert compiled.distance == pytest.approx(python.distance, abs=1e-12)
@@ -272,3 +278,71 @@ def test_speed_rows_take_each_links_samples_whose_fastest_point_most_exceeds_its
             funnel += int(np.any(b[2 * link:2 * link + 2] > CFG.soft_speed))
             links_checked += 1
     assert links_checked >= 6 and stretch >= 2 and funnel >= 2
+
+
+def _inside_the_margin():  # type: ignore[no-untyped-def]
+    """The Panda at rest at q_home, a rigid blob put 1.2 cm inside the rigid rows' margin of its
+    fourth link, the last torque the gravity torque 1 ms ago: under Franka's torque-rate limits the
+    window is τ_g ± 1 N·m, far short of the k₀|h| the barrier asks of the link."""
+    scen = Scenario.load("panda_spheres")
+    ctrl = scen.build_controller("qp", obstacles=[])
+    robot = ctrl.robot
+    q, v = robot.q_home.copy(), np.zeros(robot.nv)
+    seg = ctrl.dynamics.compute(q, v).segments[3]
+    axis = (seg[1] - seg[0]) / np.linalg.norm(seg[1] - seg[0])
+    out = np.cross(axis, [0.0, 0.0, 1.0])
+    out /= np.linalg.norm(out)
+    p = Perception(CFG, robot)
+    bar = p.rows_for(ctrl)
+    gap = bar.margin - 0.012
+    blob = _sphere_cloud(0.5 * (seg[0] + seg[1]) + (robot.capsules[3].radius + gap + 0.05) * out, 0.05,
+                         np.random.default_rng(8))
+    p.submit(PointCloud(blob, 0.0, labels=np.full(len(blob), 1, np.uint8)))
+    window = bar.torque
+    assert window is not None and np.all(np.isfinite(window.tau_rate_max))
+    window.previous[:] = ctrl.dynamics.compute(q, v).N
+    window.t_previous[0] = 0.0
+    return ctrl, bar, q, v, 1e-3
+
+
+def test_rigid_rows_inside_the_margin_ask_no_more_than_the_torque_window_gives() -> None:
+    """Each rigid row inside the margin asks the link away at min(k₀/k₁ |h|, v_s), capped at
+    ℓ − ρ(ℓ − ℓ₋), [ℓ₋, ℓ] the range of c q̈ over the
+    torque window from scipy's linear programme (max and min of c q̈ s.t. lo ≤ M q̈ + N ≤ hi); the
+    tick is solved where the uncapped rows (the Python path without the torque window) leave the QP
+    infeasible and the fallback takes the tick."""
+    from scipy.optimize import linprog
+
+    from qpctl.kernels.field_rows import REACH_SHARE
+
+    ctrl, bar, q, v, t = _inside_the_margin()
+    window = bar.torque
+    lo, hi = window.window(t)
+    out = ctrl.step(q, v, t)
+    problem = ctrl.last_problem
+    rows = np.flatnonzero(np.array(problem.row_names) == bar.name)
+    C, low = np.array(problem.C[rows])[:, :ctrl.n], np.array(problem.l[rows])
+    pairs = bar.last
+    inside = np.flatnonzero(pairs.active & ~pairs.soft & (pairs.distance < bar.margin))
+    assert inside.size  # the set-up: a rigid pair inside the margin
+    state = ctrl.dynamics.compute(q, v, t)
+    A = np.r_[state.M, -state.M]
+    b = np.r_[hi - state.N, -(lo - state.N)]
+    capped = 0
+    for r in inside:
+        c = C[r]
+        most = -linprog(-c, A_ub=A, b_ub=b, bounds=(None, None)).fun
+        least = linprog(c, A_ub=A, b_ub=b, bounds=(None, None)).fun
+        # at rest (ḣ = 0, no drift): away at min(k₀/k₁ |h|, v_s)
+        barrier = bar.k1 * min(bar.k0 / bar.k1 * (bar.margin - pairs.distance[r]), CFG.soft_speed)
+        want = min(barrier, most - REACH_SHARE * (most - least))
+        assert low[r] == pytest.approx(want, rel=1e-7, abs=1e-9)
+        capped += want < barrier
+    assert capped >= 1  # the cap, not the barrier, bound the row
+    assert out.info.get("fallback") is None and out.info["status"] == "solved"
+    # the same rows uncapped: no torque window given to them (the Python path)
+    slow, slow_bar, q, v, t = _inside_the_margin()
+    slow.remove_constraint(slow_bar.name)
+    slow.add_constraint(_PythonOnly(slow_bar.source, slow.robot, CFG, d_safe=slow.gains.d_safe, cutoff=slow.cutoff,
+                                    k0=slow_bar.k0, k1=slow_bar.k1))
+    assert slow.step(q, v, t).info.get("fallback") is not None

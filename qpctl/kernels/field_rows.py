@@ -8,7 +8,12 @@ static map's ḣ = nᵀJ_p q̇ and the rigid-point drift nᵀJ̇_p q̇ (the witn
 acceleration from the capsule body's, :func:`qpctl.kernels.rigid.point_jacobian`):
 
 * rigid (channel 0): nᵀJ_p q̈ ≥ −k₁ḣ − k₀(d − m) − nᵀJ̇_p q̇, m the rigid margin
-  (d_safe + √3/2·voxel + depth noise);
+  (d_safe + √3/2·voxel + depth noise); inside the margin (d < m: a voxel a new frame put within
+  the margin's uncertainty) away no faster than v_s, nᵀJ_p q̈ ≥ −k₁(ḣ − min(k₀/k₁ (m − d), v_s))
+  − nᵀJ̇_p q̇, and at most ℓ − ρ(ℓ − ℓ₋), ℓ₋ … ℓ the range of nᵀJ_p q̈ over this tick's torque window
+  (:func:`qpctl.kernels.drives.row_range`), ρ = :data:`REACH_SHARE` — the recovery asks no more
+  than the drives can give in one tick (without it the QP was infeasible there, tick after tick,
+  under a torque-rate limit);
 * soft (channel 1): nᵀJ_p q̈ ≥ −k₁(ḣ + v_s) − k₀ max(d − m_s, 0) − nᵀJ̇_p q̇, v_s = ``soft_speed``,
   m_s the soft margin (``perception.soft_margin``).
 
@@ -44,8 +49,11 @@ from qpctl.kernels.codes import (
     IP_FD_RPL,
     IP_FD_SAMPLES,
 )
+from qpctl.kernels.drives import row_range
 from qpctl.kernels.field import field_pairs, speed_points
 from qpctl.kernels.rigid import point_jacobian
+
+REACH_SHARE = 0.25  # a rigid row inside its margin asks at most ℓ − ρ(ℓ − ℓ₋) of its range over the torque window
 
 
 @njit(cache=True)
@@ -141,5 +149,11 @@ def field_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no
             hdot += val * ws.v[c]
         if r >= k:  # soft: the approach no faster than v_s; contact allowed
             lower[r] = -k1 * (hdot + vs) - k0 * max(d - ms, 0.0) - drift
+        elif d < margin:  # inside the margin: away at no more than v_s, no more than the drives give
+            lower[r] = -k1 * (hdot - min(k0 / k1 * (margin - d), vs)) - drift
+            lo, hi = row_range(ws, C[r], ws.w1)
+            cap = hi - REACH_SHARE * (hi - lo)
+            if cap < lower[r]:  # (False for NaN: no torque limits)
+                lower[r] = cap
         else:
             lower[r] = -k1 * hdot - k0 * (d - margin) - drift

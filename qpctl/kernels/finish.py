@@ -36,7 +36,7 @@ from qpctl.kernels.codes import (
     R_VIOLATION,
     record_scalars,
 )
-from qpctl.kernels.rows import torque_window
+from qpctl.kernels.drives import torque_window
 from qpctl.kernels.small import chol_solve
 
 

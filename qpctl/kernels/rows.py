@@ -39,7 +39,6 @@ from qpctl.kernels.codes import (
     FP_SDS,
     FP_SK0,
     FP_SK1,
-    FP_T,
     FP_WACC,
     FP_WPOST,
     IP_BARRIER_ROW0,
@@ -54,6 +53,7 @@ from qpctl.kernels.codes import (
     IP_SELF_ROW0,
     IP_TORQUE_ROW0,
 )
+from qpctl.kernels.drives import torque_window
 from qpctl.kernels.field_rows import field_rows
 
 
@@ -101,22 +101,6 @@ def joint_bounds(ws, lo: np.ndarray, hi: np.ndarray) -> None:  # type: ignore[no
         if low2 > high2:
             low2 = high2 = min(max(0.5 * (low + high), -a), a)
         lo[i], hi[i] = low2, high2
-
-
-@njit(cache=True)
-def torque_window(ws, i: int) -> tuple[float, float]:
-    """The torque joint i may be commanded this tick [N·m]: within ±τ_max and, once a torque was
-    commanded at t_prev < t, within τ_prev ± τ̇_max (t − t_prev). Where the two do not meet (τ_prev
-    beyond τ_max: the limit changed) the torque limit wins."""
-    lim = ws.tau_max[i]
-    lo, hi = -lim, lim
-    dt = ws.fpar[FP_T] - ws.t_prev[0]
-    if dt > 0.0:  # False for NaN: no torque commanded yet
-        w = ws.tau_rate[i] * dt
-        lo2, hi2 = max(lo, ws.tau_prev[i] - w), min(hi, ws.tau_prev[i] + w)
-        if lo2 <= hi2:
-            return lo2, hi2
-    return lo, hi
 
 
 @njit(cache=True)

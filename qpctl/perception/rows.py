@@ -8,7 +8,16 @@ rigid-point drift ḧ = nᵀ(J_p q̈ + J̇_p q̇):
 
 * **rigid** (stems, branches; unlabeled points too): ḧ + k₁ḣ + k₀h ≥ 0 with h = d − m,
   m = d_safe + √3/2·voxel + depth noise (:meth:`PerceptionConfig.rigid_margin`): the voxel's centre
-  may be √3/2 voxel from the surface it stands for, and the surface itself off by the noise;
+  may be √3/2 voxel from the surface it stands for, and the surface itself off by the noise. Inside
+  the margin (h < 0: a new frame put a voxel within it) the link moves away at a bounded speed —
+  ḧ + k₁(ḣ − v_a) ≥ 0, v_a = min(k₀/k₁·|h|, v_s) — and asks no more than a share of what the drives
+  can give in this tick: the bound is capped at ℓ − ρ(ℓ − ℓ₋), [ℓ₋, ℓ] the range of nᵀJ_p q̈ over
+  the torque window (:mod:`qpctl.kernels.drives`; ρ = :data:`~qpctl.kernels.field_rows.REACH_SHARE`).
+  The margin is the map's uncertainty: a voxel inside it is escaped at a leaf's speed, not at the
+  barrier's k₀/k₁·|h| (0.12 m/s for 1.2 cm), and without the cap, under a torque-rate limit, the
+  row asked k₀|h| of the witness point at once, the QP was infeasible tick after tick and the safe
+  stop (which knows no leaf) moved the arm (``docs/perception.md``, seed 10: 2,742 fallback ticks
+  in 30 s before, 15 after);
 * **soft** (leaves): ḧ + k₁(ḣ + v_s) + k₀ max(d − m_s, 0) + σ ≥ 0, v_s = ``soft_speed``,
   m_s = ``soft_margin`` (√3/2·voxel + depth noise would be where the leaf's true surface may already
   be; 0 by default): far from a leaf it is a barrier without d_safe, from m_s on it asks only
@@ -49,8 +58,9 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from qpctl.constraints.constraints import BARRIER, Constraint
+from qpctl.constraints.constraints import BARRIER, Constraint, TorqueLimit
 from qpctl.kernels import field as KF
+from qpctl.kernels.field_rows import REACH_SHARE
 from qpctl.law import LawTerms
 from qpctl.perception.config import PerceptionConfig
 from qpctl.perception.snapshot import MapSnapshot
@@ -108,14 +118,18 @@ class FieldBarrier(Constraint):
         robot: the robot (its capsules and Pinocchio model).
         config: the ``[perception]`` settings (margins, samples, rows per link, ``soft_speed``).
         d_safe [m], cutoff [m] (the influence distance), k0 [1/s²], k1 [1/s]: as the obstacle barrier's.
+        torque: the controller's torque limits, whose window caps the rigid rows inside their margin
+            (None: no cap).
     """
 
     name = "field"
     kind = BARRIER
 
     def __init__(self, source: object, robot: RobotModel, config: PerceptionConfig, *, d_safe: float,
-                 cutoff: float, k0: float = 400.0, k1: float = 40.0, smooth: bool = True) -> None:
+                 cutoff: float, k0: float = 400.0, k1: float = 40.0, smooth: bool = True,
+                 torque: TorqueLimit | None = None) -> None:
         self.source = source
+        self.torque = torque
         self.smooth = bool(smooth)  # the Python path's switch (qpctl.kernels.field); the compiled rows are smooth
         self.robot = robot
         self.config = config
@@ -236,8 +250,21 @@ class FieldBarrier(Constraint):
             d = pairs.distance[idx]
             soft = pairs.soft[idx]
             vs = self.config.soft_speed
+            # rigid inside the margin: away at min(k₀/k₁ (m − d), v_s), not at k₀/k₁ (m − d)
+            away = np.minimum(self.k0 / self.k1 * (self.margin - d), vs)
+            rigid = np.where(d < self.margin, -self.k1 * (hdot - away), -self.k1 * hdot - self.k0 * (d - self.margin))
             rhs = np.where(soft, -self.k1 * (hdot + vs) - self.k0 * np.maximum(d - self.soft_margin, 0.0),
-                           -self.k1 * hdot - self.k0 * (d - self.margin)) - np.einsum("ri,ri->r", nrm, drift)
+                           rigid) - np.einsum("ri,ri->r", nrm, drift)
+            if self.torque is not None:  # rigid rows inside the margin: within reach of the torque window
+                inside = np.flatnonzero(~soft & (d < self.margin))
+                if inside.size:
+                    lo, hi = self.torque.window(state.t)
+                    y = np.linalg.solve(state.M, rows[inside].T)  # (n, k): M⁻¹cᵀ per row
+                    a, b = y * (lo - state.N)[:, None], y * (hi - state.N)[:, None]
+                    least, most = np.minimum(a, b).sum(axis=0), np.maximum(a, b).sum(axis=0)
+                    with np.errstate(invalid="ignore"):
+                        cap = most - REACH_SHARE * (most - least)
+                    rhs[inside] = np.where(cap < rhs[inside], cap, rhs[inside])
             C[idx] = rows
             lower[idx] = rhs
         # the soft speed rows: the point's velocity h ahead along u no faster than b
