@@ -11,7 +11,8 @@ truncation is inactive whatever the gradient, so the gradient is interpolated on
 
 The per-link early-out (the midpoint farther than the truncation plus half the axis) is kept as the
 separate kernels have it, per channel, so that the outputs stay theirs; on a snapshot's field, which is
-capped at the truncation (:mod:`qpctl.kernels.edt`), it never holds for an axis of positive length.
+capped at the truncation (:mod:`qpctl.kernels.edt`), it cannot hold unless half the axis is shorter
+than float32's rounding of the truncation (~10⁻⁸ m), so there every link is sampled.
 
 Held to the separate kernels on random fields and capsules in ``tests/test_field.py``; used by
 :func:`qpctl.kernels.field_rows.field_pairs_both`.
