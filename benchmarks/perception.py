@@ -10,7 +10,10 @@
    around the hand. Stage times from the pipeline's own clocks; one thread.
 2. **Distance transforms** on the same occupancy: qpctl's numba EDT, scipy's ``distance_transform_edt``
    and the ``edt`` package (where installed), interleaved.
-3. **Field queries**: :func:`qpctl.kernels.field.field_pairs` for the Panda's capsules, both channels.
+3. **Field queries**: the tick's lookups in the field for the Panda's capsules — both channels' pairs and
+   the soft speed points — by :func:`qpctl.kernels.field_samples.field_samples` (one pass, as the tick
+   makes them) and by the separate :func:`qpctl.kernels.field.field_pairs` (per channel) and
+   :func:`qpctl.kernels.field.speed_points`, interleaved on the same states.
 4. **The tick with the field**: the Panda's compiled QP tick on a ``panda_spheres`` run's states (10
    sphere primitives), without and with the canopy map's field rows, interleaved.
 5. **The tick beside the worker**: the Panda's QP tick on a closed-loop run of ``panda_spheres``,
@@ -40,6 +43,7 @@ from scipy import ndimage
 
 from qpctl.kernels import edt as KE
 from qpctl.kernels import field as KF
+from qpctl.kernels import field_samples as KS
 from qpctl.perception import DepthFrame, DepthMap, Intrinsics, MapWorker, PerceptionConfig
 from qpctl.perception.synthetic import canopy, look_at, render
 from qpctl.robot.model import panda
@@ -133,46 +137,103 @@ def transforms(m: DepthMap, reps: int) -> dict[str, Any]:
 
 
 @njit(cache=True)
-def _repeat_field_pairs(reps: int, segs: np.ndarray, radii: np.ndarray, dist: np.ndarray, grad: np.ndarray,
-                        origin: np.ndarray, voxel: float, trunc: float, samples: int, rows: int, ds: np.ndarray,
-                        out_d: np.ndarray, out_n: np.ndarray, out_p: np.ndarray, out_s: np.ndarray) -> None:
-    """Both channels' field pairs ``reps`` times inside compiled code (as the tick calls them: no
-    Python dispatch per call)."""
-    for _ in range(reps):
+def _repeat_separate(reps: int, states: np.ndarray, vels: np.ndarray, radii: np.ndarray, dist: np.ndarray,
+                     grad: np.ndarray, origin: np.ndarray, voxel: float, trunc: float, samples: int, rows: int,
+                     vs: float, gain: float, vmargin: float, cutoff: float, ds: np.ndarray, out_d: np.ndarray,
+                     out_n: np.ndarray, out_p: np.ndarray, out_s: np.ndarray, vp: np.ndarray, vu: np.ndarray,
+                     vb: np.ndarray, vd: np.ndarray) -> None:
+    """The tick's field lookups the separate way (the tick's before the one-pass kernel), ``reps`` times
+    over the ``states`` (K, L, 2, 3) with body velocities ``vels`` (K, L, 6): both channels' field_pairs,
+    then the soft channel's speed_points, inside compiled code."""
+    k = out_d.shape[0] // 2
+    for i in range(reps * states.shape[0]):
+        segs, vel = states[i % states.shape[0]], vels[i % states.shape[0]]
         for ch in range(2):
             KF.field_pairs(segs, radii, dist[ch], grad[ch], origin, voxel, trunc, samples, rows, True, ds,
-                           out_d, out_n, out_p, out_s)
+                           out_d[ch * k:(ch + 1) * k], out_n[ch * k:(ch + 1) * k], out_p[ch * k:(ch + 1) * k],
+                           out_s[ch * k:(ch + 1) * k])
+        KF.speed_points(segs, radii, dist[1], origin, voxel, trunc, samples, vel, vs, gain, vmargin, cutoff, ds,
+                        vp, vu, vb, vd)
 
 
-def field_queries(m: DepthMap, robot: Any, reps: int) -> dict[str, Any]:
+@njit(cache=True)
+def _repeat_one_pass(reps: int, states: np.ndarray, vels: np.ndarray, radii: np.ndarray, dist: np.ndarray,
+                     grad: np.ndarray, origin: np.ndarray, voxel: float, trunc: float, samples: int, rows: int,
+                     vs: float, gain: float, vmargin: float, cutoff: float, ds2: np.ndarray, out_d: np.ndarray,
+                     out_n: np.ndarray, out_p: np.ndarray, out_s: np.ndarray, vp: np.ndarray, vu: np.ndarray,
+                     vb: np.ndarray, vd: np.ndarray) -> None:
+    """The same lookups as the tick makes them: field_samples (one pass, both channels)."""
+    for i in range(reps * states.shape[0]):
+        segs, vel = states[i % states.shape[0]], vels[i % states.shape[0]]
+        KS.field_samples(segs, radii, dist, grad, origin, voxel, trunc, samples, rows, True, vel, vs, gain, vmargin,
+                         cutoff, ds2, out_d, out_n, out_p, out_s, vp, vu, vb, vd)
+
+
+def field_queries(m: DepthMap, robot: Any, reps: int, states: int = 16) -> dict[str, Any]:
+    """The tick's field lookups (both channels' pairs and the soft speed points) on the canopy's map for
+    ``states`` seeded states about the home pose (q ± 0.08 rad, q̇ in ±0.6 rad/s): the one-pass kernel
+    (what the tick calls) and the separate kernels (what it called before), in alternating blocks of
+    about 100 calls inside compiled code (each block cycling through the states; which way goes first
+    alternating), wall and thread CPU time per call; the two ways' outputs checked equal first."""
+    from qpctl.law import LawGains
+    from qpctl.perception.rows import FieldBarrier
+
     snap = m.snapshot()
-    segs, radii = m.self_filter.segments(robot.q_home), np.array([c.radius for c in robot.capsules])  # type: ignore[union-attr]
     cfg = m.config
-    L, S, R = len(segs), cfg.samples, cfg.rows_per_link
-    out = (np.empty(L * R), np.empty((L * R, 3)), np.empty((L * R, 3)), np.empty(L * R))
-    ds = np.empty(S)
-    args = (snap.grid.origin, snap.grid.voxel, snap.truncation, S, R, True, ds)
-    for _ in range(3):
-        for ch in range(2):
-            KF.field_pairs(segs, radii, snap.dist[ch], snap.grad[ch], *args, *out)
+    gains = LawGains()
+    bar = FieldBarrier(_Snapshot(snap), robot, cfg, d_safe=gains.d_safe, cutoff=gains.d_influence)
+    rng = np.random.default_rng(21)
+    qs = [robot.q_home] + [robot.q_home + rng.normal(0.0, 0.08, robot.nv) for _ in range(states - 1)]
+    segs = np.array([bar.segments(q) for q in qs])
+    vels = np.array([bar.body_velocities(q, rng.uniform(-0.6, 0.6, robot.nv)) for q in qs])
+    radii = bar.radii
+    L, S, R = len(radii), cfg.samples, cfg.rows_per_link
+    grid = (snap.grid.origin, snap.grid.voxel, snap.truncation, S, R)
+    speed = (cfg.soft_speed, bar.funnel, bar.speed_margin, bar.cutoff)
+
+    def outs() -> tuple[np.ndarray, ...]:
+        return (np.empty(2 * L * R), np.empty((2 * L * R, 3)), np.empty((2 * L * R, 3)), np.empty(2 * L * R),
+                np.empty((2 * L, 3)), np.empty((2 * L, 3)), np.empty(2 * L), np.empty(2 * L))
+
+    o_sep, o_one = outs(), outs()
+    ways = {"one pass (the tick)": (_repeat_one_pass, (np.empty((2, S)), *o_one)),
+            "separate kernels": (_repeat_separate, (np.empty(S), *o_sep))}
+    active = speed_rows = 0
+    for i in range(states):
+        for rep, extra in ways.values():
+            rep(1, segs[i:i + 1], vels[i:i + 1], radii, snap.dist, snap.grad, *grid, *speed, *extra)
+        for a, b in zip(o_sep, o_one, strict=True):
+            if not np.array_equal(a, b):
+                raise AssertionError("the one-pass field lookups differ from the separate kernels'")
+        active += int(np.sum((o_one[0] < bar.cutoff) & np.any(o_one[1] != 0.0, axis=1)))
+        speed_rows += int(np.sum(np.isfinite(o_one[6])))
+    per = max(100 // states, 1)  # calls per block: per × states
+    wall: dict[str, list[float]] = {k: [] for k in ways}
+    cpu: dict[str, list[float]] = {k: [] for k in ways}
+    for r in range(max(reps // (per * states), 5)):
+        for k in list(ways)[:: 1 if r % 2 else -1]:
+            rep, extra = ways[k]
+            c0 = time.thread_time()
+            t0 = time.perf_counter()
+            rep(per, segs, vels, radii, snap.dist, snap.grad, *grid, *speed, *extra)
+            wall[k].append((time.perf_counter() - t0) * 1e6 / (per * states))
+            cpu[k].append((time.thread_time() - c0) * 1e6 / (per * states))
+    one = (snap.dist, snap.grad, *grid, True, vels[0], *speed, *ways["one pass (the tick)"][1])
+    KS.field_samples(segs[0], radii, *one)
     us = []
-    for _ in range(reps):
+    for i in range(reps):  # called from Python, the dispatch included
+        sg = segs[i % states]
         t0 = time.perf_counter()
-        for ch in range(2):
-            KF.field_pairs(segs, radii, snap.dist[ch], snap.grad[ch], *args, *out)
+        KS.field_samples(sg, radii, *one)
         us.append((time.perf_counter() - t0) * 1e6)
-    inner, inner_cpu = [], []
-    block = 100
-    _repeat_field_pairs(1, segs, radii, snap.dist, snap.grad, *args[:5], ds, *out)
-    for _ in range(max(reps // block, 5)):
-        c0 = time.thread_time()
-        t0 = time.perf_counter()
-        _repeat_field_pairs(block, segs, radii, snap.dist, snap.grad, *args[:5], ds, *out)
-        inner.append((time.perf_counter() - t0) * 1e6 / block)
-        inner_cpu.append((time.thread_time() - c0) * 1e6 / block)
-    active = int(np.sum(out[0] < snap.truncation - np.repeat(radii, R)))
-    return {"links": L, "samples": S, "rows_per_link": R, "channels": 2, "us_from_python": _stats(us),
-            "us": _stats(inner), "cpu_us": _stats(inner_cpu), "active_rows_last_channel": active}
+    st = {k: _stats(v) for k, v in wall.items()}
+    return {"links": L, "samples": S, "rows_per_link": R, "channels": 2, "states": states, "block": per * states,
+            "blocks": len(wall["separate kernels"]),
+            "us": st["one pass (the tick)"], "cpu_us": _stats(cpu["one pass (the tick)"]),
+            "us_separate": st["separate kernels"], "cpu_us_separate": _stats(cpu["separate kernels"]),
+            "median_ratio": st["separate kernels"]["median"] / st["one pass (the tick)"]["median"],
+            "us_from_python": _stats(us), "active_pairs_per_state": active / states,
+            "speed_rows_per_state": speed_rows / states}
 
 
 def tick_beside_worker(frames: list[DepthFrame], robot: Any, stretches: int, seconds: float) -> dict[str, Any]:
@@ -418,9 +479,13 @@ def markdown(res: dict[str, Any]) -> str:
               for k, v in tr["ms"].items()]
     fq = res["field_queries"]
     lines += ["", (f"Field queries: {fq['links']} links × {fq['samples']} samples × {fq['channels']} channels, "
-              f"{fq['rows_per_link']} rows per link, inside compiled code as the tick calls them: median "
-              f"{fq['us']['median']:.2f} µs wall (CPU {fq['cpu_us']['median']:.2f} µs), p99 {fq['us']['p99']:.2f} µs (called from Python: median "
-              f"{fq['us_from_python']['median']:.2f} µs, the call's dispatch included).")]
+              f"{fq['rows_per_link']} rows per link, and the soft speed points, inside compiled code as the tick "
+              f"calls them, {fq['states']} states, blocks of {fq['block']} calls alternating: one pass median "
+              f"{fq['us']['median']:.2f} µs wall (CPU {fq['cpu_us']['median']:.2f} µs), p99 {fq['us']['p99']:.2f} µs; "
+              f"the separate kernels median {fq['us_separate']['median']:.2f} µs (CPU "
+              f"{fq['cpu_us_separate']['median']:.2f} µs), p99 {fq['us_separate']['p99']:.2f} µs; ratio "
+              f"{fq['median_ratio']:.2f} (called from Python: median {fq['us_from_python']['median']:.2f} µs, the "
+              f"call's dispatch included).")]
     if "tick_with_field" in res:
         tf = res["tick_with_field"]
         lines += ["", f"| Panda compiled QP tick, {tf['ticks']} panda_spheres states, interleaved | median [µs] | p99 [µs] |",

@@ -420,7 +420,7 @@ class Workspace:
         self.fd_dist.flags.writeable = self.fd_grad.flags.writeable = False  # a snapshot's arrays are read-only
         self.fd_origin = origin
         self.fd_d, self.fd_n, self.fd_p = np.zeros(R), np.zeros((R, 3)), np.zeros((R, 3))
-        self.fd_s, self.fd_ds = np.zeros(L * rpl), np.zeros(S)
+        self.fd_s, self.fd_ds = np.zeros(R), np.zeros((2, S))
         self.fd_jac, self.fd_drift = np.zeros((R, 3, n)), np.zeros((R, 3))
         self.fd_vp, self.fd_vu, self.fd_vb, self.fd_vd = np.zeros((2 * L, 3)), np.zeros((2 * L, 3)), np.zeros(2 * L), \
             np.zeros(2 * L)

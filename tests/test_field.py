@@ -200,3 +200,54 @@ def test_a_link_inside_a_solid_block_reports_its_depth_not_the_truncation() -> N
     d, n, _, _ = _pairs(segs, radii, dist, grad, rows=1)
     assert not n.any()  # flat: no normal, so no barrier row
     assert d[0] == pytest.approx(-radii[0], abs=GRID.voxel)
+
+
+def _separate(segs: np.ndarray, radii: np.ndarray, dist: np.ndarray, grad: np.ndarray, trunc: float, samples: int,
+              rows: int, smooth: bool, vel: np.ndarray, speed: tuple[float, float, float, float]
+              ) -> tuple[np.ndarray, ...]:
+    """Both channels' field_pairs and channel 1's speed_points, as the Python path calls them."""
+    L = len(segs)
+    d, n, p, s = np.empty(2 * L * rows), np.empty((2 * L * rows, 3)), np.empty((2 * L * rows, 3)), np.empty(2 * L * rows)
+    for ch in range(2):
+        b = slice(ch * L * rows, (ch + 1) * L * rows)
+        KF.field_pairs(segs, radii, dist[ch], grad[ch], GRID.origin, GRID.voxel, trunc, samples, rows, smooth,
+                       np.empty(samples), d[b], n[b], p[b], s[b])
+    vp, vu, vb, vd = np.empty((2 * L, 3)), np.empty((2 * L, 3)), np.empty(2 * L), np.empty(2 * L)
+    KF.speed_points(segs, radii, dist[1], GRID.origin, GRID.voxel, trunc, samples, vel, *speed, np.empty(samples),
+                    vp, vu, vb, vd)
+    return d, n, p, s, vp, vu, vb, vd
+
+
+@pytest.mark.parametrize("samples,rows,smooth,trunc", [(12, 2, True, TRUNC), (16, 1, True, TRUNC),
+                                                       (7, 2, False, TRUNC), (12, 2, True, 0.06), (2, 2, True, TRUNC)])
+def test_one_pass_field_samples_equal_the_separate_kernels(samples: int, rows: int, smooth: bool, trunc: float,
+                                                           rng: np.random.Generator) -> None:
+    """qpctl.kernels.field_samples against field_pairs (both channels) and speed_points (the soft one):
+    the same pairs (distance, normal, witness point, axis parameter) and speed points (point, direction,
+    bound, distance), bit for bit, on random fields (the channels different) and capsules, some partly
+    outside the grid; at trunc = 0.06 the fields (capped at 0.2) exceed the truncation passed, so the
+    per-link early-out fires too."""
+    from qpctl.kernels.field_samples import field_samples
+
+    for density in (0.003, 0.02, 0.0):
+        dist = np.empty((2, *GRID.shape), np.float32)
+        grad = np.empty((2, *GRID.shape, 3), np.float32)
+        for ch in range(2):
+            dist[ch], grad[ch] = _field(rng.uniform(size=GRID.shape) < density * (1 + ch))
+        segs, radii = _segments(rng, 40)
+        segs[:5] += rng.uniform(-0.3, 0.3, (5, 1, 3))  # some ends beyond the grid
+        vel = rng.normal(0.0, 0.5, (len(segs), 6))
+        vel[:3] = 0.0  # at rest: points without a direction
+        speed = (0.05, 2.0, 0.01, 0.1 if density else 0.5)
+        want = _separate(segs, radii, dist, grad, trunc, samples, rows, smooth, vel, speed)
+        L = len(segs)
+        got = (np.full(2 * L * rows, np.nan), np.full((2 * L * rows, 3), np.nan), np.full((2 * L * rows, 3), np.nan),
+               np.full(2 * L * rows, np.nan), np.full((2 * L, 3), np.nan), np.full((2 * L, 3), np.nan),
+               np.full(2 * L, np.nan), np.full(2 * L, np.nan))
+        field_samples(segs, radii, dist, grad, GRID.origin, GRID.voxel, trunc, samples, rows, smooth, vel, *speed,
+                      np.empty((2, samples)), *got)
+        for w, g in zip(want, got, strict=True):
+            np.testing.assert_array_equal(g, w)
+        if density:  # the comparison covers active pairs and speed rows
+            assert np.sum(want[0] < trunc - np.tile(np.repeat(radii, rows), 2)) > 5
+            assert np.isfinite(want[6]).sum() > 3

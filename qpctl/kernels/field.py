@@ -30,6 +30,10 @@ the capsule's ball about the sample that moves fastest now; per link the two sam
 points exceed their bounds the most (or fall short the least) give the rows their points, with the
 direction of each point's velocity now.
 
+The compiled tick makes both channels' :func:`field_pairs` and the soft channel's :func:`speed_points`
+in one pass (:func:`qpctl.kernels.field_samples.field_samples`, the same numbers); these are the
+Python path's kernels and that pass's reference.
+
 References: :func:`qpctl.perception.reference.field_pairs` (scipy's ``map_coordinates``) and finite
 differences, in ``tests/test_field.py``.
 """

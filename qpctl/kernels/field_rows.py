@@ -2,10 +2,11 @@
 
 The workspace holds the newest :class:`~qpctl.perception.snapshot.MapSnapshot`'s grids (read-only
 views, swapped by :func:`set_field` when a new snapshot arrives: no copy). :func:`field_rows` samples
-each link capsule's axis in both channels (:func:`qpctl.kernels.field.field_pairs`: the nearest one
-or two points, smoothed), then writes each pair as a row of the obstacle barrier's form with the
-static map's ḣ = nᵀJ_p q̇ and the rigid-point drift nᵀJ̇_p q̇ (the witness point's Jacobian and
-acceleration from the capsule body's, :func:`qpctl.kernels.rigid.point_jacobian`):
+each link capsule's axis in both channels in one pass (:func:`qpctl.kernels.field_samples.field_samples`:
+per channel, :func:`qpctl.kernels.field.field_pairs`' nearest one or two points, smoothed), then writes
+each pair as a row of the obstacle barrier's form with the static map's ḣ = nᵀJ_p q̇ and the
+rigid-point drift nᵀJ̇_p q̇ (the witness point's Jacobian and acceleration from the capsule body's,
+:func:`qpctl.kernels.rigid.point_jacobian`):
 
 * rigid (channel 0): nᵀJ_p q̈ ≥ −k₁ḣ − k₀(d − m) − nᵀJ̇_p q̇, m the rigid margin
   (d_safe + √3/2·voxel + depth noise); inside the margin (d < m: a voxel a new frame put within
@@ -18,9 +19,10 @@ acceleration from the capsule body's, :func:`qpctl.kernels.rigid.point_jacobian`
   m_s the soft margin (``perception.soft_margin``).
 
 Then two soft speed rows per link (:func:`speed_rows`), for the points of
-:func:`qpctl.kernels.field.speed_points` (where the link may be inside a leaf, or the nearest to
-one): the point's velocity a horizon h ahead, w⁺ = J_p q̇ + (J_p q̈ + J̇_p q̇)h, along the direction u
-of its velocity now no faster than the bound b: −uᵀJ_p q̈ ≥ (uᵀJ_p q̇ − b)/h + uᵀJ̇_p q̇.
+:func:`qpctl.kernels.field.speed_points` (where the link may be inside a leaf, or the nearest to one;
+found in the same pass, from the soft channel's samples): the point's velocity a horizon h ahead,
+w⁺ = J_p q̇ + (J_p q̈ + J̇_p q̇)h, along the direction u of its velocity now no faster than the bound b:
+−uᵀJ_p q̈ ≥ (uᵀJ_p q̇ − b)/h + uᵀJ̇_p q̇.
 
 A pair farther than the cutoff, or without a normal, is an inactive row (zero, −∞), and so is a
 speed row without a point (inf bound). Reference:
@@ -50,7 +52,7 @@ from qpctl.kernels.codes import (
     IP_FD_SAMPLES,
 )
 from qpctl.kernels.drives import row_range
-from qpctl.kernels.field import field_pairs, speed_points
+from qpctl.kernels.field_samples import field_samples
 from qpctl.kernels.rigid import point_jacobian
 
 REACH_SHARE = 0.25  # a rigid row inside its margin asks at most ℓ − ρ(ℓ − ℓ₋) of its range over the torque window
@@ -66,26 +68,22 @@ def set_field(ws, dist: np.ndarray, grad: np.ndarray) -> None:  # type: ignore[n
 
 @njit(cache=True)
 def field_pairs_both(ws) -> None:  # type: ignore[no-untyped-def]
-    """Both channels' pairs for the capsules at this tick into fd_d, fd_n, fd_p (channel-major)."""
-    L = ws.segments.shape[0]
-    rpl = ws.ipar[IP_FD_RPL]
-    k = L * rpl
-    voxel, trunc = ws.fpar[FP_FD_VOXEL], ws.fpar[FP_FD_TRUNC]
-    for ch in range(2):
-        o = ch * k
-        field_pairs(ws.segments, ws.cap_radius, ws.fd_dist[ch], ws.fd_grad[ch], ws.fd_origin, voxel, trunc,
-                    ws.ipar[IP_FD_SAMPLES], rpl, True, ws.fd_ds, ws.fd_d[o:o + k], ws.fd_n[o:o + k],
-                    ws.fd_p[o:o + k], ws.fd_s)
+    """Both channels' pairs for the capsules at this tick into fd_d, fd_n, fd_p (channel-major), and the
+    soft channel's speed points into fd_vp, fd_vu, fd_vb, fd_vd: one pass along each axis
+    (:func:`qpctl.kernels.field_samples.field_samples`, the numbers of the separate kernels)."""
+    fp = ws.fpar
+    field_samples(ws.segments, ws.cap_radius, ws.fd_dist, ws.fd_grad, ws.fd_origin, fp[FP_FD_VOXEL], fp[FP_FD_TRUNC],
+                  ws.ipar[IP_FD_SAMPLES], ws.ipar[IP_FD_RPL], True, ws.body_vel, fp[FP_FD_VS], fp[FP_FD_VSLOPE],
+                  fp[FP_FD_VMARGIN], fp[FP_FD_CUT], ws.fd_ds, ws.fd_d, ws.fd_n, ws.fd_p, ws.fd_s, ws.fd_vp,
+                  ws.fd_vu, ws.fd_vb, ws.fd_vd)
 
 
 @njit(cache=True)
 def speed_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no-untyped-def]
-    """The soft speed rows (module docstring) into ``C`` (2L, n) and ``lower`` (2L,)."""
+    """The soft speed rows (module docstring) into ``C`` (2L, n) and ``lower`` (2L,), for the speed points
+    :func:`field_pairs_both` wrote this tick."""
     n = ws.N.shape[0]
     fp = ws.fpar
-    speed_points(ws.segments, ws.cap_radius, ws.fd_dist[1], ws.fd_origin, fp[FP_FD_VOXEL], fp[FP_FD_TRUNC],
-                 ws.ipar[IP_FD_SAMPLES], ws.body_vel, fp[FP_FD_VS], fp[FP_FD_VSLOPE], fp[FP_FD_VMARGIN], fp[FP_FD_CUT],
-                 ws.fd_ds, ws.fd_vp, ws.fd_vu, ws.fd_vb, ws.fd_vd)
     h = fp[FP_FD_HORIZON]
     Jp = ws.fd_vjac
     for r in range(C.shape[0]):
@@ -116,8 +114,8 @@ def field_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no
     """The field's rows (module docstring) into ``C`` (R + 2L, n) and ``lower`` (R + 2L,): the R pair
     rows (both channels), then the soft speed rows."""
     R = ws.fd_d.shape[0]
-    speed_rows(ws, C[R:], lower[R:])
     field_pairs_both(ws)
+    speed_rows(ws, C[R:], lower[R:])
     n = ws.N.shape[0]
     L = ws.segments.shape[0]
     rpl = ws.ipar[IP_FD_RPL]

@@ -144,8 +144,8 @@ FIELDS = (
     "fd_d",  # (R,) per tick: the field pairs' distances from the capsules' surfaces [m]
     "fd_n",  # (R, 3) unit normals, away from the obstacle (zero: no pair)
     "fd_p",  # (R, 3) witness points on the links [m]
-    "fd_s",  # (L × rows per link,) scratch: axis parameters
-    "fd_ds",  # (samples,) scratch: the distances along one axis
+    "fd_s",  # (R,) scratch: axis parameters
+    "fd_ds",  # (2, samples) scratch: both channels' distances along one axis
     "fd_jac",  # (R, 3, n) witness points' Jacobians (active rows)
     "fd_drift",  # (R, 3) their J̇_p q̇ [m/s²]
     "fd_vp",  # (2L, 3) the soft speed rows' points [m] (qpctl.kernels.field.speed_points)
