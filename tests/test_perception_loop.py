@@ -60,7 +60,8 @@ def test_witness_point_jacobian_and_drift_match_finite_differences(panda_robot, 
 
 def test_rows_are_the_barrier_of_the_field_distance(panda_robot) -> None:
     """A static map of a sphere beside the forearm: each active rigid row is n^T J_p (J_p the witness
-    point's Jacobian) and its bound −k1 ḣ − k0 (d − margin) − n^T J̇_p q̇; ḣ = row·q̇ matches the rate
+    point's Jacobian) and its bound −k1 ḣ − k0 (d − margin) − n^T J̇_p q̇ (inside the margin
+    −k1 (ḣ − min(k0/k1 (margin − d), soft_speed)) − n^T J̇_p q̇); ḣ = row·q̇ matches the rate
     of change of the pair's distance along the motion."""
     robot = panda_robot
     q = robot.q_home.copy()
@@ -81,8 +82,11 @@ def test_rows_are_the_barrier_of_the_field_distance(panda_robot) -> None:
     J, a = bar.jacobians(q, v, pairs.link[rigid], pairs.point[rigid])
     rows = np.einsum("ri,rin->rn", pairs.normal[rigid], J)
     hdot = rows @ v
-    expect = -40.0 * hdot - 400.0 * (pairs.distance[rigid] - CFG.rigid_margin(0.05)) - np.einsum(
-        "ri,ri->r", pairs.normal[rigid], a)
+    m, d = CFG.rigid_margin(0.05), pairs.distance[rigid]
+    # inside the margin (d < m) away at min(k0/k1 (m − d), soft_speed); no torque window given: no cap
+    expect = np.where(d < m, -40.0 * (hdot - np.minimum(10.0 * (m - d), CFG.soft_speed)),
+                      -40.0 * hdot - 400.0 * (d - m)) - np.einsum("ri,ri->r", pairs.normal[rigid], a)
+    assert (d < m).any() and (d >= m).any()  # both kinds of row
     assert ineq.C[rigid] == pytest.approx(rows) and ineq.lower[rigid] == pytest.approx(expect)
     P = bar.pairs
     assert np.all(np.isinf(ineq.lower[:P][~pairs.active])) and not ineq.C[:P][~pairs.active].any()

@@ -151,7 +151,7 @@ def field_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no
             lower[r] = -k1 * (hdot - min(k0 / k1 * (margin - d), vs)) - drift
             lo, hi = row_range(ws, C[r], ws.w1)
             cap = hi - REACH_SHARE * (hi - lo)
-            if cap < lower[r]:  # (False for NaN: no torque limits)
+            if cap < lower[r]:  # noqa: PLR1730 (False for a NaN cap, no torque limits: min() would take it)
                 lower[r] = cap
         else:
             lower[r] = -k1 * hdot - k0 * (d - margin) - drift
