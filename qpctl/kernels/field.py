@@ -172,6 +172,56 @@ def _pair(segments: np.ndarray, radii: np.ndarray, l: int, s: float, dist: np.nd
     out_p[row, 0], out_p[row, 1], out_p[row, 2] = px - r * nx, py - r * ny, pz - r * nz
 
 
+@njit(cache=True, nogil=True, inline="always")
+def second_minimum(ds: np.ndarray, best: int, samples: int, truncation: float) -> int:
+    """The lowest local minimum of the samples ``ds`` at least two samples from ``best`` and within
+    the truncation (−1: none): the second row's sample."""
+    second = -1
+    for j in range(samples):
+        if abs(j - best) < 2 or ds[j] >= truncation:
+            continue
+        if (j > 0 and ds[j - 1] < ds[j]) or (j < samples - 1 and ds[j + 1] < ds[j]):
+            continue  # not a local minimum
+        if second < 0 or ds[j] < ds[second]:
+            second = j
+    return second
+
+
+@njit(cache=True, nogil=True, inline="always")
+def speed_excess(px: float, py: float, pz: float, r: float, vx: float, vy: float, vz: float, wx: float, wy: float,
+                 wz: float, d: float, soft_speed: float, gain: float, vmargin: float) -> float:
+    """How much the fastest point of the ball of radius r about the axis point (px, py, pz) [m] (inside
+    the capsule) outruns its bound b(d) [m/s]: the axis point's velocity c (body velocity v at the
+    origin, ω) plus r ω × e, e = (c × ω)/|c × ω| maximising cᵀ(ω × e): |c| + r|ω ⊥ c| − b(d)."""
+    cx, cy, cz = vx + wy * pz - wz * py, vy + wz * px - wx * pz, vz + wx * py - wy * px
+    c = math.sqrt(cx * cx + cy * cy + cz * cz)
+    ex, ey, ez = cy * wz - cz * wy, cz * wx - cx * wz, cx * wy - cy * wx
+    return c + r * math.sqrt(ex * ex + ey * ey + ez * ez) / max(c, 1e-300) - (soft_speed + gain * max(d - vmargin, 0.0))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def speed_row(px: float, py: float, pz: float, r: float, vx: float, vy: float, vz: float, wx: float, wy: float,
+              wz: float, d: float, soft_speed: float, gain: float, vmargin: float, row: int, out_p: np.ndarray,
+              out_u: np.ndarray, out_b: np.ndarray, out_d: np.ndarray) -> None:
+    """A speed row's point for the axis point (px, py, pz) [m] of its sample (field distance d from the
+    capsule's surface [m]): the ball's fastest point, the direction of its velocity and its bound."""
+    cx, cy, cz = vx + wy * pz - wz * py, vy + wz * px - wx * pz, vz + wx * py - wy * px
+    c = math.sqrt(cx * cx + cy * cy + cz * cz)
+    if c > 1e-12:
+        ex, ey, ez = cy * wz - cz * wy, cz * wx - cx * wz, cx * wy - cy * wx
+        e = math.sqrt(ex * ex + ey * ey + ez * ez)
+        if e > 1e-12 * c:
+            px, py, pz = px + r * ex / e, py + r * ey / e, pz + r * ez / e
+    cx, cy, cz = vx + wy * pz - wz * py, vy + wz * px - wx * pz, vz + wx * py - wy * px
+    c = math.sqrt(cx * cx + cy * cy + cz * cz)
+    out_p[row, 0], out_p[row, 1], out_p[row, 2] = px, py, pz
+    out_d[row] = d
+    if c <= 1e-9:  # at rest: no direction to bound (the next tick's point has one)
+        return
+    out_u[row, 0], out_u[row, 1], out_u[row, 2] = cx / c, cy / c, cz / c
+    out_b[row] = soft_speed + gain * max(d - vmargin, 0.0)
+
+
 @njit(cache=True, nogil=True)
 def field_pairs(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, grad: np.ndarray,
                 origin: np.ndarray, voxel: float, truncation: float, samples: int, rows: int, smooth: bool,
@@ -207,14 +257,7 @@ def field_pairs(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, grad:
               smooth, g, l * rows, out_d, out_n, out_p, out_s)
         if rows < 2:
             continue
-        second = -1
-        for j in range(samples):
-            if abs(j - best) < 2 or ds[j] >= truncation:
-                continue
-            if (j > 0 and ds[j - 1] < ds[j]) or (j < samples - 1 and ds[j + 1] < ds[j]):
-                continue  # not a local minimum
-            if second < 0 or ds[j] < ds[second]:
-                second = j
+        second = second_minimum(ds, best, samples, truncation)
         if second < 0:  # one minimum only: the second row repeats the first's point, inactive
             row = l * rows + 1
             out_d[row] = truncation - radii[l]
@@ -260,13 +303,7 @@ def speed_points(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, orig
             ds[j] = d
             if d + r >= truncation or d >= cutoff:
                 continue
-            # the fastest point of the ball about the sample (radius r, inside the capsule): the axis
-            # point's velocity c plus r ω × e, e = (c × ω)/|c × ω| maximising cᵀ(ω × e): |c| + r|ω ⊥ c|
-            cx, cy, cz = vx + wy * pz - wz * py, vy + wz * px - wx * pz, vz + wx * py - wy * px
-            c = math.sqrt(cx * cx + cy * cy + cz * cz)
-            ex, ey, ez = cy * wz - cz * wy, cz * wx - cx * wz, cx * wy - cy * wx
-            excess = c + r * math.sqrt(ex * ex + ey * ey + ez * ez) / max(c, 1e-300) \
-                - (soft_speed + gain * max(d - vmargin, 0.0))
+            excess = speed_excess(px, py, pz, r, vx, vy, vz, wx, wy, wz, d, soft_speed, gain, vmargin)
             if excess > e1:
                 second, e2 = best, e1
                 best, e1 = j, excess
@@ -277,20 +314,5 @@ def speed_points(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, orig
             if j < 0:
                 continue
             f = j / (samples - 1.0)
-            px, py, pz = ax + f * ux, ay + f * uy, az + f * uz
-            cx, cy, cz = vx + wy * pz - wz * py, vy + wz * px - wx * pz, vz + wx * py - wy * px
-            c = math.sqrt(cx * cx + cy * cy + cz * cz)
-            if c > 1e-12:
-                ex, ey, ez = cy * wz - cz * wy, cz * wx - cx * wz, cx * wy - cy * wx
-                e = math.sqrt(ex * ex + ey * ey + ez * ez)
-                if e > 1e-12 * c:
-                    px, py, pz = px + r * ex / e, py + r * ey / e, pz + r * ez / e
-            cx, cy, cz = vx + wy * pz - wz * py, vy + wz * px - wx * pz, vz + wx * py - wy * px
-            c = math.sqrt(cx * cx + cy * cy + cz * cz)
-            row = 2 * l + k
-            out_p[row, 0], out_p[row, 1], out_p[row, 2] = px, py, pz
-            out_d[row] = ds[j]
-            if c <= 1e-9:  # at rest: no direction to bound (the next tick's point has one)
-                continue
-            out_u[row, 0], out_u[row, 1], out_u[row, 2] = cx / c, cy / c, cz / c
-            out_b[row] = soft_speed + gain * max(ds[j] - vmargin, 0.0)
+            speed_row(ax + f * ux, ay + f * uy, az + f * uz, r, vx, vy, vz, wx, wy, wz, ds[j], soft_speed, gain,
+                      vmargin, 2 * l + k, out_p, out_u, out_b, out_d)

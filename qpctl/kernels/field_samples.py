@@ -25,7 +25,7 @@ import math
 import numpy as np
 from numba import njit
 
-from qpctl.kernels.field import _refine, cell
+from qpctl.kernels.field import _refine, cell, second_minimum, speed_excess, speed_row
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -186,12 +186,7 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
             d = t1 - r
             if d + r >= truncation or d >= cutoff:
                 continue
-            # speed_points' fastest point of the ball about the sample, and its excess over the bound
-            cx, cy, cz = vx + wy * pz - wz * py, vy + wz * px - wx * pz, vz + wx * py - wy * px
-            cn = math.sqrt(cx * cx + cy * cy + cz * cz)
-            ex, ey, ez = cy * wz - cz * wy, cz * wx - cx * wz, cx * wy - cy * wx
-            excess = cn + r * math.sqrt(ex * ex + ey * ey + ez * ez) / max(cn, 1e-300) \
-                - (soft_speed + gain * max(d - vmargin, 0.0))
+            excess = speed_excess(px, py, pz, r, vx, vy, vz, wx, wy, wz, d, soft_speed, gain, vmargin)
             if excess > e1:
                 second, e2 = best, e1
                 best, e1 = j, excess
@@ -208,14 +203,7 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
                   smooth, row0, out_d, out_n, out_p, out_s)
             if rows < 2:
                 continue
-            sec = -1
-            for j in range(samples):
-                if abs(j - b) < 2 or dc[j] >= truncation:
-                    continue
-                if (j > 0 and dc[j - 1] < dc[j]) or (j < samples - 1 and dc[j + 1] < dc[j]):
-                    continue  # not a local minimum
-                if sec < 0 or dc[j] < dc[sec]:
-                    sec = j
+            sec = second_minimum(dc, b, samples, truncation)
             if sec < 0:  # one minimum only: the second row repeats the first's point, inactive
                 out_d[row0 + 1] = truncation - r
                 out_s[row0 + 1] = out_s[row0]
@@ -232,21 +220,5 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
             if j < 0:
                 continue
             f = j / (samples - 1.0)
-            px, py, pz = ax + f * ux, ay + f * uy, az + f * uz
-            cx, cy, cz = vx + wy * pz - wz * py, vy + wz * px - wx * pz, vz + wx * py - wy * px
-            cn = math.sqrt(cx * cx + cy * cy + cz * cz)
-            if cn > 1e-12:
-                ex, ey, ez = cy * wz - cz * wy, cz * wx - cx * wz, cx * wy - cy * wx
-                e = math.sqrt(ex * ex + ey * ey + ez * ez)
-                if e > 1e-12 * cn:
-                    px, py, pz = px + r * ex / e, py + r * ey / e, pz + r * ez / e
-            cx, cy, cz = vx + wy * pz - wz * py, vy + wz * px - wx * pz, vz + wx * py - wy * px
-            cn = math.sqrt(cx * cx + cy * cy + cz * cz)
-            row = 2 * l + k
-            dj = ds[1, j] - r
-            out_vp[row, 0], out_vp[row, 1], out_vp[row, 2] = px, py, pz
-            out_vd[row] = dj
-            if cn <= 1e-9:  # at rest: no direction to bound (the next tick's point has one)
-                continue
-            out_vu[row, 0], out_vu[row, 1], out_vu[row, 2] = cx / cn, cy / cn, cz / cn
-            out_vb[row] = soft_speed + gain * max(dj - vmargin, 0.0)
+            speed_row(ax + f * ux, ay + f * uy, az + f * uz, r, vx, vy, vz, wx, wy, wz, ds[1, j] - r, soft_speed, gain,
+                      vmargin, 2 * l + k, out_vp, out_vu, out_vb, out_vd)
