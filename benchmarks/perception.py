@@ -415,7 +415,7 @@ CLOSED_LOOP_KEYS = ("collided", "min_clearance", "min_soft_clearance", "soft_con
                     "soft_contact_max_approach_speed", "map_min_clearance", "map_age_ms_max", "map_update_cpu_ms_median",
                     "map_update_cpu_ms_p99", "map_latency_ms_p99", "phantom_rows", "phantom_rows_checked",
                     "stale_stop_ticks", "tick_us_median", "fruit_errors_mm", "lag_ticks", "lag_max_m", "path_end_s",
-                    "path_extra_s")
+                    "path_extra_s", "fruits_picked")
 
 
 def closed_loop(seed: int, duration: float | None = None) -> dict[str, Any]:

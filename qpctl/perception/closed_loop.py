@@ -342,8 +342,8 @@ class MapLoop:
             "lag_ticks": self.lag_ticks,
             "lag_max_m": self.lag_max,
             "path_end_s": self.path_end,
-            "fruits_picked": self.picked,
             "path_extra_s": self.path_end - self.path_nominal_end,
+            "fruits_picked": self.picked,
         }
 
 
