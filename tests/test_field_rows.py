@@ -339,6 +339,12 @@ def test_rigid_rows_inside_the_margin_ask_no_more_than_the_torque_window_gives()
         assert low[r] == pytest.approx(want, rel=1e-7, abs=1e-9)
         capped += want < barrier
     assert capped >= 1  # the cap, not the barrier, bound the row
+    # the Python path's rows, with the window as it was at the tick: the same capped bounds
+    after = window.previous.copy(), window.t_previous.copy()
+    window.previous[:], window.t_previous[0] = state.N, 0.0
+    python = bar.compute(state, None)  # type: ignore[arg-type]
+    window.previous[:], window.t_previous[:] = after
+    assert python.lower[inside] == pytest.approx(low[inside], rel=1e-9, abs=1e-12)
     assert out.info.get("fallback") is None and out.info["status"] == "solved"
     # the same rows uncapped: no torque window given to them (the Python path)
     slow, slow_bar, q, v, t = _inside_the_margin()

@@ -99,7 +99,7 @@ class QPController(Controller):
         check_mode(cfg.task_relaxation)
         self._solver = make_solver(cfg.solver, cfg.solver_settings)  # the task hard
         self._solver_soft = make_solver(cfg.solver, cfg.solver_settings)  # with its slack
-        self._failures = Failures(cfg.fallback, strict, self._torque_limit)
+        self._failures = Failures(cfg.fallback, strict, self.torque_limit)
         self._tick_start: float | None = None
         self.braking = braking_model(cfg, robot)
         if self.braking is not None:  # pairs found within the braking reach beyond d_influence
@@ -208,7 +208,7 @@ class QPController(Controller):
 
     def reset(self) -> None:
         super().reset()
-        limit = self._torque_limit()
+        limit = self.torque_limit()
         if limit is not None:
             limit.forget()
         self._solver.reset()
@@ -259,13 +259,14 @@ class QPController(Controller):
         if self._reference is None:
             self._reference = ReferenceTick(self.formulation, (self._solver, self._solver_soft),
                                             self.config.task_relaxation, self._budget_us, self.gains, self._failures,
-                                            self.reference, self._torque_limit)
+                                            self.reference, self.torque_limit)
         return self._reference
 
     def _budget_us(self) -> float:
         return float(self.config.tick_budget_us)
 
-    def _torque_limit(self) -> TorqueLimit | None:
+    def torque_limit(self) -> TorqueLimit | None:
+        """This controller's torque limits (their window is the drives' this tick), or None."""
         return next((c for c in self.constraints if isinstance(c, TorqueLimit)), None)
 
     # -- the tick ---------------------------------------------------------------------------------

@@ -15,7 +15,6 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from qpctl.constraints.constraints import TorqueLimit
 from qpctl.perception.config import PerceptionConfig
 from qpctl.perception.depth_map import DepthMap, Frame
 from qpctl.perception.frames import DepthFrame, Intrinsics
@@ -87,7 +86,7 @@ class Perception:
         cfg = getattr(controller, "config", None)
         barrier = FieldBarrier(self, controller.robot, self.config, d_safe=controller.gains.d_safe,
                                cutoff=controller.cutoff, k0=getattr(cfg, "barrier_k0", 400.0),
-                               k1=getattr(cfg, "barrier_k1", 40.0), torque=_torque_limit(controller))
+                               k1=getattr(cfg, "barrier_k1", 40.0), torque=controller.torque_limit())
         controller.add_constraint(barrier)
         return barrier
 
@@ -116,8 +115,3 @@ class Perception:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-
-def _torque_limit(controller: Any) -> TorqueLimit | None:
-    """The controller's :class:`~qpctl.constraints.TorqueLimit` (its window caps the field's rigid rows
-    inside their margin), or None."""
-    return next((c for c in getattr(controller, "constraints", ()) if isinstance(c, TorqueLimit)), None)
