@@ -45,7 +45,7 @@ import fcl
 import numpy as np
 import pinocchio as pin
 import pytest
-from solid_reference import minimised_distance
+from solid_reference import fcl_segment, frame_z_to, minimised_distance
 
 from baselines import HsuController, PaperController
 from qpctl import LawGains, Obstacle, Scenario, WaypointPath, panda, planar_arm
@@ -70,25 +70,6 @@ _SIGNED = fcl.DistanceRequest(enable_nearest_points=True, enable_signed_distance
 # ---------------------------------------------------------------------------------------------------
 # References: python-fcl shapes, brute-force segment distances, Pinocchio per-frame quantities
 # ---------------------------------------------------------------------------------------------------
-def frame_z_to(u: np.ndarray) -> np.ndarray:
-    """A rotation whose third column is the unit vector along u (an orthonormal frame built by cross
-    products; independent of qpctl's quaternion)."""
-    u = np.asarray(u, float) / np.linalg.norm(u)
-    helper = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(helper, u)
-    e1 /= np.linalg.norm(e1)
-    return np.column_stack([e1, np.cross(u, e1), u])
-
-
-def fcl_segment(a: np.ndarray, b: np.ndarray, r: float) -> fcl.CollisionObject:
-    """The capsule of axis a–b and radius r (a sphere when a = b) as a python-fcl object."""
-    a, b = np.asarray(a, float), np.asarray(b, float)
-    length = float(np.linalg.norm(b - a))
-    if length == 0.0:
-        return fcl.CollisionObject(fcl.Sphere(r), fcl.Transform(a))
-    return fcl.CollisionObject(fcl.Capsule(r, length), fcl.Transform(frame_z_to(b - a), 0.5 * (a + b)))
-
-
 def obstacle_centre(o: Obstacle, t: float) -> np.ndarray:
     """p(t) = p₀ + v t + A sin(2π f t), written out here."""
     return o.position + o.velocity * t + o.amplitude * math.sin(2.0 * math.pi * o.frequency * t)

@@ -20,9 +20,12 @@ import math
 import numpy as np
 from numba import njit
 
-# A pixel's or point's fate (uint8), in the order the tests are applied.
-KEPT, NO_RETURN, OUT_OF_RANGE, FLYING, SELF, TARGET, OUTSIDE = 0, 1, 2, 3, 4, 5, 6
-STATUS_NAMES = ("kept", "no_return", "out_of_range", "flying", "self", "target", "outside")
+from qpctl.kernels.self_shadow import casting, in_shadow_pixel, in_shadow_point, shadow_rects
+
+# A pixel's or point's fate (uint8): the tests are applied in the order NO_RETURN, OUT_OF_RANGE, FLYING,
+# SELF, TARGET, SHADOW, OUTSIDE (SHADOW came last and has the last code).
+KEPT, NO_RETURN, OUT_OF_RANGE, FLYING, SELF, TARGET, OUTSIDE, SHADOW = 0, 1, 2, 3, 4, 5, 6, 7
+STATUS_NAMES = ("kept", "no_return", "out_of_range", "flying", "self", "target", "outside", "shadow")
 SOFT_LABEL = 2  # qpctl.perception.frames.SOFT: the soft channel; every other label is rigid
 
 
@@ -166,7 +169,7 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
                     support: int, segments: np.ndarray, radii: np.ndarray, target: np.ndarray, target_radius: float,
                     origin: np.ndarray, voxel: float, last: np.ndarray, stamp: float, status: np.ndarray,
                     counts: np.ndarray, hits: np.ndarray, min_points: int, soft_depth: float,
-                    zbuf: np.ndarray) -> None:
+                    zbuf: np.ndarray, shadow: bool, rects: np.ndarray) -> None:
     """Back-project a depth image (H×W, × ``scale`` [m]) through the pinhole (fx, fy, cx, cy) and the
     camera ``pose`` (4×4, optical frame in the base frame), classify every pixel into ``status``
     (H×W uint8; a return is :data:`FLYING` when a 4-neighbour is nearer than it by more than
@@ -177,7 +180,9 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
     counts them): a lone point in free space is the noise's tail, not an obstacle. A soft voxel also
     stamps the voxels behind it along the pixel's ray, ``soft_depth`` [m] deep: a camera sees a
     leaf's front, and a link that passed it would otherwise be free of it inside. ``zbuf``
-    (H + 2, W + 2) float64 is scratch (:func:`metric_depth`).
+    (H + 2, W + 2) float64 is scratch (:func:`metric_depth`). With ``shadow``, a rigid or unlabelled
+    return whose ray from the camera's centre passes through a capsule is :data:`SHADOW`
+    (:mod:`qpctl.kernels.self_shadow`; ``rects`` (L, 4) int64 is its scratch).
 
     ``segments`` (L, 2, 3) and ``radii`` (L,) are the robot's capsules at the frame's stamp, already
     inflated by the self-filter's margin."""
@@ -190,6 +195,10 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
     boxes, robot_box = robot_bounds(segments, radii)
     zone = zone_box(robot_box, target, target_radius)
     zx0, zy0, zz0, zx1, zy1, zz1 = zone[0], zone[1], zone[2], zone[3], zone[4], zone[5]
+    su0, sv0, su1, sv1 = W, H, -1, -1  # the pixels a capsule's shadow may fall on (none)
+    if shadow and segments.shape[0] > 0:
+        union = shadow_rects(segments, radii, boxes, pose, fx, fy, cx, cy, W, H, rects)
+        su0, sv0, su1, sv1 = union[0], union[1], union[2], union[3]
     r00, r01, r02, tx = pose[0, 0], pose[0, 1], pose[0, 2], pose[0, 3]
     r10, r11, r12, ty = pose[1, 0], pose[1, 1], pose[1, 2], pose[1, 3]
     r20, r21, r22, tz = pose[2, 0], pose[2, 1], pose[2, 2], pose[2, 3]
@@ -222,6 +231,9 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
                 is_soft = has_labels and labels[v, u] == SOFT_LABEL
                 if not is_soft and x >= zx0 and y >= zy0 and w >= zz0 and x <= zx1 and y <= zy1 and w <= zz1:
                     st = classify_point(x, y, w, segments, radii, boxes, robot_box, target, target_radius, is_soft)
+                if (st == KEPT and not is_soft and su0 <= u <= su1 and sv0 <= v <= sv1
+                        and in_shadow_pixel(u, v, tx, ty, tz, x, y, w, segments, radii, rects)):
+                    st = SHADOW
                 if st == KEPT:
                     idx = voxel_index(x, y, w, ox, oy, oz, inv, nx, ny, nz)
                     if idx < 0:
@@ -251,9 +263,10 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
 @njit(cache=True, nogil=True)
 def integrate_points(points: np.ndarray, labels: np.ndarray, segments: np.ndarray, radii: np.ndarray,
                      target: np.ndarray, target_radius: float, origin: np.ndarray, voxel: float, last: np.ndarray,
-                     stamp: float, status: np.ndarray, counts: np.ndarray) -> None:
+                     stamp: float, status: np.ndarray, counts: np.ndarray, sensor: np.ndarray, shadow: bool) -> None:
     """:func:`integrate_depth` for a point cloud (N×3, base frame [m]; ``labels`` (N,) or (0,)):
-    non-finite points are :data:`NO_RETURN`; no range or flying-pixel test (a cloud has no image)."""
+    non-finite points are :data:`NO_RETURN`; no range or flying-pixel test (a cloud has no image); with
+    ``shadow``, the shadow test from the cloud's ``sensor`` (3,) [m] (:func:`in_shadow_point`)."""
     n = points.shape[0]
     has_labels = labels.shape[0] == n
     nx, ny, nz = last.shape[1], last.shape[2], last.shape[3]
@@ -263,6 +276,8 @@ def integrate_points(points: np.ndarray, labels: np.ndarray, segments: np.ndarra
     boxes, robot_box = robot_bounds(segments, radii)
     zone = zone_box(robot_box, target, target_radius)
     zx0, zy0, zz0, zx1, zy1, zz1 = zone[0], zone[1], zone[2], zone[3], zone[4], zone[5]
+    sx, sy, sz = sensor[0], sensor[1], sensor[2]
+    casts = casting(segments, radii, sx, sy, sz)
     counts[:] = 0
     for i in range(n):
         x, y, w = points[i, 0], points[i, 1], points[i, 2]
@@ -273,6 +288,9 @@ def integrate_points(points: np.ndarray, labels: np.ndarray, segments: np.ndarra
             is_soft = has_labels and labels[i] == SOFT_LABEL
             if not is_soft and x >= zx0 and y >= zy0 and w >= zz0 and x <= zx1 and y <= zy1 and w <= zz1:
                 st = classify_point(x, y, w, segments, radii, boxes, robot_box, target, target_radius, is_soft)
+            if shadow and st == KEPT and not is_soft and in_shadow_point(sx, sy, sz, x, y, w, segments, radii,
+                                                                        boxes, casts):
+                st = SHADOW
             if st == KEPT:
                 idx = voxel_index(x, y, w, ox, oy, oz, inv, nx, ny, nz)
                 if idx < 0:
@@ -290,8 +308,8 @@ def clear_depth(depth: np.ndarray, scale: float, status: np.ndarray, fx: float, 
     """Free the voxels this image saw through: each voxel occupied before this frame (0 < stamp of
     ``last`` < ``stamp``) whose centre projects into the image in front of its pixel's return by more
     than ``margin`` [m] is cleared. Pixels without a return or marked :data:`FLYING` clear nothing (a
-    mixed pixel's depth lies between two surfaces). A soft voxel that projects onto a :data:`SELF`
-    pixel and is not cleared — hidden behind the robot's own body, or within ``margin`` in front of
+    mixed pixel's depth lies between two surfaces). A soft voxel that projects onto a :data:`SELF` or
+    :data:`SHADOW` pixel and is not cleared — hidden behind the robot's own body, or within ``margin`` in front of
     it — is **held**: stamped ``stamp``, as if seen (the leaf a link is in is hidden by that link; it
     must not decay while the arm is in it). Returns the number of voxels cleared."""
     H, W = depth.shape
@@ -324,7 +342,7 @@ def clear_depth(depth: np.ndarray, scale: float, status: np.ndarray, fx: float, 
                     if b < stamp:
                         last[1, i, j, k] = -math.inf
                     cleared += 1
-                elif status[v, u] == SELF and b > -math.inf and b < stamp:
+                elif (status[v, u] == SELF or status[v, u] == SHADOW) and b > -math.inf and b < stamp:
                     last[1, i, j, k] = stamp  # behind the robot: held
     return cleared
 

@@ -35,6 +35,8 @@ class PerceptionConfig:
     #                                  that fraction of its depth: a return on no surface (0: off)
     min_points: int = setting(2)  # a voxel is occupied by a depth image once this many of its pixels fall in it
     self_margin: float = setting(0.03, valid="nonnegative", unit="m")  # the robot's capsules, inflated by this, are not obstacles [m]
+    self_shadow: bool = setting(True)  # nor is a rigid return whose ray from the sensor passes through one of them
+    #                                  (a flying pixel at the robot's silhouette; docs/perception.md, "The robot's shadow")
     soft_depth: float = setting(0.04, valid="nonnegative", unit="m")  # a soft surface fills this behind it along the ray [m]
     target_radius: float = setting(0.1, valid="nonnegative", unit="m")  # nothing within this of the grasp target is an obstacle [m]
     #                                  (the fruit and the hand about it)

@@ -13,7 +13,10 @@ the voxel was last seen occupied) and turns each frame into it (:meth:`DepthMap.
 2. back-projection through the pinhole intrinsics and the camera's pose;
 3. self-filtering: points within the robot's capsules at the frame's stamp, inflated by
    ``self_margin`` (:mod:`qpctl.perception.self_filter`), or within ``target_radius`` of the grasp
-   target, are dropped; so are points outside the map's bounds;
+   target, are dropped; with ``self_shadow``, so are rigid or unlabelled points whose ray from the
+   sensor passes through one of those capsules (:mod:`qpctl.kernels.self_shadow`: a flying pixel at
+   the robot's silhouette lies there, beyond the capsule; a cloud without a sensor origin has no
+   rays); so are points outside the map's bounds;
 4. the rest stamp their voxel, in the soft channel where labelled soft, the rigid one otherwise —
    from a depth image, once ``min_points`` pixels of the frame fall in it (a lone return in free
    space is the noise's tail); a cloud's points count one each (a cloud is taken as filtered); a
@@ -99,6 +102,7 @@ class DepthMap:
         self.last_report: FrameReport | None = None
         self._lock = threading.Lock()  # one frame at a time (a worker and a user may both call)
         self._no_capsules = (np.zeros((0, 2, 3)), np.zeros(0))
+        self._rects = np.zeros((len(robot.capsules) if robot is not None else 0, 4), np.int64)  # shadow scratch
 
     # -- what the controller tells the map --------------------------------------------------------
     def record(self, t: float, q: np.ndarray) -> None:
@@ -158,14 +162,17 @@ class DepthMap:
                 KD.integrate_depth(depth, scale, labels, K.fx, K.fy, K.cx, K.cy, frame.pose, c.min_range,
                                    c.max_range, c.flying_pixel, c.flying_support, segs, radii, target, target_r, g.origin, g.voxel,
                                    self.last, frame.stamp, status, counts, self._hits, c.min_points,
-                                   c.soft_depth, self._depth_scratch(depth.shape))
+                                   c.soft_depth, self._depth_scratch(depth.shape), c.self_shadow,
+                                   self._rects[:len(radii)])
                 cleared = KD.clear_depth(depth, scale, status, K.fx, K.fy, K.cx, K.cy, frame.pose, margin,
                                          g.origin, g.voxel, self.last, frame.stamp)
             else:
                 point_labels = frame.labels if frame.labels is not None else np.zeros(0, np.uint8)
                 status = np.empty(frame.points.shape[0], np.uint8)
+                sensor = frame.origin if frame.origin is not None else np.zeros(3)
                 KD.integrate_points(frame.points, point_labels, segs, radii, target, target_r, g.origin, g.voxel,
-                                    self.last, frame.stamp, status, counts)
+                                    self.last, frame.stamp, status, counts, sensor,
+                                    c.self_shadow and frame.origin is not None)
                 cleared = 0
                 if frame.origin is not None:
                     cleared = KD.clear_rays(frame.points, status, frame.origin, margin, g.origin, g.voxel,

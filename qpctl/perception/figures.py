@@ -21,7 +21,7 @@ from qpctl.kernels.depth import STATUS_NAMES
 from qpctl.perception.frames import DepthFrame
 from qpctl.perception.snapshot import MapSnapshot
 
-STATUS_COLOURS = ("#2ca02c", "#dddddd", "#8c564b", "#ff7f0e", "#d62728", "#9467bd", "#1f77b4")
+STATUS_COLOURS = ("#2ca02c", "#dddddd", "#8c564b", "#ff7f0e", "#d62728", "#9467bd", "#1f77b4", "#e377c2")
 
 
 def _save(fig: plt.Figure, path: Path, title: str) -> Path:

@@ -1,6 +1,8 @@
 """Slow, obviously-correct references for the depth map's compiled kernels (the tests compare).
 
-* :func:`classify_points` — :func:`qpctl.kernels.depth.integrate_points`' statuses, in numpy;
+* :func:`classify_points` — :func:`qpctl.kernels.depth.integrate_points`' statuses, in numpy, the
+  robot's shadow by python-fcl (the ray from the sensor to a point, a capsule of radius 0, against the
+  inflated capsules);
 * :func:`distance_field` — scipy's ``distance_transform_edt`` for :func:`qpctl.kernels.edt.distance_field`;
 * :func:`field_at` — scipy's ``map_coordinates`` (order 1, the trilinear interpolation) of the
   distance and gradient grids for :func:`qpctl.kernels.field.trilinear`;
@@ -10,17 +12,51 @@
 
 from __future__ import annotations
 
+import fcl
 import numpy as np
 from scipy import ndimage
 
-from qpctl.kernels.depth import KEPT, OUTSIDE, SELF, TARGET
+from qpctl.kernels.depth import KEPT, OUTSIDE, SELF, SHADOW, TARGET
 from qpctl.perception.snapshot import VoxelGrid
 
 
+def _fcl_capsule(a: np.ndarray, b: np.ndarray, r: float) -> fcl.CollisionObject:
+    """The capsule of axis a–b and radius r [m] (a sphere when a = b) as a python-fcl object."""
+    u = np.asarray(b, float) - np.asarray(a, float)
+    length = float(np.linalg.norm(u))
+    if length < 1e-12:
+        return fcl.CollisionObject(fcl.Sphere(r), fcl.Transform(np.asarray(a, float)))
+    z = u / length
+    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x)
+    R = np.column_stack([x, np.cross(z, x), z])
+    return fcl.CollisionObject(fcl.Capsule(r, length), fcl.Transform(R, 0.5 * (np.asarray(a, float) + b)))
+
+
+def in_shadow(points: np.ndarray, sensor: np.ndarray, segments: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """(N,) bool: the segment from ``sensor`` to the point meets a capsule that does not hold the sensor
+    (python-fcl's collision of a zero-radius capsule along the ray with each capsule)."""
+    sensor = np.asarray(sensor, float)
+    caps = []
+    for (a, b), r in zip(segments, radii, strict=True):
+        u = b - a
+        s = np.clip((sensor - a) @ u / (u @ u), 0.0, 1.0) if u @ u > 0 else 0.0
+        if np.linalg.norm(sensor - (a + s * u)) >= r:  # one that holds the sensor casts no shadow
+            caps.append(_fcl_capsule(a, b, r))
+    out = np.zeros(len(points), bool)
+    req = fcl.CollisionRequest()
+    for i, p in enumerate(np.asarray(points, float)):
+        ray = _fcl_capsule(sensor, p, 0.0)
+        out[i] = any(fcl.collide(ray, c, req, fcl.CollisionResult()) > 0 for c in caps)
+    return out
+
+
 def classify_points(points: np.ndarray, segments: np.ndarray, radii: np.ndarray, target: np.ndarray | None,
-                    target_radius: float, grid: VoxelGrid, soft: np.ndarray | None = None) -> np.ndarray:
+                    target_radius: float, grid: VoxelGrid, soft: np.ndarray | None = None,
+                    sensor: np.ndarray | None = None) -> np.ndarray:
     """(N,) statuses of finite base-frame points: inside a capsule or near the target (unless ``soft``,
-    (N,) bool), outside, kept."""
+    (N,) bool), in the capsules' shadow from ``sensor`` (unless soft; None: no shadow test), outside, kept."""
     pts = np.asarray(points, float)
     status = np.full(len(pts), KEPT, np.uint8)
     inside = np.zeros(len(pts), bool)
@@ -35,6 +71,11 @@ def classify_points(points: np.ndarray, segments: np.ndarray, radii: np.ndarray,
     idx = np.floor((pts - grid.origin) / grid.voxel)
     out = np.any((idx < 0) | (idx >= np.asarray(grid.shape)), axis=1)
     status[out] = OUTSIDE
+    if sensor is not None:
+        rest = ~inside & ~near & (np.ones(len(pts), bool) if soft is None else ~soft)
+        shadow = np.zeros(len(pts), bool)
+        shadow[rest] = in_shadow(pts[rest], sensor, segments, radii)
+        status[shadow] = SHADOW
     status[near] = TARGET
     status[inside] = SELF
     return status

@@ -1,0 +1,144 @@
+"""The robot's shadow: returns whose ray from the sensor passes through one of its inflated capsules.
+
+A pixel on the robot's silhouette sees the link and what lies behind it at once; a sensor reports a
+mixed depth somewhere between the two (a *flying pixel*), on no surface. The image-space flying-pixel
+test (:func:`qpctl.kernels.depth._flying`) drops most of them, but not one whose nearer neighbour is
+itself a dropout or another flying pixel; such a point lies behind the link's silhouette, beyond the
+self-filter's inflated capsule, and becomes a rigid voxel a few centimetres from the link — inside
+the rigid rows' margin, where the QP has no feasible torque (measured on ``panda_canopy_depth``, canopy
+seed 18, 23 s: 180 flying returns within 0.1 m of the inflated capsules kept, 57 of them occupying
+voxels, the nearest 0.2 mm outside a capsule; docs/perception.md, "The robot's shadow").
+
+The test, as ROS's ``robot_self_filter`` classifies its SHADOW points: a return p is in the robot's
+shadow when the segment from the sensor's centre o to p comes within a capsule's (inflated) radius of
+its axis — the sensor looked through the robot's body, or within ``self_margin`` of it, to see p. A
+real surface behind the robot is lost only in that band around the silhouette (it is hidden by the
+robot anyway); a flying pixel, which lies on its ray between the link and the background, always is. A
+capsule that holds o (a camera on the wrist, inside its own link's inflated capsule) casts no shadow:
+every ray leaves it.
+
+For an image, :func:`shadow_rects` bounds each capsule's projection by a pixel rectangle once per
+frame (its axis-aligned box's corners projected; the whole image when a corner is at or behind the
+image plane), and :func:`in_shadow_pixel` tests a pixel only against the capsules whose rectangle holds
+it; for a cloud, :func:`in_shadow_point` tests the capsules whose box meets the ray's. Both are held to
+python-fcl's capsule–capsule distance in ``tests/test_self_shadow.py``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from qpctl.kernels.geometry import segment_params
+
+
+@njit(cache=True, nogil=True, inline="always")
+def ray_meets_capsule(ox: float, oy: float, oz: float, x: float, y: float, w: float, segments: np.ndarray,
+                      radii: np.ndarray, i: int) -> bool:
+    """Whether the segment from (ox, oy, oz) to (x, y, w) [m] comes within capsule i's radius of its axis."""
+    dx, dy, dz = x - ox, y - oy, w - oz
+    ax, ay, az = segments[i, 0, 0], segments[i, 0, 1], segments[i, 0, 2]
+    ux, uy, uz = segments[i, 1, 0] - ax, segments[i, 1, 1] - ay, segments[i, 1, 2] - az
+    s, t = segment_params(ox, oy, oz, dx, dy, dz, dx * dx + dy * dy + dz * dz, ax, ay, az, ux, uy, uz)
+    ex = ox + s * dx - ax - t * ux
+    ey = oy + s * dy - ay - t * uy
+    ez = oz + s * dz - az - t * uz
+    return ex * ex + ey * ey + ez * ez < radii[i] * radii[i]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def holds(segments: np.ndarray, radii: np.ndarray, i: int, x: float, y: float, z: float) -> bool:
+    """Whether (x, y, z) [m] lies within capsule i."""
+    ax, ay, az = segments[i, 0, 0], segments[i, 0, 1], segments[i, 0, 2]
+    ux, uy, uz = segments[i, 1, 0] - ax, segments[i, 1, 1] - ay, segments[i, 1, 2] - az
+    uu = ux * ux + uy * uy + uz * uz
+    s = 0.0
+    if uu > 0.0:
+        s = min(max(((x - ax) * ux + (y - ay) * uy + (z - az) * uz) / uu, 0.0), 1.0)
+    dx, dy, dz = x - ax - s * ux, y - ay - s * uy, z - az - s * uz
+    return dx * dx + dy * dy + dz * dz < radii[i] * radii[i]
+
+
+@njit(cache=True, nogil=True)
+def shadow_rects(segments: np.ndarray, radii: np.ndarray, boxes: np.ndarray, pose: np.ndarray, fx: float,
+                 fy: float, cx: float, cy: float, W: int, H: int, rects: np.ndarray) -> np.ndarray:
+    """Per capsule (segments (L, 2, 3), radii (L,), their boxes (L, 6) [m]), the pixel rectangle
+    ``rects`` (L, 4) int64 (u0, v0, u1, v1, inclusive) that holds its projection through the pinhole
+    (fx, fy, cx, cy) of a W×H image from ``pose`` (4×4, optical frame in the base frame), with a pixel
+    to spare; empty (u0 > u1) for a capsule that holds the camera's centre or lies off the image.
+    Returns their union (4,) (empty when all are)."""
+    tx, ty, tz = pose[0, 3], pose[1, 3], pose[2, 3]
+    union = np.array([W, H, -1, -1], np.int64)
+    for i in range(segments.shape[0]):
+        rects[i, 0], rects[i, 1], rects[i, 2], rects[i, 3] = 1, 1, 0, 0
+        if holds(segments, radii, i, tx, ty, tz):
+            continue
+        umin = vmin = math.inf
+        umax = vmax = -math.inf
+        behind = False
+        for corner in range(8):
+            px = boxes[i, 3 if corner & 1 else 0] - tx
+            py = boxes[i, 4 if corner & 2 else 1] - ty
+            pz = boxes[i, 5 if corner & 4 else 2] - tz
+            # camera = Rᵀ (p − t)
+            xc = pose[0, 0] * px + pose[1, 0] * py + pose[2, 0] * pz
+            yc = pose[0, 1] * px + pose[1, 1] * py + pose[2, 1] * pz
+            zc = pose[0, 2] * px + pose[1, 2] * py + pose[2, 2] * pz
+            if zc <= 1e-9:
+                behind = True
+                break
+            u, v = fx * xc / zc + cx, fy * yc / zc + cy
+            umin, umax = min(umin, u), max(umax, u)
+            vmin, vmax = min(vmin, v), max(vmax, v)
+        if behind:
+            u0, v0, u1, v1 = 0, 0, W - 1, H - 1
+        else:
+            u0, v0 = max(math.floor(umin) - 1, 0), max(math.floor(vmin) - 1, 0)
+            u1, v1 = min(math.ceil(umax) + 1, W - 1), min(math.ceil(vmax) + 1, H - 1)
+            if u0 > u1 or v0 > v1:
+                continue
+        rects[i, 0], rects[i, 1], rects[i, 2], rects[i, 3] = u0, v0, u1, v1
+        union[0], union[1] = min(union[0], u0), min(union[1], v0)
+        union[2], union[3] = max(union[2], u1), max(union[3], v1)
+    return union
+
+
+@njit(cache=True, nogil=True, inline="always")
+def in_shadow_pixel(u: int, v: int, ox: float, oy: float, oz: float, x: float, y: float, w: float,
+                    segments: np.ndarray, radii: np.ndarray, rects: np.ndarray) -> bool:
+    """Whether pixel (u, v)'s return at (x, y, w) [m], seen from the camera's centre (ox, oy, oz), is in
+    the shadow of a capsule whose rectangle (:func:`shadow_rects`) holds the pixel."""
+    for i in range(segments.shape[0]):
+        if u < rects[i, 0] or u > rects[i, 2] or v < rects[i, 1] or v > rects[i, 3]:
+            continue
+        if ray_meets_capsule(ox, oy, oz, x, y, w, segments, radii, i):
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True, inline="always")
+def in_shadow_point(ox: float, oy: float, oz: float, x: float, y: float, w: float, segments: np.ndarray,
+                    radii: np.ndarray, boxes: np.ndarray, casts: np.ndarray) -> bool:
+    """Whether the point (x, y, w) [m] of a cloud whose sensor is at (ox, oy, oz) is in the shadow of a
+    capsule that ``casts`` (L,) bool one (its box (L, 6) meeting the ray's first)."""
+    lx, hx = min(ox, x), max(ox, x)
+    ly, hy = min(oy, y), max(oy, y)
+    lz, hz = min(oz, w), max(oz, w)
+    for i in range(segments.shape[0]):
+        if not casts[i] or hx < boxes[i, 0] or hy < boxes[i, 1] or hz < boxes[i, 2] or lx > boxes[i, 3] \
+                or ly > boxes[i, 4] or lz > boxes[i, 5]:
+            continue
+        if ray_meets_capsule(ox, oy, oz, x, y, w, segments, radii, i):
+            return True
+    return False
+
+
+@njit(cache=True, nogil=True)
+def casting(segments: np.ndarray, radii: np.ndarray, ox: float, oy: float, oz: float) -> np.ndarray:
+    """(L,) bool: the capsules that do not hold the sensor's centre (they cast a shadow)."""
+    out = np.empty(segments.shape[0], np.bool_)
+    for i in range(segments.shape[0]):
+        out[i] = not holds(segments, radii, i, ox, oy, oz)
+    return out
