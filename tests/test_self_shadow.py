@@ -73,8 +73,9 @@ def test_cloud_statuses_with_a_sensor_match_the_reference(panda_robot, rng: np.r
 
 
 def test_a_capsule_that_holds_the_sensor_casts_no_shadow(rng: np.random.Generator) -> None:
-    """A wrist camera sits inside its own link's inflated capsule: that capsule's rectangle is empty and
-    the points behind it are kept; another capsule still shadows what lies behind it."""
+    """A wrist camera sits inside its own link's inflated capsule: that capsule's spans are empty and the
+    points behind it are kept; another capsule still shadows what lies behind it, and its spans hold
+    its image (the pinhole projection of points on its surface)."""
     segs = np.array([[[0.0, 0.0, 0.0], [0.0, 0.0, 0.2]], [[0.5, -0.05, 0.1], [0.5, 0.05, 0.1]]])
     radii = np.array([0.08, 0.05])
     sensor = np.array([0.0, 0.0, 0.1])  # inside capsule 0
@@ -82,11 +83,23 @@ def test_a_capsule_that_holds_the_sensor_casts_no_shadow(rng: np.random.Generato
     pose[:3, :3] = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # optical z along +x
     pose[:3, 3] = sensor
     boxes, _ = KD.robot_bounds(segs, radii)
-    rects = np.zeros((2, 4), np.int64)
-    union = SS.shadow_rects(segs, radii, boxes, pose, 300.0, 300.0, 160.0, 120.0, 320, 240, rects)
-    assert rects[0, 0] > rects[0, 2]  # empty
-    assert rects[1, 0] <= 160 <= rects[1, 2] and rects[1, 1] <= 120 <= rects[1, 3]
-    assert np.array_equal(union, rects[1])
+    spans, reach = np.zeros((2, 240, 2), np.int32), np.zeros(2)
+    union = SS.shadow_spans(segs, radii, pose, 300.0, 300.0, 160.0, 120.0, 320, 240, spans, reach)
+    assert reach[1] == pytest.approx((0.5 - 0.05) ** 2)  # capsule 1's surface is 0.45 m from the camera
+    assert np.all(spans[0, :, 0] > spans[0, :, 1])  # empty
+    # capsule 1's surface, projected, lies in its spans; rows it does not reach have none
+    a, b = segs[1]
+    d = rng.normal(size=(4000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    surface = a + rng.uniform(0, 1, (4000, 1)) * (b - a) + radii[1] * d
+    surface = surface[np.abs((surface - a) @ (b - a)) >= 0]  # every one
+    cam = (surface - sensor) @ pose[:3, :3]
+    u = np.round(300.0 * cam[:, 0] / cam[:, 2] + 160.0).astype(int)
+    v = np.round(300.0 * cam[:, 1] / cam[:, 2] + 120.0).astype(int)
+    assert np.all((spans[1, v, 0] <= u) & (u <= spans[1, v, 1]))
+    rows = np.nonzero(spans[1, :, 0] <= spans[1, :, 1])[0]
+    assert 0 < len(rows) < 240 and union[1] == rows[0] and union[3] == rows[-1]
+    assert spans[1, rows, 1].max() - spans[1, rows, 0].min() < 0.5 * 320  # far tighter than the image
     casts = SS.casting(segs, radii, *sensor)
     assert list(casts) == [False, True]
     behind_1 = np.array([1.0, 0.0, 0.1])  # straight ahead, behind capsule 1

@@ -20,7 +20,7 @@ import math
 import numpy as np
 from numba import njit
 
-from qpctl.kernels.self_shadow import casting, in_shadow_pixel, in_shadow_point, shadow_rects
+from qpctl.kernels.self_shadow import casting, in_shadow_pixel, in_shadow_point, shadow_spans
 
 # A pixel's or point's fate (uint8): the tests are applied in the order NO_RETURN, OUT_OF_RANGE, FLYING,
 # SELF, TARGET, SHADOW, OUTSIDE (SHADOW came last and has the last code).
@@ -169,7 +169,7 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
                     support: int, segments: np.ndarray, radii: np.ndarray, target: np.ndarray, target_radius: float,
                     origin: np.ndarray, voxel: float, last: np.ndarray, stamp: float, status: np.ndarray,
                     counts: np.ndarray, hits: np.ndarray, min_points: int, soft_depth: float,
-                    zbuf: np.ndarray, shadow: bool, rects: np.ndarray) -> None:
+                    zbuf: np.ndarray, shadow: bool, spans: np.ndarray, reach: np.ndarray) -> None:
     """Back-project a depth image (H×W, × ``scale`` [m]) through the pinhole (fx, fy, cx, cy) and the
     camera ``pose`` (4×4, optical frame in the base frame), classify every pixel into ``status``
     (H×W uint8; a return is :data:`FLYING` when a 4-neighbour is nearer than it by more than
@@ -182,7 +182,7 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
     leaf's front, and a link that passed it would otherwise be free of it inside. ``zbuf``
     (H + 2, W + 2) float64 is scratch (:func:`metric_depth`). With ``shadow``, a rigid or unlabelled
     return whose ray from the camera's centre passes through a capsule is :data:`SHADOW`
-    (:mod:`qpctl.kernels.self_shadow`; ``rects`` (L, 4) int64 is its scratch).
+    (:mod:`qpctl.kernels.self_shadow`; ``spans`` (L, ≥H, 2) int32 and ``reach`` (L,) are its scratch).
 
     ``segments`` (L, 2, 3) and ``radii`` (L,) are the robot's capsules at the frame's stamp, already
     inflated by the self-filter's margin."""
@@ -197,7 +197,7 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
     zx0, zy0, zz0, zx1, zy1, zz1 = zone[0], zone[1], zone[2], zone[3], zone[4], zone[5]
     su0, sv0, su1, sv1 = W, H, -1, -1  # the pixels a capsule's shadow may fall on (none)
     if shadow and segments.shape[0] > 0:
-        union = shadow_rects(segments, radii, boxes, pose, fx, fy, cx, cy, W, H, rects)
+        union = shadow_spans(segments, radii, pose, fx, fy, cx, cy, W, H, spans, reach)
         su0, sv0, su1, sv1 = union[0], union[1], union[2], union[3]
     r00, r01, r02, tx = pose[0, 0], pose[0, 1], pose[0, 2], pose[0, 3]
     r10, r11, r12, ty = pose[1, 0], pose[1, 1], pose[1, 2], pose[1, 3]
@@ -232,7 +232,7 @@ def integrate_depth(depth: np.ndarray, scale: float, labels: np.ndarray, fx: flo
                 if not is_soft and x >= zx0 and y >= zy0 and w >= zz0 and x <= zx1 and y <= zy1 and w <= zz1:
                     st = classify_point(x, y, w, segments, radii, boxes, robot_box, target, target_radius, is_soft)
                 if (st == KEPT and not is_soft and su0 <= u <= su1 and sv0 <= v <= sv1
-                        and in_shadow_pixel(u, v, tx, ty, tz, x, y, w, segments, radii, rects)):
+                        and in_shadow_pixel(u, v, tx, ty, tz, x, y, w, segments, radii, spans, reach)):
                     st = SHADOW
                 if st == KEPT:
                     idx = voxel_index(x, y, w, ox, oy, oz, inv, nx, ny, nz)

@@ -17,11 +17,11 @@ robot anyway); a flying pixel, which lies on its ray between the link and the ba
 capsule that holds o (a camera on the wrist, inside its own link's inflated capsule) casts no shadow:
 every ray leaves it.
 
-For an image, :func:`shadow_rects` bounds each capsule's projection by a pixel rectangle once per
-frame (its axis-aligned box's corners projected; the whole image when a corner is at or behind the
-image plane), and :func:`in_shadow_pixel` tests a pixel only against the capsules whose rectangle holds
-it; for a cloud, :func:`in_shadow_point` tests the capsules whose box meets the ray's. Both are held to
-python-fcl's capsule–capsule distance in ``tests/test_self_shadow.py``.
+For an image, :func:`shadow_spans` bounds each capsule's image once per frame, row by row (pieces of
+the capsule, each within its end spheres' tangent planes; the whole image where a piece reaches the
+camera's plane), and :func:`in_shadow_pixel` tests a pixel only against the capsules whose span of its
+row holds it; for a cloud, :func:`in_shadow_point` tests the capsules whose box meets the ray's. Both
+are held to python-fcl's capsule–capsule collision in ``tests/test_self_shadow.py``.
 """
 
 from __future__ import annotations
@@ -32,6 +32,8 @@ import numpy as np
 from numba import njit
 
 from qpctl.kernels.geometry import segment_params
+
+PIECES = 8  # a capsule's image is bounded row by row by this many pieces of it (shadow_spans)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -49,8 +51,8 @@ def ray_meets_capsule(ox: float, oy: float, oz: float, x: float, y: float, w: fl
 
 
 @njit(cache=True, nogil=True, inline="always")
-def holds(segments: np.ndarray, radii: np.ndarray, i: int, x: float, y: float, z: float) -> bool:
-    """Whether (x, y, z) [m] lies within capsule i."""
+def _axis_distance(segments: np.ndarray, i: int, x: float, y: float, z: float) -> float:
+    """The distance [m] from (x, y, z) to capsule i's axis."""
     ax, ay, az = segments[i, 0, 0], segments[i, 0, 1], segments[i, 0, 2]
     ux, uy, uz = segments[i, 1, 0] - ax, segments[i, 1, 1] - ay, segments[i, 1, 2] - az
     uu = ux * ux + uy * uy + uz * uz
@@ -58,60 +60,99 @@ def holds(segments: np.ndarray, radii: np.ndarray, i: int, x: float, y: float, z
     if uu > 0.0:
         s = min(max(((x - ax) * ux + (y - ay) * uy + (z - az) * uz) / uu, 0.0), 1.0)
     dx, dy, dz = x - ax - s * ux, y - ay - s * uy, z - az - s * uz
-    return dx * dx + dy * dy + dz * dz < radii[i] * radii[i]
+    return math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def holds(segments: np.ndarray, radii: np.ndarray, i: int, x: float, y: float, z: float) -> bool:
+    """Whether (x, y, z) [m] lies within capsule i."""
+    return _axis_distance(segments, i, x, y, z) < radii[i]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _tangents(c: float, cz: float, r: float) -> tuple[float, float]:
+    """The slopes t = x/z of the two planes x = t z tangent to a sphere of radius r whose centre is at
+    (c, cz) in the plane's coordinates (cz > r: in front of the camera), lower first:
+    (c − t cz)² = r² (1 + t²)."""
+    a = cz * cz - r * r
+    h = r * math.sqrt(max(c * c + a, 0.0))
+    return (c * cz - h) / a, (c * cz + h) / a
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _sphere_rect(px: float, py: float, pz: float, r: float, pose: np.ndarray, fx: float, fy: float, cx: float,
+                 cy: float) -> tuple[bool, float, float, float, float]:
+    """The exact bounding rectangle (u_min, u_max, v_min, v_max) [pixels] of the image of a sphere of
+    radius r [m] about (px, py, pz) [m] (base frame, relative to the camera's centre), or False where
+    it reaches the camera's plane."""
+    # camera = Rᵀ (p − t)
+    xc = pose[0, 0] * px + pose[1, 0] * py + pose[2, 0] * pz
+    yc = pose[0, 1] * px + pose[1, 1] * py + pose[2, 1] * pz
+    zc = pose[0, 2] * px + pose[1, 2] * py + pose[2, 2] * pz
+    if zc <= r * (1.0 + 1e-9):
+        return False, 0.0, 0.0, 0.0, 0.0
+    ulo, uhi = _tangents(xc, zc, r)
+    vlo, vhi = _tangents(yc, zc, r)
+    return True, fx * ulo + cx, fx * uhi + cx, fy * vlo + cy, fy * vhi + cy
 
 
 @njit(cache=True, nogil=True)
-def shadow_rects(segments: np.ndarray, radii: np.ndarray, boxes: np.ndarray, pose: np.ndarray, fx: float,
-                 fy: float, cx: float, cy: float, W: int, H: int, rects: np.ndarray) -> np.ndarray:
-    """Per capsule (segments (L, 2, 3), radii (L,), their boxes (L, 6) [m]), the pixel rectangle
-    ``rects`` (L, 4) int64 (u0, v0, u1, v1, inclusive) that holds its projection through the pinhole
-    (fx, fy, cx, cy) of a W×H image from ``pose`` (4×4, optical frame in the base frame), with a pixel
-    to spare; empty (u0 > u1) for a capsule that holds the camera's centre or lies off the image.
-    Returns their union (4,) (empty when all are)."""
+def shadow_spans(segments: np.ndarray, radii: np.ndarray, pose: np.ndarray, fx: float, fy: float, cx: float,
+                 cy: float, W: int, H: int, spans: np.ndarray, reach: np.ndarray) -> np.ndarray:
+    """Per capsule (segments (L, 2, 3), radii (L,) [m]) and image row, the pixels ``spans`` (L, ≥H, 2)
+    int32 (u0, u1, inclusive; empty: u0 > u1) that hold its image through the pinhole (fx, fy, cx, cy)
+    of a W×H image from ``pose`` (4×4, optical frame in the base frame), with a pixel to spare: the
+    capsule cut into :data:`PIECES` capsules along its axis, each bounded by the union of its two end
+    spheres' exact rectangles (a capsule is the convex hull of its end spheres, and so is its image of
+    theirs); every pixel of the image where a piece reaches the camera's plane; nothing for a capsule
+    that holds the camera's centre (it casts no shadow). ``reach`` (L,) gets the square of each
+    capsule's distance from the camera's centre [m²] (a return nearer than that is in front of it).
+    Returns the rectangle (u0, v0, u1, v1) (4,) that holds every span (empty: u0 > u1)."""
     tx, ty, tz = pose[0, 3], pose[1, 3], pose[2, 3]
     union = np.array([W, H, -1, -1], np.int64)
     for i in range(segments.shape[0]):
-        rects[i, 0], rects[i, 1], rects[i, 2], rects[i, 3] = 1, 1, 0, 0
+        for v in range(H):
+            spans[i, v, 0], spans[i, v, 1] = W, -1
+        reach[i] = 0.0
         if holds(segments, radii, i, tx, ty, tz):
             continue
-        umin = vmin = math.inf
-        umax = vmax = -math.inf
-        behind = False
-        for corner in range(8):
-            px = boxes[i, 3 if corner & 1 else 0] - tx
-            py = boxes[i, 4 if corner & 2 else 1] - ty
-            pz = boxes[i, 5 if corner & 4 else 2] - tz
-            # camera = Rᵀ (p − t)
-            xc = pose[0, 0] * px + pose[1, 0] * py + pose[2, 0] * pz
-            yc = pose[0, 1] * px + pose[1, 1] * py + pose[2, 1] * pz
-            zc = pose[0, 2] * px + pose[1, 2] * py + pose[2, 2] * pz
-            if zc <= 1e-9:
-                behind = True
-                break
-            u, v = fx * xc / zc + cx, fy * yc / zc + cy
-            umin, umax = min(umin, u), max(umax, u)
-            vmin, vmax = min(vmin, v), max(vmax, v)
-        if behind:
-            u0, v0, u1, v1 = 0, 0, W - 1, H - 1
-        else:
-            u0, v0 = max(math.floor(umin) - 1, 0), max(math.floor(vmin) - 1, 0)
-            u1, v1 = min(math.ceil(umax) + 1, W - 1), min(math.ceil(vmax) + 1, H - 1)
-            if u0 > u1 or v0 > v1:
-                continue
-        rects[i, 0], rects[i, 1], rects[i, 2], rects[i, 3] = u0, v0, u1, v1
-        union[0], union[1] = min(union[0], u0), min(union[1], v0)
-        union[2], union[3] = max(union[2], u1), max(union[3], v1)
+        r = radii[i]
+        reach[i] = _axis_distance(segments, i, tx, ty, tz) - r
+        reach[i] *= reach[i]
+        ax, ay, az = segments[i, 0, 0] - tx, segments[i, 0, 1] - ty, segments[i, 0, 2] - tz
+        ux, uy, uz = segments[i, 1, 0] - segments[i, 0, 0], segments[i, 1, 1] - segments[i, 0, 1], \
+            segments[i, 1, 2] - segments[i, 0, 2]
+        for k in range(PIECES):
+            ok0, ua, ub, va, vb = _sphere_rect(ax + k / PIECES * ux, ay + k / PIECES * uy, az + k / PIECES * uz, r,
+                                               pose, fx, fy, cx, cy)
+            f = (k + 1) / PIECES
+            ok1, uc, ud, vc, vd = _sphere_rect(ax + f * ux, ay + f * uy, az + f * uz, r, pose, fx, fy, cx, cy)
+            if not (ok0 and ok1):
+                u0, v0, u1, v1 = 0, 0, W - 1, H - 1
+            else:
+                u0 = max(math.floor(min(ua, uc)) - 1, 0)
+                u1 = min(math.ceil(max(ub, ud)) + 1, W - 1)
+                v0 = max(math.floor(min(va, vc)) - 1, 0)
+                v1 = min(math.ceil(max(vb, vd)) + 1, H - 1)
+                if u0 > u1 or v0 > v1:
+                    continue
+            for v in range(v0, v1 + 1):
+                spans[i, v, 0] = min(spans[i, v, 0], u0)
+                spans[i, v, 1] = max(spans[i, v, 1], u1)
+            union[0], union[1] = min(union[0], u0), min(union[1], v0)
+            union[2], union[3] = max(union[2], u1), max(union[3], v1)
     return union
 
 
 @njit(cache=True, nogil=True, inline="always")
 def in_shadow_pixel(u: int, v: int, ox: float, oy: float, oz: float, x: float, y: float, w: float,
-                    segments: np.ndarray, radii: np.ndarray, rects: np.ndarray) -> bool:
+                    segments: np.ndarray, radii: np.ndarray, spans: np.ndarray, reach: np.ndarray) -> bool:
     """Whether pixel (u, v)'s return at (x, y, w) [m], seen from the camera's centre (ox, oy, oz), is in
-    the shadow of a capsule whose rectangle (:func:`shadow_rects`) holds the pixel."""
+    the shadow of a capsule whose span of row v (:func:`shadow_spans`) holds the pixel and that is not
+    farther from the camera than the return (``reach``)."""
+    dd = (x - ox) * (x - ox) + (y - oy) * (y - oy) + (w - oz) * (w - oz)
     for i in range(segments.shape[0]):
-        if u < rects[i, 0] or u > rects[i, 2] or v < rects[i, 1] or v > rects[i, 3]:
+        if u < spans[i, v, 0] or u > spans[i, v, 1] or dd < reach[i]:
             continue
         if ray_meets_capsule(ox, oy, oz, x, y, w, segments, radii, i):
             return True

@@ -102,7 +102,8 @@ class DepthMap:
         self.last_report: FrameReport | None = None
         self._lock = threading.Lock()  # one frame at a time (a worker and a user may both call)
         self._no_capsules = (np.zeros((0, 2, 3)), np.zeros(0))
-        self._rects = np.zeros((len(robot.capsules) if robot is not None else 0, 4), np.int64)  # shadow scratch
+        self._spans = np.zeros((len(robot.capsules) if robot is not None else 0, 0, 2), np.int32)  # the shadow's
+        self._reach = np.zeros(self._spans.shape[0])  # ... scratch
 
     # -- what the controller tells the map --------------------------------------------------------
     def record(self, t: float, q: np.ndarray) -> None:
@@ -136,6 +137,12 @@ class DepthMap:
             self._zbuf = np.empty((shape[0] + 2, shape[1] + 2))
         return self._zbuf
 
+    def _shadow_scratch(self, rows: int) -> np.ndarray:
+        """The (L, rows, 2) spans of the robot's shadow (kept: a camera's images keep their shape)."""
+        if self._spans.shape[1] < rows:
+            self._spans = np.zeros((self._spans.shape[0], rows, 2), np.int32)
+        return self._spans
+
     def integrate(self, frame: Frame) -> FrameReport:
         """Add one frame to the map (module docstring, steps 1–5). :class:`PerceptionError` when its
         stamp is older than the last frame's."""
@@ -163,7 +170,7 @@ class DepthMap:
                                    c.max_range, c.flying_pixel, c.flying_support, segs, radii, target, target_r, g.origin, g.voxel,
                                    self.last, frame.stamp, status, counts, self._hits, c.min_points,
                                    c.soft_depth, self._depth_scratch(depth.shape), c.self_shadow,
-                                   self._rects[:len(radii)])
+                                   self._shadow_scratch(depth.shape[0])[:len(radii)], self._reach[:len(radii)])
                 cleared = KD.clear_depth(depth, scale, status, K.fx, K.fy, K.cx, K.cy, frame.pose, margin,
                                          g.origin, g.voxel, self.last, frame.stamp)
             else:
