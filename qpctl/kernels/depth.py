@@ -308,10 +308,11 @@ def clear_depth(depth: np.ndarray, scale: float, status: np.ndarray, fx: float, 
     """Free the voxels this image saw through: each voxel occupied before this frame (0 < stamp of
     ``last`` < ``stamp``) whose centre projects into the image in front of its pixel's return by more
     than ``margin`` [m] is cleared. Pixels without a return or marked :data:`FLYING` clear nothing (a
-    mixed pixel's depth lies between two surfaces). A soft voxel that projects onto a :data:`SELF` or
-    :data:`SHADOW` pixel and is not cleared — hidden behind the robot's own body, or within ``margin`` in front of
-    it — is **held**: stamped ``stamp``, as if seen (the leaf a link is in is hidden by that link; it
-    must not decay while the arm is in it). Returns the number of voxels cleared."""
+    mixed pixel's depth lies between two surfaces). A voxel (either channel) that projects onto a
+    :data:`SELF` or :data:`SHADOW` pixel and is not cleared — hidden behind the robot's own body, or
+    within ``margin`` in front of it — is **held**: stamped ``stamp``, as if seen (the robot hides it
+    from the camera, which is no sign that it left: a leaf the hand waits in, the branch an arm passes
+    in front of for longer than the decay). Returns the number of voxels cleared."""
     H, W = depth.shape
     nx, ny, nz = last.shape[1], last.shape[2], last.shape[3]
     # camera = Rᵀ (p − t)
@@ -342,8 +343,11 @@ def clear_depth(depth: np.ndarray, scale: float, status: np.ndarray, fx: float, 
                     if b < stamp:
                         last[1, i, j, k] = -math.inf
                     cleared += 1
-                elif (status[v, u] == SELF or status[v, u] == SHADOW) and b > -math.inf and b < stamp:
-                    last[1, i, j, k] = stamp  # behind the robot: held
+                elif status[v, u] == SELF or status[v, u] == SHADOW:  # behind the robot: held
+                    if a > -math.inf and a < stamp:
+                        last[0, i, j, k] = stamp
+                    if b > -math.inf and b < stamp:
+                        last[1, i, j, k] = stamp
     return cleared
 
 
