@@ -51,9 +51,10 @@ def cell(nx: int, ny: int, nz: int, origin: np.ndarray, voxel: float, x: float, 
          ) -> tuple[bool, int, int, int, int, int, int, float, float, float]:
     """The lattice cell of voxel centres around (x, y, z) [m]: (inside the bounds, i, j, k, i+1, j+1,
     k+1, tx, ty, tz), the centres clamped to the outermost ones within the bounds."""
-    fx = (x - origin[0]) / voxel
-    fy = (y - origin[1]) / voxel
-    fz = (z - origin[2]) / voxel
+    inv = 1.0 / voxel  # one division, not three (5 % of the tick's lookups)
+    fx = (x - origin[0]) * inv
+    fy = (y - origin[1]) * inv
+    fz = (z - origin[2]) * inv
     inside = 0.0 <= fx <= nx and 0.0 <= fy <= ny and 0.0 <= fz <= nz
     fx = min(max(fx - 0.5, 0.0), nx - 1.0)
     fy = min(max(fy - 0.5, 0.0), ny - 1.0)
