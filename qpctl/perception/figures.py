@@ -1,7 +1,8 @@
 """Figures of the depth map (``qpctl simulate`` writes them beside the run's with a ``[camera]``).
 
 * :func:`depth_frame_figure` — one depth frame beside what the pipeline made of each pixel (kept,
-  no return, out of range, flying, the robot's self-filter, the grasp target's zone, outside the map);
+  no return, out of range, flying, the robot's self-filter, the grasp target's zone, outside the map,
+  the robot's shadow);
 * :func:`field_slice_figure` — a horizontal slice of the distance field, both channels;
 * :func:`clearance_figure` — the true rigid clearance against what the map's rows believed, over time.
 """
