@@ -67,19 +67,45 @@ def cell(nx: int, ny: int, nz: int, origin: np.ndarray, voxel: float, x: float, 
 
 
 @njit(cache=True, nogil=True, inline="always")
-def trilinear(dist: np.ndarray, grad: np.ndarray, origin: np.ndarray, voxel: float, truncation: float,
-              x: float, y: float, z: float, smooth: bool, out: np.ndarray) -> float:
-    """The field at (x, y, z) [m]: returns the distance [m] and writes its gradient to ``out`` (3,):
-    the interpolated gradient grid (``smooth``) or the trilinear interpolant's own gradient. Outside
-    the bounds: ``truncation`` and a zero gradient; within them, the centres' lattice is clamped to
-    the outermost centres."""
+def cell_distance(dist: np.ndarray, i: int, j: int, k: int, i1: int, j1: int, k1: int, tx: float, ty: float,
+                  tz: float) -> float:
+    """The trilinear distance [m] of the 3-D grid ``dist`` in the cell (i, j, k)–(i1, j1, k1) at the
+    fractions (tx, ty, tz) (:func:`cell`): along x, then y, then z, in float32 differences."""
+    d00 = dist[i, j, k] + tx * (dist[i1, j, k] - dist[i, j, k])
+    d10 = dist[i, j1, k] + tx * (dist[i1, j1, k] - dist[i, j1, k])
+    d01 = dist[i, j, k1] + tx * (dist[i1, j, k1] - dist[i, j, k1])
+    d11 = dist[i, j1, k1] + tx * (dist[i1, j1, k1] - dist[i, j1, k1])
+    d0 = d00 + ty * (d10 - d00)
+    d1 = d01 + ty * (d11 - d01)
+    return d0 + tz * (d1 - d0)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def cell_gradient(grad: np.ndarray, a: int, i: int, j: int, k: int, i1: int, j1: int, k1: int, tx: float,
+                  ty: float, tz: float) -> float:
+    """Component a of the gradient grid ``grad`` (nx, ny, nz, 3) interpolated in a cell (the smooth normal)."""
+    g000, g100, g010, g110 = grad[i, j, k, a], grad[i1, j, k, a], grad[i, j1, k, a], grad[i1, j1, k, a]
+    g001, g101, g011, g111 = grad[i, j, k1, a], grad[i1, j, k1, a], grad[i, j1, k1, a], grad[i1, j1, k1, a]
+    g00 = g000 + tx * (g100 - g000)
+    g10 = g010 + tx * (g110 - g010)
+    g01 = g001 + tx * (g101 - g001)
+    g11 = g011 + tx * (g111 - g011)
+    g0 = g00 + ty * (g10 - g00)
+    g1 = g01 + ty * (g11 - g01)
+    return g0 + tz * (g1 - g0)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def field_at(dist: np.ndarray, grad: np.ndarray, origin: np.ndarray, voxel: float, truncation: float, x: float,
+             y: float, z: float, smooth: bool, far_gradient: bool) -> tuple[float, float, float, float]:
+    """The field at (x, y, z) [m] as (d [m], ∇d): the interpolated gradient grid (``smooth``) or the
+    trilinear interpolant's own gradient. Outside the bounds: ``truncation`` and a zero gradient;
+    within them, the centres' lattice is clamped to the outermost centres. Without ``far_gradient``
+    the gradient is zero where d is at or beyond the truncation (a pair there is inactive whatever it is)."""
     nx, ny, nz = dist.shape
     inside, i, j, k, i1, j1, k1, tx, ty, tz = cell(nx, ny, nz, origin, voxel, x, y, z)
     if not inside:
-        out[0] = 0.0
-        out[1] = 0.0
-        out[2] = 0.0
-        return truncation
+        return truncation, 0.0, 0.0, 0.0
     d000, d100, d010, d110 = dist[i, j, k], dist[i1, j, k], dist[i, j1, k], dist[i1, j1, k]
     d001, d101, d011, d111 = dist[i, j, k1], dist[i1, j, k1], dist[i, j1, k1], dist[i1, j1, k1]
     # along x, then y, then z
@@ -90,29 +116,28 @@ def trilinear(dist: np.ndarray, grad: np.ndarray, origin: np.ndarray, voxel: flo
     d0 = d00 + ty * (d10 - d00)
     d1 = d01 + ty * (d11 - d01)
     d = d0 + tz * (d1 - d0)
+    if not far_gradient and d >= truncation:
+        return d, 0.0, 0.0, 0.0
     if smooth:
-        for a in range(3):
-            g000, g100, g010, g110 = grad[i, j, k, a], grad[i1, j, k, a], grad[i, j1, k, a], grad[i1, j1, k, a]
-            g001, g101, g011, g111 = grad[i, j, k1, a], grad[i1, j, k1, a], grad[i, j1, k1, a], grad[i1, j1, k1, a]
-            g00 = g000 + tx * (g100 - g000)
-            g10 = g010 + tx * (g110 - g010)
-            g01 = g001 + tx * (g101 - g001)
-            g11 = g011 + tx * (g111 - g011)
-            g0 = g00 + ty * (g10 - g00)
-            g1 = g01 + ty * (g11 - g01)
-            out[a] = g0 + tz * (g1 - g0)
-    else:
-        # ∂/∂t of the trilinear form, divided by the voxel (zero along an axis of one voxel)
-        ex = 0.0 if i1 == i else 1.0
-        ey = 0.0 if j1 == j else 1.0
-        ez = 0.0 if k1 == k else 1.0
-        ddx = (1 - tz) * ((1 - ty) * (d100 - d000) + ty * (d110 - d010)) + tz * ((1 - ty) * (d101 - d001)
-                                                                               + ty * (d111 - d011))
-        ddy = (1 - tz) * (d10 - d00) + tz * (d11 - d01)
-        ddz = d1 - d0
-        out[0] = ex * ddx / voxel
-        out[1] = ey * ddy / voxel
-        out[2] = ez * ddz / voxel
+        return (d, cell_gradient(grad, 0, i, j, k, i1, j1, k1, tx, ty, tz),
+                cell_gradient(grad, 1, i, j, k, i1, j1, k1, tx, ty, tz),
+                cell_gradient(grad, 2, i, j, k, i1, j1, k1, tx, ty, tz))
+    # ∂/∂t of the trilinear form, divided by the voxel (zero along an axis of one voxel)
+    ex = 0.0 if i1 == i else 1.0
+    ey = 0.0 if j1 == j else 1.0
+    ez = 0.0 if k1 == k else 1.0
+    ddx = (1 - tz) * ((1 - ty) * (d100 - d000) + ty * (d110 - d010)) + tz * ((1 - ty) * (d101 - d001)
+                                                                           + ty * (d111 - d011))
+    ddy = (1 - tz) * (d10 - d00) + tz * (d11 - d01)
+    ddz = d1 - d0
+    return d, ex * ddx / voxel, ey * ddy / voxel, ez * ddz / voxel
+
+
+@njit(cache=True, nogil=True, inline="always")
+def trilinear(dist: np.ndarray, grad: np.ndarray, origin: np.ndarray, voxel: float, truncation: float,
+              x: float, y: float, z: float, smooth: bool, out: np.ndarray) -> float:
+    """:func:`field_at` (the gradient everywhere) as the distance [m], its gradient written to ``out`` (3,)."""
+    d, out[0], out[1], out[2] = field_at(dist, grad, origin, voxel, truncation, x, y, z, smooth, True)
     return d
 
 
@@ -124,13 +149,7 @@ def trilinear_distance(dist: np.ndarray, origin: np.ndarray, voxel: float, trunc
     inside, i, j, k, i1, j1, k1, tx, ty, tz = cell(nx, ny, nz, origin, voxel, x, y, z)
     if not inside:
         return truncation
-    d00 = dist[i, j, k] + tx * (dist[i1, j, k] - dist[i, j, k])
-    d10 = dist[i, j1, k] + tx * (dist[i1, j1, k] - dist[i, j1, k])
-    d01 = dist[i, j, k1] + tx * (dist[i1, j, k1] - dist[i, j, k1])
-    d11 = dist[i, j1, k1] + tx * (dist[i1, j1, k1] - dist[i, j1, k1])
-    d0 = d00 + ty * (d10 - d00)
-    d1 = d01 + ty * (d11 - d01)
-    return d0 + tz * (d1 - d0)
+    return cell_distance(dist, i, j, k, i1, j1, k1, tx, ty, tz)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -148,15 +167,16 @@ def _refine(ds: np.ndarray, j: int, samples: int, smooth: bool) -> float:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _pair(segments: np.ndarray, radii: np.ndarray, l: int, s: float, dist: np.ndarray, grad: np.ndarray,
-          origin: np.ndarray, voxel: float, truncation: float, smooth: bool, g: np.ndarray, row: int,
-          out_d: np.ndarray, out_n: np.ndarray, out_p: np.ndarray, out_s: np.ndarray) -> None:
+def pair_row(segments: np.ndarray, radii: np.ndarray, l: int, s: float, dist: np.ndarray, grad: np.ndarray,
+             origin: np.ndarray, voxel: float, truncation: float, smooth: bool, row: int, out_d: np.ndarray,
+             out_n: np.ndarray, out_p: np.ndarray, out_s: np.ndarray) -> None:
+    """Link l's pair at its axis parameter s, in one channel's grids, into row ``row`` of the outputs."""
     ax, ay, az = segments[l, 0, 0], segments[l, 0, 1], segments[l, 0, 2]
     px = ax + s * (segments[l, 1, 0] - ax)
     py = ay + s * (segments[l, 1, 1] - ay)
     pz = az + s * (segments[l, 1, 2] - az)
-    d = trilinear(dist, grad, origin, voxel, truncation, px, py, pz, smooth, g)
-    gn = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+    d, gx, gy, gz = field_at(dist, grad, origin, voxel, truncation, px, py, pz, smooth, False)
+    gn = math.sqrt(gx * gx + gy * gy + gz * gz)
     r = radii[l]
     out_s[row] = s
     # nothing within the truncation (an inactive row), or inside the voxels where the field is flat: no normal
@@ -167,7 +187,7 @@ def _pair(segments: np.ndarray, radii: np.ndarray, l: int, s: float, dist: np.nd
         out_n[row, 2] = 0.0
         out_p[row, 0], out_p[row, 1], out_p[row, 2] = px, py, pz
         return
-    nx, ny, nz = g[0] / gn, g[1] / gn, g[2] / gn
+    nx, ny, nz = gx / gn, gy / gn, gz / gn
     out_d[row] = d - r
     out_n[row, 0], out_n[row, 1], out_n[row, 2] = nx, ny, nz
     out_p[row, 0], out_p[row, 1], out_p[row, 2] = px - r * nx, py - r * ny, pz - r * nz
@@ -232,7 +252,6 @@ def field_pairs(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, grad:
     rows l·rows … l·rows + rows − 1 of ``out_d`` (L·rows,) distance [m], ``out_n`` (L·rows, 3) unit
     normal (zero for an inactive row: distance = truncation − r), ``out_p`` (L·rows, 3) witness point
     on the link [m] and ``out_s`` its axis parameter. ``ds`` (samples,) is scratch."""
-    g = np.empty(3)
     for l in range(segments.shape[0]):
         ax, ay, az = segments[l, 0, 0], segments[l, 0, 1], segments[l, 0, 2]
         ux, uy, uz = segments[l, 1, 0] - ax, segments[l, 1, 1] - ay, segments[l, 1, 2] - az
@@ -254,8 +273,8 @@ def field_pairs(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, grad:
             ds[j] = trilinear_distance(dist, origin, voxel, truncation, ax + f * ux, ay + f * uy, az + f * uz)
             if ds[j] < ds[best]:
                 best = j
-        _pair(segments, radii, l, _refine(ds, best, samples, smooth), dist, grad, origin, voxel, truncation,
-              smooth, g, l * rows, out_d, out_n, out_p, out_s)
+        pair_row(segments, radii, l, _refine(ds, best, samples, smooth), dist, grad, origin, voxel, truncation,
+                 smooth, l * rows, out_d, out_n, out_p, out_s)
         if rows < 2:
             continue
         second = second_minimum(ds, best, samples, truncation)
@@ -266,8 +285,8 @@ def field_pairs(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, grad:
             out_n[row, :] = 0.0
             out_p[row, :] = out_p[l * rows, :]
         else:
-            _pair(segments, radii, l, _refine(ds, second, samples, smooth), dist, grad, origin, voxel,
-                  truncation, smooth, g, l * rows + 1, out_d, out_n, out_p, out_s)
+            pair_row(segments, radii, l, _refine(ds, second, samples, smooth), dist, grad, origin, voxel,
+                     truncation, smooth, l * rows + 1, out_d, out_n, out_p, out_s)
 
 
 @njit(cache=True, nogil=True)

@@ -6,8 +6,8 @@ operation for operation — from one walk along each link's axis. The separate k
 axis three times (the soft channel twice, at the same points with the same interpolation); here the
 two channels' grids, which share one lattice (shape, origin, voxel), are read at each sample from one
 cell (:func:`qpctl.kernels.field.cell`, computed once for both), and the soft channel's samples serve
-both its pairs and its speed points. A pair whose distance at its (refined) point is at or beyond the
-truncation is inactive whatever the gradient, so the gradient is interpolated only for the others.
+both its pairs and its speed points. The arithmetic is field.py's own (:func:`~qpctl.kernels.field.cell_distance`,
+:func:`~qpctl.kernels.field.pair_row`), so the numbers are the same by construction.
 
 The per-link early-out (the midpoint farther than the truncation plus half the axis) is kept as the
 separate kernels have it, per channel, so that the outputs stay theirs; on a snapshot's field, which is
@@ -25,107 +25,27 @@ import math
 import numpy as np
 from numba import njit
 
-from qpctl.kernels.field import _refine, cell, second_minimum, speed_excess, speed_row
+from qpctl.kernels.field import (
+    _refine,
+    cell,
+    cell_distance,
+    pair_row,
+    second_minimum,
+    speed_excess,
+    speed_row,
+)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _interp(dist: np.ndarray, c: int, i: int, j: int, k: int, i1: int, j1: int, k1: int, tx: float, ty: float,
-            tz: float) -> float:
-    """Channel c's trilinear distance in a cell (the expression of
-    :func:`qpctl.kernels.field.trilinear_distance`, float32 differences and all)."""
-    d00 = dist[c, i, j, k] + tx * (dist[c, i1, j, k] - dist[c, i, j, k])
-    d10 = dist[c, i, j1, k] + tx * (dist[c, i1, j1, k] - dist[c, i, j1, k])
-    d01 = dist[c, i, j, k1] + tx * (dist[c, i1, j, k1] - dist[c, i, j, k1])
-    d11 = dist[c, i, j1, k1] + tx * (dist[c, i1, j1, k1] - dist[c, i, j1, k1])
-    d0 = d00 + ty * (d10 - d00)
-    d1 = d01 + ty * (d11 - d01)
-    return d0 + tz * (d1 - d0)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def distance_both(dist: np.ndarray, origin: np.ndarray, voxel: float, truncation: float, x: float, y: float,
-                  z: float) -> tuple[float, float]:
-    """Both channels' trilinear distances at (x, y, z) [m] (``dist`` (2, nx, ny, nz)): one cell."""
-    nx, ny, nz = dist.shape[1], dist.shape[2], dist.shape[3]
+def distance_both(rigid: np.ndarray, soft: np.ndarray, origin: np.ndarray, voxel: float, truncation: float,
+                  x: float, y: float, z: float) -> tuple[float, float]:
+    """Both channels' trilinear distances at (x, y, z) [m] (each (nx, ny, nz), one lattice): one cell."""
+    nx, ny, nz = rigid.shape
     inside, i, j, k, i1, j1, k1, tx, ty, tz = cell(nx, ny, nz, origin, voxel, x, y, z)
     if not inside:
         return truncation, truncation
-    return (_interp(dist, 0, i, j, k, i1, j1, k1, tx, ty, tz), _interp(dist, 1, i, j, k, i1, j1, k1, tx, ty, tz))
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _glerp(grad: np.ndarray, c: int, a: int, i: int, j: int, k: int, i1: int, j1: int, k1: int, tx: float,
-           ty: float, tz: float) -> float:
-    """Channel c's interpolated gradient component a (:func:`qpctl.kernels.field.trilinear`'s, smooth)."""
-    g000, g100, g010, g110 = grad[c, i, j, k, a], grad[c, i1, j, k, a], grad[c, i, j1, k, a], grad[c, i1, j1, k, a]
-    g001, g101, g011, g111 = grad[c, i, j, k1, a], grad[c, i1, j, k1, a], grad[c, i, j1, k1, a], grad[c, i1, j1, k1, a]
-    g00 = g000 + tx * (g100 - g000)
-    g10 = g010 + tx * (g110 - g010)
-    g01 = g001 + tx * (g101 - g001)
-    g11 = g011 + tx * (g111 - g011)
-    g0 = g00 + ty * (g10 - g00)
-    g1 = g01 + ty * (g11 - g01)
-    return g0 + tz * (g1 - g0)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _field_at(dist: np.ndarray, grad: np.ndarray, c: int, origin: np.ndarray, voxel: float, truncation: float,
-              x: float, y: float, z: float, smooth: bool) -> tuple[float, float, float, float]:
-    """Channel c's :func:`qpctl.kernels.field.trilinear` at (x, y, z) [m] as (d, ∇d), the same numbers,
-    but a zero gradient where d is at or beyond the truncation (a pair there is inactive whatever it is)."""
-    nx, ny, nz = dist.shape[1], dist.shape[2], dist.shape[3]
-    inside, i, j, k, i1, j1, k1, tx, ty, tz = cell(nx, ny, nz, origin, voxel, x, y, z)
-    if not inside:
-        return truncation, 0.0, 0.0, 0.0
-    d000, d100, d010, d110 = dist[c, i, j, k], dist[c, i1, j, k], dist[c, i, j1, k], dist[c, i1, j1, k]
-    d001, d101, d011, d111 = dist[c, i, j, k1], dist[c, i1, j, k1], dist[c, i, j1, k1], dist[c, i1, j1, k1]
-    d00 = d000 + tx * (d100 - d000)
-    d10 = d010 + tx * (d110 - d010)
-    d01 = d001 + tx * (d101 - d001)
-    d11 = d011 + tx * (d111 - d011)
-    d0 = d00 + ty * (d10 - d00)
-    d1 = d01 + ty * (d11 - d01)
-    d = d0 + tz * (d1 - d0)
-    if d >= truncation:
-        return d, 0.0, 0.0, 0.0
-    if smooth:
-        return (d, _glerp(grad, c, 0, i, j, k, i1, j1, k1, tx, ty, tz), _glerp(grad, c, 1, i, j, k, i1, j1, k1, tx, ty, tz),
-                _glerp(grad, c, 2, i, j, k, i1, j1, k1, tx, ty, tz))
-    # the trilinear form's own gradient (trilinear's, zero along an axis of one voxel)
-    ex = 0.0 if i1 == i else 1.0
-    ey = 0.0 if j1 == j else 1.0
-    ez = 0.0 if k1 == k else 1.0
-    ddx = (1 - tz) * ((1 - ty) * (d100 - d000) + ty * (d110 - d010)) + tz * ((1 - ty) * (d101 - d001)
-                                                                           + ty * (d111 - d011))
-    ddy = (1 - tz) * (d10 - d00) + tz * (d11 - d01)
-    ddz = d1 - d0
-    return d, ex * ddx / voxel, ey * ddy / voxel, ez * ddz / voxel
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _pair(segments: np.ndarray, radii: np.ndarray, l: int, s: float, dist: np.ndarray, grad: np.ndarray, c: int,
-          origin: np.ndarray, voxel: float, truncation: float, smooth: bool, row: int, out_d: np.ndarray,
-          out_n: np.ndarray, out_p: np.ndarray, out_s: np.ndarray) -> None:
-    """:func:`qpctl.kernels.field._pair` on channel c."""
-    ax, ay, az = segments[l, 0, 0], segments[l, 0, 1], segments[l, 0, 2]
-    px = ax + s * (segments[l, 1, 0] - ax)
-    py = ay + s * (segments[l, 1, 1] - ay)
-    pz = az + s * (segments[l, 1, 2] - az)
-    d, gx, gy, gz = _field_at(dist, grad, c, origin, voxel, truncation, px, py, pz, smooth)
-    gn = math.sqrt(gx * gx + gy * gy + gz * gz)
-    r = radii[l]
-    out_s[row] = s
-    if d >= truncation or gn < 1e-9:
-        out_d[row] = min(d, truncation) - r
-        out_n[row, 0] = 0.0
-        out_n[row, 1] = 0.0
-        out_n[row, 2] = 0.0
-        out_p[row, 0], out_p[row, 1], out_p[row, 2] = px, py, pz
-        return
-    nx, ny, nz = gx / gn, gy / gn, gz / gn
-    out_d[row] = d - r
-    out_n[row, 0], out_n[row, 1], out_n[row, 2] = nx, ny, nz
-    out_p[row, 0], out_p[row, 1], out_p[row, 2] = px - r * nx, py - r * ny, pz - r * nz
+    return (cell_distance(rigid, i, j, k, i1, j1, k1, tx, ty, tz),
+            cell_distance(soft, i, j, k, i1, j1, k1, tx, ty, tz))
 
 
 @njit(cache=True, nogil=True)
@@ -142,6 +62,7 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
     :func:`~qpctl.kernels.field.speed_points` writes them for channel 1 (``body_vel``, ``soft_speed``,
     ``gain``, ``vmargin``, ``cutoff`` its arguments). ``ds`` (2, samples) is scratch."""
     L = segments.shape[0]
+    rigid, soft = dist[0], dist[1]
     for l in range(L):
         r = radii[l]
         ax, ay, az = segments[l, 0, 0], segments[l, 0, 1], segments[l, 0, 2]
@@ -154,7 +75,7 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
         # the separate kernels' early-out, per channel (module docstring)
         half = 0.5 * math.sqrt(ux * ux + uy * uy + uz * uz)
         mx, my, mz = ax + 0.5 * ux, ay + 0.5 * uy, az + 0.5 * uz
-        m0, m1 = distance_both(dist, origin, voxel, truncation, mx, my, mz)
+        m0, m1 = distance_both(rigid, soft, origin, voxel, truncation, mx, my, mz)
         far0, far1 = m0 >= truncation + half, m1 >= truncation + half
         for c in range(2):
             if (far0 if c == 0 else far1):
@@ -174,7 +95,7 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
         for j in range(samples):
             f = j / (samples - 1.0)
             px, py, pz = ax + f * ux, ay + f * uy, az + f * uz
-            t0, t1 = distance_both(dist, origin, voxel, truncation, px, py, pz)
+            t0, t1 = distance_both(rigid, soft, origin, voxel, truncation, px, py, pz)
             ds[0, j] = t0
             ds[1, j] = t1
             if t0 < ds[0, best0]:
@@ -199,8 +120,8 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
             dc = ds[c]
             b = best0 if c == 0 else best1
             row0 = (c * L + l) * rows
-            _pair(segments, radii, l, _refine(dc, b, samples, smooth), dist, grad, c, origin, voxel, truncation,
-                  smooth, row0, out_d, out_n, out_p, out_s)
+            pair_row(segments, radii, l, _refine(dc, b, samples, smooth), dist[c], grad[c], origin, voxel,
+                     truncation, smooth, row0, out_d, out_n, out_p, out_s)
             if rows < 2:
                 continue
             sec = second_minimum(dc, b, samples, truncation)
@@ -210,8 +131,8 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
                 out_n[row0 + 1, :] = 0.0
                 out_p[row0 + 1, :] = out_p[row0, :]
             else:
-                _pair(segments, radii, l, _refine(dc, sec, samples, smooth), dist, grad, c, origin, voxel,
-                      truncation, smooth, row0 + 1, out_d, out_n, out_p, out_s)
+                pair_row(segments, radii, l, _refine(dc, sec, samples, smooth), dist[c], grad[c], origin, voxel,
+                         truncation, smooth, row0 + 1, out_d, out_n, out_p, out_s)
         if far1:
             continue
         # the speed points (speed_points' second loop)
