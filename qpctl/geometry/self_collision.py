@@ -147,18 +147,21 @@ def named_pairs(robot: RobotModel, names: Sequence[Sequence[str]]) -> SelfPairs:
     return SelfPairs(tuple(dict.fromkeys(out)), {})
 
 
+def capsule_object(a: np.ndarray, b: np.ndarray, radius: float) -> fcl.CollisionObject:
+    """The capsule of axis a–b [m] and ``radius`` [m] as a python-fcl object (a point's: a sphere)."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    axis = b - a
+    length = float(np.linalg.norm(axis))
+    z = axis / length if length > 1e-12 else np.array([0.0, 0.0, 1.0])
+    R = pin.Quaternion.FromTwoVectors(np.array([0.0, 0.0, 1.0]), z).matrix()
+    return fcl.CollisionObject(fcl.Capsule(float(radius), length), fcl.Transform(R, 0.5 * (a + b)))
+
+
 def fcl_self_distances(robot: RobotModel, q: np.ndarray, pairs: Sequence[tuple[int, int]]) -> np.ndarray:
     """Signed-free distances [m] between the pairs' capsules by python-fcl (0 where they overlap)."""
     data = robot.model.createData()
     seg = _segments(robot, data, np.asarray(q, float))
-    objects = []
-    for k, c in enumerate(robot.capsules):
-        a, b = seg[k]
-        axis = b - a
-        length = float(np.linalg.norm(axis))
-        z = axis / length if length > 1e-12 else np.array([0.0, 0.0, 1.0])
-        R = pin.Quaternion.FromTwoVectors(np.array([0.0, 0.0, 1.0]), z).matrix()
-        objects.append(fcl.CollisionObject(fcl.Capsule(c.radius, length), fcl.Transform(R, 0.5 * (a + b))))
+    objects = [capsule_object(seg[k][0], seg[k][1], c.radius) for k, c in enumerate(robot.capsules)]
     out = np.empty(len(pairs))
     for k, (i, j) in enumerate(pairs):
         res = fcl.DistanceResult()

@@ -20,6 +20,7 @@ import math
 import numpy as np
 from numba import njit
 
+from qpctl.kernels.geometry import axis_distance2
 from qpctl.kernels.self_shadow import casting, in_shadow_pixel, in_shadow_point, shadow_spans
 
 # A pixel's or point's fate (uint8): the tests are applied in the order NO_RETURN, OUT_OF_RANGE, FLYING,
@@ -47,15 +48,7 @@ def in_capsules(x: float, y: float, z: float, segments: np.ndarray, radii: np.nd
         if (x < boxes[i, 0] or y < boxes[i, 1] or z < boxes[i, 2]
                 or x > boxes[i, 3] or y > boxes[i, 4] or z > boxes[i, 5]):
             continue
-        ax, ay, az = segments[i, 0, 0], segments[i, 0, 1], segments[i, 0, 2]
-        ux, uy, uz = segments[i, 1, 0] - ax, segments[i, 1, 1] - ay, segments[i, 1, 2] - az
-        uu = ux * ux + uy * uy + uz * uz
-        s = 0.0
-        if uu > 0.0:
-            s = ((x - ax) * ux + (y - ay) * uy + (z - az) * uz) / uu
-            s = 0.0 if s < 0.0 else (min(s, 1.0))
-        dx, dy, dz = x - ax - s * ux, y - ay - s * uy, z - az - s * uz
-        if dx * dx + dy * dy + dz * dz < radii[i] * radii[i]:
+        if axis_distance2(segments, i, x, y, z) < radii[i] * radii[i]:
             return True
     return False
 

@@ -83,16 +83,9 @@ def cell_distance(dist: np.ndarray, i: int, j: int, k: int, i1: int, j1: int, k1
 @njit(cache=True, nogil=True, inline="always")
 def cell_gradient(grad: np.ndarray, a: int, i: int, j: int, k: int, i1: int, j1: int, k1: int, tx: float,
                   ty: float, tz: float) -> float:
-    """Component a of the gradient grid ``grad`` (nx, ny, nz, 3) interpolated in a cell (the smooth normal)."""
-    g000, g100, g010, g110 = grad[i, j, k, a], grad[i1, j, k, a], grad[i, j1, k, a], grad[i1, j1, k, a]
-    g001, g101, g011, g111 = grad[i, j, k1, a], grad[i1, j, k1, a], grad[i, j1, k1, a], grad[i1, j1, k1, a]
-    g00 = g000 + tx * (g100 - g000)
-    g10 = g010 + tx * (g110 - g010)
-    g01 = g001 + tx * (g101 - g001)
-    g11 = g011 + tx * (g111 - g011)
-    g0 = g00 + ty * (g10 - g00)
-    g1 = g01 + ty * (g11 - g01)
-    return g0 + tz * (g1 - g0)
+    """Component a of the gradient grid ``grad`` (nx, ny, nz, 3) interpolated in a cell (the smooth
+    normal): :func:`cell_distance` of that component's grid."""
+    return cell_distance(grad[:, :, :, a], i, j, k, i1, j1, k1, tx, ty, tz)
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -42,6 +42,19 @@ def closest_on_segment(a: np.ndarray, b: np.ndarray, p: np.ndarray) -> float:
     return clamp01(((p[0] - a[0]) * dx + (p[1] - a[1]) * dy + (p[2] - a[2]) * dz) / denom)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def axis_distance2(segments: np.ndarray, i: int, x: float, y: float, z: float) -> float:
+    """The squared distance [m²] from (x, y, z) to the axis of capsule i of ``segments`` (L, 2, 3)."""
+    ax, ay, az = segments[i, 0, 0], segments[i, 0, 1], segments[i, 0, 2]
+    ux, uy, uz = segments[i, 1, 0] - ax, segments[i, 1, 1] - ay, segments[i, 1, 2] - az
+    uu = ux * ux + uy * uy + uz * uz
+    s = 0.0
+    if uu > 0.0:
+        s = clamp01(((x - ax) * ux + (y - ay) * uy + (z - az) * uz) / uu)
+    dx, dy, dz = x - ax - s * ux, y - ay - s * uy, z - az - s * uz
+    return dx * dx + dy * dy + dz * dz
+
+
 @njit(cache=True)
 def perpendicular(x: float, y: float, z: float, out: np.ndarray) -> None:
     """A unit vector ⊥ (x, y, z) and ⊥ the world axis least aligned with it (e_x for a zero vector)."""

@@ -31,7 +31,7 @@ import math
 import numpy as np
 from numba import njit
 
-from qpctl.kernels.geometry import segment_params
+from qpctl.kernels.geometry import axis_distance2, segment_params
 
 PIECES = 8  # a capsule's image is bounded row by row by this many pieces of it (shadow_spans)
 
@@ -51,22 +51,9 @@ def ray_meets_capsule(ox: float, oy: float, oz: float, x: float, y: float, w: fl
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _axis_distance(segments: np.ndarray, i: int, x: float, y: float, z: float) -> float:
-    """The distance [m] from (x, y, z) to capsule i's axis."""
-    ax, ay, az = segments[i, 0, 0], segments[i, 0, 1], segments[i, 0, 2]
-    ux, uy, uz = segments[i, 1, 0] - ax, segments[i, 1, 1] - ay, segments[i, 1, 2] - az
-    uu = ux * ux + uy * uy + uz * uz
-    s = 0.0
-    if uu > 0.0:
-        s = min(max(((x - ax) * ux + (y - ay) * uy + (z - az) * uz) / uu, 0.0), 1.0)
-    dx, dy, dz = x - ax - s * ux, y - ay - s * uy, z - az - s * uz
-    return math.sqrt(dx * dx + dy * dy + dz * dz)
-
-
-@njit(cache=True, nogil=True, inline="always")
 def holds(segments: np.ndarray, radii: np.ndarray, i: int, x: float, y: float, z: float) -> bool:
     """Whether (x, y, z) [m] lies within capsule i."""
-    return _axis_distance(segments, i, x, y, z) < radii[i]
+    return axis_distance2(segments, i, x, y, z) < radii[i] * radii[i]
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -117,14 +104,13 @@ def shadow_spans(segments: np.ndarray, radii: np.ndarray, pose: np.ndarray, fx: 
         if holds(segments, radii, i, tx, ty, tz):
             continue
         r = radii[i]
-        reach[i] = _axis_distance(segments, i, tx, ty, tz) - r
-        reach[i] *= reach[i]
+        reach[i] = (math.sqrt(axis_distance2(segments, i, tx, ty, tz)) - r) ** 2  # ≥ r: it does not hold it
         ax, ay, az = segments[i, 0, 0] - tx, segments[i, 0, 1] - ty, segments[i, 0, 2] - tz
         ux, uy, uz = segments[i, 1, 0] - segments[i, 0, 0], segments[i, 1, 1] - segments[i, 0, 1], \
             segments[i, 1, 2] - segments[i, 0, 2]
+        # piece k runs between the end spheres k and k + 1: each sphere's rectangle once
+        ok0, ua, ub, va, vb = _sphere_rect(ax, ay, az, r, pose, fx, fy, cx, cy)
         for k in range(PIECES):
-            ok0, ua, ub, va, vb = _sphere_rect(ax + k / PIECES * ux, ay + k / PIECES * uy, az + k / PIECES * uz, r,
-                                               pose, fx, fy, cx, cy)
             f = (k + 1) / PIECES
             ok1, uc, ud, vc, vd = _sphere_rect(ax + f * ux, ay + f * uy, az + f * uz, r, pose, fx, fy, cx, cy)
             if not (ok0 and ok1):
@@ -134,8 +120,9 @@ def shadow_spans(segments: np.ndarray, radii: np.ndarray, pose: np.ndarray, fx: 
                 u1 = min(math.ceil(max(ub, ud)) + 1, W - 1)
                 v0 = max(math.floor(min(va, vc)) - 1, 0)
                 v1 = min(math.ceil(max(vb, vd)) + 1, H - 1)
-                if u0 > u1 or v0 > v1:
-                    continue
+            ok0, ua, ub, va, vb = ok1, uc, ud, vc, vd
+            if u0 > u1 or v0 > v1:
+                continue
             for v in range(v0, v1 + 1):
                 spans[i, v, 0] = min(spans[i, v, 0], u0)
                 spans[i, v, 1] = max(spans[i, v, 1], u1)

@@ -16,22 +16,9 @@ import fcl
 import numpy as np
 from scipy import ndimage
 
+from qpctl.geometry.self_collision import capsule_object
 from qpctl.kernels.depth import KEPT, OUTSIDE, SELF, SHADOW, TARGET
 from qpctl.perception.snapshot import VoxelGrid
-
-
-def _fcl_capsule(a: np.ndarray, b: np.ndarray, r: float) -> fcl.CollisionObject:
-    """The capsule of axis a–b and radius r [m] (a sphere when a = b) as a python-fcl object."""
-    u = np.asarray(b, float) - np.asarray(a, float)
-    length = float(np.linalg.norm(u))
-    if length < 1e-12:
-        return fcl.CollisionObject(fcl.Sphere(r), fcl.Transform(np.asarray(a, float)))
-    z = u / length
-    helper = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = np.cross(helper, z)
-    x /= np.linalg.norm(x)
-    R = np.column_stack([x, np.cross(z, x), z])
-    return fcl.CollisionObject(fcl.Capsule(r, length), fcl.Transform(R, 0.5 * (np.asarray(a, float) + b)))
 
 
 def in_shadow(points: np.ndarray, sensor: np.ndarray, segments: np.ndarray, radii: np.ndarray) -> np.ndarray:
@@ -43,11 +30,11 @@ def in_shadow(points: np.ndarray, sensor: np.ndarray, segments: np.ndarray, radi
         u = b - a
         s = np.clip((sensor - a) @ u / (u @ u), 0.0, 1.0) if u @ u > 0 else 0.0
         if np.linalg.norm(sensor - (a + s * u)) >= r:  # one that holds the sensor casts no shadow
-            caps.append(_fcl_capsule(a, b, r))
+            caps.append(capsule_object(a, b, r))
     out = np.zeros(len(points), bool)
     req = fcl.CollisionRequest()
     for i, p in enumerate(np.asarray(points, float)):
-        ray = _fcl_capsule(sensor, p, 0.0)
+        ray = capsule_object(sensor, p, 0.0)
         out[i] = any(fcl.collide(ray, c, req, fcl.CollisionResult()) > 0 for c in caps)
     return out
 
