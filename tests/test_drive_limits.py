@@ -154,3 +154,25 @@ def test_reset_forgets_the_last_command():
 def test_bad_drive_limits_name_their_key(key, value):
     with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
         Scenario.load("paper", [f"{key}={value}"]).build_controller("qp")
+
+
+def test_rms_jerk_is_the_analytic_jerk_of_a_sine_and_of_a_two_tick_chatter():
+    """metrics' rms_jerk_per_joint against closed forms: v = A sin ωt has jerk −Aω² sin ωt, RMS Aω²/√2
+    over whole periods; a joint whose acceleration flips between +a and −a every tick has |jerk| = 2a/Δt
+    on every tick; a joint at constant speed has none."""
+    from qpctl.simulation.metrics import compute_metrics
+    from qpctl.simulation.trajectory import Trajectory
+
+    dt, A, w = 1e-3, 0.4, 2 * np.pi * 2.0  # 2 Hz, 2 s: four periods
+    t = np.arange(2001) * dt
+    a = 20.0
+    chatter = np.cumsum(np.where(np.arange(t.size) % 2 == 0, a * dt, -a * dt))  # q̈ = +a, −a, +a, …
+    v = np.c_[A * np.sin(w * t), chatter, np.full(t.size, 0.3)]
+    T, n = t.size, v.shape[1]
+    z = np.zeros((T, 2))
+    traj = Trajectory(t, np.zeros((T, n)), v, np.zeros((T, n)), z, z, z, z, np.full(T, 0.1),
+                      np.zeros((T, n)), np.zeros(T), np.zeros(T, bool), [{} for _ in range(T)])
+    jerk = compute_metrics(traj)["rms_jerk_per_joint"]
+    assert jerk[0] == pytest.approx(A * w**2 / np.sqrt(2), rel=1e-3)
+    assert jerk[1] == pytest.approx(2 * a / dt, rel=1e-9)
+    assert jerk[2] == pytest.approx(0.0, abs=1e-6)

@@ -37,14 +37,30 @@ def backup_metrics(infos: list[dict[str, Any]]) -> dict[str, Any]:
             "backup_check_us_p99": float(np.percentile(us, 99)) if us else 0.0}
 
 
+def rms_jerk(t: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """(n,) each joint's root-mean-square jerk [rad/s³] over a run sampled at the ticks t (T,) [s] with
+    joint velocities v (T, n) [rad/s]: q̈ over each tick by the velocity's difference, the jerk by the
+    difference of consecutive q̈. Smooth motion gives tens to hundreds of rad/s³; a joint whose
+    acceleration flips between its bounds tick after tick (a 2-tick chatter) gives 2q̈_max/Δt on the
+    ticks it flips (40,000 rad/s³ for ±20 rad/s² at 1 kHz). Zeros for fewer than 3 ticks."""
+    if t.size < 3:
+        return np.zeros(v.shape[1])
+    dt = np.diff(t)
+    qdd = np.diff(v, axis=0) / dt[:, None]
+    jerk = np.diff(qdd, axis=0) / (0.5 * (dt[1:] + dt[:-1]))[:, None]
+    return np.sqrt(np.mean(jerk**2, axis=0))
+
+
 def compute_metrics(traj: Trajectory, *, d_safe: float = 0.0, frames: int = 1) -> dict[str, Any]:
-    """Tracking [m], torque [N·m] and torque rate [N·m/s], clearance [m], compute time [µs], QP stats.
+    """Tracking [m], torque [N·m] and torque rate [N·m/s], joint jerk [rad/s³] (:func:`rms_jerk`),
+    clearance [m], compute time [µs], QP stats.
     With several task frames (``frames``, their position rows stacked in x) the tracking errors are
     over all of them, and ``max_tracking_error_per_task``, ``final_tracking_error_per_task`` give each's."""
     err = np.linalg.norm(traj.x_ref - traj.x, axis=1)
     dt = float(np.median(np.diff(traj.t))) if traj.t.size > 1 else 1.0
     rate = np.abs(np.diff(traj.tau, axis=0)) / dt if traj.t.size > 1 else np.zeros((1, traj.tau.shape[1]))
     min_clear = float(np.min(traj.clearance)) if traj.clearance.size else float("inf")
+    jerk = rms_jerk(traj.t, traj.v)
     tick = traj.tick_us
     out: dict[str, Any] = {
         "rms_tracking_error": float(np.sqrt(np.mean(err**2))),
@@ -54,6 +70,7 @@ def compute_metrics(traj: Trajectory, *, d_safe: float = 0.0, frames: int = 1) -
         "max_abs_torque_per_joint": np.max(np.abs(traj.tau), axis=0).tolist(),
         "max_abs_torque_rate": float(np.max(rate)),
         "max_abs_torque_rate_per_joint": np.max(rate, axis=0).tolist(),
+        "rms_jerk_per_joint": jerk.tolist(),
         "min_clearance": _finite_or_none(min_clear),
         "collided": bool(min_clear < 0.0),
         # contacts that began with the arm at rest: an obstacle caught a stopped arm, which no brake avoids
