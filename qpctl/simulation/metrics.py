@@ -40,9 +40,10 @@ def backup_metrics(infos: list[dict[str, Any]]) -> dict[str, Any]:
 def rms_jerk(t: np.ndarray, v: np.ndarray) -> np.ndarray:
     """(n,) each joint's root-mean-square jerk [rad/s³] over a run sampled at the ticks t (T,) [s] with
     joint velocities v (T, n) [rad/s]: q̈ over each tick by the velocity's difference, the jerk by the
-    difference of consecutive q̈. Smooth motion gives tens to hundreds of rad/s³; a joint whose
-    acceleration flips between its bounds tick after tick (a 2-tick chatter) gives 2q̈_max/Δt on the
-    ticks it flips (40,000 rad/s³ for ±20 rad/s² at 1 kHz). Zeros for fewer than 3 ticks."""
+    difference of consecutive q̈. On ``panda_canopy`` (6 s) 267 on the first joint and 2,357 on the
+    last; a joint whose acceleration flips between its bounds tick after tick (a 2-tick chatter) gives
+    2q̈_max/Δt on the ticks it flips (40,000 rad/s³ for ±20 rad/s² at 1 kHz). Zeros for fewer than
+    3 ticks."""
     if t.size < 3:
         return np.zeros(v.shape[1])
     dt = np.diff(t)
