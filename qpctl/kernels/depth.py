@@ -20,7 +20,7 @@ import math
 import numpy as np
 from numba import njit
 
-from qpctl.kernels.geometry import axis_distance2
+from qpctl.kernels.geometry import in_capsule
 from qpctl.kernels.self_shadow import casting, in_shadow_pixel, in_shadow_point, shadow_spans
 
 # A pixel's or point's fate (uint8): the tests are applied in the order NO_RETURN, OUT_OF_RANGE, FLYING,
@@ -48,7 +48,7 @@ def in_capsules(x: float, y: float, z: float, segments: np.ndarray, radii: np.nd
         if (x < boxes[i, 0] or y < boxes[i, 1] or z < boxes[i, 2]
                 or x > boxes[i, 3] or y > boxes[i, 4] or z > boxes[i, 5]):
             continue
-        if axis_distance2(segments, i, x, y, z) < radii[i] * radii[i]:
+        if in_capsule(segments, radii, i, x, y, z):
             return True
     return False
 

@@ -99,31 +99,37 @@ def field_at(dist: np.ndarray, grad: np.ndarray, origin: np.ndarray, voxel: floa
     inside, i, j, k, i1, j1, k1, tx, ty, tz = cell(nx, ny, nz, origin, voxel, x, y, z)
     if not inside:
         return truncation, 0.0, 0.0, 0.0
-    d000, d100, d010, d110 = dist[i, j, k], dist[i1, j, k], dist[i, j1, k], dist[i1, j1, k]
-    d001, d101, d011, d111 = dist[i, j, k1], dist[i1, j, k1], dist[i, j1, k1], dist[i1, j1, k1]
-    # along x, then y, then z
-    d00 = d000 + tx * (d100 - d000)
-    d10 = d010 + tx * (d110 - d010)
-    d01 = d001 + tx * (d101 - d001)
-    d11 = d011 + tx * (d111 - d011)
-    d0 = d00 + ty * (d10 - d00)
-    d1 = d01 + ty * (d11 - d01)
-    d = d0 + tz * (d1 - d0)
+    d = cell_distance(dist, i, j, k, i1, j1, k1, tx, ty, tz)
     if not far_gradient and d >= truncation:
         return d, 0.0, 0.0, 0.0
     if smooth:
         return (d, cell_gradient(grad, 0, i, j, k, i1, j1, k1, tx, ty, tz),
                 cell_gradient(grad, 1, i, j, k, i1, j1, k1, tx, ty, tz),
                 cell_gradient(grad, 2, i, j, k, i1, j1, k1, tx, ty, tz))
-    # ∂/∂t of the trilinear form, divided by the voxel (zero along an axis of one voxel)
+    gx, gy, gz = cell_raw_gradient(dist, i, j, k, i1, j1, k1, tx, ty, tz)
+    return d, gx / voxel, gy / voxel, gz / voxel
+
+
+@njit(cache=True, nogil=True, inline="always")
+def cell_raw_gradient(dist: np.ndarray, i: int, j: int, k: int, i1: int, j1: int, k1: int, tx: float, ty: float,
+                      tz: float) -> tuple[float, float, float]:
+    """∂/∂(tx, ty, tz) of :func:`cell_distance`'s trilinear form in a cell, zero along an axis of one
+    voxel (i1 = i): the raw field's gradient times the voxel."""
+    d000, d100, d010, d110 = dist[i, j, k], dist[i1, j, k], dist[i, j1, k], dist[i1, j1, k]
+    d001, d101, d011, d111 = dist[i, j, k1], dist[i1, j, k1], dist[i, j1, k1], dist[i1, j1, k1]
+    d00 = d000 + tx * (d100 - d000)
+    d10 = d010 + tx * (d110 - d010)
+    d01 = d001 + tx * (d101 - d001)
+    d11 = d011 + tx * (d111 - d011)
+    d0 = d00 + ty * (d10 - d00)
+    d1 = d01 + ty * (d11 - d01)
     ex = 0.0 if i1 == i else 1.0
     ey = 0.0 if j1 == j else 1.0
     ez = 0.0 if k1 == k else 1.0
     ddx = (1 - tz) * ((1 - ty) * (d100 - d000) + ty * (d110 - d010)) + tz * ((1 - ty) * (d101 - d001)
                                                                            + ty * (d111 - d011))
     ddy = (1 - tz) * (d10 - d00) + tz * (d11 - d01)
-    ddz = d1 - d0
-    return d, ex * ddx / voxel, ey * ddy / voxel, ez * ddz / voxel
+    return ex * ddx, ey * ddy, ez * (d1 - d0)
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -55,6 +55,12 @@ def axis_distance2(segments: np.ndarray, i: int, x: float, y: float, z: float) -
     return dx * dx + dy * dy + dz * dz
 
 
+@njit(cache=True, nogil=True, inline="always")
+def in_capsule(segments: np.ndarray, radii: np.ndarray, i: int, x: float, y: float, z: float) -> bool:
+    """Whether (x, y, z) [m] lies within capsule i (axis ``segments`` (L, 2, 3), ``radii`` (L,) [m])."""
+    return axis_distance2(segments, i, x, y, z) < radii[i] * radii[i]
+
+
 @njit(cache=True)
 def perpendicular(x: float, y: float, z: float, out: np.ndarray) -> None:
     """A unit vector ⊥ (x, y, z) and ⊥ the world axis least aligned with it (e_x for a zero vector)."""

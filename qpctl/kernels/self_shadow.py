@@ -31,7 +31,7 @@ import math
 import numpy as np
 from numba import njit
 
-from qpctl.kernels.geometry import axis_distance2, segment_params
+from qpctl.kernels.geometry import axis_distance2, in_capsule, segment_params
 
 PIECES = 8  # a capsule's image is bounded row by row by this many pieces of it (shadow_spans)
 
@@ -48,12 +48,6 @@ def ray_meets_capsule(ox: float, oy: float, oz: float, x: float, y: float, w: fl
     ey = oy + s * dy - ay - t * uy
     ez = oz + s * dz - az - t * uz
     return ex * ex + ey * ey + ez * ez < radii[i] * radii[i]
-
-
-@njit(cache=True, nogil=True, inline="always")
-def holds(segments: np.ndarray, radii: np.ndarray, i: int, x: float, y: float, z: float) -> bool:
-    """Whether (x, y, z) [m] lies within capsule i."""
-    return axis_distance2(segments, i, x, y, z) < radii[i] * radii[i]
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -101,10 +95,11 @@ def shadow_spans(segments: np.ndarray, radii: np.ndarray, pose: np.ndarray, fx: 
         for v in range(H):
             spans[i, v, 0], spans[i, v, 1] = W, -1
         reach[i] = 0.0
-        if holds(segments, radii, i, tx, ty, tz):
-            continue
         r = radii[i]
-        reach[i] = (math.sqrt(axis_distance2(segments, i, tx, ty, tz)) - r) ** 2  # ≥ r: it does not hold it
+        d2 = axis_distance2(segments, i, tx, ty, tz)
+        if d2 < r * r:  # it holds the camera (in_capsule's test)
+            continue
+        reach[i] = (math.sqrt(d2) - r) ** 2
         ax, ay, az = segments[i, 0, 0] - tx, segments[i, 0, 1] - ty, segments[i, 0, 2] - tz
         ux, uy, uz = segments[i, 1, 0] - segments[i, 0, 0], segments[i, 1, 1] - segments[i, 0, 1], \
             segments[i, 1, 2] - segments[i, 0, 2]
@@ -168,5 +163,5 @@ def casting(segments: np.ndarray, radii: np.ndarray, ox: float, oy: float, oz: f
     """(L,) bool: the capsules that do not hold the sensor's centre (they cast a shadow)."""
     out = np.empty(segments.shape[0], np.bool_)
     for i in range(segments.shape[0]):
-        out[i] = not holds(segments, radii, i, ox, oy, oz)
+        out[i] = not in_capsule(segments, radii, i, ox, oy, oz)
     return out
