@@ -37,7 +37,7 @@ def _save(fig: plt.Figure, path: Path, title: str) -> Path:
 
 def depth_frame_figure(path: Path, frame: DepthFrame, status: np.ndarray, title: str = "") -> Path:
     """The frame's depth [m] and each pixel's fate (the self-filter's pixels in red)."""
-    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2))
+    fig, (a, b) = plt.subplots(1, 2, figsize=(12, 4.2))
     z = frame.metres().astype(float)
     z[~(np.isfinite(z) & (z > 0))] = np.nan
     im = a.imshow(z, cmap="viridis")
@@ -47,9 +47,10 @@ def depth_frame_figure(path: Path, frame: DepthFrame, status: np.ndarray, title:
     b.imshow(status, cmap=cmap, vmin=-0.5, vmax=len(STATUS_NAMES) - 0.5, interpolation="nearest")
     counts = np.bincount(status.ravel(), minlength=len(STATUS_NAMES))
     handles = [plt.Rectangle((0, 0), 1, 1, color=c) for c in STATUS_COLOURS]
-    b.legend(handles, [f"{n} ({k})" for n, k in zip(STATUS_NAMES, counts, strict=True)], loc="lower right",
-             fontsize=7, framealpha=0.85)
-    b.set_title("what the pipeline made of each pixel (self-filter in red)")
+    # beside the image, not over it (the legend's pixel counts are the figure's numbers)
+    b.legend(handles, [f"{n} ({k})" for n, k in zip(STATUS_NAMES, counts, strict=True)], loc="center left",
+             bbox_to_anchor=(1.02, 0.5), fontsize=8, frameon=False)
+    b.set_title("each pixel's fate")
     for ax in (a, b):
         ax.set_xticks([])
         ax.set_yticks([])
