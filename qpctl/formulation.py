@@ -78,8 +78,9 @@ class Formulation:
         the task hard too), and the placeholder bounds (±inf)."""
         key = (relax, tuple((e.A.shape[0], e.soft, e.slack_l1, e.slack_l2) for e in eqs))
         # the constraints' own slack columns (one per constraint with ``slack``), after the task's
-        sl = [(r0, c) for c, r0 in zip(self.constraints, np.cumsum([0] + [c.rows for c in self.constraints]))
-              if c.slack is not None and c.rows]
+        sl = [(r0, c.rows, col, w) for c, r0 in zip(self.constraints, np.cumsum([0] + [c.rows for c in self.constraints]))
+              if c.slack is not None and c.rows for entries, weights in [c.slack_columns()]
+              for col, w in zip(entries.T, weights, strict=True)]
         cached = self._templates.get(key)
         if cached is not None:
             return cached
@@ -103,12 +104,10 @@ class Formulation:
                 s += k
             r += k
         C = np.zeros((self.n_in, nv))
-        for j, (r0, con) in enumerate(sl):
+        for j, (r0, rows, entries, weights) in enumerate(sl):
             col = n + 2 * n_soft + j
-            weights = con.slack
-            assert weights is not None
             q[col], P[col, col] = weights
-            C[r0 : r0 + con.rows, col] = con.slack_column()
+            C[r0 : r0 + rows, col] = entries
         for i in range(n, nv):
             P[i, i] = max(P[i, i], 1e-9)
         lb = np.full(nv, -np.inf)

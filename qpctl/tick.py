@@ -479,6 +479,7 @@ class Workspace:
                 ip[codes.IP_SELF_ROW0] = row
             row += count
         ip[codes.IP_N_IN] = row
+        ip[codes.IP_N_SIGMA] = len(spec.slack_columns or ())
         if spec.torque is not None:
             self.tau_max, self.tau_rate = spec.torque.tau_max.copy(), spec.torque.tau_rate_max.copy()
             self.tau_prev, self.t_prev = spec.torque.previous, spec.torque.t_previous  # shared: the same arrays

@@ -66,13 +66,14 @@ def test_compiled_field_rows_equal_the_python_rows() -> None:
         rows = np.flatnonzero(names == bar.name)
         assert rows.size == bar.rows
         got_C, got_l = np.array(problem.C[rows]), np.array(problem.l[rows])
-        # the soft rows' shared slack σ: the last column, 0 on the rigid pairs' rows, 1 on the soft pairs'
-        # and on the speed rows (two per link)
+        # the soft rows' slack σ, one per link: the last L columns, 1 on the link's soft pairs' rows and its
+        # two speed rows, 0 elsewhere (the rigid pairs' rows are hard)
         L = len(ctrl.robot.capsules)
         P = 2 * L * CFG.rows_per_link
         assert bar.rows == P + 2 * L
-        assert np.array_equal(got_C[:, -1], np.r_[np.zeros(P // 2), np.ones(P // 2 + 2 * L)])
-        assert not got_C[:, ctrl.n:-1].any()
+        link, soft = _field_row_links(bar, L)
+        assert np.array_equal(got_C[:, -L:], np.array([(link == j) & soft for j in range(L)], float).T)
+        assert not got_C[:, ctrl.n:-L].any()
         got_C = got_C[:, :ctrl.n]
         compiled = bar.last
         state = ctrl.dynamics.compute(q, v, t)
@@ -92,7 +93,9 @@ def test_compiled_field_rows_equal_the_python_rows() -> None:
         obst = np.flatnonzero(names == "obstacles")
         primitive_active += int(np.isfinite(np.array(problem.l[obst])).any())
     assert rigid_active >= 5 and soft_active >= 5 and primitive_active >= 1 and speed_active >= 5
-    assert problem.c[-1] == CFG.soft_weight and problem.lb[-1] == 0.0 and problem.ub[-1] == np.inf
+    L = len(ctrl.robot.capsules)
+    assert np.all(problem.c[-L:] == CFG.soft_weight) and np.all(problem.lb[-L:] == 0.0)
+    assert np.all(problem.ub[-L:] == np.inf)
 
 
 def test_compiled_and_python_field_ticks_give_the_same_torque() -> None:
@@ -152,6 +155,100 @@ def test_the_soft_rows_slack_keeps_the_qp_feasible_where_a_leaf_cannot_be_stoppe
     Cq = problem.C[active, :ctrl.n] @ x[:ctrl.n]
     assert np.all(Cq + sigma >= problem.l[active] - 1e-6)  # they hold with the slack
     assert np.any(Cq < problem.l[active] - 1.0)  # and only with it
+
+
+def _field_row_links(bar: FieldBarrier, L: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each of the field's rows' link and whether it is a soft row (a soft pair or a speed row), from the
+    documented layout: rigid pairs, soft pairs (``rows_per_link`` per link, link-major), then two speed
+    rows per link."""
+    rpl = bar.config.rows_per_link
+    i = np.arange(bar.rows)
+    pair = i < 2 * L * rpl
+    link = np.where(pair, (i % (L * rpl)) // rpl, (i - 2 * L * rpl) // 2)
+    return link, ~pair | (i >= L * rpl)
+
+
+def _with_slack_columns(problem, rows: np.ndarray, columns: np.ndarray, weight: float):  # type: ignore[no-untyped-def]
+    """``problem`` with its constraints' own slack columns replaced by ``columns`` (k, rows) on ``rows``
+    of C, each σ ≥ 0 at ℓ₁ ``weight`` and the soft rows' ℓ₂: a QP the test writes itself."""
+    from qpctl.perception.rows import SOFT_SLACK_L2
+    from qpctl.qp import Problem
+
+    own = ~np.any(problem.A[:, problem.n:] != 0.0, axis=0)  # after q̈: the task's s± (in A) and the σ (not)
+    nv0 = problem.n + int(np.sum(~own))  # the σ columns are the last ones
+    assert np.all(own[nv0 - problem.n:])
+    k = columns.shape[0]
+    nv = nv0 + k
+    P = np.zeros((nv, nv))
+    P[:nv0, :nv0] = problem.P[:nv0, :nv0]
+    P[nv0:, nv0:] = SOFT_SLACK_L2 * np.eye(k)
+    c = np.r_[problem.c[:nv0], np.full(k, weight)]
+    A = np.c_[problem.A[:, :nv0], np.zeros((problem.A.shape[0], k))]
+    C = np.c_[problem.C[:, :nv0], np.zeros((problem.C.shape[0], k))]
+    C[rows, nv0:] = columns.T
+    return Problem(P, c, A, problem.b.copy(), C, problem.l.copy(), problem.u.copy(),
+                   np.r_[problem.lb[:nv0], np.zeros(k)], np.r_[problem.ub[:nv0], np.full(k, np.inf)], problem.n)
+
+
+def _solve_quadprog(problem) -> np.ndarray:  # type: ignore[no-untyped-def]
+    import qpsolvers
+
+    eye = np.eye(problem.n_var)
+    C, lo, hi = np.r_[problem.C, eye], np.r_[problem.l, problem.lb], np.r_[problem.u, problem.ub]
+    fl, fh = np.isfinite(lo), np.isfinite(hi)
+    scale = np.abs(problem.c).max()  # the same minimiser; quadprog wants costs of order one
+    x = qpsolvers.solve_qp(problem.P / scale, problem.c / scale, np.r_[-C[fl], C[fh]], np.r_[-lo[fl], hi[fh]],
+                           problem.A, problem.b, solver="quadprog")
+    assert x is not None
+    return x
+
+
+def test_each_links_soft_rows_have_a_slack_of_their_own() -> None:
+    """The arm rushes the hand into a leaf at 1 m/s, faster than the drives can slow it for, with a
+    second leaf at the upper arm: the controller's q̈ is that of the QP the test writes with one slack
+    column per link (quadprog), and not that of the same QP with one column all soft rows share (there
+    the hand's slack would let every other link's soft rows give way as much)."""
+    import pinocchio as pin
+
+    scen = Scenario.load("panda_spheres")
+    ctrl = scen.build_controller("qp", obstacles=[])
+    robot = ctrl.robot
+    L, n = len(robot.capsules), ctrl.n
+    q = robot.q_home.copy()
+    seg = ctrl.dynamics.compute(q, np.zeros(robot.nv)).segments
+    tip, axis = seg[-1, 1], seg[-1, 1] - seg[-1, 0]
+    axis /= np.linalg.norm(axis)
+    rng = np.random.default_rng(5)
+    side = np.cross(seg[2, 1] - seg[2, 0], [0.0, 0.0, 1.0])
+    leaves = np.r_[_sphere_cloud(tip + (0.03 + robot.capsules[-1].radius + 0.05) * axis, 0.05, rng),
+                   _sphere_cloud(0.5 * (seg[2, 0] + seg[2, 1]) + 0.1 * side / np.linalg.norm(side), 0.04, rng)]
+    p = Perception(CFG, robot)
+    p.submit(PointCloud(leaves, 0.0, labels=np.full(len(leaves), 2, np.uint8)))
+    bar = p.rows_for(ctrl)
+    data = robot.model.createData()
+    pin.computeJointJacobians(robot.model, data, q)
+    J = pin.getJointJacobian(robot.model, data, robot.capsules[-1].joint_id, pin.LOCAL_WORLD_ALIGNED)[:3]
+    out = ctrl.step(q, np.linalg.pinv(J) @ axis, 0.0)
+    assert "fallback" not in out.info and out.info["status"] == "solved"
+    problem, x = ctrl.last_problem, ctrl.last_solution.x
+    rows = np.flatnonzero(np.array(problem.row_names) == bar.name)
+    link, soft = _field_row_links(bar, L)
+    per_link = np.array([(link == j) & soft for j in range(L)], float)
+    want = _solve_quadprog(_with_slack_columns(problem, rows, per_link, CFG.soft_weight))
+    other = _solve_quadprog(_with_slack_columns(problem, rows, soft[None, :].astype(float), CFG.soft_weight))
+    scale = np.abs(want[:n]).max()
+    assert np.abs(x[:n] - want[:n]).max() <= 1e-6 * scale
+    assert np.abs(other[:n] - want[:n]).max() >= 1e-2 * scale  # the state tells the two layouts apart
+    # the record's task slack is the task's s⁺ − s⁻ (before the seven σ columns)
+    task = np.flatnonzero(np.any(problem.A[:, n:] != 0.0, axis=0))
+    assert task.size == 6 and out.info["slack_norm"] > 0.0
+    assert out.info["slack_norm"] == pytest.approx(np.linalg.norm(x[n:n + 3] - x[n + 3:n + 6]), rel=1e-12)
+    # each link's σ is what its own rows lack (ℓ₁ exact penalty), some links' none, where the shared σ
+    # relaxes every soft row by as much as the hand needs
+    short = np.maximum(problem.l[rows] - problem.C[rows, :n] @ want[:n], 0.0)
+    lack = np.array([short[(link == j) & soft].max(initial=0.0) for j in range(L)])
+    assert want[-L:] == pytest.approx(lack, abs=1e-6 * lack.max())
+    assert lack.min() == 0.0 and other[-1] > 0.5 * lack.max() > 1.0
 
 
 def _soft_blob(robot, rng: np.random.Generator):  # type: ignore[no-untyped-def]

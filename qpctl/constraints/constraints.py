@@ -58,13 +58,17 @@ class Constraint(ABC):
     name: str = "constraint"
     kind: str = "constraint"
     rows: int = 0  # rows of C it contributes (0 for Bounds)
-    #: (ℓ₁, ℓ₂) weights of one slack column σ ≥ 0 its rows share (C q̈ + c σ ≥ l, c = :meth:`slack_column`;
-    #: cost ℓ₁σ + ½ℓ₂σ²), or None: hard rows. Fixed for the constraint's life (the QP's layout has it).
+    #: (ℓ₁, ℓ₂) weights of its slack columns σⱼ ≥ 0 (C q̈ + Σⱼ cⱼσⱼ ≥ l, cⱼ the columns of
+    #: :meth:`slack_columns`; cost Σⱼ ℓ₁σⱼ + ½ℓ₂σⱼ²), or None: hard rows. Fixed for the constraint's life (the
+    #: QP's layout has it).
     slack: tuple[float, float] | None = None
 
-    def slack_column(self) -> np.ndarray:
-        """(rows,) the slack column's entry in each row (0: the row is hard); read once, with the layout."""
-        return np.ones(self.rows)
+    def slack_columns(self) -> tuple[np.ndarray, np.ndarray]:
+        """(rows, k) the entries of its k slack columns in each row (a row of zeros: the row is hard) and
+        (k, 2) each column's (ℓ₁, ℓ₂) weights; read once, with the layout. By default one column all rows
+        share, at :attr:`slack`'s weights."""
+        assert self.slack is not None
+        return np.ones((self.rows, 1)), np.array([self.slack], float)
 
     @abstractmethod
     def compute(self, state: TickState, terms: LawTerms) -> Inequality | Bounds:

@@ -86,8 +86,9 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
         task_weights=ee.weights,
         braking=next(iter(brakes.values()), None),
         field=fields[0].field_spec() if fields else None,  # type: ignore[attr-defined]
-        slack_columns=[(r0, c.slack_column(), *c.slack) for c, r0 in zip(constraints, starts, strict=True)
-                       if c.slack is not None and c.rows],
+        slack_columns=[(r0, col, float(l1), float(l2)) for c, r0 in zip(constraints, starts, strict=True)
+                       if c.slack is not None and c.rows for entries, weights in [c.slack_columns()]
+                       for col, (l1, l2) in zip(entries.T, weights, strict=True)],
     )
 
 

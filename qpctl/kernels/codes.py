@@ -33,7 +33,8 @@ IP_JDOT_EN, IP_DRIFT_RIGID, IP_CAPACITY, IP_TORQUE_ROW0, IP_BARRIER_ROW0, IP_JOI
 IP_POSTURE, IP_N_IN, IP_BDRIFT, IP_DAMPING, IP_SELF_ROW0 = range(6, 11)
 IP_FIELD_ROW0, IP_FD_SAMPLES, IP_FD_RPL = range(11, 14)  # the field rows' first row (−1: none), samples, rows per link
 IP_BRAKING = 14  # 1: the barrier and joint-limit rows are braking-aware too
-IP_SIZE = 15
+IP_N_SIGMA = 15  # the constraints' own slack columns σ (after the task's s⁺, s⁻)
+IP_SIZE = 16
 # Counters (TickWork.cnt)
 CNT_PAIRS, CNT_FCL, CNT_LOOKAHEAD, CNT_DROPPED = range(4)
 CNT_SIZE = 4

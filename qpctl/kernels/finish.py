@@ -23,6 +23,7 @@ from qpctl.kernels.codes import (
     IP_CAPACITY,
     IP_FIELD_ROW0,
     IP_N_IN,
+    IP_N_SIGMA,
     IP_TORQUE_ROW0,
     R_ACTIVE,
     R_ACTIVE_MASK,
@@ -140,7 +141,7 @@ def qp_finish(ws, x: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarra
     for i in range(n):
         ws.qdd[i] = x[i]
     finish_torque(ws)
-    half = (nv - n) // 2  # the task's s⁺, s⁻ (a constraint's own σ, one at the end, rounds away)
+    half = (nv - n - ip[IP_N_SIGMA]) // 2  # the task's s⁺, s⁻ (before the constraints' own σ)
     sl = 0.0
     for r in range(half):
         d = x[n + r] - x[n + half + r]

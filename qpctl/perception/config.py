@@ -56,8 +56,8 @@ class PerceptionConfig:
     soft_funnel: float = setting(10.0, valid="nonnegative", unit="1/s")  # beyond soft_speed_margin() of a leaf's
     #                                  voxels the speed rows' bound opens by this per metre, soft_speed + g·(d − m_v)
     #                                  (10: the barrier's k0/k1 at its defaults; larger: faster near leaves, a harder brake)
-    soft_weight: float = setting(1e7, valid="nonnegative", unit="(N·m)²/(m/s²)")  # ℓ₁ weight of the slack the soft
-    #                                  rows share (above the task's slack_l1: the task lags before a leaf is
+    soft_weight: float = setting(1e7, valid="nonnegative", unit="(N·m)²/(m/s²)")  # ℓ₁ weight of each link's slack (its
+    #                                  soft rows share it; above the task's slack_l1: the task lags before a leaf is
     #                                  pushed faster; 0: the soft rows are hard)
     stale_slow: float = setting(0.15, valid="seconds", unit="s")  # a map older than this slows the task [s]
     stale_stop: float = setting(0.5, valid="seconds", unit="s")  # older than this, the arm stops [s]

@@ -22,8 +22,9 @@ rigid-point drift ḧ = nᵀ(J_p q̈ + J̇_p q̇):
   m_s = ``soft_margin`` (√3/2·voxel + depth noise would be where the leaf's true surface may already
   be; 0 by default): far from a leaf it is a barrier without d_safe, from m_s on it asks only
   ḣ ≥ −v_s — a link may pass through a leaf, no faster than v_s along the field's normal. σ ≥ 0 is
-  one slack column all soft rows share (:attr:`~qpctl.constraints.Constraint.slack`, ℓ₁ weight
-  ``soft_weight``): where the soft rows conflict with the hard ones the QP stays feasible.
+  the link's own slack column, which its soft rows and speed rows share (:meth:`FieldBarrier.slack_columns`,
+  ℓ₁ weight ``soft_weight`` each): where the soft rows conflict with the hard ones the QP stays
+  feasible, and the slack one link needs frees no other link's rows.
 
 * **soft speed** (the metric ``soft_contact_max_speed`` is a link point's total speed, not its normal
   component; inside a leaf's voxels the field is flat and has no normal at all): two rows per link
@@ -38,7 +39,7 @@ rigid-point drift ḧ = nᵀ(J_p q̈ + J̇_p q̇):
   of its velocity now: uᵀw⁺ ≤ b + σh — the tangent half-space of the ball |w⁺| ≤ b at the current
   velocity, which |w⁺| exceeds by at most |w⁺ − w|²/(2|w|), second order in the tick's change of
   velocity (the next tick's row is tangent at the new direction). As rows on q̈:
-  −uᵀJ_p q̈ + σ ≥ (uᵀJ_p q̇ − b)/h + uᵀJ̇_p q̇, sharing the soft rows' slack σ.
+  −uᵀJ_p q̈ + σ ≥ (uᵀJ_p q̇ − b)/h + uᵀJ̇_p q̇, sharing the link's slack σ with its soft rows.
 
 A row is active where d is within the controller's influence distance (a barrier row only with a
 normal), inactive (−inf bound) elsewhere; the number of rows is fixed: 2 channels × links ×
@@ -135,8 +136,8 @@ class FieldBarrier(Constraint):
         self.config = config
         self.margin = config.rigid_margin(d_safe)
         self.soft_margin = float(config.soft_margin)
-        # the soft rows share one slack column σ ≥ 0 (cost ℓ₁σ + ½ℓ₂σ²): where they conflict with the hard
-        # rows (the torque limits, a branch) the QP stays feasible and the leaf gives way
+        # each link's soft rows share a slack column σ ≥ 0 of their own (cost ℓ₁σ + ½ℓ₂σ²): where they conflict
+        # with the hard rows (the torque limits, a branch) the QP stays feasible and that link's leaf gives way
         self.slack = (float(config.soft_weight), SOFT_SLACK_L2) if config.soft_weight > 0 else None
         self.cutoff = float(cutoff)
         self.k0, self.k1 = float(k0), float(k1)
@@ -162,9 +163,15 @@ class FieldBarrier(Constraint):
             self._last = FieldPairs(d, n, p, self._link, self._soft, (d < self.cutoff) & np.any(n != 0.0, axis=1))
         return self._last
 
-    def slack_column(self) -> np.ndarray:
-        """1 on the soft rows (the pairs' second half) and the speed rows, 0 on the rigid ones."""
-        return np.r_[self._soft.astype(float), np.ones(self.rows - self.pairs)]
+    def slack_columns(self) -> tuple[np.ndarray, np.ndarray]:
+        """One slack column per link at ``soft_weight``: 1 on the link's soft rows (in the pairs' second
+        half) and its two speed rows, 0 elsewhere (the rigid rows are hard)."""
+        assert self.slack is not None
+        L = len(self.robot.capsules)
+        cols = np.zeros((self.rows, L))
+        cols[np.flatnonzero(self._soft), self._link[self._soft]] = 1.0
+        cols[self.pairs + np.arange(2 * L), np.repeat(np.arange(L), 2)] = 1.0
+        return cols, np.tile(self.slack, (L, 1))
 
     def field_spec(self) -> FieldSpec:
         """These rows in the compiled tick (:mod:`qpctl.kernels.field_rows`; held to :meth:`compute`;
