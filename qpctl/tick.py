@@ -140,6 +140,7 @@ class FieldSpec:
     speed_margin: float = 0.0  # within this of a leaf's voxels the soft speed rows bound soft_speed [m]
     horizon: float = 1e-3  # the soft speed rows' horizon [s]
     funnel: float = 10.0  # the slope of their bound beyond speed_margin [1/s]
+    recovery_gain: float = 10.0  # a rigid row inside its margin: ḧ ≥ −k_r(ḣ − v_a) [1/s]
 
 
 @dataclass
@@ -414,6 +415,7 @@ class Workspace:
             fp[codes.FP_FD_K0], fp[codes.FP_FD_K1], fp[codes.FP_FD_SMARGIN] = fs.k0, fs.k1, fs.soft_margin
             fp[codes.FP_FD_VMARGIN], fp[codes.FP_FD_HORIZON], fp[codes.FP_FD_VSLOPE] = fs.speed_margin, fs.horizon, \
                 fs.funnel
+            fp[codes.FP_FD_KR] = fs.recovery_gain
             ip[codes.IP_FD_SAMPLES], ip[codes.IP_FD_RPL] = S, rpl
         self.fd_dist = np.zeros((2, *shape), np.float32)
         self.fd_grad = np.zeros((2, *shape, 3), np.float32)

@@ -377,10 +377,14 @@ def test_speed_rows_take_each_links_samples_whose_fastest_point_most_exceeds_its
     assert links_checked >= 6 and stretch >= 2 and funnel >= 2
 
 
+# a recovery gain six times the default (and not the barrier's k₁): more than the window gives
+CFG_K1 = PerceptionConfig(**{**CFG.__dict__, "recovery_gain": 60.0})
+
+
 def _inside_the_margin():  # type: ignore[no-untyped-def]
     """The Panda at rest at q_home, a rigid blob put 1.2 cm inside the rigid rows' margin of its
     fourth link, the last torque the gravity torque 1 ms ago: under Franka's torque-rate limits the
-    window is τ_g ± 1 N·m, far short of the k₀|h| the barrier asks of the link."""
+    window is τ_g ± 1 N·m, short of the k_r v_s (``CFG_K1``) the recovery asks of the link."""
     scen = Scenario.load("panda_spheres")
     ctrl = scen.build_controller("qp", obstacles=[])
     robot = ctrl.robot
@@ -389,7 +393,7 @@ def _inside_the_margin():  # type: ignore[no-untyped-def]
     axis = (seg[1] - seg[0]) / np.linalg.norm(seg[1] - seg[0])
     out = np.cross(axis, [0.0, 0.0, 1.0])
     out /= np.linalg.norm(out)
-    p = Perception(CFG, robot)
+    p = Perception(CFG_K1, robot)
     bar = p.rows_for(ctrl)
     gap = bar.margin - 0.012
     blob = _sphere_cloud(0.5 * (seg[0] + seg[1]) + (robot.capsules[3].radius + gap + 0.05) * out, 0.05,
@@ -403,7 +407,7 @@ def _inside_the_margin():  # type: ignore[no-untyped-def]
 
 
 def test_rigid_rows_inside_the_margin_ask_no_more_than_the_torque_window_gives() -> None:
-    """Each rigid row inside the margin asks the link away at min(k₀/k₁ |h|, v_s), capped at
+    """Each rigid row inside the margin asks the link away at min(k₀/k₁ |h|, v_s) with gain k_r, capped at
     ℓ − ρ(ℓ − ℓ₋), [ℓ₋, ℓ] the range of c q̈ over the
     torque window from scipy's linear programme (max and min of c q̈ s.t. lo ≤ M q̈ + N ≤ hi); the
     tick is solved where the uncapped rows (the Python path without the torque window) leave the QP
@@ -430,8 +434,8 @@ def test_rigid_rows_inside_the_margin_ask_no_more_than_the_torque_window_gives()
         c = C[r]
         most = -linprog(-c, A_ub=A, b_ub=b, bounds=(None, None)).fun
         least = linprog(c, A_ub=A, b_ub=b, bounds=(None, None)).fun
-        # at rest (ḣ = 0, no drift): away at min(k₀/k₁ |h|, v_s)
-        barrier = bar.k1 * min(bar.k0 / bar.k1 * (bar.margin - pairs.distance[r]), CFG.soft_speed)
+        # at rest (ḣ = 0, no drift): away at min(k₀/k₁ |h|, v_s), with the recovery gain k_r
+        barrier = CFG_K1.recovery_gain * min(bar.k0 / bar.k1 * (bar.margin - pairs.distance[r]), CFG.soft_speed)
         want = min(barrier, most - REACH_SHARE * (most - least))
         assert low[r] == pytest.approx(want, rel=1e-7, abs=1e-9)
         capped += want < barrier
@@ -446,6 +450,6 @@ def test_rigid_rows_inside_the_margin_ask_no_more_than_the_torque_window_gives()
     # the same rows uncapped: no torque window given to them (the Python path)
     slow, slow_bar, q, v, t = _inside_the_margin()
     slow.remove_constraint(slow_bar.name)
-    slow.add_constraint(_PythonOnly(slow_bar.source, slow.robot, CFG, d_safe=slow.gains.d_safe, cutoff=slow.cutoff,
+    slow.add_constraint(_PythonOnly(slow_bar.source, slow.robot, CFG_K1, d_safe=slow.gains.d_safe, cutoff=slow.cutoff,
                                     k0=slow_bar.k0, k1=slow_bar.k1))
     assert slow.step(q, v, t).info.get("fallback") is not None

@@ -61,7 +61,7 @@ def test_witness_point_jacobian_and_drift_match_finite_differences(panda_robot, 
 def test_rows_are_the_barrier_of_the_field_distance(panda_robot) -> None:
     """A static map of a sphere beside the forearm: each active rigid row is n^T J_p (J_p the witness
     point's Jacobian) and its bound −k1 ḣ − k0 (d − margin) − n^T J̇_p q̇ (inside the margin
-    −k1 (ḣ − min(k0/k1 (margin − d), soft_speed)) − n^T J̇_p q̇); ḣ = row·q̇ matches the rate
+    −k_r (ḣ − min(k0/k1 (margin − d), soft_speed)) − n^T J̇_p q̇, k_r = recovery_gain); ḣ = row·q̇ matches the rate
     of change of the pair's distance along the motion."""
     robot = panda_robot
     q = robot.q_home.copy()
@@ -83,8 +83,9 @@ def test_rows_are_the_barrier_of_the_field_distance(panda_robot) -> None:
     rows = np.einsum("ri,rin->rn", pairs.normal[rigid], J)
     hdot = rows @ v
     m, d = CFG.rigid_margin(0.05), pairs.distance[rigid]
-    # inside the margin (d < m) away at min(k0/k1 (m − d), soft_speed); no torque window given: no cap
-    expect = np.where(d < m, -40.0 * (hdot - np.minimum(10.0 * (m - d), CFG.soft_speed)),
+    # inside the margin (d < m) away at min(k0/k1 (m − d), soft_speed) with the recovery gain; no torque
+    # window given: no cap
+    expect = np.where(d < m, -CFG.recovery_gain * (hdot - np.minimum(10.0 * (m - d), CFG.soft_speed)),
                       -40.0 * hdot - 400.0 * (d - m)) - np.einsum("ri,ri->r", pairs.normal[rigid], a)
     assert (d < m).any() and (d >= m).any()  # both kinds of row
     assert ineq.C[rigid] == pytest.approx(rows) and ineq.lower[rigid] == pytest.approx(expect)

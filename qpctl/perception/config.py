@@ -56,6 +56,9 @@ class PerceptionConfig:
     soft_funnel: float = setting(10.0, valid="nonnegative", unit="1/s")  # beyond soft_speed_margin() of a leaf's
     #                                  voxels the speed rows' bound opens by this per metre, soft_speed + g·(d − m_v)
     #                                  (10: the barrier's k0/k1 at its defaults; larger: faster near leaves, a harder brake)
+    recovery_gain: float = setting(10.0, valid="positive", unit="1/s")  # a link inside a rigid row's margin
+    #                                  speeds away at min(k0/k1·(m − d), soft_speed) with this gain, ḧ ≥ −k_r(ḣ − v_a)
+    #                                  (10: a quarter of the barrier's k1 at its defaults)
     soft_weight: float = setting(1e7, valid="nonnegative", unit="(N·m)²/(m/s²)")  # ℓ₁ weight of each link's slack (its
     #                                  soft rows share it; above the task's slack_l1: the task lags before a leaf is
     #                                  pushed faster; 0: the soft rows are hard)

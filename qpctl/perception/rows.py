@@ -10,7 +10,8 @@ rigid-point drift ḧ = nᵀ(J_p q̈ + J̇_p q̇):
   m = d_safe + √3/2·voxel + depth noise (:meth:`PerceptionConfig.rigid_margin`): the voxel's centre
   may be √3/2 voxel from the surface it stands for, and the surface itself off by the noise. Inside
   the margin (h < 0: a new frame put a voxel within it) the link moves away at a bounded speed —
-  ḧ + k₁(ḣ − v_a) ≥ 0, v_a = min(k₀/k₁·|h|, v_s) — and asks no more than a share of what the drives
+  ḧ + k_r(ḣ − v_a) ≥ 0, v_a = min(k₀/k₁·|h|, v_s), k_r = ``recovery_gain`` (10 1/s, a quarter of
+  k₁ at its defaults) — and asks no more than a share of what the drives
   can give in this tick: the bound is capped at ℓ − ρ(ℓ − ℓ₋), [ℓ₋, ℓ] the range of nᵀJ_p q̈ over
   the torque window (:mod:`qpctl.kernels.drives`; ρ = :data:`~qpctl.kernels.field_rows.REACH_SHARE`).
   The margin is the map's uncertainty: a voxel inside it is escaped at a leaf's speed, not at the
@@ -146,6 +147,7 @@ class FieldBarrier(Constraint):
         self.speed_margin = config.soft_speed_margin()
         self.horizon = float(config.soft_horizon)
         self.funnel = float(config.soft_funnel)
+        self.recovery_gain = float(config.recovery_gain)
         self.pairs = 2 * len(robot.capsules) * config.rows_per_link
         self.rows = self.pairs + 2 * len(robot.capsules)
         self._data = robot.model.createData()
@@ -180,7 +182,7 @@ class FieldBarrier(Constraint):
             raise ValueError("the compiled field rows are smooth: a raw FieldBarrier needs the Python path")
         return FieldSpec(self.source, self, self.rows, self.config.samples, self.config.rows_per_link, self.margin,
                          self.config.soft_speed, self.cutoff, self.k0, self.k1, self.soft_margin,
-                         self.speed_margin, self.horizon, self.funnel)
+                         self.speed_margin, self.horizon, self.funnel, self.recovery_gain)
 
     def bind(self, ws: Any) -> None:
         """A compiled tick runs on ``ws``: its arrays hold this tick's pairs (:attr:`last`)."""
@@ -257,9 +259,10 @@ class FieldBarrier(Constraint):
             d = pairs.distance[idx]
             soft = pairs.soft[idx]
             vs = self.config.soft_speed
-            # rigid inside the margin: away at min(k₀/k₁ (m − d), v_s), not at k₀/k₁ (m − d)
+            # rigid inside the margin: away at min(k₀/k₁ (m − d), v_s), not at k₀/k₁ (m − d), with gain k_r
             away = np.minimum(self.k0 / self.k1 * (self.margin - d), vs)
-            rigid = np.where(d < self.margin, -self.k1 * (hdot - away), -self.k1 * hdot - self.k0 * (d - self.margin))
+            rigid = np.where(d < self.margin, -self.recovery_gain * (hdot - away),
+                             -self.k1 * hdot - self.k0 * (d - self.margin))
             rhs = np.where(soft, -self.k1 * (hdot + vs) - self.k0 * np.maximum(d - self.soft_margin, 0.0),
                            rigid) - np.einsum("ri,ri->r", nrm, drift)
             if self.torque is not None:  # rigid rows inside the margin: within reach of the torque window
