@@ -378,13 +378,13 @@ def test_speed_rows_take_each_links_samples_whose_fastest_point_most_exceeds_its
 
 
 # a recovery gain six times the default (and not the barrier's k₁): more than the window gives
-CFG_K1 = PerceptionConfig(**{**CFG.__dict__, "recovery_gain": 60.0})
+CFG_FAST_RECOVERY = PerceptionConfig(**{**CFG.__dict__, "recovery_gain": 60.0})
 
 
 def _inside_the_margin():  # type: ignore[no-untyped-def]
     """The Panda at rest at q_home, a rigid blob put 1.2 cm inside the rigid rows' margin of its
     fourth link, the last torque the gravity torque 1 ms ago: under Franka's torque-rate limits the
-    window is τ_g ± 1 N·m, short of the k_r v_s (``CFG_K1``) the recovery asks of the link."""
+    window is τ_g ± 1 N·m, short of the k_r v_s (``CFG_FAST_RECOVERY``) the recovery asks of the link."""
     scen = Scenario.load("panda_spheres")
     ctrl = scen.build_controller("qp", obstacles=[])
     robot = ctrl.robot
@@ -393,7 +393,7 @@ def _inside_the_margin():  # type: ignore[no-untyped-def]
     axis = (seg[1] - seg[0]) / np.linalg.norm(seg[1] - seg[0])
     out = np.cross(axis, [0.0, 0.0, 1.0])
     out /= np.linalg.norm(out)
-    p = Perception(CFG_K1, robot)
+    p = Perception(CFG_FAST_RECOVERY, robot)
     bar = p.rows_for(ctrl)
     gap = bar.margin - 0.012
     blob = _sphere_cloud(0.5 * (seg[0] + seg[1]) + (robot.capsules[3].radius + gap + 0.05) * out, 0.05,
@@ -435,7 +435,8 @@ def test_rigid_rows_inside_the_margin_ask_no_more_than_the_torque_window_gives()
         most = -linprog(-c, A_ub=A, b_ub=b, bounds=(None, None)).fun
         least = linprog(c, A_ub=A, b_ub=b, bounds=(None, None)).fun
         # at rest (ḣ = 0, no drift): away at min(k₀/k₁ |h|, v_s), with the recovery gain k_r
-        barrier = CFG_K1.recovery_gain * min(bar.k0 / bar.k1 * (bar.margin - pairs.distance[r]), CFG.soft_speed)
+        away = min(bar.k0 / bar.k1 * (bar.margin - pairs.distance[r]), CFG.soft_speed)
+        barrier = CFG_FAST_RECOVERY.recovery_gain * away
         want = min(barrier, most - REACH_SHARE * (most - least))
         assert low[r] == pytest.approx(want, rel=1e-7, abs=1e-9)
         capped += want < barrier
@@ -450,6 +451,6 @@ def test_rigid_rows_inside_the_margin_ask_no_more_than_the_torque_window_gives()
     # the same rows uncapped: no torque window given to them (the Python path)
     slow, slow_bar, q, v, t = _inside_the_margin()
     slow.remove_constraint(slow_bar.name)
-    slow.add_constraint(_PythonOnly(slow_bar.source, slow.robot, CFG_K1, d_safe=slow.gains.d_safe, cutoff=slow.cutoff,
-                                    k0=slow_bar.k0, k1=slow_bar.k1))
+    slow.add_constraint(_PythonOnly(slow_bar.source, slow.robot, CFG_FAST_RECOVERY, d_safe=slow.gains.d_safe,
+                                    cutoff=slow.cutoff, k0=slow_bar.k0, k1=slow_bar.k1))
     assert slow.step(q, v, t).info.get("fallback") is not None
