@@ -74,10 +74,11 @@ class Formulation:
         """(P, q, A, b, C, l, u, lb, ub) with every tick-independent entry set: the slack columns of A
         (±I), their costs (ℓ₁ in q, ℓ₂ on P's diagonal, at least 1e-9 so that P is positive definite
         on the slack block even when slack_l2 = 0 — some solvers need it), s± ≥ 0, the constraints'
-        shared slack columns σ ≥ 0 (:attr:`Constraint.slack`, in their rows of C, after s±; kept with
+        slack columns σ ≥ 0 (:meth:`Constraint.slack_columns`, in their rows of C, after s±; kept with
         the task hard too), and the placeholder bounds (±inf)."""
         key = (relax, tuple((e.A.shape[0], e.soft, e.slack_l1, e.slack_l2) for e in eqs))
-        # the constraints' own slack columns (one per constraint with ``slack``), after the task's
+        # the constraints' own slack columns (Constraint.slack_columns: one or more per constraint with a
+        # ``slack``), after the task's
         sl = [(r0, c.rows, col, w) for c, r0 in zip(self.constraints, np.cumsum([0] + [c.rows for c in self.constraints]))
               if c.slack is not None and c.rows for entries, weights in [c.slack_columns()]
               for col, w in zip(entries.T, weights, strict=True)]

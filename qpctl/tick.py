@@ -163,7 +163,7 @@ class QPSpec:
     row_kinds: list[str] | None = None  # one per row: its constraint's kind (Constraint.kind)
     braking: Any = None  # the Braking of the braking-aware rows (qpctl.constraints.braking), or None
     field: FieldSpec | None = None  # the depth map's field rows
-    # the constraints' shared slack columns (Constraint.slack), after the task's: (first row, the column's
+    # the constraints' slack columns (Constraint.slack_columns), after the task's: (first row, the column's
     # entries in its rows, ℓ₁, ℓ₂), in both layouts
     slack_columns: list[tuple[int, np.ndarray, float, float]] | None = None
 
@@ -176,8 +176,8 @@ class QPSpec:
 class QPBuffers:
     """One QP layout in DAQP's convention, and a :class:`~qpctl.qp.Problem` of views onto it.
 
-    x = [q̈ (n), s⁺ (k), s⁻ (k), σ (one per constraint with a slack)] with k slack rows (0 for the hard
-    layout); rows = [C; A],
+    x = [q̈ (n), s⁺ (k), s⁻ (k), σ (the constraints' slack columns, Constraint.slack_columns)] with k slack
+    rows (0 for the hard layout); rows = [C; A],
     bu = [ub; u; b], bl = [lb; l; b], sense marks the equality rows. The tick-independent entries
     (slack columns, costs and bounds, inactive rows' infinite bounds) are set here, once.
     """
