@@ -77,14 +77,14 @@ class Formulation:
         slack columns σ ≥ 0 (:meth:`Constraint.slack_columns`, in their rows of C, after s±; kept with
         the task hard too), and the placeholder bounds (±inf)."""
         key = (relax, tuple((e.A.shape[0], e.soft, e.slack_l1, e.slack_l2) for e in eqs))
-        # the constraints' own slack columns (Constraint.slack_columns: one or more per constraint with a
-        # ``slack``), after the task's
-        sl = [(r0, c.rows, col, w) for c, r0 in zip(self.constraints, np.cumsum([0] + [c.rows for c in self.constraints]))
-              if c.slack is not None and c.rows for entries, weights in [c.slack_columns()]
-              for col, w in zip(entries.T, weights, strict=True)]
         cached = self._templates.get(key)
         if cached is not None:
             return cached
+        # the constraints' own slack columns (Constraint.slack_columns: one or more per constraint with a
+        # ``slack``), after the task's: read here, once per template, not every tick
+        sl = [(r0, c.rows, col, w) for c, r0 in zip(self.constraints, np.cumsum([0] + [c.rows for c in self.constraints]))
+              if c.slack is not None and c.rows for entries, weights in [c.slack_columns()]
+              for col, w in zip(entries.T, weights, strict=True)]
         n = self.n
         n_soft = sum(e.A.shape[0] for e in eqs if e.soft) if relax else 0
         n_eq = sum(e.A.shape[0] for e in eqs)

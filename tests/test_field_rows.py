@@ -191,16 +191,16 @@ def _with_slack_columns(problem, rows: np.ndarray, columns: np.ndarray, weight: 
 
 
 def _solve_quadprog(problem) -> np.ndarray:  # type: ignore[no-untyped-def]
-    import qpsolvers
+    """quadprog (qpctl's generic solver path) on ``problem``, its costs scaled to order one (the same
+    minimiser)."""
+    import dataclasses
 
-    eye = np.eye(problem.n_var)
-    C, lo, hi = np.r_[problem.C, eye], np.r_[problem.l, problem.lb], np.r_[problem.u, problem.ub]
-    fl, fh = np.isfinite(lo), np.isfinite(hi)
-    scale = np.abs(problem.c).max()  # the same minimiser; quadprog wants costs of order one
-    x = qpsolvers.solve_qp(problem.P / scale, problem.c / scale, np.r_[-C[fl], C[fh]], np.r_[-lo[fl], hi[fh]],
-                           problem.A, problem.b, solver="quadprog")
-    assert x is not None
-    return x
+    from qpctl.solvers import make_solver
+
+    scale = np.abs(problem.c).max()
+    sol = make_solver("quadprog").solve(dataclasses.replace(problem, P=problem.P / scale, c=problem.c / scale))
+    assert sol.found
+    return sol.x
 
 
 def test_each_links_soft_rows_have_a_slack_of_their_own() -> None:

@@ -12,8 +12,8 @@ rigid-point drift nᵀJ̇_p q̇ (the witness point's Jacobian and acceleration f
   (d_safe + √3/2·voxel + depth noise); inside the margin (d < m: a voxel a new frame put within
   the margin's uncertainty) away no faster than v_s, nᵀJ_p q̈ ≥ −k_r(ḣ − min(k₀/k₁ (m − d), v_s))
   − nᵀJ̇_p q̇ (k_r the recovery gain, ``perception.recovery_gain``), and at most ℓ − ρ(ℓ − ℓ₋),
-  ℓ₋ … ℓ the range of nᵀJ_p q̈ over this tick's torque window (:func:`qpctl.kernels.drives.row_range`), ρ = :data:`REACH_SHARE` — the recovery asks no more
-  than the drives can give in one tick (without it the QP was infeasible there, tick after tick,
+  ℓ₋ … ℓ the range of nᵀJ_p q̈ over this tick's torque window (:func:`qpctl.kernels.drives.row_range`),
+  ρ = :data:`REACH_SHARE` — the recovery asks no more than the drives can give in one tick (without it the QP was infeasible there, tick after tick,
   under a torque-rate limit);
 * soft (channel 1): nᵀJ_p q̈ ≥ −k₁(ḣ + v_s) − k₀ max(d − m_s, 0) − nᵀJ̇_p q̇, v_s = ``soft_speed``,
   m_s the soft margin (``perception.soft_margin``).
@@ -122,7 +122,7 @@ def field_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no
     rpl = ws.ipar[IP_FD_RPL]
     k = L * rpl
     cut, margin, vs = ws.fpar[FP_FD_CUT], ws.fpar[FP_FD_MARGIN], ws.fpar[FP_FD_VS]
-    k0, k1, ms = ws.fpar[FP_FD_K0], ws.fpar[FP_FD_K1], ws.fpar[FP_FD_SMARGIN]
+    k0, k1, ms, kr = ws.fpar[FP_FD_K0], ws.fpar[FP_FD_K1], ws.fpar[FP_FD_SMARGIN], ws.fpar[FP_FD_KR]
     for r in range(R):
         nx, ny, nz = ws.fd_n[r, 0], ws.fd_n[r, 1], ws.fd_n[r, 2]
         d = ws.fd_d[r]
@@ -149,7 +149,7 @@ def field_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no
         if r >= k:  # soft: the approach no faster than v_s; contact allowed
             lower[r] = -k1 * (hdot + vs) - k0 * max(d - ms, 0.0) - drift
         elif d < margin:  # inside the margin: away at no more than v_s, no more than the drives give
-            lower[r] = -ws.fpar[FP_FD_KR] * (hdot - min(k0 / k1 * (margin - d), vs)) - drift
+            lower[r] = -kr * (hdot - min(k0 / k1 * (margin - d), vs)) - drift
             lo, hi = row_range(ws, C[r], ws.w1)
             cap = hi - REACH_SHARE * (hi - lo)
             if cap < lower[r]:  # noqa: PLR1730 (False for a NaN cap, no torque limits: min() would take it)
