@@ -4,7 +4,7 @@
 
 Replays the states of a closed-loop run of the canopy scene (``qpctl.bench.scenes.canopy_scene``) and
 prints (1) the median wall time of each part of a tick, measured by making the calls the compiled
-tick makes (``computeAllTerms``, then each stage's kernel of ``qpctl.kernels`` and the solve), one at a
+tick makes (``rigid_pass``: crba and nonLinearEffects, then each stage's kernel of ``qpctl.kernels`` and the solve), one at a
 time and in tick order, on every state; (2) cProfile's functions with the most cumulative time
 (cProfile's own overhead inflates those: compare shares).
 """
@@ -19,13 +19,13 @@ import time
 from collections.abc import Callable
 
 import numpy as np
-import pinocchio as pin
 
 from qpctl.bench.scenes import canopy_scene
 from qpctl.kernels import tick as K
 from qpctl.simulation import Simulator
 from qpctl.solvers import make_solver
 from qpctl.solvers.daqp_ import DAQPSolver
+from qpctl.tick import rigid_pass
 
 
 def _median_us(fn: Callable[[int], object], ticks: range) -> float:
@@ -61,14 +61,14 @@ def parts(solver: str = "daqp", seed: int = 100, duration: float | None = None) 
     buf = ws.relaxed
     assert buf is not None
     solver_obj = make_solver(solver)  # a solver of its own, warm-started along the sequence as in a run
-    names = ["Pinocchio computeAllTerms (both)", "state kernel: rigid terms, pairs, distances, barrier drift (both)",
+    names = ["Pinocchio crba + nonLinearEffects (both)", "state kernel: rigid terms, pairs, distances, barrier drift (both)",
              "law terms a, g, e_N, q̈₀ (both)", "paper law: its closed form (eq. 19)", "QP: cost and rows, in place",
              f"QP: {solver} solve", "QP: check, torque, record"]
     times = np.empty((len(ticks), len(names)))
     for i, k in enumerate(ticks):
         q, v, t = Q[k], V[k], float(T[k])
         c = [time.perf_counter()]
-        pin.computeAllTerms(ws.model, ws.data, q, v)
+        rigid_pass(ws.model, ws.data, q, v)
         c.append(time.perf_counter())
         K.state(ws.work, q, v, t)
         c.append(time.perf_counter())

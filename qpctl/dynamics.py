@@ -1,5 +1,5 @@
 """The state of one tick on demand: :class:`Dynamics` runs (q, v, t) through the compiled kernels of
-a workspace of its own (:mod:`qpctl.tick`: one ``computeAllTerms`` pass, then M, N = C q̇ + G, the
+a workspace of its own (:mod:`qpctl.tick`: one ``rigid_pass`` (crba, nonLinearEffects), then M, N = C q̇ + G, the
 task and link Jacobians and drifts, and the link–obstacle pairs) and returns a
 :class:`~qpctl.state.TickState` of copies, so states computed one after the other stay independent.
 """
@@ -24,7 +24,7 @@ class Dynamics:
     """Computes :class:`TickState` for one robot in one scene, with the tick's compiled kernels.
 
     A thin wrapper over a :class:`~qpctl.tick.Workspace` of its own: :meth:`compute` runs one tick's
-    state (``computeAllTerms``, the kernels, python-fcl for shapes without a closed form) and returns
+    state (``rigid_pass``, the kernels, python-fcl for shapes without a closed form) and returns
     a snapshot (copies), so states computed one after the other stay independent. Controllers run
     their ticks on their own workspace and build a TickState only where a Python path needs one
     (custom tasks, the fallbacks).
@@ -59,7 +59,7 @@ class Dynamics:
 
     @property
     def data(self) -> pin.Data:
-        """Pinocchio's data after the last :meth:`compute` (``computeAllTerms``)."""
+        """Pinocchio's data after the last :meth:`compute` (crba in the world convention and nonLinearEffects: no data.a, data.com)."""
         return self.workspace.data
 
     def compute(self, q: np.ndarray, v: np.ndarray, t: float = 0.0) -> TickState:

@@ -1,11 +1,11 @@
 """The tick's workspace: fixed-shape arrays laid out once per controller, run by compiled kernels.
 
 DESIGN.md §5. A :class:`Workspace` owns its own ``pin.Data`` and binds Pinocchio's arrays as numpy
-views (``computeAllTerms`` refreshes them in place), allocates every array the kernels of
+views (:func:`rigid_pass` refreshes them in place), allocates every array the kernels of
 :mod:`qpctl.kernels.tick` write (rigid-body terms, link–obstacle pairs at their full capacity,
 law terms, the QP in DAQP's layout, the output record), and runs a tick as a handful of calls:
 
-    computeAllTerms → kernels.state → [python-fcl for other shapes] → law kernel → [solve]
+    rigid_pass (crba, nonLinearEffects) → kernels.state → [python-fcl for other shapes] → law kernel → [solve]
 
 Spheres, capsules, boxes and cylinders are in closed form in the kernels. Obstacles of any other
 shape (a mesh, a shape a user registers) are the only per-pair Python work: python-fcl's queries and
@@ -51,29 +51,50 @@ def _view(address: int, shape: tuple[int, ...]) -> np.ndarray:
     return np.ctypeslib.as_array((ctypes.c_double * size).from_address(address)).reshape(shape)
 
 
-def bind_pinocchio(model: pin.Model, data: pin.Data) -> dict[str, np.ndarray]:
-    """Numpy views of ``data``'s placements, accelerations, Jacobians, inertia and bias forces.
+_crba, _nle, _WORLD = pin.crba, pin.nonLinearEffects, pin.Convention.WORLD
 
-    Checked against Pinocchio's own accessors once, on a random state: a Pinocchio build that lays
-    its ``Data`` out otherwise raises here rather than returning wrong numbers later.
+
+def rigid_pass(model: pin.Model, data: pin.Data, q: np.ndarray, v: np.ndarray) -> None:
+    """Every rigid-body quantity the tick reads, by Pinocchio, into ``data``: ``crba`` in the world
+    convention (the placements oMi, the joint Jacobians J and M's upper triangle) and
+    ``nonLinearEffects`` (nle = C(q, q̇)q̇ + G(q), and a_gf: the joints' q̈ = 0 accelerations with the
+    world accelerating at −g). The two calls take 2.6 µs on the Panda where ``computeAllTerms``, which
+    also computes the centre of mass, its Jacobian and the energies, takes 3.6 µs (docs/performance.md).
+    The compiled ticks make these two calls inline (qpctl.controllers); this is the one for the rest."""
+    _crba(model, data, q, _WORLD)
+    _nle(model, data, q, v)
+
+
+def bind_pinocchio(model: pin.Model, data: pin.Data) -> dict[str, np.ndarray]:
+    """Numpy views of ``data``'s placements, accelerations (a_gf), Jacobians, inertia and bias forces.
+
+    Checked against Pinocchio's own accessors once, on a random state after :func:`rigid_pass`: a
+    Pinocchio build that lays its ``Data`` out otherwise, or whose ``rigid_pass`` leaves a view stale,
+    raises here rather than returning wrong numbers later.
     """
     nj, n = model.njoints, model.nv
     placements = _view(data.oMi[0].rotation.__array_interface__["data"][0], (nj, 12))
-    accelerations = _view(data.a[0].linear.__array_interface__["data"][0], (nj, 6))
-    views = {"oMi": placements, "acc_local": accelerations, "Jt": data.J.T, "Mt": data.M.T, "nle": data.nle}
+    accelerations = _view(data.a_gf[0].linear.__array_interface__["data"][0], (nj, 6))
+    views = {"oMi": placements, "acc_gf": accelerations, "Jt": data.J.T, "Mt": data.M.T, "nle": data.nle}
     rng = np.random.default_rng(0)
     q = pin.randomConfiguration(model, -np.ones(model.nq), np.ones(model.nq)) if model.nq else np.zeros(0)
-    pin.computeAllTerms(model, data, q, rng.uniform(-1, 1, n))
+    v = rng.uniform(-1, 1, n)
+    rigid_pass(model, data, q, v)
+    full = model.createData()
+    pin.computeAllTerms(model, full, q, v)
     for j in range(nj):
-        H = data.oMi[j].homogeneous
+        H = full.oMi[j].homogeneous
         ok = np.array_equal(placements[j, :9].reshape(3, 3).T, H[:3, :3]) and np.array_equal(placements[j, 9:],
                                                                                             H[:3, 3])
-        ok = ok and np.array_equal(accelerations[j], data.a[j].vector)
+        ok = ok and np.array_equal(accelerations[j], data.a_gf[j].vector)
         if not ok:
             raise RuntimeError("this Pinocchio build lays out pin.Data differently from what qpctl's tick expects")
     for name in ("Jt", "Mt", "nle"):
         if views[name].flags["OWNDATA"] or not views[name].flags["C_CONTIGUOUS"]:
             raise RuntimeError(f"pin.Data's {name} is not a contiguous view in this Pinocchio build")
+    if not (np.array_equal(data.J, full.J) and np.allclose(np.triu(data.M), np.triu(full.M), rtol=1e-12, atol=1e-12)
+            and np.allclose(data.nle, full.nle, rtol=1e-12, atol=1e-12)):
+        raise RuntimeError("Pinocchio's crba and nonLinearEffects disagree with its computeAllTerms in this build")
     return views
 
 
@@ -320,6 +341,7 @@ class Workspace:
         self.pin_s = self.state_s = 0.0  # the last tick's stage wall times [s]
         self.drift_step = 2e-3  # [s] look-ahead of the barrier drift's finite difference (python-fcl shapes)
         self.fpar = np.zeros(codes.FP_SIZE)
+        self.fpar[codes.FP_GRAVITY:codes.FP_GRAVITY + 3] = model.gravity.linear  # the a_gf views' −g, undone
         self.ipar = np.zeros(codes.IP_SIZE, dtype=np.int64)
         self._grid(broadphase, cutoff)
         # path (None: state only)
@@ -554,11 +576,11 @@ class Workspace:
         return qa
 
     def state(self, q: np.ndarray, v: np.ndarray, t: float) -> int:
-        """computeAllTerms and the state kernel (and python-fcl's pairs, if any); −1 if the dynamics
+        """:func:`rigid_pass` and the state kernel (and python-fcl's pairs, if any); −1 if the dynamics
         overflow at this state (or q, v are not finite), else 0. Records Pinocchio's and the kernel's wall
         times [s] in ``pin_s`` and ``state_s``."""
         start = time.perf_counter()
-        pin.computeAllTerms(self.model, self.data, q, v)
+        rigid_pass(self.model, self.data, q, v)
         mid = time.perf_counter()
         status = K.state(self.work, self.joint_view(q), v, t)
         if status != 0:

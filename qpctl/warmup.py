@@ -14,7 +14,6 @@ import time
 from typing import Any
 
 import numpy as np
-import pinocchio as pin
 
 from qpctl.constraints.constraints import TorqueLimit
 from qpctl.geometry.obstacles import Obstacle
@@ -26,7 +25,7 @@ from qpctl.outcome import SOLUTION_RTOL
 from qpctl.paths import WaypointPath
 from qpctl.robot.model import planar_arm
 from qpctl.solvers import daqp_native
-from qpctl.tick import QPSpec, Workspace, WorldClearance
+from qpctl.tick import QPSpec, Workspace, WorldClearance, rigid_pass
 
 _WARM: dict[str, float] | None = None
 
@@ -65,7 +64,7 @@ def warmup() -> dict[str, float]:
     for shapes, grid in ((scene, True), (scene[:2], False)):  # python-fcl's box: the state Python finishes
         ws = Workspace(robot, shapes, path, gains, gains.d_influence, broadphase=grid)
         for weighted in (True, False):  # the whole tick, then its second half (after Python's part)
-            pin.computeAllTerms(ws.model, ws.data, q, v)
+            rigid_pass(ws.model, ws.data, q, v)
             if K.tick_closed_form(ws.work, q, v, t, weighted) == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
             K.closed_form_tick(ws.work, weighted)
@@ -96,15 +95,15 @@ def warmup() -> dict[str, float]:
         args = (*nat_h.kernel_args, nat_h.lam, *nat_r.kernel_args, SOLUTION_RTOL, 1e6)
         packed = new_native_qp(*args)
         for try_hard in (True, False):  # the whole tick, then its part after the state (Python's turn)
-            pin.computeAllTerms(ws.model, ws.data, q, v)
+            rigid_pass(ws.model, ws.data, q, v)
             if K.tick_qp_native(ws.work, q, v, t, *nat_r.kernel_args, SOLUTION_RTOL) == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
             K.qp_tick_native(ws.work, *nat_r.kernel_args, SOLUTION_RTOL)
-            pin.computeAllTerms(ws.model, ws.data, q, v)
+            rigid_pass(ws.model, ws.data, q, v)
             if K.tick_qp_native_hard_first(ws.work, q, v, t, *args, try_hard)[0] == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
             K.qp_tick_native_hard_first(ws.work, *args, try_hard)
-            pin.computeAllTerms(ws.model, ws.data, q, v)
+            rigid_pass(ws.model, ws.data, q, v)
             K.tick_qp(ws.work, packed, q, v, t, try_hard)
         nat_h.free()
         nat_r.free()

@@ -224,5 +224,5 @@ def test_profile_reports_every_part_of_a_tick() -> None:
     res = parts(solver, 100, duration=0.05)
     assert len(res) == 9 and all(np.isfinite(v) and v > 0 for v in res.values())
     assert res["QP: whole tick"] > res["state kernel: rigid terms, pairs, distances, barrier drift (both)"]
-    assert res["QP: whole tick"] > res["Pinocchio computeAllTerms (both)"]
+    assert res["QP: whole tick"] > res["Pinocchio crba + nonLinearEffects (both)"]
     assert "qpctl/controllers/qp.py" in profile(solver, 100, top=10, duration=0.05)

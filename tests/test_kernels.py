@@ -57,7 +57,7 @@ from qpctl.law import law_terms
 from qpctl.linalg import weighted_pinv
 from qpctl.robot.model import RobotModel
 from qpctl.tasks import AccelerationTask, DampingTask, EndEffectorTask, PostureTask
-from qpctl.tick import GRID_MIN_OBSTACLES, Workspace, WorldClearance, bind_pinocchio
+from qpctl.tick import GRID_MIN_OBSTACLES, Workspace, WorldClearance, bind_pinocchio, rigid_pass
 
 SEED = 20240611
 EPA_TOL = 2e-3  # python-fcl's signed distance of penetrating shapes (libccd EPA) [m]
@@ -328,7 +328,8 @@ def test_gram_lower_equals_numpy():
     """gram_lower (the reference velocity's and W_b's normal matrices) against numpy's A Aᵀ over the
     first k columns, lower triangle, to rounding: shapes from 1×0 to 9×40,
     k below the array's width (the rest of A is garbage it must not read), the upper triangle left as
-    it was, and a NaN in A reaching H (no fastmath flag may assume finite values)."""
+    it was, each entry bit for bit its products summed in column order (the same rounding in every
+    process), and a NaN in A reaching H (no fastmath flag may assume finite values)."""
     rng = np.random.default_rng(SEED + 77)
     for n in (1, 3, 7, 9):
         for k in (0, 1, 5, 21, 33, 40):
@@ -344,6 +345,16 @@ def test_gram_lower_equals_numpy():
     S.gram_lower(A, 4, H)
     np.testing.assert_allclose(H[np.tril_indices(3)], (A @ A.T)[np.tril_indices(3)], rtol=1e-13)
     assert np.all(H[3:, :] == 5.0) and np.all(H[:, 3:] == 5.0)
+    for n in (1, 2, 5, 8):  # bit for bit the sum of each entry's products in column order, one at a time
+        A = rng.standard_normal((n, 13)) * 10.0 ** rng.uniform(-3, 3, (n, 1))
+        H = np.zeros((n, n))
+        S.gram_lower(A, 11, H)
+        for i in range(n):
+            for j in range(i + 1):
+                want_ij = 0.0
+                for c in range(11):
+                    want_ij += float(A[i, c]) * float(A[j, c])
+                assert H[i, j] == want_ij, (n, i, j)
     A = rng.standard_normal((4, 6))
     A[2, 3] = np.nan
     H = np.zeros((4, 4))
@@ -1191,25 +1202,32 @@ def test_qp_compiled_torque_equals_python_path(key, solver):
 # ---------------------------------------------------------------------------------------------------
 @pytest.mark.parametrize("which", ["planar", "panda"])
 def test_bind_pinocchio_views_are_live(which):
-    """The views equal data.oMi[j].homogeneous, data.a[j].vector, data.J, data.M and data.nle after
-    computeAllTerms at random states — bit for bit, call after call (they are the same memory)."""
+    """After rigid_pass (crba, nonLinearEffects) at random states the views equal what a separate
+    data's computeAllTerms gives — oMi[j].homogeneous, J, M's upper triangle, nle, and data.a[j] once
+    the view's a_gf is given back gravity (a = a_gf + Rᵀg, angular parts equal) — and equal data.a_gf
+    bit for bit, call after call (they are the same memory)."""
     robot = planar_arm() if which == "planar" else panda()
     model = robot.model
-    data = model.createData()
+    data, full = model.createData(), model.createData()
     views = bind_pinocchio(model, data)
+    g = model.gravity.linear
     rng = np.random.default_rng(SEED + 70)
     previous = None
     for q, v, _ in sample_states(robot, rng, 6):
-        pin.computeAllTerms(model, data, q, v)
+        rigid_pass(model, data, q, v)
+        pin.computeAllTerms(model, full, q, v)
         for j in range(model.njoints):
             H = np.eye(4)
             H[:3, :3] = views["oMi"][j, :9].reshape(3, 3).T  # column-major rotation
             H[:3, 3] = views["oMi"][j, 9:]
-            assert np.array_equal(H, data.oMi[j].homogeneous), j
-            assert np.array_equal(views["acc_local"][j], data.a[j].vector), j
-        assert np.array_equal(views["Jt"].T, data.J)
-        assert np.array_equal(views["Mt"].T, data.M)
-        assert np.array_equal(views["nle"], data.nle)
+            assert np.array_equal(H, full.oMi[j].homogeneous), j
+            assert np.array_equal(views["acc_gf"][j], data.a_gf[j].vector), j
+            a = views["acc_gf"][j].copy()
+            a[:3] += full.oMi[j].rotation.T @ g
+            np.testing.assert_allclose(a, full.a[j].vector, rtol=0, atol=1e-12 * max(1.0, np.abs(full.a[j].vector).max()))
+        assert np.array_equal(views["Jt"].T, full.J)
+        assert np.array_equal(np.triu(views["Mt"].T), np.triu(full.M))
+        np.testing.assert_allclose(views["nle"], full.nle, rtol=1e-12, atol=1e-12)
         if previous is not None:  # the state moved, so did the views
             assert not np.array_equal(previous, views["oMi"])
         previous = views["oMi"].copy()

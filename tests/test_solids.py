@@ -25,7 +25,7 @@ from qpctl.geometry.shapes import SHAPES, Cylinder, register_shape
 from qpctl.kernels import codes
 from qpctl.kernels import tick as K
 from qpctl.kernels.solids import solid_pair
-from qpctl.tick import Workspace
+from qpctl.tick import Workspace, rigid_pass
 
 KINDS = {"box": codes.KIND_BOX, "cylinder": codes.KIND_CYLINDER}
 GJK_TOL = 1e-3  # [m] python-fcl's GJK above the true distance (module docstring)
@@ -215,7 +215,7 @@ def test_boxes_and_cylinders_stay_in_the_kernel_other_shapes_go_to_python_fcl():
     q, v = rng.uniform(-1.0, 1.0, robot.nv), rng.uniform(-0.5, 0.5, robot.nv)
     obstacles = _solids_near_the_panda(rng, data, robot, q)
     ws = Workspace(robot, obstacles, None, None, 0.3, barrier_drift=True)
-    pin.computeAllTerms(robot.model, ws.data, q, v)
+    rigid_pass(robot.model, ws.data, q, v)
     assert K.state(ws.work, q, v, 0.1) == 0
     assert ws.cnt[codes.CNT_PAIRS] > 0 and ws.cnt[codes.CNT_LOOKAHEAD] == 0
 
@@ -228,7 +228,7 @@ def test_boxes_and_cylinders_stay_in_the_kernel_other_shapes_go_to_python_fcl():
         tube = Obstacle("tube_for_test", cyl.position, radius=cyl.radius, length=cyl.length, axis=cyl.axis)
         ws2 = Workspace(robot, [Obstacle("cylinder", cyl.position, radius=cyl.radius, length=cyl.length,
                                          axis=cyl.axis), tube], None, None, 0.3, barrier_drift=True)
-        pin.computeAllTerms(robot.model, ws2.data, q, v)
+        rigid_pass(robot.model, ws2.data, q, v)
         assert K.state(ws2.work, q, v, 0.0) > 0  # the tube's pairs wait for python-fcl
         assert ws2.state(q, v, 0.0) == 0
         k = int(ws2.cnt[codes.CNT_PAIRS])

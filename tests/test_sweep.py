@@ -71,7 +71,10 @@ def assert_same_results(a, b):
 
     Not bit for bit: a proxqp run's last digits can differ from one process to another (seen: a least
     clearance 0.0995740374063869 against …639134 for the same parameters, each run alone in a fresh
-    process), so the floats are compared to a tolerance far below any metric's meaning."""
+    process), so the floats are compared to a tolerance far below any metric's meaning. The task
+    slack's largest norm is compared to 1e-8 absolute as well: on these runs it is proxqp's residue at
+    its eps_abs of 1e-9 (2.0570e-9 against 2.0566e-9 for the same run after other runs in the same
+    process, with the code of stop 35 as with stop 36's), not a quantity its last digits mean."""
     import numpy as np
     import pyarrow as pa
 
@@ -82,7 +85,8 @@ def assert_same_results(a, b):
         if pa.types.is_floating(x.type):
             xs, ys = x.to_numpy(zero_copy_only=False), y.to_numpy(zero_copy_only=False)
             assert np.array_equal(np.isnan(xs), np.isnan(ys)), name
-            assert np.allclose(xs, ys, rtol=1e-9, atol=1e-12, equal_nan=True), name
+            atol = 1e-8 if name == "qp_slack_max" else 1e-12
+            assert np.allclose(xs, ys, rtol=1e-9, atol=atol, equal_nan=True), name
         else:
             assert x.to_pylist() == y.to_pylist(), name
 

@@ -34,7 +34,6 @@ import time
 from typing import Any
 
 import numpy as np
-import pinocchio as pin
 
 from qpctl.controllers.base import (
     IDLE_REC_REFS,
@@ -54,7 +53,7 @@ from qpctl.kernels import codes
 from qpctl.kernels import tick as K
 from qpctl.law import closed_form_acceleration, law_terms
 from qpctl.state import TickState
-from qpctl.tick import Workspace
+from qpctl.tick import Workspace, rigid_pass
 
 _now = time.perf_counter
 getrefcount, copyto = sys.getrefcount, np.copyto
@@ -80,7 +79,7 @@ class PaperController(Controller):
         ws, entry = self._ws, self._entry
         if entry is not None and ws is not None and not ws.lie:  # the common tick first, in few statements
             try:
-                pin.computeAllTerms(ws.model, ws.data, q, v)
+                rigid_pass(ws.model, ws.data, q, v)
                 ok = True
             except Exception:  # noqa: BLE001 — not a state Pinocchio takes: the checks below say why
                 ok = False
@@ -101,12 +100,12 @@ class PaperController(Controller):
                 return self._after_kernel(code, q, v, t, start, (t1 - start, -1.0, -1.0, 0.0))
         if ws is None:
             ws = self.workspace()
-        if ws.fast:  # computeAllTerms, then one kernel call (stage times measured in it)
+        if ws.fast:  # rigid_pass, then one kernel call (stage times measured in it)
             try:
                 if not isinstance(t, float):  # a bool or an int would pass numba's conversions
                     raise TypeError(t)
                 t0 = time.perf_counter()
-                pin.computeAllTerms(ws.model, ws.data, q, v)
+                rigid_pass(ws.model, ws.data, q, v)
                 t1 = time.perf_counter()
                 qk = ws.joint_view(q)
                 entry = self._entry
@@ -117,7 +116,7 @@ class PaperController(Controller):
             except Exception:  # noqa: BLE001 — not two float64 arrays and a float: check, convert, once more
                 q, v, t = fast_state(q, v, t, self.n, self.robot.nq)  # InvalidStateError if it cannot
                 t0 = time.perf_counter()
-                pin.computeAllTerms(ws.model, ws.data, q, v)
+                rigid_pass(ws.model, ws.data, q, v)
                 t1 = time.perf_counter()
                 code = call_compiling(K.tick_closed_form, ws.work, ws.joint_view(q), v, t, self.weighted)
             lock_compilation(K.tick_closed_form)

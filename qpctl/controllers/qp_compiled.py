@@ -23,7 +23,6 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-import pinocchio as pin
 
 from qpctl.controllers.base import (
     IDLE_REC_REFS,
@@ -46,7 +45,7 @@ from qpctl.law import LawGains
 from qpctl.outcome import SOLUTION_RTOL
 from qpctl.qp import Problem, Solution
 from qpctl.solvers.base import QPSolver
-from qpctl.tick import QPBuffers, Workspace
+from qpctl.tick import QPBuffers, Workspace, rigid_pass
 
 _now = time.perf_counter
 getrefcount, copyto = sys.getrefcount, np.copyto
@@ -107,7 +106,7 @@ class CompiledTick:
 
     def fast_step(self, q: Any, v: Any, t: Any, start: float) -> QPOutput | None:
         """The common tick in as few Python statements as it takes, or None (before anything ran that
-        :meth:`step` would not run again) when this tick is not one: computeAllTerms, then the one-call
+        :meth:`step` would not run again) when this tick is not one: rigid_pass, then the one-call
         kernel through its compiled entry point (q and v float64 C vectors, t a float, no tick budget,
         both DAQP workspaces set up), then the output. A tick whose kernel reports anything but a solve
         on the first QP it tried goes on in :meth:`_after_native`, as :meth:`step`'s would; one before
@@ -116,7 +115,7 @@ class CompiledTick:
         if entry is None or ws.lie:  # (an angle view of q: step's)
             return None
         try:
-            pin.computeAllTerms(ws.model, ws.data, q, v)
+            rigid_pass(ws.model, ws.data, q, v)
         except Exception:  # noqa: BLE001 — not a state Pinocchio takes: step() checks it and says why
             return None
         t1 = _now()
@@ -256,7 +255,7 @@ class CompiledTick:
                 if not isinstance(t, float):  # a bool or an int would pass numba's conversions
                     raise TypeError(t)
                 t0 = time.perf_counter()
-                pin.computeAllTerms(ws.model, ws.data, q, v)
+                rigid_pass(ws.model, ws.data, q, v)
                 t1 = time.perf_counter()
                 qk = ws.joint_view(q)
                 entry = self._entry
@@ -267,7 +266,7 @@ class CompiledTick:
             except Exception:  # noqa: BLE001 — not two float64 arrays and a float: check, convert, once more
                 q, v, t = fast_state(q, v, t, ws.n, ws.nq)  # InvalidStateError if it cannot
                 t0 = time.perf_counter()
-                pin.computeAllTerms(ws.model, ws.data, q, v)
+                rigid_pass(ws.model, ws.data, q, v)
                 t1 = time.perf_counter()
                 code, hard = call_compiling(K.tick_qp, ws.work, self.packed, ws.joint_view(q), v, t, try_hard)
             lock_compilation(K.tick_qp)

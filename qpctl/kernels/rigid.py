@@ -1,9 +1,9 @@
 """Stage 1 of the tick, the rigid-body terms: M, N, the task points' x, ẋ, J, J̇q̇ (one per task
 frame, rows stacked), the oriented frames' R, ω, α₀ and the link
-capsules' world geometry, read from Pinocchio's arrays after ``computeAllTerms``.
+capsules' world geometry, read from Pinocchio's arrays after :func:`qpctl.tick.rigid_pass`.
 
 Pinocchio's data are bound once as numpy views (:func:`qpctl.tick.bind_pinocchio`): the joint
-placements ``oMi``, the joints' q̈ = 0 accelerations in their own frames ``acc_local``, the world
+placements ``oMi``, the joints' q̈ = 0 accelerations in their own frames less gravity ``acc_gf``, the world
 Jacobian columns ``Jt``, M's lower triangle ``Mt`` and ``nle``. From them: world points, point
 Jacobians J_v − [p]× J_ω, and each capsule body's q̈ = 0 acceleration field a(p) = offset + K p,
 which the pairs' drifts read (:mod:`qpctl.kernels.pairs`, :mod:`qpctl.kernels.self_pairs`).
@@ -19,17 +19,19 @@ import math
 import numpy as np
 from numba import njit
 
+from qpctl.kernels.codes import FP_GRAVITY
 from qpctl.kernels.work import SJ_TASK, SV_A3, SV_P, SV_VEL
 
 
 @njit(cache=True)
 def _world_acceleration(ws, j: int, out: np.ndarray) -> None:  # type: ignore[no-untyped-def]
     """out (6,) = joint j's q̈ = 0 spatial acceleration in the world frame, at the world origin:
-    (R a + p × R α, R α)."""
-    P, A = ws.oMi, ws.acc_local
+    (R a + p × R α, R α), a = a_gf + Rᵀg: Pinocchio's a_gf is the acceleration in a world that
+    accelerates at −g (a uniform field, the same at every point), so R a = R a_gf + g."""
+    P, A, fp = ws.oMi, ws.acc_gf, ws.fpar
     for r in range(3):
         out[3 + r] = P[j, r] * A[j, 3] + P[j, r + 3] * A[j, 4] + P[j, r + 6] * A[j, 5]
-        out[r] = P[j, r] * A[j, 0] + P[j, r + 3] * A[j, 1] + P[j, r + 6] * A[j, 2]
+        out[r] = P[j, r] * A[j, 0] + P[j, r + 3] * A[j, 1] + P[j, r + 6] * A[j, 2] + fp[FP_GRAVITY + r]
     px, py, pz = P[j, 9], P[j, 10], P[j, 11]
     ax, ay, az = out[3], out[4], out[5]
     out[0] += py * az - pz * ay
@@ -73,7 +75,7 @@ def _classical_acceleration(vel: np.ndarray, acc: np.ndarray, p: np.ndarray, out
 @njit(cache=True)
 def rigid_terms(ws, v: np.ndarray) -> bool:  # type: ignore[no-untyped-def]
     """M, N, the task point's x, ẋ, J, J̇q̇ and the capsules' geometry from Pinocchio's arrays (after
-    ``computeAllTerms``); False if N is not finite (speeds so large that C(q, q̇)q̇ overflows)."""
+    :func:`qpctl.tick.rigid_pass`); False if N is not finite (speeds so large that C(q, q̇)q̇ overflows)."""
     M, N, Mt, nle, Jt = ws.M, ws.N, ws.Mt, ws.nle, ws.Jt
     n = N.shape[0]
     for i in range(n):

@@ -1,5 +1,5 @@
 """The tick's entry points: what Python calls, each a whole stage or a whole tick after
-``computeAllTerms``. DESIGN.md §5; docs/tick.md has the module map.
+``rigid_pass`` (:func:`qpctl.tick.rigid_pass`: Pinocchio's crba and nonLinearEffects). DESIGN.md §5; docs/tick.md has the module map.
 
 Every kernel reads and writes the fixed-shape arrays of one :class:`~qpctl.kernels.work.TickWork`
 (:mod:`qpctl.kernels.work` lists them); nothing allocates per pair or per row, and the number of
@@ -77,7 +77,7 @@ __all__ = [
 
 @njit(cache=True)
 def state(ws, q: np.ndarray, v: np.ndarray, t: float) -> int:  # type: ignore[no-untyped-def]
-    """The tick's state after ``computeAllTerms(q, v)``: rigid terms, obstacles and reference at t,
+    """The tick's state after ``rigid_pass(q, v)``: rigid terms, obstacles and reference at t,
     pairs. Returns −1 when the dynamics overflow, else the number of pairs python-fcl must query
     (when 0, :func:`finish_pairs` has run too)."""
     for i in range(q.shape[0]):
@@ -161,7 +161,7 @@ def tick_qp_native_hard_first(ws, q: np.ndarray, v: np.ndarray, t: float, Hh: np
 
 @njit(cache=True)
 def tick_qp(ws, nq, q: np.ndarray, v: np.ndarray, t: float, try_hard: bool) -> tuple[int, int]:  # type: ignore[no-untyped-def]
-    """The whole QP tick after ``computeAllTerms`` in one call of three compiled arguments: the
+    """The whole QP tick after ``rigid_pass`` in one call of three compiled arguments: the
     workspace, both QP layouts (``nq``, a :class:`~qpctl.kernels.native_qp.NativeQP`) and the state;
     :func:`tick_qp_native_hard_first`'s pair, (BAD_SHAPE, −1) when q or v is not of the robot's n
     joints, (−1, −1) when the state is not finite or the dynamics overflow (the dispatcher has

@@ -5,7 +5,7 @@ pass, whatever the number of fields; forty separate arrays would cost 3–5 µs 
 while Python keeps its own references to the same numpy arrays (:class:`qpctl.tick.Workspace`).
 Its fields are declared once here, in :data:`FIELDS`, grouped by who writes them:
 
-* bound once: Pinocchio's arrays as numpy views (``computeAllTerms`` refreshes them in place);
+* bound once: Pinocchio's arrays as numpy views (:func:`qpctl.tick.rigid_pass` refreshes them in place);
 * built once: the robot's capsules and task frame, the scene, the path, gains and QP settings;
 * written every tick: the rigid-body terms, the pairs (fixed capacity: every link × obstacle pair),
   the law's terms, and the output record.
@@ -32,7 +32,8 @@ class TickWork(structref.StructRefProxy):
 FIELDS = (
     # -- Pinocchio's data, bound once as views (n joints, nj = n + 1 joint frames) --------------------
     "oMi",  # (nj, 12) joint placements: rotation column-major (9), then translation (3)
-    "acc_local",  # (nj, 6) joint accelerations at q̈ = 0 in their own frames (linear, angular)
+    "acc_gf",  # (nj, 6) joint accelerations at q̈ = 0 in their own frames (linear, angular), minus gravity
+    #            (Pinocchio's a_gf: the world frame accelerating at −g, qpctl.tick.rigid_pass)
     "Jt",  # (n, 6) data.J transposed: world Jacobian column of each joint
     "Mt",  # (n, n) data.M transposed: its lower triangle holds the inertia matrix
     "nle",  # (n,) C(q, q̇)q̇ + G(q)
