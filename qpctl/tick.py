@@ -60,7 +60,9 @@ def rigid_pass(model: pin.Model, data: pin.Data, q: np.ndarray, v: np.ndarray) -
     ``nonLinearEffects`` (nle = C(q, q̇)q̇ + G(q), and a_gf: the joints' q̈ = 0 accelerations with the
     world accelerating at −g). The two calls take 2.6 µs on the Panda where ``computeAllTerms``, which
     also computes the centre of mass, its Jacobian and the energies, takes 3.6 µs (docs/performance.md).
-    The compiled ticks make these two calls inline (qpctl.controllers); this is the one for the rest."""
+    Every tick path calls it (the controllers' fast and general paths, :meth:`Workspace.state`, warm-up).
+    The kernels give gravity back from the workspace's copy of ``model.gravity`` (``FP_GRAVITY``, set
+    when the workspace is built): change a model's gravity before building its controller, not after."""
     _crba(model, data, q, _WORLD)
     _nle(model, data, q, v)
 
