@@ -65,7 +65,7 @@ def warmup() -> dict[str, float]:
         ws = Workspace(robot, shapes, path, gains, gains.d_influence, broadphase=grid)
         for weighted in (True, False):  # the whole tick, then its second half (after Python's part)
             rigid_pass(ws.model, ws.data, q, v)
-            if K.tick_closed_form(ws.work, q, v, t, weighted) == codes.STATE_PYTHON:
+            if K.tick_closed_form(ws.work, q, v, t, weighted, np.empty_like(ws.rec)) == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
             K.closed_form_tick(ws.work, weighted)
     times["closed forms"] = time.perf_counter() - start
@@ -104,7 +104,7 @@ def warmup() -> dict[str, float]:
                 ws.finish_state(q, v, t)
             K.qp_tick_native_hard_first(ws.work, *args, try_hard)
             rigid_pass(ws.model, ws.data, q, v)
-            K.tick_qp(ws.work, packed, q, v, t, try_hard)
+            K.tick_qp(ws.work, packed, q, v, t, try_hard, np.empty_like(ws.rec))
         nat_h.free()
         nat_r.free()
     times["qp"] = time.perf_counter() - start

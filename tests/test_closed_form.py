@@ -37,8 +37,14 @@ def test_bad_states_raise_invalid_state_error(law, bad):
         q = q[None, :]
     else:
         v = "fast"
+    before = law.step(Q0 + 0.05, V0, 0.29)  # the output the refused tick would reuse (nobody else holds it)
+    tau, qdd, x = before.tau.copy(), before.qdd.copy(), before.x.copy()
+    del before
     with pytest.raises(InvalidStateError):
         law.step(q, v, t)
+    # the refused tick wrote nothing into the last output's record (the kernel copies it on success only)
+    for got, want in ((law.last.tau, tau), (law.last.qdd, qdd), (law.last.x, x)):
+        np.testing.assert_array_equal(got, want)
     assert np.isfinite(law.step(Q0, V0, 0.3).tau).all()
 
 
@@ -55,7 +61,9 @@ def test_outputs_reused_only_when_nobody_holds_them(law):
     np.testing.assert_array_equal(kept.tau, ref)
     del kept
     first = id(law.step(Q0, V0, 0.31))
-    assert id(law.step(Q0, V0, 0.32)) == first
+    again = law.step(Q0, V0, 0.32)
+    assert id(again) == first
+    np.testing.assert_array_equal(again._rec, law.workspace().rec)  # the kernel's copy: all of it, timings too
 
 
 def test_the_common_tick_goes_past_the_dispatcher(law, monkeypatch):

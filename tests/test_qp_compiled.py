@@ -174,8 +174,15 @@ def test_bad_states_raise_invalid_state_error(scene_and_states, bad):
         t = float("nan")
     ctrl.step(states.q[48], states.v[48], float(states.t[48]))  # DAQP set up again after warmup's reset
     assert ctrl.qp_path().fast_step(states.q[49], states.v[49], float(states.t[49]), 0.0) is not None
+    before = ctrl.step(states.q[49], states.v[49], float(states.t[49]))  # the output a refused tick would reuse
+    tau, qdd, clearance = before.tau.copy(), before.qdd.copy(), before.clearance
+    del before
     with pytest.raises(InvalidStateError):
         ctrl.step(q, v, t)
+    # the refused tick wrote nothing into the last output's record (the kernel copies it on success only)
+    np.testing.assert_array_equal(ctrl.last.tau, tau)
+    np.testing.assert_array_equal(ctrl.last.qdd, qdd)
+    assert ctrl.last.clearance == clearance
     good = ctrl.step(states.q[51], states.v[51], float(states.t[51]))
     assert np.isfinite(good.tau).all()
 
@@ -215,6 +222,7 @@ def test_the_fast_tick_equals_the_general_one_field_by_field(scene_and_states):
         q, v, t = states.q[k], states.v[k], (float(states.t[k]) if k % 2 else states.t[k])  # numpy's floats too
         a = fast.qp_path().fast_step(q, v, t, 0.0)
         assert a is not None
+        np.testing.assert_array_equal(a._rec, fast.qp_path().ws.rec)  # the kernel's copy: all of it, timings too
         fast.last, fast._last_from = a, fast.qp_path()
         taken += 1
         b = slow_path.step(q, v, t, 0.0)
@@ -262,7 +270,7 @@ def test_the_fast_tick_keeps_the_skip_rule(scene_and_states):
     back to zero (the record's slack ≤ SLACK_ZERO) makes the next fast tick try the task hard again, one
     that is not does not. (Dropping the rule's update from the fast tick passed the suite: the 300
     states above never give way.)"""
-    from qpctl.controllers.relaxation import SLACK_ZERO
+    from qpctl.kernels.hard_first import SLACK_ZERO
 
     scene, states = scene_and_states
     ctrl = _controller(scene)

@@ -56,7 +56,8 @@ from qpctl.state import TickState
 from qpctl.tick import Workspace, rigid_pass
 
 _now = time.perf_counter
-getrefcount, copyto = sys.getrefcount, np.copyto
+getrefcount = sys.getrefcount
+_NO_RECORD = np.empty(0)  # the kernel's record copy on a tick whose output _after_kernel writes: none
 
 
 class PaperController(Controller):
@@ -85,18 +86,21 @@ class PaperController(Controller):
                 ok = False
             t1 = _now()
             if ok and isinstance(t, float) and plain_vectors(q, v):
-                code = entry(ws.work, q, v, t, self.weighted)
+                out = self._out  # reused when nobody else holds it nor a view of its record
+                if out is None or getrefcount(out) > IDLE_REFS or getrefcount(out._rec) > IDLE_REC_REFS:
+                    out = None
+                rec = np.empty(ws.rec.shape[0]) if out is None else out._rec  # the kernel writes the record into it
+                code = entry(ws.work, q, v, t, self.weighted, rec)
                 if code == 0:
-                    out = self._out
-                    if out is not None and getrefcount(out) <= IDLE_REFS and getrefcount(out._rec) <= IDLE_REC_REFS:
-                        copyto(out._rec, ws.rec)  # nobody kept the last output nor a view of it: reuse it
+                    if out is not None:
                         out._extra = out._info = None
                         out._stages = (t1 - start, -1.0, -1.0, 0.0)
                     else:
-                        out = self._out = RecordOutput(ws.rec.copy(), ws.layout, None, 0.0, (t1 - start, -1.0, -1.0, 0.0))
+                        out = self._out = RecordOutput(rec, ws.layout, None, 0.0, (t1 - start, -1.0, -1.0, 0.0))
                     out.compute_us = (_now() - start) * 1e6
                     self.last = out
                     return out
+                out = None  # (its record untouched: _after_kernel writes the tick's output)
                 return self._after_kernel(code, q, v, t, start, (t1 - start, -1.0, -1.0, 0.0))
         if ws is None:
             ws = self.workspace()
@@ -110,18 +114,18 @@ class PaperController(Controller):
                 qk = ws.joint_view(q)
                 entry = self._entry
                 if entry is not None and plain_vectors(qk, v):
-                    code = entry(ws.work, qk, v, t, self.weighted)
+                    code = entry(ws.work, qk, v, t, self.weighted, _NO_RECORD)
                 else:
-                    code = K.tick_closed_form(ws.work, qk, v, t, self.weighted)
+                    code = K.tick_closed_form(ws.work, qk, v, t, self.weighted, _NO_RECORD)
             except Exception:  # noqa: BLE001 — not two float64 arrays and a float: check, convert, once more
                 q, v, t = fast_state(q, v, t, self.n, self.robot.nq)  # InvalidStateError if it cannot
                 t0 = time.perf_counter()
                 rigid_pass(ws.model, ws.data, q, v)
                 t1 = time.perf_counter()
-                code = call_compiling(K.tick_closed_form, ws.work, ws.joint_view(q), v, t, self.weighted)
+                code = call_compiling(K.tick_closed_form, ws.work, ws.joint_view(q), v, t, self.weighted, _NO_RECORD)
             lock_compilation(K.tick_closed_form)
             if self._entry is None:
-                self._entry = entry_point(K.tick_closed_form, ws.work, weighted=self.weighted)
+                self._entry = entry_point(K.tick_closed_form, ws.work, weighted=self.weighted, out=_NO_RECORD)
             return self._after_kernel(code, q, v, t, start, (t1 - t0, -1.0, -1.0, 0.0))
         q, v, t = fast_state(q, v, t, self.n, self.robot.nq)
         self._state(q, v, t)

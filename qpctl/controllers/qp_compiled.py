@@ -48,7 +48,8 @@ from qpctl.solvers.base import QPSolver
 from qpctl.tick import QPBuffers, Workspace, rigid_pass
 
 _now = time.perf_counter
-getrefcount, copyto = sys.getrefcount, np.copyto
+getrefcount = sys.getrefcount
+_NO_RECORD = np.empty(0)  # the one-call kernel's record copy on a tick whose output _finish writes: none
 
 
 class CompiledTick:
@@ -127,25 +128,28 @@ class CompiledTick:
             return None
         if ws._field is not None:
             ws.sync_field()
-        code, hard = entry(ws.work, self.packed, q, v, t, try_hard)
+        out = self._out  # reused when nobody else holds it nor a view of its record: the kernel writes its record
+        if out is None or getrefcount(out) > IDLE_REFS or getrefcount(out._rec) > IDLE_REC_REFS:
+            out = None
+        rec = np.empty(ws.rec.shape[0]) if out is None else out._rec  # (allocated only when the caller kept the last)
+        code, hard, hard_next = entry(ws.work, self.packed, q, v, t, try_hard, rec)
         if code or hard > 0:
+            out = None  # (its record untouched; the tick's output is written by _after_native)
             code, hard = self._state_python(code, hard, q, v, t, try_hard)
             if hard in (3, 4):
                 nat_h.free()  # type: ignore[union-attr]  # as in _native: no warm start from a failed working set
             return self._after_native(code, hard, (t1 - start, -1.0, -1.0, -1.0), q, start)
         used_hard = hard == 0
-        if relax.skip_rule:  # the skip rule's memory, in its one place (a solved tick of zero slack: hard again)
-            relax.after(True, used_hard, True, ws.rec[self._slack_at])
+        if relax.skip_rule:  # the skip rule's memory (its rule, hard_next, ran in the kernel)
+            relax._try_hard = hard_next
         self._last_lay = self.hard if used_hard else self.relaxed  # last and last_problem, when read
-        out = self._out
         words = self._words_hard if used_hard else self._words_relaxed
-        if out is not None and getrefcount(out) <= IDLE_REFS and getrefcount(out._rec) <= IDLE_REC_REFS:
-            copyto(out._rec, ws.rec)
+        if out is not None:
             out._extra = out._info = None
             out._stages, out._solved, out._words = (t1 - start, -1.0, -1.0, -1.0), True, words
             out.compute_us = (_now() - start) * 1e6
             return out
-        out = self._out = QPOutput(ws.rec.copy(), ws.layout, None, 0.0, (t1 - start, -1.0, -1.0, -1.0), True, words)
+        out = self._out = QPOutput(rec, ws.layout, None, 0.0, (t1 - start, -1.0, -1.0, -1.0), True, words)
         out.compute_us = (_now() - start) * 1e6
         return out
 
@@ -260,18 +264,19 @@ class CompiledTick:
                 qk = ws.joint_view(q)
                 entry = self._entry
                 if entry is not None and plain_vectors(qk, v):
-                    code, hard = entry(ws.work, self.packed, qk, v, t, try_hard)
+                    code, hard, _ = entry(ws.work, self.packed, qk, v, t, try_hard, _NO_RECORD)
                 else:
-                    code, hard = K.tick_qp(ws.work, self.packed, qk, v, t, try_hard)
+                    code, hard, _ = K.tick_qp(ws.work, self.packed, qk, v, t, try_hard, _NO_RECORD)
             except Exception:  # noqa: BLE001 — not two float64 arrays and a float: check, convert, once more
                 q, v, t = fast_state(q, v, t, ws.n, ws.nq)  # InvalidStateError if it cannot
                 t0 = time.perf_counter()
                 rigid_pass(ws.model, ws.data, q, v)
                 t1 = time.perf_counter()
-                code, hard = call_compiling(K.tick_qp, ws.work, self.packed, ws.joint_view(q), v, t, try_hard)
+                code, hard, _ = call_compiling(K.tick_qp, ws.work, self.packed, ws.joint_view(q), v, t, try_hard,
+                                               _NO_RECORD)
             lock_compilation(K.tick_qp)
             if self._entry is None:
-                self._entry = entry_point(K.tick_qp, ws.work, self.packed, try_hard=True)
+                self._entry = entry_point(K.tick_qp, ws.work, self.packed, try_hard=True, out=_NO_RECORD)
             code, hard = self._state_python(code, hard, q, v, t, try_hard)
             stages = (t1 - t0, -1.0, -1.0, -1.0)
         else:

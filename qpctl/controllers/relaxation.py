@@ -35,14 +35,15 @@ from typing import Any
 import numpy as np
 
 from qpctl.errors import ConfigError
+from qpctl.kernels.hard_first import hard_next
 from qpctl.qp import Problem, penalty_is_exact
 
 MODES = ("auto", "always", "on_failure")
+_hard_next = hard_next.py_func  # the skip rule as the kernels run it, in Python here (no compiled signature)
 
 #: The hard QP's refusals, by the code the compiled tick returns for it (3: the solver's own word).
 REFUSALS = {4: "inaccurate", 7: "penalty_inexact"}
 TASK_ROWS_MISSED = "inaccurate"  # step 2 failed: the task rows do not hold (the solver dropped one)
-SLACK_ZERO = 1e-12  # [task units] a slack norm at or below this is zero: the task did not give way
 
 
 def check_mode(mode: str) -> str:
@@ -94,7 +95,7 @@ class TaskRelaxation:
     def after(self, one_call: bool, used_hard: bool, solved: bool, slack: float) -> None:
         """Note the tick's outcome: the skip rule's memory (module docstring; ``"auto"`` on DAQP)."""
         if not self.always_hard and self.hard_first(one_call):
-            self._try_hard = used_hard or (solved and slack <= SLACK_ZERO)
+            self._try_hard = bool(_hard_next(used_hard, solved, slack))
 
     def reset(self) -> None:
         self._try_hard = True

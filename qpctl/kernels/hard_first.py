@@ -17,6 +17,18 @@ from qpctl.kernels.daqp import native_solve
 from qpctl.kernels.finish import qp_finish
 from qpctl.kernels.solve import native_solve_finish, qp_rebuild, qp_terms_and_build
 
+SLACK_ZERO = 1e-12  # [task units] a slack norm at or below this is zero: the task did not give way
+
+
+@njit(cache=True)
+def hard_next(used_hard: bool, solved: bool, slack: float) -> bool:
+    """The skip rule (:mod:`qpctl.controllers.relaxation`, ``"auto"`` on DAQP): whether the next
+    one-call tick tries the hard QP first, after a tick that used its answer (``used_hard``), solved
+    (``solved``) with the task slack's norm ``slack``: yes unless the task gave way. The one place the
+    rule is written; :meth:`TaskRelaxation.after` and the one-call tick (:func:`qpctl.kernels.tick.tick_qp`)
+    both call it."""
+    return used_hard or (solved and slack <= SLACK_ZERO)
+
 
 @njit(cache=True)
 def penalty_exact(lam: np.ndarray, first: int, m: int, l1: float) -> bool:

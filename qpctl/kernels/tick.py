@@ -31,6 +31,7 @@ from qpctl.kernels.codes import (
     CNT_LOOKAHEAD,
     FP_T,
     R_BUILD_US,
+    R_SLACK,
     R_STATE_US,
     STATE_PYTHON,
     record_scalars,
@@ -38,7 +39,7 @@ from qpctl.kernels.codes import (
 from qpctl.kernels.daqp import native_solve
 from qpctl.kernels.field_rows import set_field
 from qpctl.kernels.finish import qp_finish, write_record
-from qpctl.kernels.hard_first import qp_tick_native_hard_first
+from qpctl.kernels.hard_first import hard_next, qp_tick_native_hard_first
 from qpctl.kernels.law import closed_form, closed_form_tick, law_terms
 from qpctl.kernels.pairs import find_pairs, finish_pairs
 from qpctl.kernels.rigid import rigid_terms
@@ -110,10 +111,19 @@ def state_timed(ws, q: np.ndarray, v: np.ndarray, t: float, ts: np.ndarray) -> i
 
 
 @njit(cache=True)
-def tick_closed_form(ws, q: np.ndarray, v: np.ndarray, t: float, weighted: bool) -> int:  # type: ignore[no-untyped-def]
-    """State, law terms and closed form in one call: 0; −1 the dynamics overflow or a non-finite
-    state; 1 M not positive definite; BAD_SHAPE: q or v is not of the robot's n joints; STATE_PYTHON:
-    the state is waiting for Python (then call :func:`closed_form_tick`)."""
+def copy_record(rec: np.ndarray, out: np.ndarray) -> None:
+    """The tick's record into ``out``, a tick output's own array (as long as the record)."""
+    for i in range(min(rec.shape[0], out.shape[0])):
+        out[i] = rec[i]
+
+
+@njit(cache=True)
+def tick_closed_form(ws, q: np.ndarray, v: np.ndarray, t: float, weighted: bool,  # type: ignore[no-untyped-def]
+                     out: np.ndarray) -> int:
+    """State, law terms and closed form in one call, the record copied into ``out`` (the output's own
+    array) when it returns 0; else ``out`` is untouched. Returns 0; −1 the dynamics overflow or a non-finite state; 1 M not positive definite; BAD_SHAPE:
+    q or v is not of the robot's n joints; STATE_PYTHON: the state is waiting for Python (then call
+    :func:`closed_form_tick`)."""
     n = ws.q.shape[0]
     if q.shape[0] != n or v.shape[0] != n:
         return BAD_SHAPE
@@ -126,6 +136,8 @@ def tick_closed_form(ws, q: np.ndarray, v: np.ndarray, t: float, weighted: bool)
     t1 = now_us(ts)
     code = closed_form_tick(ws, weighted)
     ws.rec[record_scalars(ws.N.shape[0], ws.a.shape[0]) + R_BUILD_US] = now_us(ts) - t1
+    if code == 0:
+        copy_record(ws.rec, out)
     return code
 
 
@@ -160,21 +172,30 @@ def tick_qp_native_hard_first(ws, q: np.ndarray, v: np.ndarray, t: float, Hh: np
 
 
 @njit(cache=True)
-def tick_qp(ws, nq, q: np.ndarray, v: np.ndarray, t: float, try_hard: bool) -> tuple[int, int]:  # type: ignore[no-untyped-def]
+def tick_qp(ws, nq, q: np.ndarray, v: np.ndarray, t: float, try_hard: bool,  # type: ignore[no-untyped-def]
+            out: np.ndarray) -> tuple[int, int, bool]:
     """The whole QP tick after ``rigid_pass`` in one call of three compiled arguments: the
     workspace, both QP layouts (``nq``, a :class:`~qpctl.kernels.native_qp.NativeQP`) and the state;
-    :func:`tick_qp_native_hard_first`'s pair, (BAD_SHAPE, −1) when q or v is not of the robot's n
-    joints, (−1, −1) when the state is not finite or the dynamics overflow (the dispatcher has
-    already refused any other type: no Python checks a good state)."""
+    the record copied into ``out`` (the output's own array: no copy in Python) when the tick solved
+    and nothing is left for Python (code 0, ``hard`` ≤ 0; on other ticks Python writes it). Returns
+    :func:`tick_qp_native_hard_first`'s pair and whether the next tick tries the task hard
+    (:func:`~qpctl.kernels.hard_first.hard_next`, the skip rule); (BAD_SHAPE, −1, try_hard) when q or v
+    is not of the robot's n joints, (−1, −1, try_hard) when the state is not finite or the dynamics
+    overflow (the dispatcher has already refused any other type: no Python checks a good state)."""
     n = ws.q.shape[0]
     if q.shape[0] != n or v.shape[0] != n:
-        return BAD_SHAPE, -1
+        return BAD_SHAPE, -1, try_hard
     if not abs(t) < np.inf:  # NaN or ±inf; q and v: the state's overflow test (rigid_terms)
-        return -1, -1
+        return -1, -1, try_hard
     ts = ws.ts
     code = state_timed(ws, q, v, t, ts)
     if code != 0:
-        return code, -1
-    return qp_tick_native_hard_first(ws, nq.Hh, nq.fh, nq.rowsh, nq.buh, nq.blh, nq.workh, nq.problemh, nq.resulth,
-                                     nq.flagh, nq.xh, nq.lamh, nq.Hr, nq.fr, nq.rowsr, nq.bur, nq.blr, nq.workr,
-                                     nq.problemr, nq.resultr, nq.flagr, nq.xr, nq.tol, nq.l1, try_hard)
+        return code, -1, try_hard
+    code, hard = qp_tick_native_hard_first(ws, nq.Hh, nq.fh, nq.rowsh, nq.buh, nq.blh, nq.workh, nq.problemh,
+                                           nq.resulth, nq.flagh, nq.xh, nq.lamh, nq.Hr, nq.fr, nq.rowsr, nq.bur,
+                                           nq.blr, nq.workr, nq.problemr, nq.resultr, nq.flagr, nq.xr, nq.tol, nq.l1,
+                                           try_hard)
+    if code == 0 and hard <= 0:  # the tick Python ends without a word (else Python copies the record)
+        copy_record(ws.rec, out)
+    slack = ws.rec[record_scalars(ws.N.shape[0], ws.a.shape[0]) + R_SLACK]
+    return code, hard, hard_next(hard == 0, code == 0, slack)
