@@ -93,7 +93,7 @@ def warmup() -> dict[str, float]:
         K.native_solve_finish(ws.work, relaxed.rows, relaxed.bu, relaxed.bl, *nat_r.addresses, nat_r.flag, nat_r.x,
                               SOLUTION_RTOL)
         args = (*nat_h.kernel_args, nat_h.lam, *nat_r.kernel_args, SOLUTION_RTOL, 1e6)
-        packed = new_native_qp(*args)
+        packed = new_native_qp(ws.work, *args)
         for try_hard in (True, False):  # the whole tick, then its part after the state (Python's turn)
             rigid_pass(ws.model, ws.data, q, v)
             if K.tick_qp_native(ws.work, q, v, t, *nat_r.kernel_args, SOLUTION_RTOL) == codes.STATE_PYTHON:
@@ -104,7 +104,7 @@ def warmup() -> dict[str, float]:
                 ws.finish_state(q, v, t)
             K.qp_tick_native_hard_first(ws.work, *args, try_hard)
             rigid_pass(ws.model, ws.data, q, v)
-            K.tick_qp(ws.work, packed, q, v, t, try_hard, np.empty_like(ws.rec))
+            K.tick_qp(packed, q, v, t, try_hard, np.empty_like(ws.rec))
         nat_h.free()
         nat_r.free()
     times["qp"] = time.perf_counter() - start

@@ -43,7 +43,7 @@ STAGES = ("rigid_us", "state_us", "build_us", "solve_us")
 
 #: The per-tick breakdown the tables and the stages plot show [µs]: (key, column title).
 #: pinocchio = rigid_us, state kernel = state_us − rigid_us, law + rows = build_us, solve = solve_us,
-#: other = wall − (state_us + build_us + solve_us): input checks, the record's copy, the timers.
+#: other = wall − (state_us + build_us + solve_us): input checks, the kernel call (its arguments), the output, the timers.
 BREAKDOWN = (("pinocchio_us", "Pinocchio"), ("state_kernel_us", "state kernel"), ("law_rows_us", "law + rows"),
              ("solve_us", "solve"), ("other_us", "other"))
 

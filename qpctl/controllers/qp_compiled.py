@@ -75,7 +75,7 @@ class CompiledTick:
             assert nh is not None and nr is not None
             self.native_args = (*nh.kernel_args, nh.lam, *nr.kernel_args, SOLUTION_RTOL, float(ws.spec.slack_l1))
         # the one-call tick's QP arguments as one compiled argument (qpctl.kernels.native_qp)
-        self.packed: Any = None if self.native_args is None else new_native_qp(*self.native_args)
+        self.packed: Any = None if self.native_args is None else new_native_qp(ws.work, *self.native_args)
         self._last_problem: Problem | None = None
         self._last: tuple[np.ndarray | None, str, int, str] | Solution | None = None
         self._last_lay: QPLayout | None = None  # the layout whose answer a fast tick used (last, when read)
@@ -132,7 +132,7 @@ class CompiledTick:
         if out is None or getrefcount(out) > IDLE_REFS or getrefcount(out._rec) > IDLE_REC_REFS:
             out = None
         rec = np.empty(ws.rec.shape[0]) if out is None else out._rec  # (allocated only when the caller kept the last)
-        code, hard, hard_next = entry(ws.work, self.packed, q, v, t, try_hard, rec)
+        code, hard, hard_next = entry(self.packed, q, v, t, try_hard, rec)
         if code or hard > 0:
             out = None  # (its record untouched; the tick's output is written by _after_native)
             code, hard = self._state_python(code, hard, q, v, t, try_hard)
@@ -264,19 +264,19 @@ class CompiledTick:
                 qk = ws.joint_view(q)
                 entry = self._entry
                 if entry is not None and plain_vectors(qk, v):
-                    code, hard, _ = entry(ws.work, self.packed, qk, v, t, try_hard, _NO_RECORD)
+                    code, hard, _ = entry(self.packed, qk, v, t, try_hard, _NO_RECORD)
                 else:
-                    code, hard, _ = K.tick_qp(ws.work, self.packed, qk, v, t, try_hard, _NO_RECORD)
+                    code, hard, _ = K.tick_qp(self.packed, qk, v, t, try_hard, _NO_RECORD)
             except Exception:  # noqa: BLE001 — not two float64 arrays and a float: check, convert, once more
                 q, v, t = fast_state(q, v, t, ws.n, ws.nq)  # InvalidStateError if it cannot
                 t0 = time.perf_counter()
                 rigid_pass(ws.model, ws.data, q, v)
                 t1 = time.perf_counter()
-                code, hard, _ = call_compiling(K.tick_qp, ws.work, self.packed, ws.joint_view(q), v, t, try_hard,
+                code, hard, _ = call_compiling(K.tick_qp, self.packed, ws.joint_view(q), v, t, try_hard,
                                                _NO_RECORD)
             lock_compilation(K.tick_qp)
             if self._entry is None:
-                self._entry = entry_point(K.tick_qp, ws.work, self.packed, try_hard=True, out=_NO_RECORD)
+                self._entry = entry_point(K.tick_qp, self.packed, try_hard=True, out=_NO_RECORD)
             code, hard = self._state_python(code, hard, q, v, t, try_hard)
             stages = (t1 - t0, -1.0, -1.0, -1.0)
         else:

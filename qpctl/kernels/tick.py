@@ -172,16 +172,17 @@ def tick_qp_native_hard_first(ws, q: np.ndarray, v: np.ndarray, t: float, Hh: np
 
 
 @njit(cache=True)
-def tick_qp(ws, nq, q: np.ndarray, v: np.ndarray, t: float, try_hard: bool,  # type: ignore[no-untyped-def]
+def tick_qp(nq, q: np.ndarray, v: np.ndarray, t: float, try_hard: bool,  # type: ignore[no-untyped-def]
             out: np.ndarray) -> tuple[int, int, bool]:
-    """The whole QP tick after ``rigid_pass`` in one call of three compiled arguments: the
-    workspace, both QP layouts (``nq``, a :class:`~qpctl.kernels.native_qp.NativeQP`) and the state;
+    """The whole QP tick after ``rigid_pass`` in one call: ``nq`` (a
+    :class:`~qpctl.kernels.native_qp.NativeQP`: the workspace and both QP layouts) and the state;
     the record copied into ``out`` (the output's own array: no copy in Python) when the tick solved
     and nothing is left for Python (code 0, ``hard`` ≤ 0; on other ticks Python writes it). Returns
     :func:`tick_qp_native_hard_first`'s pair and whether the next tick tries the task hard
     (:func:`~qpctl.kernels.hard_first.hard_next`, the skip rule); (BAD_SHAPE, −1, try_hard) when q or v
     is not of the robot's n joints, (−1, −1, try_hard) when the state is not finite or the dynamics
     overflow (the dispatcher has already refused any other type: no Python checks a good state)."""
+    ws = nq.ws
     n = ws.q.shape[0]
     if q.shape[0] != n or v.shape[0] != n:
         return BAD_SHAPE, -1, try_hard
