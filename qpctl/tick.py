@@ -61,14 +61,15 @@ def rigid_pass(model: pin.Model, data: pin.Data, q: np.ndarray, v: np.ndarray) -
     world accelerating at −g). The two calls take 2.6 µs on the Panda where ``computeAllTerms``, which
     also computes the centre of mass, its Jacobian and the energies, takes 3.6 µs (docs/performance.md).
     Every tick path calls it (the controllers' fast and general paths, :meth:`Workspace.state`, warm-up).
-    The kernels give gravity back from the workspace's copy of ``model.gravity`` (``FP_GRAVITY``, set
-    when the workspace is built): change a model's gravity before building its controller, not after."""
+    The kernels give gravity back from ``model.gravity`` itself (:func:`bind_pinocchio`'s live view), so
+    a gravity changed after the controller was built counts from the next tick."""
     _crba(model, data, q, _WORLD)
     _nle(model, data, q, v)
 
 
 def bind_pinocchio(model: pin.Model, data: pin.Data) -> dict[str, np.ndarray]:
-    """Numpy views of ``data``'s placements, accelerations (a_gf), Jacobians, inertia and bias forces.
+    """Numpy views of ``data``'s placements, accelerations (a_gf), Jacobians, inertia and bias forces,
+    and of ``model``'s gravity (its linear part, the world acceleration a_gf omits).
 
     Checked against Pinocchio's own accessors once, on a random state after :func:`rigid_pass`: a
     Pinocchio build that lays its ``Data`` out otherwise, or whose ``rigid_pass`` leaves a view stale,
@@ -77,7 +78,9 @@ def bind_pinocchio(model: pin.Model, data: pin.Data) -> dict[str, np.ndarray]:
     nj, n = model.njoints, model.nv
     placements = _view(data.oMi[0].rotation.__array_interface__["data"][0], (nj, 12))
     accelerations = _view(data.a_gf[0].linear.__array_interface__["data"][0], (nj, 6))
-    views = {"oMi": placements, "acc_gf": accelerations, "Jt": data.J.T, "Mt": data.M.T, "nle": data.nle}
+    gravity = model.gravity.linear  # Pinocchio returns the model's own memory (checked below)
+    views = {"oMi": placements, "acc_gf": accelerations, "Jt": data.J.T, "Mt": data.M.T, "nle": data.nle,
+             "gravity": gravity}
     rng = np.random.default_rng(0)
     q = pin.randomConfiguration(model, -np.ones(model.nq), np.ones(model.nq)) if model.nq else np.zeros(0)
     v = rng.uniform(-1, 1, n)
@@ -91,9 +94,11 @@ def bind_pinocchio(model: pin.Model, data: pin.Data) -> dict[str, np.ndarray]:
         ok = ok and np.array_equal(accelerations[j], data.a_gf[j].vector)
         if not ok:
             raise RuntimeError("this Pinocchio build lays out pin.Data differently from what qpctl's tick expects")
-    for name in ("Jt", "Mt", "nle"):
+    for name in ("Jt", "Mt", "nle", "gravity"):
         if views[name].flags["OWNDATA"] or not views[name].flags["C_CONTIGUOUS"]:
             raise RuntimeError(f"pin.Data's {name} is not a contiguous view in this Pinocchio build")
+    if gravity.__array_interface__["data"][0] != model.gravity.linear.__array_interface__["data"][0]:
+        raise RuntimeError("this Pinocchio build returns a copy of model.gravity, not the model's own memory")
     if not (np.array_equal(data.J, full.J) and np.allclose(np.triu(data.M), np.triu(full.M), rtol=1e-12, atol=1e-12)
             and np.allclose(data.nle, full.nle, rtol=1e-12, atol=1e-12)):
         raise RuntimeError("Pinocchio's crba and nonLinearEffects disagree with its computeAllTerms in this build")
@@ -343,7 +348,6 @@ class Workspace:
         self.pin_s = self.state_s = 0.0  # the last tick's stage wall times [s]
         self.drift_step = 2e-3  # [s] look-ahead of the barrier drift's finite difference (python-fcl shapes)
         self.fpar = np.zeros(codes.FP_SIZE)
-        self.fpar[codes.FP_GRAVITY:codes.FP_GRAVITY + 3] = model.gravity.linear  # the a_gf views' −g, undone
         self.ipar = np.zeros(codes.IP_SIZE, dtype=np.int64)
         self._grid(broadphase, cutoff)
         # path (None: state only)

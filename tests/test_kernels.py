@@ -1233,6 +1233,37 @@ def test_bind_pinocchio_views_are_live(which):
         previous = views["oMi"].copy()
 
 
+@pytest.mark.parametrize("which", ["planar", "panda"])
+def test_gravity_changed_after_the_workspace_is_built_counts(which):
+    """The kernels give a_gf its gravity back from the model itself (bind_pinocchio's live view), so a
+    workspace built before ``model.gravity`` changes still gives J̇q̇ — independent of gravity — as
+    Pinocchio's classical acceleration at q̈ = 0 (forwardKinematics, no gravity involved), and N as
+    nonLinearEffects under the new gravity on a separate model. (A copy taken at the build gave the
+    drift off by R(g_new − g_old) terms.)"""
+    robot = planar_arm() if which == "planar" else panda()
+    model = robot.model
+    g0 = model.gravity.linear.copy()
+    ws = Workspace(robot, [], None, None, 0.25)
+    assert ws.model is model
+    ref = PinReference(robot)
+    other = pin.Model(model)
+    rng = np.random.default_rng(SEED + 71)
+    try:
+        for g in ([0.0, 0.0, -3.7], [1.5, -2.0, 0.5], [0.0, 0.0, 0.0]):
+            model.gravity = pin.Motion(np.array(g), np.zeros(3))
+            other.gravity = pin.Motion(np.array(g), np.zeros(3))
+            np.testing.assert_array_equal(ws.gravity, g)
+            for q, v, t in sample_states(robot, rng, 3):
+                assert ws.state(q, v, t) >= 0
+                ref.at(q, v)
+                _, _, drift = ref.task()
+                assert_close(ws.drift, drift, 1e-12, f"J̇q̇ under g = {g}")
+                N = pin.nonLinearEffects(other, other.createData(), q, v)
+                assert_close(ws.N, N, 1e-12, f"N under g = {g}")
+    finally:
+        model.gravity = pin.Motion(g0, np.zeros(3))
+
+
 # ---------------------------------------------------------------------------------------------------
 # 8. The on-disk kernel cache, seen from a fresh worker process
 # ---------------------------------------------------------------------------------------------------

@@ -28,8 +28,7 @@ FP_BRK_SHARE, FP_BRK_MARGIN, FP_BRK_DT = 38, 39, 40
 # the field's soft speed rows: where their bound reaches soft_speed [m], their horizon [s], the funnel's slope [1/s]
 FP_FD_VMARGIN, FP_FD_HORIZON, FP_FD_VSLOPE = 41, 42, 43
 FP_FD_KR = 44  # the rigid rows' recovery gain inside their margin [1/s]
-FP_GRAVITY = 45  # (3,) the model's gravity [m/s²] at 45, 46, 47 (the world acceleration rigid_pass's a_gf omits)
-FP_SIZE = 48
+FP_SIZE = 45
 # Int settings (TickWork.ipar)
 IP_JDOT_EN, IP_DRIFT_RIGID, IP_CAPACITY, IP_TORQUE_ROW0, IP_BARRIER_ROW0, IP_JOINT_LIMITS = range(6)
 IP_POSTURE, IP_N_IN, IP_BDRIFT, IP_DAMPING, IP_SELF_ROW0 = range(6, 11)

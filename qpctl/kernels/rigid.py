@@ -19,7 +19,6 @@ import math
 import numpy as np
 from numba import njit
 
-from qpctl.kernels.codes import FP_GRAVITY
 from qpctl.kernels.work import SJ_TASK, SV_A3, SV_P, SV_VEL
 
 
@@ -27,11 +26,12 @@ from qpctl.kernels.work import SJ_TASK, SV_A3, SV_P, SV_VEL
 def _world_acceleration(ws, j: int, out: np.ndarray) -> None:  # type: ignore[no-untyped-def]
     """out (6,) = joint j's q̈ = 0 spatial acceleration in the world frame, at the world origin:
     (R a + p × R α, R α), a = a_gf + Rᵀg: Pinocchio's a_gf is the acceleration in a world that
-    accelerates at −g (a uniform field, the same at every point), so R a = R a_gf + g."""
-    P, A, fp = ws.oMi, ws.acc_gf, ws.fpar
+    accelerates at −g (a uniform field, the same at every point), so R a = R a_gf + g, g read from the
+    model itself (``ws.gravity``, a live view: a gravity changed after the workspace was built counts)."""
+    P, A, g = ws.oMi, ws.acc_gf, ws.gravity
     for r in range(3):
         out[3 + r] = P[j, r] * A[j, 3] + P[j, r + 3] * A[j, 4] + P[j, r + 6] * A[j, 5]
-        out[r] = P[j, r] * A[j, 0] + P[j, r + 3] * A[j, 1] + P[j, r + 6] * A[j, 2] + fp[FP_GRAVITY + r]
+        out[r] = P[j, r] * A[j, 0] + P[j, r + 3] * A[j, 1] + P[j, r + 6] * A[j, 2] + g[r]
     px, py, pz = P[j, 9], P[j, 10], P[j, 11]
     ax, ay, az = out[3], out[4], out[5]
     out[0] += py * az - pz * ay

@@ -37,6 +37,7 @@ FIELDS = (
     "Jt",  # (n, 6) data.J transposed: world Jacobian column of each joint
     "Mt",  # (n, n) data.M transposed: its lower triangle holds the inertia matrix
     "nle",  # (n,) C(q, q̇)q̇ + G(q)
+    "gravity",  # (3,) model.gravity's linear part [m/s²], a live view of the model: what a_gf omits
     # -- robot, built once (L capsules, m task coordinates) ------------------------------------------
     "cap_joint",  # (L,) int: the joint whose body carries capsule i
     "cap_local",  # (L, 2, 3) capsule axis end points in that joint's frame [m]
