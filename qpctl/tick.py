@@ -394,7 +394,7 @@ class Workspace:
         self.q, self.v = np.zeros(n), np.zeros(n)
         self.M, self.N, self.x, self.xdot = np.zeros((n, n)), np.zeros(n), np.zeros(m), np.zeros(m)
         self.J, self.drift, self.Jdot = np.zeros((m, n)), np.zeros(m), np.zeros((m, n))
-        self.segments, self.body_jac, self.body_vel = np.zeros((L, 2, 3)), np.zeros((L, 6, n)), np.zeros((L, 6))
+        self.segments, self.body_vel = np.zeros((L, 2, 3)), np.zeros((L, 6))
         self.acc_off, self.acc_K, self.link_jac = np.zeros((L, 3)), np.zeros((L, 3, 3)), np.zeros((L, 3, n))
         self.ref = np.zeros((3, m))
         KC = max(L * O, 1)

@@ -119,18 +119,16 @@ def rigid_terms(ws, v: np.ndarray) -> bool:  # type: ignore[no-untyped-def]
                         ws.ee_w[f, c], ws.ee_w[f, 3 + c] = vel[3 + c], acc[3 + c]
     # capsules
     cap_joint, cap_local, cap_support = ws.cap_joint, ws.cap_local, ws.cap_support
-    segments, body_jac, body_vel = ws.segments, ws.body_jac, ws.body_vel
+    segments, body_vel = ws.segments, ws.body_vel
     link_jac, acc_off, acc_K = ws.link_jac, ws.acc_off, ws.acc_K
     for i in range(cap_joint.shape[0]):
         j = cap_joint[i]
         world_point(ws, j, cap_local[i, 0], segments[i, 0])
         world_point(ws, j, cap_local[i, 1], segments[i, 1])
-        for r in range(6):
+        for r in range(6):  # the body's world spatial velocity: its support's Jacobian columns times q̇
             s = 0.0
             for k in range(n):
-                val = Jt[k, r] * cap_support[i, k]
-                body_jac[i, r, k] = val
-                s += val * v[k]
+                s += Jt[k, r] * cap_support[i, k] * v[k]
             body_vel[i, r] = s
         for r in range(3):
             p[r] = 0.5 * (segments[i, 0, r] + segments[i, 1, r])

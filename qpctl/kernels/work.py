@@ -112,7 +112,6 @@ FIELDS = (
     "task_w",  # (m,) the task rows' weights in the QP (EndEffectorTask.weights; 1 by default)
     "Jdot",  # (m, n) J̇, filled by Python only when the law's J̇e_N term is on
     "segments",  # (L, 2, 3) capsule axes in the world [m]
-    "body_jac",  # (L, 6, n) world Jacobians of the capsules' bodies
     "body_vel",  # (L, 6) their world spatial velocities (v at the origin, ω)
     "acc_off",  # (L, 3) q̈ = 0 acceleration field a(p) = acc_off + acc_K p of each body
     "acc_K",  # (L, 3, 3)
