@@ -47,6 +47,9 @@ class FallbackContext:
     window: tuple[np.ndarray, np.ndarray] | None  # the torques the drives accept now [N·m] (None: no limits)
     deadline: float = np.inf  # time.perf_counter() time the tick budget ends
     build_relaxed: Callable[[], Problem] | None = None  # the tick's QP with the task slack (None: problem is)
+    # the paper law's q̈ on this tick's state and terms, computed by the compiled tick's kernel
+    # (qpctl.kernels.law.closed_form); None: ClosedForm computes it with numpy (qpctl.law)
+    paper_qdd: Callable[[], np.ndarray] | None = None
     _relaxed: Problem | None = field(default=None, repr=False)
 
     def relaxed(self) -> Problem:
@@ -99,10 +102,13 @@ class ClosedForm(Fallback):
     name = CLOSED_FORM
 
     def __call__(self, ctx: FallbackContext) -> Attempt:
-        try:
-            qdd, _ = closed_form_acceleration(ctx.state, ctx.terms, ctx.gains, weighted=True)
-        except (np.linalg.LinAlgError, ValueError, FloatingPointError):
-            qdd = np.full(ctx.state.n, np.nan)
+        if ctx.paper_qdd is not None:  # the compiled tick's own kernel (~100x numpy's time on the Panda)
+            qdd = ctx.paper_qdd()
+        else:
+            try:
+                qdd, _ = closed_form_acceleration(ctx.state, ctx.terms, ctx.gains, weighted=True)
+            except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+                qdd = np.full(ctx.state.n, np.nan)
         why = self.unsafe(ctx, qdd)
         return Attempt(None, why) if why else Attempt(qdd, CLOSED_FORM)
 
@@ -148,8 +154,9 @@ class SafeStop(Fallback):
         qb = brake_acceleration(ctx)
         H = state.M.T @ state.M
         rows = problem.rows_of(BARRIER)
-        C_bar, l_bar = problem.C[rows, :n], problem.l[rows]
-        k = l_bar.size  # every barrier row, the inactive ones (l = −inf) too: a fixed shape, warm-started
+        live = rows[np.isfinite(problem.l[rows])]  # the rows in force (an unused pair's slot has l = −inf)
+        C_bar, l_bar = problem.C[live, :n], problem.l[live]
+        k = l_bar.size
         nv = n + k
         P = np.zeros((nv, nv))
         P[:n, :n] = H

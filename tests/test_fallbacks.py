@@ -112,3 +112,118 @@ def test_constraints_keep_no_tick_state():
     assert out.dropped == len(state.pairs) - 1
     assert vars(barrier).keys() == before.keys() and not hasattr(barrier, "dropped")
     assert ctrl.step(Q0, np.zeros(3), 0.1).info["pairs_dropped"] == len(state.pairs) - 1
+
+
+def _failing_panda_ticks(ticks: int = 200):
+    """The Panda + 10 spheres with a 20 N·m/s torque-rate limit, started at 0.5 rad/s on every joint:
+    the QP is infeasible (the rate window cannot brake the approach) and the compiled tick falls back
+    on most ticks. Yields the controller after each tick."""
+    ctrl = Scenario.load("panda_spheres", overrides=["robot.tau_rate_max=20"]).build_controller("qp")
+    q0 = ctrl.robot.q_home.astype(float)
+    for k in range(ticks):
+        ctrl.step(q0 + 0.001 * k, np.full(ctrl.n, 0.5), 0.001 * k)
+        yield ctrl
+
+
+def test_the_compiled_tick_s_closed_form_fallback_equals_numpy_s(monkeypatch):
+    """The ClosedForm fallback on the compiled tick takes q̈ from the kernel (ctx.paper_qdd); on every
+    failing tick it equals qpctl.law's numpy closed form on the same snapshot and terms to 1e-9
+    (relative to the larger of 1 and |q̈|), and their verdicts (used, or why not) agree."""
+    from qpctl.fallbacks import ClosedForm, FallbackContext
+    from qpctl.law import closed_form_acceleration
+
+    seen = []
+    call = ClosedForm.__call__
+
+    def both(self, ctx):
+        assert ctx.paper_qdd is not None  # the compiled tick offers its kernel
+        got = call(self, ctx)
+        compiled = ctx.paper_qdd()
+        reference, _ = closed_form_acceleration(ctx.state, ctx.terms, ctx.gains, weighted=True)
+        numpy_ctx = FallbackContext(ctx.state, ctx.terms, ctx.gains, ctx.problem, ctx.window)
+        seen.append((compiled, reference, got.word, call(self, numpy_ctx).word))
+        return got
+
+    monkeypatch.setattr(ClosedForm, "__call__", both)
+    for _ in _failing_panda_ticks():
+        pass
+    assert len(seen) >= 100  # the scene fails on most ticks (147 of 200 here)
+    for compiled, reference, word, numpy_word in seen:
+        np.testing.assert_allclose(compiled, reference, rtol=0, atol=1e-9 * max(1.0, np.abs(reference).max()))
+        assert word == numpy_word
+
+
+def test_the_safe_stop_without_its_unused_rows_gives_the_same_answer(monkeypatch):
+    """The safe stop keeps only the barrier rows in force (finite l); the rows of unused pair slots
+    (l = −inf) and their slacks change nothing: on every failing tick its q̈ equals that of the same QP
+    with every slot kept (solved by DAQP too), to DAQP's tolerance."""
+    from qpctl.fallbacks import SafeStop
+    from qpctl.qp import Problem
+    from qpctl.solvers.daqp_ import DAQPSolver
+
+    pairs = []
+    call = SafeStop.__call__
+
+    def both(self, ctx):
+        got = call(self, ctx)
+        p, n = ctx.problem, ctx.state.n
+        rows = p.rows_of(BARRIER)
+        if got.qdd is None or np.isfinite(p.l[rows]).all():
+            return got
+        state, k = ctx.state, rows.size
+        H = state.M.T @ state.M
+        P = np.zeros((n + k, n + k))
+        P[:n, :n], P[n:, n:] = H, SafeStop.WEIGHT * max(float(np.trace(H)) / n, 1e-12) * np.eye(k)
+        C = np.zeros((k + n, n + k))
+        C[:k, :n], C[:k, n:], C[k:, :n] = p.C[rows, :n], np.eye(k), state.M
+        lo, hi = ctx.window
+        qb = ctx.gains.kv * (ctx.terms.g - state.v)
+        full = Problem(P, np.concatenate([-H @ qb, np.zeros(k)]), np.zeros((0, n + k)), np.zeros(0), C,
+                       np.concatenate([p.l[rows], lo - state.N]), np.concatenate([np.full(k, np.inf), hi - state.N]),
+                       np.concatenate([p.lb[:n], np.zeros(k)]), np.concatenate([p.ub[:n], np.full(k, np.inf)]), n)
+        sol = DAQPSolver().solve(full)
+        assert sol.found
+        pairs.append((got.qdd, sol.x[:n]))
+        return got
+
+    monkeypatch.setattr(SafeStop, "__call__", both)
+    for _ in _failing_panda_ticks():
+        pass
+    assert len(pairs) >= 100
+    for ours, full in pairs:
+        np.testing.assert_allclose(ours, full, rtol=0, atol=1e-6 * max(1.0, np.abs(full).max()))
+
+
+def test_scale_into_window_is_the_largest_scale_that_keeps_the_window():
+    """scale_into_window(window, state, q̈) = s·q̈ with s ∈ [0, 1] the largest for which M s q̈ + N stays
+    in the window, checked against the window itself on random cases: at s the torque is inside (to
+    1e-9), and either s = 1, or some joint's torque is at its bound, or s = 0 with N already outside."""
+    from types import SimpleNamespace
+
+    from qpctl.controllers.qp_failure import scale_into_window
+
+    rng = np.random.default_rng(2026)
+    seen = {"one": 0, "bound": 0, "zero": 0}
+    for _ in range(300):
+        n = int(rng.integers(2, 8))
+        A = rng.normal(size=(n, n))
+        state = SimpleNamespace(M=A @ A.T + n * np.eye(n), N=rng.normal(0.0, 20.0, n))
+        hi = rng.uniform(5.0, 60.0, n)
+        window = (-hi, hi)
+        qdd = rng.normal(0.0, 10.0 ** rng.uniform(-1, 2), n)
+        out = scale_into_window(window, state, qdd)
+        s = float(out @ qdd / (qdd @ qdd))
+        np.testing.assert_allclose(out, s * qdd, rtol=0, atol=1e-12 * np.abs(qdd).max())
+        assert 0.0 <= s <= 1.0
+        tau = state.M @ out + state.N
+        if np.all(np.abs(state.N) <= hi):
+            assert np.all(tau <= hi + 1e-9) and np.all(tau >= -hi - 1e-9)
+        if s == 1.0:
+            seen["one"] += 1
+        elif s == 0.0:
+            seen["zero"] += 1
+            assert not np.all(np.abs(state.N) < hi) or np.any(np.isclose(np.abs(state.N), hi))
+        else:
+            seen["bound"] += 1
+            assert np.min(np.minimum(hi - tau, tau + hi)) <= 1e-9 * (1.0 + hi.max())
+    assert min(seen.values()) > 0, seen  # every case met

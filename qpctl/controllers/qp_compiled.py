@@ -347,8 +347,12 @@ class CompiledTick:
             K.qp_build(ws.work, relaxed.H, relaxed.f, relaxed.rows, relaxed.bu, relaxed.bl)
             return relaxed.problem
 
+        def paper_qdd() -> np.ndarray:  # the paper law on the tick's terms, by the kernel the paper law's tick runs
+            K.closed_form(ws.work, True)
+            return ws.qdd.copy()
+
         ctx = FallbackContext(state, terms, self.gains, buf.problem, self.failures.window(state.t), deadline,
-                              None if buf.relaxed else build_relaxed)
+                              None if buf.relaxed else build_relaxed, paper_qdd=paper_qdd)
         tau, qdd, problem, sol = self.failures.fall_back(ctx, None, status, info)
         self.last_problem = problem
         if sol is not None:
