@@ -102,7 +102,7 @@ class ClosedForm(Fallback):
     name = CLOSED_FORM
 
     def __call__(self, ctx: FallbackContext) -> Attempt:
-        if ctx.paper_qdd is not None:  # the compiled tick's own kernel (~100x numpy's time on the Panda)
+        if ctx.paper_qdd is not None:  # the compiled tick's kernel: 9 µs a call against numpy's 65 (Panda)
             qdd = ctx.paper_qdd()
         else:
             try:

@@ -121,9 +121,9 @@ def copy_record(rec: np.ndarray, out: np.ndarray) -> None:
 def tick_closed_form(ws, q: np.ndarray, v: np.ndarray, t: float, weighted: bool,  # type: ignore[no-untyped-def]
                      out: np.ndarray) -> int:
     """State, law terms and closed form in one call, the record copied into ``out`` (the output's own
-    array) when it returns 0; else ``out`` is untouched. Returns 0; −1 the dynamics overflow or a non-finite state; 1 M not positive definite; BAD_SHAPE:
-    q or v is not of the robot's n joints; STATE_PYTHON: the state is waiting for Python (then call
-    :func:`closed_form_tick`)."""
+    array) when it returns 0; else ``out`` is untouched. Returns 0; −1 the dynamics overflow or a
+    non-finite state; 1 M not positive definite; BAD_SHAPE: q or v is not of the robot's n joints;
+    STATE_PYTHON: the state is waiting for Python (then call :func:`closed_form_tick`)."""
     n = ws.q.shape[0]
     if q.shape[0] != n or v.shape[0] != n:
         return BAD_SHAPE
