@@ -149,6 +149,9 @@ class RecordOutput(ControlOutput):
 #: and its ``last``, the local name and getrefcount's argument; of the output's record: the output's
 #: and the argument. A compiled tick reuses such an output (its record overwritten): nothing allocated.
 IDLE_REFS, IDLE_REC_REFS = 4, 2
+#: What a one-call kernel is given as ``out`` on a tick whose output Python writes itself: an empty
+#: record, so the kernel copies nothing (qpctl.kernels.tick.copy_record).
+NO_RECORD = np.empty(0)
 
 
 _LOCKED: set[int] = set()  # the kernels that compile no more signatures in this process (by id)

@@ -38,6 +38,7 @@ import numpy as np
 from qpctl.controllers.base import (
     IDLE_REC_REFS,
     IDLE_REFS,
+    NO_RECORD,
     Controller,
     ControlOutput,
     RecordOutput,
@@ -57,7 +58,6 @@ from qpctl.tick import Workspace, rigid_pass
 
 _now = time.perf_counter
 getrefcount = sys.getrefcount
-_NO_RECORD = np.empty(0)  # the kernel's record copy on a tick whose output _after_kernel writes: none
 
 
 class PaperController(Controller):
@@ -114,18 +114,18 @@ class PaperController(Controller):
                 qk = ws.joint_view(q)
                 entry = self._entry
                 if entry is not None and plain_vectors(qk, v):
-                    code = entry(ws.work, qk, v, t, self.weighted, _NO_RECORD)
+                    code = entry(ws.work, qk, v, t, self.weighted, NO_RECORD)
                 else:
-                    code = K.tick_closed_form(ws.work, qk, v, t, self.weighted, _NO_RECORD)
+                    code = K.tick_closed_form(ws.work, qk, v, t, self.weighted, NO_RECORD)
             except Exception:  # noqa: BLE001 — not two float64 arrays and a float: check, convert, once more
                 q, v, t = fast_state(q, v, t, self.n, self.robot.nq)  # InvalidStateError if it cannot
                 t0 = time.perf_counter()
                 rigid_pass(ws.model, ws.data, q, v)
                 t1 = time.perf_counter()
-                code = call_compiling(K.tick_closed_form, ws.work, ws.joint_view(q), v, t, self.weighted, _NO_RECORD)
+                code = call_compiling(K.tick_closed_form, ws.work, ws.joint_view(q), v, t, self.weighted, NO_RECORD)
             lock_compilation(K.tick_closed_form)
             if self._entry is None:
-                self._entry = entry_point(K.tick_closed_form, ws.work, weighted=self.weighted, out=_NO_RECORD)
+                self._entry = entry_point(K.tick_closed_form, ws.work, weighted=self.weighted, out=NO_RECORD)
             return self._after_kernel(code, q, v, t, start, (t1 - t0, -1.0, -1.0, 0.0))
         q, v, t = fast_state(q, v, t, self.n, self.robot.nq)
         self._state(q, v, t)

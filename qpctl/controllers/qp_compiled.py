@@ -27,6 +27,7 @@ import numpy as np
 from qpctl.controllers.base import (
     IDLE_REC_REFS,
     IDLE_REFS,
+    NO_RECORD,
     call_compiling,
     entry_point,
     fast_state,
@@ -49,7 +50,6 @@ from qpctl.tick import QPBuffers, Workspace, rigid_pass
 
 _now = time.perf_counter
 getrefcount = sys.getrefcount
-_NO_RECORD = np.empty(0)  # the one-call kernel's record copy on a tick whose output _finish writes: none
 
 
 class CompiledTick:
@@ -264,19 +264,19 @@ class CompiledTick:
                 qk = ws.joint_view(q)
                 entry = self._entry
                 if entry is not None and plain_vectors(qk, v):
-                    code, hard, _ = entry(self.packed, qk, v, t, try_hard, _NO_RECORD)
+                    code, hard, _ = entry(self.packed, qk, v, t, try_hard, NO_RECORD)
                 else:
-                    code, hard, _ = K.tick_qp(self.packed, qk, v, t, try_hard, _NO_RECORD)
+                    code, hard, _ = K.tick_qp(self.packed, qk, v, t, try_hard, NO_RECORD)
             except Exception:  # noqa: BLE001 — not two float64 arrays and a float: check, convert, once more
                 q, v, t = fast_state(q, v, t, ws.n, ws.nq)  # InvalidStateError if it cannot
                 t0 = time.perf_counter()
                 rigid_pass(ws.model, ws.data, q, v)
                 t1 = time.perf_counter()
                 code, hard, _ = call_compiling(K.tick_qp, self.packed, ws.joint_view(q), v, t, try_hard,
-                                               _NO_RECORD)
+                                               NO_RECORD)
             lock_compilation(K.tick_qp)
             if self._entry is None:
-                self._entry = entry_point(K.tick_qp, self.packed, try_hard=True, out=_NO_RECORD)
+                self._entry = entry_point(K.tick_qp, self.packed, try_hard=True, out=NO_RECORD)
             code, hard = self._state_python(code, hard, q, v, t, try_hard)
             stages = (t1 - t0, -1.0, -1.0, -1.0)
         else:
