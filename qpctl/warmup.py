@@ -89,9 +89,8 @@ def warmup() -> dict[str, float]:
         nat_r = daqp_native.NativeDAQP(relaxed.H, relaxed.f, relaxed.rows, relaxed.bu, relaxed.bl, relaxed.sense)
         nat_h.setup()
         nat_r.setup()
-        K.native_solve(*nat_r.addresses, nat_r.flag)
-        K.native_solve_finish(ws.work, relaxed.rows, relaxed.bu, relaxed.bl, *nat_r.addresses, nat_r.flag, nat_r.x,
-                              SOLUTION_RTOL)
+        K.native_solve(nat_r.dq)
+        K.native_solve_finish(ws.work, relaxed.rows, relaxed.bu, relaxed.bl, nat_r.dq, nat_r.x, SOLUTION_RTOL)
         args = (*nat_h.kernel_args, nat_h.lam, *nat_r.kernel_args, SOLUTION_RTOL, 1e6)
         packed = new_native_qp(ws.work, *args)
         for try_hard in (True, False):  # the whole tick, then its part after the state (Python's turn)

@@ -234,7 +234,7 @@ class QPLayout:
             flag = 1 if nat.ready else nat.setup()
             if flag < 0:  # DAQP could not even set the QP up (its exit flag says why)
                 nat.flag[0], nat.flag[1] = flag, 0
-            elif K.native_solve(*nat.addresses, nat.flag) <= 0:
+            elif K.native_solve(nat.dq) <= 0:
                 nat.free()
             x, status, iters = (nat.x, "solved", int(nat.flag[1])) if nat.flag[0] > 0 else (None, daqp_word(nat.flag[0]),
                                                                                            int(nat.flag[1]))

@@ -62,11 +62,9 @@ def task_rows_hold(x: np.ndarray, rows: np.ndarray, bu: np.ndarray, n_in: int, m
 
 @njit(cache=True)
 def qp_tick_native_hard_first(ws, Hh: np.ndarray, fh: np.ndarray, rowsh: np.ndarray,  # type: ignore[no-untyped-def]
-                              buh: np.ndarray, blh: np.ndarray, workh: int, problemh: int, resulth: int,
-                              flagh: np.ndarray, xh: np.ndarray, lamh: np.ndarray, Hr: np.ndarray, fr: np.ndarray,
-                              rowsr: np.ndarray, bur: np.ndarray, blr: np.ndarray, workr: int, problemr: int,
-                              resultr: int, flagr: np.ndarray, xr: np.ndarray, tol: float, l1: float,
-                              try_hard: bool) -> tuple[int, int]:
+                              buh: np.ndarray, blh: np.ndarray, dqh, xh: np.ndarray, lamh: np.ndarray,
+                              Hr: np.ndarray, fr: np.ndarray, rowsr: np.ndarray, bur: np.ndarray, blr: np.ndarray,
+                              dqr, xr: np.ndarray, tol: float, l1: float, try_hard: bool) -> tuple[int, int]:
     """The QP tick after the state with the task hard first (no slack variables: a smaller QP), its
     answer kept where the exact-penalty condition says the relaxed QP's is the same
     (:func:`penalty_exact`), the relaxed QP solved otherwise (or when not ``try_hard``). Returns
@@ -85,7 +83,7 @@ def qp_tick_native_hard_first(ws, Hh: np.ndarray, fh: np.ndarray, rowsh: np.ndar
         if code != 0:
             ws.rec[s + R_BUILD_US], ws.rec[s + R_SOLVE_US] = build, 0.0
             return code, hard
-        ok = native_solve(workh, problemh, resulth, flagh) > 0
+        ok = native_solve(dqh) > 0
         nvh = Hh.shape[0]
         n_in = ws.ipar[IP_N_IN]
         m = ws.a.shape[0]
@@ -99,7 +97,7 @@ def qp_tick_native_hard_first(ws, Hh: np.ndarray, fh: np.ndarray, rowsh: np.ndar
             hard = 4
         else:  # the solve and the check of its answer (the relaxed QP's below, the same)
             ws.rec[s + R_BUILD_US], ws.rec[s + R_SOLVE_US] = build, now_us(ts) - t1
-            ws.rec[s + R_ITERATIONS] = flagh[1]
+            ws.rec[s + R_ITERATIONS] = dqh.flag[1]
             return 0, 0
         t0 = now_us(ts)
         solve += t0 - t1
@@ -111,6 +109,6 @@ def qp_tick_native_hard_first(ws, Hh: np.ndarray, fh: np.ndarray, rowsh: np.ndar
     ws.rec[s + R_BUILD_US], ws.rec[s + R_SOLVE_US] = build, solve
     if code != 0:
         return code, hard
-    code = native_solve_finish(ws, rowsr, bur, blr, workr, problemr, resultr, flagr, xr, tol)
+    code = native_solve_finish(ws, rowsr, bur, blr, dqr, xr, tol)
     ws.rec[s + R_SOLVE_US] = solve + now_us(ts) - t1  # the solve and the check of its answer
     return code, hard

@@ -1,14 +1,15 @@
 """The QP's two layouts on DAQP's C API as one compiled argument: :class:`NativeQP`.
 
 The one-call tick (:func:`qpctl.kernels.tick.tick_qp`) reads, besides the state, the tick's workspace
-(a :class:`~qpctl.kernels.work.TickWork`), both layouts of the QP (the task hard, and relaxed: H, f, rows, bu, bl in DAQP's convention), DAQP's
-three structs for each (workspace, problem, result: addresses), its exit flags and answers, the
-hard QP's multipliers, the check's tolerance and the task's ℓ₁ slack weight. Passed one by one they
-are 23 arguments, and numba's dispatcher types and unboxes each on every call (measured here: 3.6 µs
-for a call of the 28 arguments against 1.3 µs for five); in one structref they cost what one does, and the workspace inside it saves the unboxing of a second
-structref (~0.1 µs a call). Built once per controller (:class:`qpctl.controllers.qp_compiled.
-CompiledTick`), holding the same numpy arrays as the layouts (:class:`qpctl.tick.QPBuffers`) and
-:class:`qpctl.solvers.daqp_native.NativeDAQP`.
+(a :class:`~qpctl.kernels.work.TickWork`), both layouts of the QP (the task hard, and relaxed: H, f,
+rows, bu, bl in DAQP's convention), DAQP's workspace for each (a
+:class:`~qpctl.kernels.daqp_pack.DaqpPack`: its structs, exit flags and packed rows), the answers,
+the hard QP's multipliers, the check's tolerance and the task's ℓ₁ slack weight. Passed one by one
+they were 23 arguments, and numba's dispatcher types and unboxes each on every call (measured here:
+3.6 µs for a call of the 28 arguments against 1.3 µs for five); in one structref they cost what one
+does, and the workspace inside it saves the unboxing of a second structref (~0.1 µs a call). Built
+once per controller (:class:`qpctl.controllers.qp_compiled.CompiledTick`), holding the same numpy
+arrays as the layouts (:class:`qpctl.tick.QPBuffers`) and :class:`qpctl.solvers.daqp_native.NativeDAQP`.
 """
 
 from __future__ import annotations
@@ -31,11 +32,11 @@ class NativeQP(structref.StructRefProxy):
 
 FIELDS = (
     "ws",  # the tick's workspace (a TickWork): one compiled argument for the whole one-call tick
-    # the task hard (n variables): H, f, rows, bu, bl; DAQP's workspace, problem, result (addresses);
-    # its [exit flag, iterations], answer x and multipliers λ
-    "Hh", "fh", "rowsh", "buh", "blh", "workh", "problemh", "resulth", "flagh", "xh", "lamh",
+    # the task hard (n variables): H, f, rows, bu, bl; its DAQP workspace (a DaqpPack: the structs'
+    # addresses, [exit flag, iterations], the packed rows), answer x and multipliers λ
+    "Hh", "fh", "rowsh", "buh", "blh", "dqh", "xh", "lamh",
     # the relaxed QP (n + 2m variables), the same without λ
-    "Hr", "fr", "rowsr", "bur", "blr", "workr", "problemr", "resultr", "flagr", "xr",
+    "Hr", "fr", "rowsr", "bur", "blr", "dqr", "xr",
     "tol",  # the answer's check: every hard row to this, relative to 1 + |its bound| (SOLUTION_RTOL)
     "l1",  # the task's ℓ₁ slack weight (the exact-penalty test of the hard answer)
 )

@@ -2,7 +2,7 @@
 
 The codes these return (and the tick's entry points pass on): 0 solved and accepted; 1 M not
 positive definite; 2 the problem's data not finite (no solver may be trusted with it); 3 DAQP
-failed (its exit flag in ``flag[0]``); 4 x violates a hard row or is not finite.
+failed (its exit flag in ``dq.flag[0]``); 4 x violates a hard row or is not finite.
 """
 
 from __future__ import annotations
@@ -40,12 +40,11 @@ def qp_terms_and_build(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: n
 
 @njit(cache=True)
 def qp_tick_native(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray,  # type: ignore[no-untyped-def]
-                   bl: np.ndarray, work: int, problem: int, result: int, flag: np.ndarray, x: np.ndarray,
-                   tol: float) -> int:
+                   bl: np.ndarray, dq, x: np.ndarray, tol: float) -> int:
     """The whole QP tick after the state, on DAQP's C API: law terms, rows, solve, check, record
     (with the build and solve times [µs]). 0: solved and accepted; 1: M not positive definite;
-    2: non-finite problem (not solved); 3: DAQP failed (its exit flag in ``flag[0]``); 4: x violates a
-    hard row or is not finite."""
+    2: non-finite problem (not solved); 3: DAQP failed (its exit flag in ``dq.flag[0]``; ``dq``: the
+    layout's :class:`~qpctl.kernels.daqp_pack.DaqpPack`); 4: x violates a hard row or is not finite."""
     ts = ws.ts
     t0 = now_us(ts)
     code = qp_terms_and_build(ws, H, f, rows, bu, bl)
@@ -55,23 +54,23 @@ def qp_tick_native(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.nd
     ws.rec[s + R_SOLVE_US] = 0.0
     if code != 0:
         return code
-    ok = native_solve(work, problem, result, flag) > 0
+    ok = native_solve(dq) > 0
     ws.rec[s + R_SOLVE_US] = now_us(ts) - t1
     if not ok:
         return 3
     if not qp_finish(ws, x, rows, bu, bl, tol):
         return 4
-    ws.rec[s + R_ITERATIONS] = flag[1]
+    ws.rec[s + R_ITERATIONS] = dq.flag[1]
     return 0
 
 
 @njit(cache=True)
-def native_solve_finish(ws, rows: np.ndarray, bu: np.ndarray, bl: np.ndarray, work: int,  # type: ignore[no-untyped-def]
-                        problem: int, result: int, flag: np.ndarray, x: np.ndarray, tol: float) -> int:
+def native_solve_finish(ws, rows: np.ndarray, bu: np.ndarray, bl: np.ndarray, dq,  # type: ignore[no-untyped-def]
+                        x: np.ndarray, tol: float) -> int:
     """:func:`qp_tick_native` after its rows are built (the tick that set DAQP's workspace up)."""
-    if native_solve(work, problem, result, flag) <= 0:
+    if native_solve(dq) <= 0:
         return 3
     if not qp_finish(ws, x, rows, bu, bl, tol):
         return 4
-    ws.rec[record_scalars(ws.N.shape[0], ws.a.shape[0]) + R_ITERATIONS] = flag[1]
+    ws.rec[record_scalars(ws.N.shape[0], ws.a.shape[0]) + R_ITERATIONS] = dq.flag[1]
     return 0

@@ -143,32 +143,30 @@ def tick_closed_form(ws, q: np.ndarray, v: np.ndarray, t: float, weighted: bool,
 
 @njit(cache=True)
 def tick_qp_native(ws, q: np.ndarray, v: np.ndarray, t: float, H: np.ndarray, f: np.ndarray,  # type: ignore[no-untyped-def]
-                   rows: np.ndarray, bu: np.ndarray, bl: np.ndarray, work: int, problem: int, result: int,
-                   flag: np.ndarray, x: np.ndarray, tol: float) -> int:
+                   rows: np.ndarray, bu: np.ndarray, bl: np.ndarray, dq, x: np.ndarray, tol: float) -> int:
     """State and :func:`qp_tick_native` in one call: its codes, or −1 (the dynamics overflow) or
     STATE_PYTHON (the state is waiting for Python; then call :func:`qp_tick_native`)."""
     ts = ws.ts
     code = state_timed(ws, q, v, t, ts)
     if code != 0:
         return code
-    return qp_tick_native(ws, H, f, rows, bu, bl, work, problem, result, flag, x, tol)
+    return qp_tick_native(ws, H, f, rows, bu, bl, dq, x, tol)
 
 
 @njit(cache=True)
 def tick_qp_native_hard_first(ws, q: np.ndarray, v: np.ndarray, t: float, Hh: np.ndarray,  # type: ignore[no-untyped-def]
-                              fh: np.ndarray, rowsh: np.ndarray, buh: np.ndarray, blh: np.ndarray, workh: int,
-                              problemh: int, resulth: int, flagh: np.ndarray, xh: np.ndarray, lamh: np.ndarray,
-                              Hr: np.ndarray, fr: np.ndarray, rowsr: np.ndarray, bur: np.ndarray, blr: np.ndarray,
-                              workr: int, problemr: int, resultr: int, flagr: np.ndarray, xr: np.ndarray, tol: float,
-                              l1: float, try_hard: bool) -> tuple[int, int]:
+                              fh: np.ndarray, rowsh: np.ndarray, buh: np.ndarray, blh: np.ndarray, dqh,
+                              xh: np.ndarray, lamh: np.ndarray, Hr: np.ndarray, fr: np.ndarray, rowsr: np.ndarray,
+                              bur: np.ndarray, blr: np.ndarray, dqr, xr: np.ndarray, tol: float, l1: float,
+                              try_hard: bool) -> tuple[int, int]:
     """State and :func:`qp_tick_native_hard_first` in one call: its pair, or (−1 | STATE_PYTHON, −1)
     as :func:`tick_qp_native`."""
     ts = ws.ts
     code = state_timed(ws, q, v, t, ts)
     if code != 0:
         return code, -1
-    return qp_tick_native_hard_first(ws, Hh, fh, rowsh, buh, blh, workh, problemh, resulth, flagh, xh, lamh, Hr, fr,
-                                     rowsr, bur, blr, workr, problemr, resultr, flagr, xr, tol, l1, try_hard)
+    return qp_tick_native_hard_first(ws, Hh, fh, rowsh, buh, blh, dqh, xh, lamh, Hr, fr, rowsr, bur, blr, dqr, xr,
+                                     tol, l1, try_hard)
 
 
 @njit(cache=True)
@@ -192,9 +190,8 @@ def tick_qp(nq, q: np.ndarray, v: np.ndarray, t: float, try_hard: bool,  # type:
     code = state_timed(ws, q, v, t, ts)
     if code != 0:
         return code, -1, try_hard
-    code, hard = qp_tick_native_hard_first(ws, nq.Hh, nq.fh, nq.rowsh, nq.buh, nq.blh, nq.workh, nq.problemh,
-                                           nq.resulth, nq.flagh, nq.xh, nq.lamh, nq.Hr, nq.fr, nq.rowsr, nq.bur,
-                                           nq.blr, nq.workr, nq.problemr, nq.resultr, nq.flagr, nq.xr, nq.tol, nq.l1,
+    code, hard = qp_tick_native_hard_first(ws, nq.Hh, nq.fh, nq.rowsh, nq.buh, nq.blh, nq.dqh, nq.xh, nq.lamh,
+                                           nq.Hr, nq.fr, nq.rowsr, nq.bur, nq.blr, nq.dqr, nq.xr, nq.tol, nq.l1,
                                            try_hard)
     if code == 0 and hard <= 0:  # the tick Python ends without a word (else Python copies the record)
         copy_record(ws.rec, out)

@@ -9,9 +9,12 @@ very arrays the tick's kernels write (:class:`qpctl.tick.QPBuffers`), and the ke
 DAQP's C API.
 
 The structs passed in (``DAQPProblem``, ``DAQPResult``, ``DAQPSettings``) follow DAQP's
-``include/types.h`` and ``include/api.h``; the workspace (``DAQPWorkspace``) is never read here,
-only allocated (:data:`WORK_BYTES`, several times its size) and handed to DAQP, except for its
-settings pointer, which is found by where ``allocate_daqp_settings`` writes it. This path is used
+``include/types.h`` and ``include/api.h``; the workspace (``DAQPWorkspace``) is allocated here
+(:data:`WORK_BYTES`, several times its size) and handed to DAQP; two of its fields are touched: its
+settings pointer, found by where ``allocate_daqp_settings`` writes it, and its constraint-state
+pointer (``sense``), pointed at an array of ours after each set-up so that the compiled solve can
+keep the states by the layout's row index (:mod:`qpctl.kernels.daqp_pack`; the workspace's n, m and
+ms before it are checked every time). This path is used
 only with a DAQP version it was checked against (:data:`CHECKED_VERSIONS`) and after a self-test in
 the process (:func:`available`: the same solutions as ``daqp.solve`` on random QPs with bounds,
 inequalities and equalities); otherwise :class:`~qpctl.solvers.daqp_.DAQPSolver` uses ``daqp.Model``.
@@ -26,9 +29,13 @@ from typing import Any
 import numpy as np
 
 from qpctl.kernels.daqp import native_solve
+from qpctl.kernels.daqp_pack import new_daqp_pack, pack
 
 CHECKED_VERSIONS = ("0.11.0",)
 WORK_BYTES = 1 << 14  # DAQPWorkspace is ~300 bytes; its arrays are DAQP's own (malloc)
+# DAQPWorkspace's sense pointer (include/types.h: qp, n, m, ms, M, dupper, dlower, Rinv, v, sense), checked
+# at every set-up against the n, m and ms it holds at 8, 12 and 16
+_SENSE_OFFSET = 64
 
 _dp = C.POINTER(C.c_double)
 _ip = C.POINTER(C.c_int)
@@ -103,25 +110,38 @@ class NativeDAQP:
                  sense: np.ndarray, settings: dict[str, Any] | None = None) -> None:
         self.lib = _library()
         nv, m = H.shape[0], bu.shape[0]
+        self.sense0 = sense  # the layout's states (its equalities): a cold start's
+        # DAQP reads packed copies of the rows and bounds (qpctl.kernels.daqp_pack); H and f are the layout's
+        self.rows_c, self.bu_c, self.bl_c = np.zeros_like(rows), np.zeros(m), np.zeros(m)
+        self.sense_c, self.sense_full = np.zeros(m, np.int32), sense.astype(np.int32)
+        self.lam_c, self.idx = np.zeros(m), np.zeros(rows.shape[0], np.int64)
         self._arrays = (H, f, rows, bu, bl, sense)  # kept alive: DAQP holds their addresses
-        self.problem = _Problem(nv, m, nv, _ptr(H), _ptr(f), _ptr(rows), _ptr(bu), _ptr(bl), _ptr(sense, _ip),
-                                None, 0, 0)
+        self.problem = _Problem(nv, m, nv, _ptr(H), _ptr(f), _ptr(self.rows_c), _ptr(self.bu_c), _ptr(self.bl_c),
+                                _ptr(self.sense_c, _ip), None, 0, 0)
         self.work = np.zeros(WORK_BYTES, np.uint8)
         self.x, self.lam = np.zeros(nv), np.zeros(m)
-        self.result = _Result(_ptr(self.x), _ptr(self.lam), 0.0, 0.0, 0, 0, 0, 0.0, 0.0)
+        self.result = _Result(_ptr(self.x), _ptr(self.lam_c), 0.0, 0.0, 0, 0, 0, 0.0, 0.0)
         raw = (C.c_char * C.sizeof(_Result)).from_address(C.addressof(self.result))
         assert _Result.iter.offset == _Result.exitflag.offset + 4
         self.flag = np.frombuffer(raw, np.int32, 2, _Result.exitflag.offset)  # type: ignore[call-overload]  # [exit flag, iterations]
+        raw_p = (C.c_char * C.sizeof(_Problem)).from_address(C.addressof(self.problem))
+        self.m_view = np.frombuffer(raw_p, np.int32, 1, _Problem.m.offset)  # type: ignore[call-overload]
         self.addresses = (int(self.work.ctypes.data), C.addressof(self.problem), C.addressof(self.result))
+        self.dq = new_daqp_pack(*self.addresses, self.flag, self.m_view, rows, bu, bl, self.rows_c, self.bu_c,
+                                self.bl_c, self.idx, self.sense_full, self.sense_c,
+                                self.lam_c, self.lam)
         # what qpctl.kernels.solve.qp_tick_native takes after the workspace (and before the tolerance)
-        self.kernel_args = (H, f, rows, bu, bl, *self.addresses, self.flag, self.x)
+        self.kernel_args = (H, f, rows, bu, bl, self.dq, self.x)
         self.settings = dict(settings or {})
         self.ready = False
         self._time_limit = 0.0
+        self._daqp_sense = 0  # DAQP's own state array, given back to it before it frees the workspace
 
     def setup(self) -> int:
-        """(Re)build DAQP's workspace from the arrays' current QP (a cold start); DAQP's exit flag
-        (negative: the QP could not be set up, e.g. H not positive definite)."""
+        """(Re)build DAQP's workspace from the arrays' current QP (a cold start: the layout's states);
+        DAQP's exit flag (negative: the QP could not be set up, e.g. H not positive definite). DAQP
+        sees the rows with a finite bound first, padded to the layout's size (so it sizes its arrays
+        for every row), and its state array is then this object's ``sense_c``."""
         self.free()
         work = self.work.ctypes.data
         self.lib.allocate_daqp_settings(work)
@@ -129,10 +149,29 @@ class NativeDAQP:
         for key, val in self.settings.items():
             setattr(s, key, val)
         s.time_limit = self._time_limit
+        self.sense_full[:] = self.sense0
+        cnt = pack(self.dq, True)
+        passed = self.sense_c.copy()
         flag = int(self.lib.setup_daqp(C.addressof(self.problem), work, None))
         self.ready = flag >= 0
         if not self.ready:  # setup_daqp freed its settings: a clean, zeroed workspace again
             self.work[:] = 0
+            return flag
+        words = self.work[:_SENSE_OFFSET + 8]
+        n, m, ms = (int(words[k:k + 4].view(np.int32)[0]) for k in (8, 12, 16))
+        own = int(words[_SENSE_OFFSET : _SENSE_OFFSET + 8].view(np.uint64)[0])
+        daqp_sense = np.ctypeslib.as_array(C.cast(own, _ip), (m,)) if own else passed
+        # each packed row's active and immutable bits as passed (the equalities 5), except where DAQP's
+        # set-up marks a row it finds empty (ZERO_ROW) or an equality it finds from the bounds
+        got, sent = daqp_sense[ms : ms + cnt], passed[ms : ms + cnt]
+        kept = ((got & 2048) == 0) & ((sent != 0) | (self.bu_c[ms : ms + cnt] != self.bl_c[ms : ms + cnt]))
+        if (n, m, ms) != (self.problem.n, self.problem.m, self.problem.ms) or not own or \
+                not np.array_equal(got[kept] & 5, sent[kept] & 5):
+            self.free()
+            raise RuntimeError(f"DAQP's workspace is not laid out as DAQPWorkspace of DAQP {CHECKED_VERSIONS}")
+        self.sense_c[:] = daqp_sense
+        self._daqp_sense = own
+        words[_SENSE_OFFSET:].view(np.uint64)[0] = self.sense_c.ctypes.data  # DAQP's states: sense_c
         return flag
 
     def _settings_struct(self) -> _Settings:
@@ -150,6 +189,9 @@ class NativeDAQP:
     def free(self) -> None:
         if self.ready:
             work = self.work.ctypes.data
+            if self._daqp_sense:  # its own state array back, for DAQP to free
+                self.work[_SENSE_OFFSET:_SENSE_OFFSET + 8].view(np.uint64)[0] = self._daqp_sense
+                self._daqp_sense = 0
             self.lib.free_daqp_workspace(work)  # its settings too
             self.lib.free_daqp_ldp(work)
             self.work[:] = 0
@@ -211,9 +253,11 @@ def _self_test() -> bool:
         bu[:3], bl[:3] = 0.3, -0.3
         bu[nv : nv + n_in], bl[nv : nv + n_in] = rng.uniform(0.2, 1.0, n_in), -np.inf
         bu[nv + n_in :] = bl[nv + n_in :] = rng.normal(size=n_eq) * 0.1
+        empty = nv + rng.choice(n_in, size=int(rng.integers(0, n_in // 2)), replace=False)  # slots without a row
+        rows[empty - nv], bu[empty], bl[empty] = 0.0, np.inf, -np.inf
         if not native.ready and native.setup() < 0:
             return False
-        flag = native_solve(*native.addresses, native.flag)
+        flag = native_solve(native.dq)
         x, _fval, ref_flag, _info = daqp.solve(H, f, rows, bu, bl, sense.copy())
         if (flag > 0) != (ref_flag > 0) or (flag > 0 and not np.allclose(native.x, x, rtol=1e-9, atol=1e-12)):
             return False
