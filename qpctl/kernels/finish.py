@@ -101,16 +101,17 @@ def violation(x: np.ndarray, n: int, n_in: int, rows: np.ndarray, bu: np.ndarray
               Cx: np.ndarray) -> float:
     """Largest violation at x of the inequality rows and of the bounds on q̈, each relative to
     1 + |its bound| (infinite bounds never count); the task's equality is the solver's business.
-    Leaves C x in ``Cx`` (n_in,)."""
+    Leaves C x in ``Cx`` (n_in,), 0 for a row without a bound (an empty slot: not computed)."""
     nv = x.shape[0]
     worst = 0.0
     for r in range(n_in + n):
         if r < n_in:
-            s = 0.0
-            for c in range(nv):
-                s += rows[r, c] * x[c]
-            Cx[r] = s
             lo, hi = bl[nv + r], bu[nv + r]
+            s = 0.0
+            if lo > -np.inf or hi < np.inf:
+                for c in range(nv):
+                    s += rows[r, c] * x[c]
+            Cx[r] = s
         else:
             s = x[r - n_in]
             lo, hi = bl[r - n_in], bu[r - n_in]
