@@ -34,6 +34,7 @@ import math
 import os
 import threading
 import time
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
@@ -415,7 +416,7 @@ CLOSED_LOOP_KEYS = ("collided", "min_clearance", "min_soft_clearance", "soft_con
                     "soft_contact_max_approach_speed", "map_min_clearance", "map_age_ms_max", "map_update_cpu_ms_median",
                     "map_update_cpu_ms_p99", "map_latency_ms_p99", "phantom_rows", "phantom_rows_checked",
                     "stale_stop_ticks", "tick_us_median", "fruit_errors_mm", "lag_ticks", "lag_max_m", "path_end_s",
-                    "path_extra_s", "fruits_picked")
+                    "path_extra_s", "fruits_picked", "fruit_misses")
 
 
 def closed_loop(seed: int, duration: float | None = None) -> dict[str, Any]:
@@ -460,6 +461,13 @@ def closed_loop_markdown(rows: list[dict[str, Any]]) -> str:
                      f"({r['soft_contact_max_approach_speed']:.2f}) | {sum(e <= 5.0 for e in errs)} of {len(errs)} | {ends} | "
                      f"{r['map_update_cpu_ms_p99']:.1f} | {r['map_latency_ms_p99']:.1f} | "
                      f"{r['phantom_rows']} of {r['phantom_rows_checked']} |")
+    misses = [(r["seed"], f) for r in rows for f in (r.get("fruit_misses") or [])]
+    if misses:
+        causes = Counter(f["cause"] for _, f in misses)
+        lines += ["", f"The {len(misses)} fruits missed by more than 5 mm, by cause: "
+                  + ", ".join(f"{c} {n}" for c, n in causes.most_common()) + " (qpctl.perception.misses):", ""]
+        lines += [f"* seed {seed}, fruit {f['fruit'] + 1} ({f['error_mm']:.0f} mm at {f['t_s']:.1f} s): {f['reason']}"
+                  for seed, f in misses]
     return "\n".join(lines) + "\n"
 
 

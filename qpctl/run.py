@@ -102,6 +102,7 @@ def simulate(scenario: Scenario, *, kind: str | None = None, solver: str | None 
         path = loop.path.path if loop.path is not None else controller.path
         metrics["fruit_errors_mm"] = [float(np.min(np.linalg.norm(traj.x[:, :3] - p, axis=1)) * 1e3)
                                       for p in path.points[1:]]
+        metrics["fruit_misses"] = loop.explain_misses(traj, path.points[1:])
     canopy = scenario.canopy()
     if canopy is not None:  # what was grown, and each fruit's reachability (with the reason where not)
         metrics["canopy"] = canopy.summary()

@@ -20,7 +20,7 @@ from qpctl.kernels import tick as K
 from qpctl.kernels.daqp_pack import idle_state
 from qpctl.simulation import Simulator
 from qpctl.solvers import daqp_native
-from qpctl.solvers.daqp_native import WORK_BYTES, NativeDAQP, _Problem, _Result, _library
+from qpctl.solvers.daqp_native import WORK_BYTES, NativeDAQP, _library, _Problem, _Result
 
 pytestmark = pytest.mark.skipif(not daqp_native.available(), reason="DAQP's C API path is not available here")
 
@@ -35,11 +35,11 @@ class FullLayoutDAQP:
         self.H, self.f, self.rows, self.bu, self.bl = H.copy(), f.copy(), rows.copy(), bu.copy(), bl.copy()
         self.sense = sense.astype(np.int32)
         nv, m = H.shape[0], bu.shape[0]
-        p = lambda a, t=C.POINTER(C.c_double): a.ctypes.data_as(t)  # noqa: E731
-        self.problem = _Problem(nv, m, nv, p(self.H), p(self.f), p(self.rows), p(self.bu), p(self.bl),
-                                p(self.sense, C.POINTER(C.c_int)), None, 0, 0)
+        p = [a.ctypes.data_as(C.POINTER(C.c_double)) for a in (self.H, self.f, self.rows, self.bu, self.bl)]
+        self.problem = _Problem(nv, m, nv, *p, self.sense.ctypes.data_as(C.POINTER(C.c_int)), None, 0, 0)
         self.x, self.lam = np.zeros(nv), np.zeros(m)
-        self.result = _Result(p(self.x), p(self.lam), 0.0, 0.0, 0, 0, 0, 0.0, 0.0)
+        self.result = _Result(*(a.ctypes.data_as(C.POINTER(C.c_double)) for a in (self.x, self.lam)), 0.0, 0.0, 0, 0,
+                              0, 0.0, 0.0)
         self.work = np.zeros(WORK_BYTES, np.uint8)
         self.ready = False
 

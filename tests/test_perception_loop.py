@@ -155,6 +155,10 @@ def test_a_short_run_sees_its_obstacles_only_through_the_camera(tmp_path) -> Non
     assert len(np.unique(stamps)) >= 2 and stamps.min() >= 0.0 and stamps.max() <= 0.8
     gap = np.min([np.abs(np.linalg.norm(pts - o.position, axis=1) - o.radius) for o in world], axis=0)
     assert np.mean(gap <= 2 * CFG.voxel + CFG.depth_noise) >= 0.95
+    # 0.8 s into a path whose first fruit is at 1.5 s: every fruit missed, the reference not there yet
+    misses = loop.explain_misses(traj, ctrl.path.points[1:])
+    assert [f["fruit"] for f in misses] == list(range(len(ctrl.path.points) - 1))
+    assert {f["cause"] for f in misses} == {"reference"}
     files = loop.write_figures(tmp_path, traj.t, traj.clearance, d_safe)  # the run's three figures
     assert [f.name for f in files] == ["depth_frame.png", "field_slice.png", "clearance_true_vs_map.png"]
     assert all(f.stat().st_size > 10_000 for f in files)

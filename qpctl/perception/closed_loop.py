@@ -59,6 +59,7 @@ import numpy as np
 
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.perception.config import SQRT3_2
+from qpctl.perception.misses import explain_misses
 from qpctl.perception.perception import Perception
 from qpctl.perception.rows import FieldBarrier
 from qpctl.perception.snapshot import MapSnapshot
@@ -263,6 +264,15 @@ class MapLoop:
         occupied = np.argwhere((snap.dist[0] <= 0.0) | (snap.dist[1] <= 0.0))
         self._map_points.append(snap.grid.centres(occupied))
         self._map_stamps.append(np.full(len(occupied), t))
+
+    def explain_misses(self, traj: Any, fruits: np.ndarray) -> list[dict[str, Any]]:
+        """The fruits (path order) the task point missed by more than 5 mm, each with its cause
+        (:func:`qpctl.perception.misses.explain_misses`, on this run's records)."""
+        n = min(len(traj.t), len(self.series["map_clearance"]), len(self.series["kappa"]))
+        return explain_misses(fruits, traj.t[:n], traj.x, traj.x_ref, traj.q, q_min=self.robot.q_min,
+                              q_max=self.robot.q_max, clearance=traj.clearance,
+                              fallback=traj.qp_fallback, believed=np.asarray(self.series["map_clearance"][:n]),
+                              margin=self.barrier.margin, kappa=np.asarray(self.series["kappa"][:n]))
 
     def map_points(self) -> tuple[np.ndarray, np.ndarray]:
         """The recorded maps (every ``MAP_RECORD_EVERY`` s of the run): occupied voxel centres (K, 3) [m]

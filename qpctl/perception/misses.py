@@ -1,0 +1,84 @@
+"""Why a reachable fruit was not reached: the closed loop's account of each miss (issue 21: "a fruit it
+cannot reach is reported with the reason").
+
+A canopy's fruits that no collision-free configuration reaches are reported when the canopy is grown
+(:attr:`qpctl.scenes.canopy.Fruit.reason`). The others are the path's waypoints; a run with the
+camera then misses some of them (the task point never within 5 mm). :func:`explain_misses` reads the
+run's own records and names, for each miss, the first of these that holds:
+
+1. **the reference never came**: the waiting reference (``perception.lag_*``, ``stale_*``) had not
+   brought x_d within the tolerance by the run's end — its progress rate κ and the task point's lag
+   at the end are given;
+2. **the QP gave up there**: a fallback acted on a tick within 0.1 s of the closest approach;
+3. **a joint at its limit** at the closest approach (within 0.01 rad);
+4. **held by the rigid rows' margin**: the map's rigid clearance (what the rows believed) within
+   5 mm of the rigid rows' margin at the closest approach, with the true rigid clearance beside it
+   (a map that believed a surface nearer than any there is says so);
+5. **lagged**: none of these; the task point trailed its reference past the fruit (soft speed rows in
+   a leaf, torque or rate limits) — the closest distance and the lag are given.
+
+Each miss is a dict: ``fruit`` (index in path order, 0 = the first fruit), ``error_mm``, ``t_s`` (the
+closest approach), ``cause`` (one of :data:`CAUSES`) and ``reason`` (a sentence with the numbers).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+CAUSES = ("reference", "fallback", "joint_limit", "rigid_margin", "lagged")
+FALLBACK_WINDOW = 0.1  # [s] a fallback this near the closest approach is its cause
+LIMIT_TOL = 0.01  # [rad]
+MARGIN_TOL = 5e-3  # [m]
+
+
+def explain_misses(points: np.ndarray, t: np.ndarray, x: np.ndarray, x_ref: np.ndarray, q: np.ndarray, *,
+                   q_min: np.ndarray, q_max: np.ndarray, clearance: np.ndarray, fallback: np.ndarray | None,
+                   believed: np.ndarray, margin: float, kappa: np.ndarray, tol: float = 5e-3) -> list[dict[str, Any]]:
+    """Every fruit (``points`` (k, 3) [m], path order) whose least distance to the task point ``x``
+    (T, ≥3) exceeds ``tol`` [m], with its cause. ``t`` (T,) [s]; ``x_ref`` the reference (T, ≥3);
+    ``q`` (T, n) and its limits; ``clearance`` the true rigid clearance (T,) [m]; ``fallback`` each
+    tick's fallback word ("" none; None: a closed form); ``believed`` the map's rigid clearance the
+    rows read (T,) [m] (inf: none); ``margin`` the rigid rows' margin [m]; ``kappa`` the waiting
+    reference's progress rate per tick."""
+    out: list[dict[str, Any]] = []
+    T = len(t)
+    behind = np.linalg.norm(x[:T, :3] - x_ref[:T, :3], axis=1)  # |x − x_d| [m]
+    for k, p in enumerate(np.asarray(points, float)):
+        err = np.linalg.norm(x[:T, :3] - p, axis=1)
+        i = int(np.argmin(err))
+        if err[i] <= tol:
+            continue
+        miss: dict[str, Any] = {"fruit": k, "error_mm": float(err[i] * 1e3), "t_s": float(t[i])}
+        ref = float(np.min(np.linalg.norm(x_ref[:T, :3] - p, axis=1)))
+        near = np.abs(t - t[i]) <= FALLBACK_WINDOW
+        fb = [] if fallback is None else sorted({str(f) for f in np.asarray(fallback)[:T][near] if f})
+        lo, hi = q[i] - q_min, q_max - q[i]
+        at_limit = np.flatnonzero((lo < LIMIT_TOL) | (hi < LIMIT_TOL))
+        b = float(believed[i]) if i < len(believed) else math.inf
+        if ref > tol:
+            miss["cause"] = "reference"
+            miss["reason"] = (f"the reference never came within {tol * 1e3:.0f} mm (closest {ref * 1e3:.0f} mm) by the "
+                              f"run's end at {t[T - 1]:.1f} s: the path was waiting (κ {kappa[-1]:.2f} at the end, "
+                              f"the task point {behind[-1] * 1e3:.0f} mm behind its reference)")
+        elif fb:
+            miss["cause"] = "fallback"
+            miss["reason"] = f"the QP failed within {FALLBACK_WINDOW:.1f} s of the closest approach ({', '.join(fb)})"
+        elif at_limit.size:
+            joints = ", ".join(f"{j + 1} ({'lower' if lo[j] < LIMIT_TOL else 'upper'})" for j in at_limit)
+            miss["cause"] = "joint_limit"
+            miss["reason"] = f"joint {joints} at its limit at the closest approach"
+        elif b <= margin + MARGIN_TOL:
+            truth = float(clearance[i])
+            miss["cause"] = "rigid_margin"
+            miss["reason"] = (f"held by the rigid rows' margin ({margin * 1e3:.0f} mm): the map's rigid clearance "
+                              f"{b * 1e3:.0f} mm at the closest approach, the true rigid clearance {truth * 1e3:.0f} mm"
+                              + (" (the map saw a surface nearer than any there is)" if truth > b + margin else ""))
+        else:
+            miss["cause"] = "lagged"
+            miss["reason"] = (f"the task point trailed its reference past the fruit (closest {err[i] * 1e3:.0f} mm at "
+                              f"{t[i]:.1f} s, {behind[i] * 1e3:.0f} mm behind it then)")
+        out.append(miss)
+    return out
