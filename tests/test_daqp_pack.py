@@ -154,3 +154,46 @@ def test_a_workspace_not_laid_out_as_expected_is_refused(monkeypatch):
     with pytest.raises(RuntimeError, match="DAQPWorkspace"):
         nat.setup()
     assert not nat.ready
+
+
+def test_the_packed_solve_is_the_full_layouts_through_a_depth_map():
+    """The same on panda_canopy_depth's QP (2 s of its closed loop): the depth map's pair rows and soft
+    speed rows, each link's slack column, slots that fill and empty as the map changes."""
+    from qpctl.run import simulate
+
+    scen = Scenario.load("panda_canopy_depth", ["sim.duration=2.0"])
+    build, seen = scen.build_controller, []
+
+    def hooked_build(*args, **kw):
+        ctrl = build(*args, **kw)
+        step = ctrl.step
+
+        def hooked(q, v, t):
+            out = step(q, v, t)
+            buf = ctrl.qp_path().ws.hard
+            seen.append((*(a.copy() for a in (buf.H, buf.f, buf.rows, buf.bu, buf.bl)), buf.sense))
+            return out
+
+        ctrl.step = hooked
+        return ctrl
+
+    scen.build_controller = hooked_build
+    simulate(scen)
+    mine = NativeDAQP(*[a.copy() for a in seen[0][:5]], seen[0][5])
+    ref = FullLayoutDAQP(*seen[0][:5], seen[0][5])
+    counts, solved = set(), 0
+    for args in seen:
+        for dst, src in zip(mine._arrays[:5], args[:5]):
+            dst[...] = src
+        ref.load(*args[:5])
+        if not mine.ready:
+            mine.setup()
+        flag = K.native_solve(mine.dq)
+        ref_out = ref.solve()
+        assert (int(flag), int(mine.flag[1])) == ref_out
+        assert np.array_equal(mine.x, ref.x) and np.array_equal(mine.lam, ref.lam)
+        counts.add(int(mine.m_view[0]))
+        solved += ref_out[0] > 0
+    assert seen[0][2].shape[1] > 7 and len(counts) >= 3 and solved > 1500, (seen[0][2].shape, counts, solved)
+    mine.free()
+    ref.free()
