@@ -47,7 +47,9 @@ def test_the_reference_that_never_came():
     kw["kappa"][-1] = 0.25
     m = _explain(t, x, x_ref, q, kw)
     assert m["cause"] == "reference" and m["error_mm"] == pytest.approx(20.0, abs=0.1)
-    assert "closest 20 mm" in m["reason"] and "κ 0.25" in m["reason"]
+    assert "closest 20 mm" in m["reason"] and "was waiting (κ 0.25" in m["reason"]
+    kw["kappa"][-1] = 1.0  # at full pace at the end: not waiting, only late
+    assert "had not come to it yet" in _explain(t, x, x_ref, q, kw)["reason"]
 
 
 def test_a_fallback_at_the_closest_approach():

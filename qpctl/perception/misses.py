@@ -7,8 +7,8 @@ camera then misses some of them (the task point never within 5 mm). :func:`expla
 run's own records and names, for each miss, the first of these that holds:
 
 1. **the reference never came**: the waiting reference (``perception.lag_*``, ``stale_*``) had not
-   brought x_d within the tolerance by the run's end — its progress rate κ and the task point's lag
-   at the end are given;
+   brought x_d within the tolerance by the run's end — whether it was still waiting (its progress
+   rate κ < 1) and the task point's lag at the end are given;
 2. **the QP gave up there**: a fallback acted on a tick within 0.1 s of the closest approach;
 3. **a joint at its limit** at the closest approach (within 0.01 rad);
 4. **held by the rigid rows' margin**: the map's rigid clearance (what the rows believed) within
@@ -60,9 +60,11 @@ def explain_misses(points: np.ndarray, t: np.ndarray, x: np.ndarray, x_ref: np.n
         b = float(believed[i]) if i < len(believed) else math.inf
         if ref > tol:
             miss["cause"] = "reference"
+            why = (f"the path was waiting (κ {kappa[-1]:.2f} at the end" if kappa[-1] < 1.0 - 1e-9 else
+                   "the path had not come to it yet (κ 1 at the end: at full pace after its waits")
             miss["reason"] = (f"the reference never came within {tol * 1e3:.0f} mm (closest {ref * 1e3:.0f} mm) by the "
-                              f"run's end at {t[T - 1]:.1f} s: the path was waiting (κ {kappa[-1]:.2f} at the end, "
-                              f"the task point {behind[-1] * 1e3:.0f} mm behind its reference)")
+                              f"run's end at {t[T - 1]:.1f} s: {why}, the task point {behind[-1] * 1e3:.0f} mm behind "
+                              "its reference)")
         elif fb:
             miss["cause"] = "fallback"
             miss["reason"] = f"the QP failed within {FALLBACK_WINDOW:.1f} s of the closest approach ({', '.join(fb)})"
