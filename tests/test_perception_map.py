@@ -217,6 +217,33 @@ def test_grasp_target_zone_is_not_an_obstacle() -> None:
         m.set_target([0.0, math.nan, 0.0])
 
 
+def test_what_was_mapped_before_a_fruit_became_the_target_is_forgotten() -> None:
+    """A fruit mapped while it was not the target (rigid) stops being an obstacle once it is: the next
+    snapshot has no rigid voxel whose centre lies within target_radius of it (centres and distances
+    computed here), keeps the rigid voxels of a ball beyond the zone and the soft voxels inside it."""
+    fruit = Sphere((0.25, 0.05, 0.4), 0.04)
+    far = Sphere((0.25, -0.2, 0.4), 0.05)  # 0.25 m from the fruit: beyond the zone
+    m = DepthMap(CFG)
+    m.integrate(render(EYE, [fruit, far], stamp=0.0))
+    m.integrate(PointCloud(np.array(fruit.centre)[None] + [[0.0, 0.0, 0.06]], 0.0, labels=np.array([SOFT])))
+    centre, zone = np.array(fruit.centre), CFG.target_radius
+
+    def occupied(snap, channel):
+        return m.grid.centres(np.argwhere(snap.dist[channel] <= 0.0))
+
+    before = occupied(m.snapshot(), 0)
+    assert np.sum(np.linalg.norm(before - centre, axis=1) <= zone) > 10  # the fruit is a rigid obstacle
+    m.set_target(fruit.centre)
+    snap = m.snapshot()
+    rigid, soft = occupied(snap, 0), occupied(snap, 1)
+    assert not np.any(np.linalg.norm(rigid - centre, axis=1) <= zone)
+    kept_far = np.linalg.norm(rigid - np.array(far.centre), axis=1) <= far.radius + CFG.voxel
+    assert kept_far.sum() == np.sum(np.linalg.norm(before - np.array(far.centre), axis=1) <= far.radius + CFG.voxel) > 10
+    assert np.any(np.linalg.norm(soft - centre, axis=1) <= zone)  # the leaf's voxel stays
+    m.set_target(None)  # forgotten, not hidden: no target, and the fruit is still gone
+    assert not np.any(np.linalg.norm(occupied(m.snapshot(), 0) - centre, axis=1) <= fruit.radius)
+
+
 def test_free_space_is_cleared_along_the_rays() -> None:
     # the ball is seen, then it is gone and the wall behind it is seen through where it was
     m = _mapped([render(EYE, [BALL], wall_x=0.55, stamp=0.0)])

@@ -25,7 +25,8 @@ the voxel was last seen occupied) and turns each frame into it (:meth:`DepthMap.
    pixel's return by more than √3/2 voxel + ``depth_noise`` is freed (a cloud with a sensor origin:
    the voxels along each ray);
 
-and :meth:`DepthMap.snapshot` applies the decay (a voxel not seen for ``decay`` seconds is forgotten)
+and :meth:`DepthMap.snapshot` forgets the rigid voxels within ``target_radius`` of the grasp target
+(seen before it was the target), applies the decay (a voxel not seen for ``decay`` seconds is forgotten)
 and computes the truncated Euclidean distance field and its gradient per channel
 (:mod:`qpctl.kernels.edt`) into an immutable :class:`~qpctl.perception.snapshot.MapSnapshot`.
 
@@ -199,6 +200,7 @@ class DepthMap:
             t0 = time.perf_counter() if started is None else started
             c = self.config
             now = self.stamp if now is None else float(now)
+            self._forget_target_zone()
             KD.occupancy(self.last, now, c.decay, self._occupied)
             nx, ny, nz = self.grid.shape
             dist = np.empty((2, nx, ny, nz), np.float32)
@@ -213,6 +215,27 @@ class DepthMap:
             counts = dict(self.last_report.counts) if self.last_report is not None else {}
             return MapSnapshot(self.grid, c.truncation, dist, grad, self.stamp, (time.perf_counter() - t0) * 1e3,
                                (occupied[0], occupied[1]), self.frames, counts)
+
+    def _forget_target_zone(self) -> None:
+        """Forget the rigid voxels whose centres lie within ``target_radius`` of the grasp target: the
+        frames seen since it became the target drop their points there (step 3), and those seen before
+        — when it was not yet the target, or a flying pixel between the fruit and the leaf in front
+        of it that no later ray reaches to clear — must not stay an obstacle to the gripper either.
+        The soft channel keeps its voxels (the leaves in front of the fruit stay leaves)."""
+        r = self.config.target_radius
+        if self.target is None or r <= 0.0:
+            return
+        g = self.grid
+        lo = np.maximum(np.floor((self.target - r - g.origin) / g.voxel).astype(np.int64), 0)
+        hi = np.minimum(np.floor((self.target + r - g.origin) / g.voxel).astype(np.int64) + 1, g.shape)
+        if np.any(hi <= lo):
+            return
+        axes = [np.arange(lo[k], hi[k]) for k in range(3)]
+        centres = [g.origin[k] + (axes[k] + 0.5) * g.voxel - self.target[k] for k in range(3)]
+        inside = (centres[0][:, None, None] ** 2 + centres[1][None, :, None] ** 2
+                  + centres[2][None, None, :] ** 2) <= r * r
+        box = self.last[0, lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
+        box[inside] = -np.inf
 
     def update(self, frame: Frame) -> MapSnapshot:
         """:meth:`integrate` the frame, then :meth:`snapshot`: the map with it, timed from the call."""
