@@ -222,16 +222,16 @@ class DepthMap:
         — when it was not yet the target, or a flying pixel between the fruit and the leaf in front
         of it that no later ray reaches to clear — must not stay an obstacle to the gripper either.
         The soft channel keeps its voxels (the leaves in front of the fruit stay leaves)."""
-        r = self.config.target_radius
-        if self.target is None or r <= 0.0:
+        r, target = self.config.target_radius, self.target  # (read once: set_target may run in another thread)
+        if target is None or r <= 0.0:
             return
         g = self.grid
-        lo = np.maximum(np.floor((self.target - r - g.origin) / g.voxel).astype(np.int64), 0)
-        hi = np.minimum(np.floor((self.target + r - g.origin) / g.voxel).astype(np.int64) + 1, g.shape)
+        lo = np.maximum(np.floor((target - r - g.origin) / g.voxel).astype(np.int64), 0)
+        hi = np.minimum(np.floor((target + r - g.origin) / g.voxel).astype(np.int64) + 1, g.shape)
         if np.any(hi <= lo):
             return
         axes = [np.arange(lo[k], hi[k]) for k in range(3)]
-        centres = [g.origin[k] + (axes[k] + 0.5) * g.voxel - self.target[k] for k in range(3)]
+        centres = [g.origin[k] + (axes[k] + 0.5) * g.voxel - target[k] for k in range(3)]
         inside = (centres[0][:, None, None] ** 2 + centres[1][None, :, None] ** 2
                   + centres[2][None, None, :] ** 2) <= r * r
         box = self.last[0, lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]]
