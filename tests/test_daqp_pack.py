@@ -11,6 +11,7 @@ slots that fill and empty and through cold starts.
 from __future__ import annotations
 
 import ctypes as C
+import importlib.metadata
 
 import numpy as np
 import pytest
@@ -22,7 +23,20 @@ from qpctl.simulation import Simulator
 from qpctl.solvers import daqp_native
 from qpctl.solvers.daqp_native import WORK_BYTES, NativeDAQP, _library, _Problem, _Result
 
-pytestmark = pytest.mark.skipif(not daqp_native.available(), reason="DAQP's C API path is not available here")
+# The packed path is DAQP's C API path, which qpctl uses only with a DAQP version it was checked
+# against (the structs' layout): with another version the controller solves through daqp.Model and no
+# code here runs. With a checked version the path must be there (the first test), so a failing
+# self-test cannot pass for a skip.
+CHECKED = importlib.metadata.version("daqp") in daqp_native.CHECKED_VERSIONS
+pytestmark = pytest.mark.skipif(not CHECKED, reason=f"DAQP {importlib.metadata.version('daqp')} is not one the C "
+                                f"API path was checked against ({', '.join(daqp_native.CHECKED_VERSIONS)}): "
+                                "qpctl solves through daqp.Model there, and the packed rows are not used")
+
+
+def test_the_c_api_path_is_used_with_a_checked_daqp():
+    """daqp_native.available(): the settings pointer found and the self-test (random QPs with empty
+    slots, on the packed rows) equal to daqp.solve."""
+    assert daqp_native.available()
 
 UPDATE_ALL = 1 | 2 | 4 | 8
 
