@@ -23,8 +23,9 @@ that collide when the first uncertified state came before the contact.
 
 times one brake's rollout per step [µs] from a moving state near obstacles (the states of
 ``tests/test_rollout.py``: the planar arm with a rate limit, the Panda): the Simulator-based
-:func:`qpctl.safety.oracle.rollout` against :class:`qpctl.safety.rollout.BrakeRollout`, exact and with
-the lazy clearance, interleaved, 5 passes (medians; state the load beside them).
+:func:`qpctl.safety.oracle.rollout` against :class:`qpctl.safety.rollout.BrakeRollout`'s Python loop
+and its native one (:mod:`qpctl.native`), exact and with the lazy clearance, interleaved, 11 passes
+(medians; state the load beside them).
 
 ``--cost`` times ``ctrl.step`` with braking off and on alternately on every 5th state of one run of the scenario
 (braking off), three passes: medians and p99 [µs] (state the machine's load beside them).
@@ -104,13 +105,16 @@ def rollout_cost(passes: int = 11) -> dict[str, dict[str, float]]:
         sim = Simulator(ctrl, dt=cases.DT, duration=cases.DT)
         lean = BrakeRollout(ctrl.robot, sim.world, cases.DT)
         tau = cases.gravity(ctrl.robot, q)
-        times: dict[str, list[float]] = {"oracle": [], "lean": [], "lean_lazy": [], "lean_lazy_unfused": []}
+        handle = lean.native  # the native loop (qpctl.native), or None where it is not built
+        keys = ["oracle", "lean", "lean_lazy", "lean_lazy_unfused"] + (["native", "native_lazy"] if handle else [])
+        times: dict[str, list[float]] = {k: [] for k in keys}
         for _ in range(passes + 1):  # the first pass compiles and is dropped
             for key, got in times.items():
                 lean.fused = key != "lean_lazy_unfused"  # the RK4 stages in two kernel calls, or one per operation
+                lean.native = handle if key.startswith("native") else None
                 a = time.thread_time()  # CPU time: the machine is shared
                 c = (rollout(sim, q, v, tau, 0.0, 25.0) if key == "oracle"
-                     else lean.run(q, v, tau, 0.0, 25.0, exact=key == "lean"))
+                     else lean.run(q, v, tau, 0.0, 25.0, exact=key in ("lean", "native")))
                 got.append((time.thread_time() - a) * 1e6 / max(c.steps, 1))
         out[name] = {k: float(np.median(t[1:])) for k, t in times.items()} | {"steps": c.steps}
     return out

@@ -1,0 +1,134 @@
+"""Native code built against the installed Pinocchio's own C++ (its headers and ``libpinocchio``):
+the brake rollout's loop (``brake_rollout.cpp``, :mod:`qpctl.safety.rollout`). Every rigid-body
+quantity in it is ``pinocchio::rnea`` / ``pinocchio::aba`` — the code the Python bindings call — so
+this is Pinocchio without the interpreter between its calls, not a second dynamics.
+
+The library is compiled on first use (``python -m qpctl.native`` does it ahead; ``make env`` calls
+that) with the system's C++ compiler into ``qpctl/native/_build/`` (or ``$QPCTL_NATIVE_DIR``), one
+file per source, Pinocchio version and install prefix, and loaded with :mod:`ctypes`. Where it cannot
+be built (no compiler, no Eigen headers, another Pinocchio layout) :func:`brake_library` returns None
+with the reason in :func:`why_unavailable`, and the rollout runs its Python path (the same states).
+Eigen's headers come from the ``cmeel-eigen`` wheel, a dependency.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import pinocchio as pin
+
+SOURCE = Path(__file__).with_name("brake_rollout.cpp")
+#: Pinocchio's compile definitions for a consumer of ``pinocchio::pinocchio_default`` (from the
+#: wheel's pinocchioTargets.cmake): the extern templates of its instantiated algorithms, and the
+#: Boost.MPL limits its headers were built with.
+DEFINES = ("PINOCCHIO_ENABLE_TEMPLATE_INSTANTIATION", "BOOST_MPL_LIMIT_LIST_SIZE=30",
+           "BOOST_MPL_LIMIT_VECTOR_SIZE=30", "BOOST_MPL_CFG_NO_PREPROCESSED_HEADERS",
+           "BOOST_FUSION_INVOKE_MAX_ARITY=12")
+#: No -march: Eigen's alignment must be the library's (generic x86-64); no contraction into FMAs, so
+#: the arithmetic is the Python path's operation for operation.
+FLAGS = ("-O2", "-std=c++17", "-fPIC", "-shared", "-ffp-contract=off", "-fno-fast-math")
+
+_lib: ctypes.CDLL | None = None
+_why: str | None = None
+
+
+class NativeBuildError(RuntimeError):
+    """The native library could not be built (the message says why)."""
+
+
+def prefix() -> Path:
+    """The install prefix holding Pinocchio's headers and ``libpinocchio_default`` (the cmeel
+    prefix of the ``pin`` wheel)."""
+    for p in Path(pin.__file__).resolve().parents:
+        if (p / "include" / "pinocchio").is_dir():
+            return p
+    raise NativeBuildError(f"no include/pinocchio above {pin.__file__}")
+
+
+def eigen_include(pre: Path) -> Path:
+    """Eigen's headers: beside Pinocchio's (the ``cmeel-eigen`` wheel) or the system's."""
+    for d in (pre / "include" / "eigen3", Path(sys.prefix) / "include" / "eigen3", Path("/usr/include/eigen3")):
+        if (d / "Eigen" / "Core").is_file():
+            return d
+    raise NativeBuildError("no Eigen headers (the cmeel-eigen wheel, a dependency, provides them)")
+
+
+def library_path() -> Path:
+    """Where the built library lives: its name carries the source's, Pinocchio's and the prefix's hash."""
+    pre = prefix()
+    key = hashlib.sha256(SOURCE.read_bytes() + pin.__version__.encode() + str(pre).encode()
+                         + " ".join(FLAGS + DEFINES).encode()).hexdigest()[:16]
+    root = Path(os.environ.get("QPCTL_NATIVE_DIR", Path(__file__).with_name("_build")))
+    return root / f"brake_rollout-{key}.so"
+
+
+def build(force: bool = False) -> Path:
+    """Compile the library if it is not there (atomically: concurrent builders each write their
+    own file and the last rename wins); returns its path. Raises :class:`NativeBuildError`."""
+    out = library_path()
+    if out.is_file() and not force:
+        return out
+    cxx = os.environ.get("CXX") or shutil.which("g++") or shutil.which("c++")
+    if cxx is None:
+        raise NativeBuildError("no C++ compiler (g++ or $CXX)")
+    pre = prefix()
+    lib = pre / "lib"
+    cmd = [cxx, *FLAGS, *(f"-D{d}" for d in DEFINES), f"-I{pre / 'include'}", f"-I{eigen_include(pre)}",
+           str(SOURCE), "-o", "", f"-L{lib}", "-lpinocchio_default", "-lboost_serialization", f"-Wl,-rpath,{lib}"]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
+    os.close(fd)
+    cmd[cmd.index("")] = tmp
+    try:
+        r = subprocess.run(cmd, check=False, capture_output=True, text=True)
+        if r.returncode != 0:
+            lines = r.stderr.strip().splitlines()
+            first = next((ln for ln in lines if "error" in ln), lines[-1] if lines else f"exit {r.returncode}")
+            raise NativeBuildError(f"{cxx} failed: {first}")
+        os.replace(tmp, out)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return out
+
+
+def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
+    p, d, i, L = ctypes.c_void_p, ctypes.c_double, ctypes.c_int, ctypes.c_long
+    sig = {"qpb_new": (p, [ctypes.c_char_p, L]), "qpb_free": (None, [p]), "qpb_nv": (i, [p]),
+           "qpb_io_size": (i, []), "qpb_error": (ctypes.c_char_p, []),
+           "qpb_aba": (None, [p, p, p, p, p]), "qpb_rnea": (None, [p, p, p, p, p]),
+           "qpb_torque": (None, [p, p, p, p, d, p, p, p]), "qpb_step": (d, [p, p, p, p, d, p]),
+           "qpb_advance": (i, [p] * 10)}
+    for name, (res, args) in sig.items():
+        f = getattr(lib, name)
+        f.restype, f.argtypes = res, args
+    return lib
+
+
+def brake_library() -> ctypes.CDLL | None:
+    """The loaded library (built on first use), or None where it cannot be built
+    (:func:`why_unavailable`)."""
+    global _lib, _why
+    if _lib is not None or _why is not None:
+        return _lib
+    if os.environ.get("QPCTL_NATIVE", "1") == "0":
+        _why = "QPCTL_NATIVE=0"
+        return None
+    try:
+        _lib = _declare(ctypes.CDLL(str(build())))
+    except (NativeBuildError, OSError) as e:
+        _why = str(e)
+    return _lib
+
+
+def why_unavailable() -> str | None:
+    """Why :func:`brake_library` returned None (None when it did not)."""
+    brake_library()
+    return _why

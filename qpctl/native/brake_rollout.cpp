@@ -1,0 +1,209 @@
+// The brake rollout's loop in C++ on Pinocchio's own algorithms (issue 22, item 2): the oracle's brake
+// (RNEA at q̈ = −κq̇, clipped to ±τ_max and the rate window) held over each step of the built-in
+// simulator's RK4 on ABA, with the lazy clearance's bookkeeping (qpctl/safety/rollout.py). Every
+// rigid-body quantity is pinocchio::rnea / pinocchio::aba of libpinocchio (the very code the Python
+// bindings call); the arithmetic around them is written in the order of
+// qpctl.simulation.simulator.rk4_step and qpctl.kernels.rollout, compiled without floating-point
+// contraction, so the states equal the Python path's bit for bit (tests/test_native_rollout.py).
+//
+// Vector-space configurations only (nq == nv): the Python path serves robots with continuous or
+// planar joints. The world clearance stays in Python: qpb_advance returns when the lazy bound no
+// longer covers a step, the caller evaluates the clearance and calls again.
+#include <pinocchio/multibody.hpp>
+#include <pinocchio/algorithm/aba.hpp>
+#include <pinocchio/algorithm/rnea.hpp>
+#include <pinocchio/serialization.hpp>
+
+#include <cmath>
+#include <cstring>
+#include <exception>
+#include <string>
+
+namespace {
+
+struct Brake {
+  pinocchio::Model model;
+  pinocchio::Data data;
+  Eigen::VectorXd qdd, tau, qs, dq, dv;
+  Eigen::MatrixXd kq, ka;  // (n, 4): the stages' velocities and accelerations, one column each
+  explicit Brake(const pinocchio::Model& m)
+      : model(m), data(m), qdd(m.nv), tau(m.nv), qs(m.nq), dq(m.nv), dv(m.nv), kq(m.nv, 4), ka(m.nv, 4) {}
+};
+
+using Map = Eigen::Map<Eigen::VectorXd>;
+using CMap = Eigen::Map<const Eigen::VectorXd>;
+// The argument type of libpinocchio's explicit instantiations of aba and rnea: passing it makes the
+// calls those instantiations (extern templates), not new ones compiled here.
+using CRef = Eigen::Ref<const Eigen::VectorXd>;
+
+// The brake's torque into b.tau (qpctl.safety.rollout.BrakeRollout.torque, kernels.rollout.clip_brake).
+void brake_torque(Brake& b, const double* q, const double* v, const double* prev, double gain,
+                  const double* tau_max, const double* window) {
+  const int n = b.model.nv;
+  for (int i = 0; i < n; ++i) b.qdd[i] = v[i] * -gain;
+  b.tau = pinocchio::rnea(b.model, b.data, CRef(CMap(q, b.model.nq)), CRef(CMap(v, n)), CRef(b.qdd));
+  const bool rate = std::isfinite(prev[0]);
+  for (int i = 0; i < n; ++i) {
+    double x = std::min(std::max(b.tau[i], -tau_max[i]), tau_max[i]);
+    if (rate) x = std::min(std::max(x, prev[i] - window[i]), prev[i] + window[i]);
+    b.tau[i] = x;
+  }
+}
+
+// One RK4 step of the held b.tau over dt, (q, v) in place (kernels.rollout.stage_into / finish);
+// returns Σᵢ ρᵢ|Δqᵢ|.
+double rk4_step(Brake& b, double* q, double* v, double dt, const double* rho) {
+  const int n = b.model.nv;
+  b.ka.col(0) = pinocchio::aba(b.model, b.data, CRef(CMap(q, n)), CRef(CMap(v, n)), CRef(b.tau));
+  const double hs[3] = {0.5 * dt, 0.5 * dt, dt};
+  for (int i = 0; i < 3; ++i) {
+    const double h = hs[i];
+    if (i == 0)
+      for (int j = 0; j < n; ++j) b.kq(j, 0) = v[j];
+    for (int j = 0; j < n; ++j) b.kq(j, i + 1) = v[j] + h * b.ka(j, i);
+    for (int j = 0; j < n; ++j) b.qs[j] = q[j] + h * b.kq(j, i);
+    b.ka.col(i + 1) = pinocchio::aba(b.model, b.data, CRef(b.qs), CRef(b.kq.col(i + 1)), CRef(b.tau));
+  }
+  const double c = dt / 6;
+  double travel = 0.0;
+  for (int j = 0; j < n; ++j) {
+    b.dq[j] = c * (((b.kq(j, 0) + 2.0 * b.kq(j, 1)) + 2.0 * b.kq(j, 2)) + b.kq(j, 3));
+    b.dv[j] = c * (((b.ka(j, 0) + 2.0 * b.ka(j, 1)) + 2.0 * b.ka(j, 2)) + b.ka(j, 3));
+  }
+  for (int j = 0; j < n; ++j) q[j] += b.dq[j];
+  for (int j = 0; j < n; ++j) v[j] += b.dv[j];
+  for (int j = 0; j < n; ++j) travel += rho[j] * std::abs(b.dq[j]);
+  return travel;
+}
+
+enum { MOVING = 0, AT_REST = 1, OUTSIDE = 2 };
+
+int state_code(const double* q, const double* v, int n, const double* q_min, const double* q_max,
+               double rest_speed) {
+  for (int i = 0; i < n; ++i)
+    if (!std::isfinite(q[i]) || q[i] < q_min[i] || q[i] > q_max[i]) return OUTSIDE;
+  bool rest = true;
+  for (int i = 0; i < n; ++i) {
+    if (!std::isfinite(v[i])) return OUTSIDE;
+    if (std::abs(v[i]) > rest_speed) rest = false;
+  }
+  return rest ? AT_REST : MOVING;
+}
+
+thread_local std::string last_error;
+
+}  // namespace
+
+extern "C" {
+
+// The io block of qpb_advance (doubles): the rollout's state and its parameters.
+enum {
+  IO_K, IO_STEPS, IO_STILL, IO_LAST, IO_DRIFT, IO_WORST, IO_LEVEL, IO_STOP_BELOW, IO_GAIN, IO_DT,
+  IO_OBSTACLE_SPEED, IO_REST_SPEED, IO_REST_TIME, IO_EVALUATED, IO_LAZY, IO_SIZE
+};
+// qpb_advance's answers.
+enum { NEED_CLEARANCE = 0, AT_REST_END = 1, FAILED = 2, HORIZON = 3 };
+
+int qpb_io_size() { return IO_SIZE; }
+
+const char* qpb_error() { return last_error.c_str(); }
+
+void* qpb_new(const char* text, long len) {
+  try {
+    pinocchio::Model m;
+    m.loadFromString(std::string(text, static_cast<size_t>(len)));
+    if (m.nq != m.nv) {
+      last_error = "the native rollout needs a vector-space configuration (nq == nv)";
+      return nullptr;
+    }
+    return new Brake(m);
+  } catch (const std::exception& e) {
+    last_error = e.what();
+    return nullptr;
+  }
+}
+
+void qpb_free(void* h) { delete static_cast<Brake*>(h); }
+
+int qpb_nv(void* h) { return static_cast<Brake*>(h)->model.nv; }
+
+// Pinocchio's ABA and RNEA through the handle's model (the tests hold them to the bindings').
+void qpb_aba(void* h, const double* q, const double* v, const double* tau, double* out) {
+  Brake& b = *static_cast<Brake*>(h);
+  const int n = b.model.nv;
+  Map(out, n) = pinocchio::aba(b.model, b.data, CRef(CMap(q, n)), CRef(CMap(v, n)), CRef(CMap(tau, n)));
+}
+
+void qpb_rnea(void* h, const double* q, const double* v, const double* a, double* out) {
+  Brake& b = *static_cast<Brake*>(h);
+  const int n = b.model.nv;
+  Map(out, n) = pinocchio::rnea(b.model, b.data, CRef(CMap(q, n)), CRef(CMap(v, n)), CRef(CMap(a, n)));
+}
+
+// The brake's torque at (q, v) after prev into out.
+void qpb_torque(void* h, const double* q, const double* v, const double* prev, double gain,
+                const double* tau_max, const double* window, double* out) {
+  Brake& b = *static_cast<Brake*>(h);
+  brake_torque(b, q, v, prev, gain, tau_max, window);
+  Map(out, b.model.nv) = b.tau;
+}
+
+// One step of the held torque tau from (q, v), in place; returns the step's travel bound.
+double qpb_step(void* h, double* q, double* v, const double* tau, double dt, const double* rho) {
+  Brake& b = *static_cast<Brake*>(h);
+  b.tau = CMap(tau, b.model.nv);
+  return rk4_step(b, q, v, dt, rho);
+}
+
+// The rollout's loop (qpctl.safety.rollout.BrakeRollout.run) from step io[K] on, (q, v, prev) in
+// place, until it needs the clearance at the current step (NEED_CLEARANCE: the caller evaluates it
+// at q, sets io[LAST], io[DRIFT] = 0, io[WORST] = min(io[WORST], clearance), io[EVALUATED] = 1, and
+// calls again), ends at rest (AT_REST_END), fails (FAILED: below stop_below, past a joint limit, or
+// not finite) or runs out of steps (HORIZON). io[K] is the step reached.
+int qpb_advance(void* h, double* q, double* v, double* prev, const double* tau_max, const double* window,
+                const double* q_min, const double* q_max, const double* rho, double* io) {
+  Brake& b = *static_cast<Brake*>(h);
+  const int n = b.model.nv;
+  const long steps = static_cast<long>(io[IO_STEPS]);
+  const double dt = io[IO_DT], level = io[IO_LEVEL], stop_below = io[IO_STOP_BELOW], gain = io[IO_GAIN];
+  const double move = io[IO_OBSTACLE_SPEED] * dt;
+  const bool lazy = io[IO_LAZY] != 0.0;
+  double still = io[IO_STILL], last = io[IO_LAST], drift = io[IO_DRIFT], worst = io[IO_WORST];
+  bool evaluated = io[IO_EVALUATED] != 0.0;
+  long k = static_cast<long>(io[IO_K]);
+  int answer = HORIZON;
+  for (; k < steps; ++k) {
+    if (!evaluated) {
+      if (lazy && last - drift > level) {
+        worst = std::min(worst, last - drift);
+      } else {
+        answer = NEED_CLEARANCE;
+        break;
+      }
+    }
+    evaluated = false;
+    const int code = state_code(q, v, n, q_min, q_max, io[IO_REST_SPEED]);
+    if (worst < stop_below || code == OUTSIDE) {
+      answer = FAILED;
+      break;
+    }
+    still = code == AT_REST ? still + dt : 0.0;
+    if (still >= io[IO_REST_TIME]) {
+      answer = AT_REST_END;
+      break;
+    }
+    brake_torque(b, q, v, prev, gain, tau_max, window);
+    for (int i = 0; i < n; ++i) prev[i] = b.tau[i];
+    const double travel = rk4_step(b, q, v, dt, rho);
+    if (lazy) drift += travel + move;
+  }
+  io[IO_K] = static_cast<double>(k);
+  io[IO_STILL] = still;
+  io[IO_LAST] = last;
+  io[IO_DRIFT] = drift;
+  io[IO_WORST] = worst;
+  io[IO_EVALUATED] = evaluated ? 1.0 : 0.0;
+  return answer;
+}
+
+}  // extern "C"
