@@ -89,6 +89,38 @@ def cell_gradient(grad: np.ndarray, a: int, i: int, j: int, k: int, i1: int, j1:
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _lerp8(c0: float, c1: float, c2: float, c3: float, c4: float, c5: float, c6: float, c7: float, tx: float,
+           ty: float, tz: float) -> float:
+    """:func:`cell_distance`'s lerps on the eight corner values (c[4z + 2y + x]), in its order."""
+    d00 = c0 + tx * (c1 - c0)
+    d10 = c2 + tx * (c3 - c2)
+    d01 = c4 + tx * (c5 - c4)
+    d11 = c6 + tx * (c7 - c6)
+    d0 = d00 + ty * (d10 - d00)
+    d1 = d01 + ty * (d11 - d01)
+    return d0 + tz * (d1 - d0)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def cell_gradient3(grad: np.ndarray, i: int, j: int, k: int, i1: int, j1: int, k1: int, tx: float, ty: float,
+                   tz: float) -> tuple[float, float, float]:
+    """:func:`cell_gradient` of the three components at once: the eight corners' component vectors
+    (contiguous, the grid's last axis) read once each; every component interpolated with
+    :func:`cell_distance`'s lerps in its order (the same numbers)."""
+    gx0, gy0, gz0 = grad[i, j, k, 0], grad[i, j, k, 1], grad[i, j, k, 2]
+    gx1, gy1, gz1 = grad[i1, j, k, 0], grad[i1, j, k, 1], grad[i1, j, k, 2]
+    gx2, gy2, gz2 = grad[i, j1, k, 0], grad[i, j1, k, 1], grad[i, j1, k, 2]
+    gx3, gy3, gz3 = grad[i1, j1, k, 0], grad[i1, j1, k, 1], grad[i1, j1, k, 2]
+    gx4, gy4, gz4 = grad[i, j, k1, 0], grad[i, j, k1, 1], grad[i, j, k1, 2]
+    gx5, gy5, gz5 = grad[i1, j, k1, 0], grad[i1, j, k1, 1], grad[i1, j, k1, 2]
+    gx6, gy6, gz6 = grad[i, j1, k1, 0], grad[i, j1, k1, 1], grad[i, j1, k1, 2]
+    gx7, gy7, gz7 = grad[i1, j1, k1, 0], grad[i1, j1, k1, 1], grad[i1, j1, k1, 2]
+    return (_lerp8(gx0, gx1, gx2, gx3, gx4, gx5, gx6, gx7, tx, ty, tz),
+            _lerp8(gy0, gy1, gy2, gy3, gy4, gy5, gy6, gy7, tx, ty, tz),
+            _lerp8(gz0, gz1, gz2, gz3, gz4, gz5, gz6, gz7, tx, ty, tz))
+
+
+@njit(cache=True, nogil=True, inline="always")
 def field_at(dist: np.ndarray, grad: np.ndarray, origin: np.ndarray, voxel: float, truncation: float, x: float,
              y: float, z: float, smooth: bool, far_gradient: bool) -> tuple[float, float, float, float]:
     """The field at (x, y, z) [m] as (d [m], ∇d): the interpolated gradient grid (``smooth``) or the
@@ -103,9 +135,8 @@ def field_at(dist: np.ndarray, grad: np.ndarray, origin: np.ndarray, voxel: floa
     if not far_gradient and d >= truncation:
         return d, 0.0, 0.0, 0.0
     if smooth:
-        return (d, cell_gradient(grad, 0, i, j, k, i1, j1, k1, tx, ty, tz),
-                cell_gradient(grad, 1, i, j, k, i1, j1, k1, tx, ty, tz),
-                cell_gradient(grad, 2, i, j, k, i1, j1, k1, tx, ty, tz))
+        gx, gy, gz = cell_gradient3(grad, i, j, k, i1, j1, k1, tx, ty, tz)
+        return d, gx, gy, gz
     gx, gy, gz = cell_raw_gradient(dist, i, j, k, i1, j1, k1, tx, ty, tz)
     return d, gx / voxel, gy / voxel, gz / voxel
 
