@@ -81,14 +81,6 @@ def cell_distance(dist: np.ndarray, i: int, j: int, k: int, i1: int, j1: int, k1
 
 
 @njit(cache=True, nogil=True, inline="always")
-def cell_gradient(grad: np.ndarray, a: int, i: int, j: int, k: int, i1: int, j1: int, k1: int, tx: float,
-                  ty: float, tz: float) -> float:
-    """Component a of the gradient grid ``grad`` (nx, ny, nz, 3) interpolated in a cell (the smooth
-    normal): :func:`cell_distance` of that component's grid."""
-    return cell_distance(grad[:, :, :, a], i, j, k, i1, j1, k1, tx, ty, tz)
-
-
-@njit(cache=True, nogil=True, inline="always")
 def _lerp8(c0: float, c1: float, c2: float, c3: float, c4: float, c5: float, c6: float, c7: float, tx: float,
            ty: float, tz: float) -> float:
     """:func:`cell_distance`'s lerps on the eight corner values (c[4z + 2y + x]), in its order."""
@@ -104,9 +96,9 @@ def _lerp8(c0: float, c1: float, c2: float, c3: float, c4: float, c5: float, c6:
 @njit(cache=True, nogil=True, inline="always")
 def cell_gradient3(grad: np.ndarray, i: int, j: int, k: int, i1: int, j1: int, k1: int, tx: float, ty: float,
                    tz: float) -> tuple[float, float, float]:
-    """:func:`cell_gradient` of the three components at once: the eight corners' component vectors
-    (contiguous, the grid's last axis) read once each; every component interpolated with
-    :func:`cell_distance`'s lerps in its order (the same numbers)."""
+    """The gradient grid ``grad`` (nx, ny, nz, 3) interpolated in a cell (the smooth normal), the three
+    components at once: the eight corners' component vectors (contiguous, the grid's last axis) read
+    once each, every component interpolated with :func:`cell_distance`'s lerps in its order."""
     gx0, gy0, gz0 = grad[i, j, k, 0], grad[i, j, k, 1], grad[i, j, k, 2]
     gx1, gy1, gz1 = grad[i1, j, k, 0], grad[i1, j, k, 1], grad[i1, j, k, 2]
     gx2, gy2, gz2 = grad[i, j1, k, 0], grad[i, j1, k, 1], grad[i, j1, k, 2]
