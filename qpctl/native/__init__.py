@@ -79,13 +79,12 @@ def build(force: bool = False) -> Path:
     if cxx is None:
         raise NativeBuildError("no C++ compiler (g++ or $CXX)")
     pre = prefix()
-    lib = pre / "lib"
-    cmd = [cxx, *FLAGS, *(f"-D{d}" for d in DEFINES), f"-I{pre / 'include'}", f"-I{eigen_include(pre)}",
-           str(SOURCE), "-o", "", f"-L{lib}", "-lpinocchio_default", "-lboost_serialization", f"-Wl,-rpath,{lib}"]
+    lib, eigen = pre / "lib", eigen_include(pre)
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
     os.close(fd)
-    cmd[cmd.index("")] = tmp
+    cmd = [cxx, *FLAGS, *(f"-D{d}" for d in DEFINES), f"-I{pre / 'include'}", f"-I{eigen}", str(SOURCE),
+           "-o", tmp, f"-L{lib}", "-lpinocchio_default", "-lboost_serialization", f"-Wl,-rpath,{lib}"]
     try:
         r = subprocess.run(cmd, check=False, capture_output=True, text=True)
         if r.returncode != 0:
