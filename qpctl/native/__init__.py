@@ -4,8 +4,8 @@ quantity in it is ``pinocchio::rnea`` / ``pinocchio::aba`` — the code the Pyth
 this is Pinocchio without the interpreter between its calls, not a second dynamics.
 
 The library is compiled on first use (``python -m qpctl.native`` does it ahead; ``make env`` calls
-that) with the system's C++ compiler into ``qpctl/native/_build/`` (or ``$QPCTL_NATIVE_DIR``), one
-file per source, Pinocchio version and install prefix, and loaded with :mod:`ctypes`. Where it cannot
+that) with the system's C++ compiler into :func:`build_dir` (``qpctl/native/_build/`` in a
+checkout), one file per source, Pinocchio version and install prefix, and loaded with :mod:`ctypes`. Where it cannot
 be built (no compiler, no Eigen headers, another Pinocchio layout) :func:`brake_library` returns None
 with the reason in :func:`why_unavailable`, and the rollout runs its Python path (the same states).
 Eigen's headers come from the ``cmeel-eigen`` wheel, a dependency.
@@ -65,8 +65,18 @@ def library_path() -> Path:
     pre = prefix()
     key = hashlib.sha256(SOURCE.read_bytes() + pin.__version__.encode() + str(pre).encode()
                          + " ".join(FLAGS + DEFINES).encode()).hexdigest()[:16]
-    root = Path(os.environ.get("QPCTL_NATIVE_DIR", Path(__file__).with_name("_build")))
-    return root / f"brake_rollout-{key}.so"
+    return build_dir() / f"brake_rollout-{key}.so"
+
+
+def build_dir() -> Path:
+    """``$QPCTL_NATIVE_DIR``, else ``qpctl/native/_build`` beside this file where the package's
+    directory is writable (a checkout), else the user's cache (``$XDG_CACHE_HOME/qpctl/native``)."""
+    if "QPCTL_NATIVE_DIR" in os.environ:
+        return Path(os.environ["QPCTL_NATIVE_DIR"])
+    here = Path(__file__).parent
+    if os.access(here, os.W_OK):
+        return here / "_build"
+    return Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "qpctl" / "native"
 
 
 def build(force: bool = False) -> Path:
