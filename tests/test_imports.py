@@ -31,7 +31,7 @@ ROOT = Path(qpctl.__file__).resolve().parent
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("foundation", ("qpctl.errors", "qpctl.config", "qpctl.linalg", "qpctl.qp")),
     ("world", ("qpctl.robot", "qpctl.geometry", "qpctl.paths", "qpctl.orientation")),
-    ("state and kernels", ("qpctl.kernels", "qpctl.state")),
+    ("state and kernels", ("qpctl.kernels", "qpctl.state", "qpctl.native")),  # native: Pinocchio's C++ brake loop
     ("law", ("qpctl.law", "qpctl.barrier_design")),
     ("tick", ("qpctl.tick", "qpctl.dynamics")),
     ("tasks and constraints", ("qpctl.tasks", "qpctl.constraints")),

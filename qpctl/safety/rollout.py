@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from qpctl import native
+import qpctl.native
 from qpctl.kernels import rollout as K
 from qpctl.safety.oracle import REST_SPEED, REST_TIME, Certificate
 from qpctl.tick import WorldClearance
@@ -182,16 +182,16 @@ class NativeBrake:
     @classmethod
     def create(cls, owner: BrakeRollout) -> NativeBrake | None:
         """The native loop for ``owner``'s model, or None where :mod:`qpctl.native` is unavailable."""
-        lib = native.brake_library()
+        lib = qpctl.native.brake_library()
         if lib is None:
             return None
         text = owner.model.saveToString().encode()
         handle = lib.qpb_new(text, len(text))
         if not handle:
-            raise native.NativeBuildError(f"the native rollout refused the model: {lib.qpb_error().decode()}")
+            raise qpctl.native.NativeBuildError(f"the native rollout refused the model: {lib.qpb_error().decode()}")
         if lib.qpb_io_size() != IO_SIZE or lib.qpb_nv(handle) != owner.robot.nv:
             lib.qpb_free(handle)
-            raise native.NativeBuildError("the native rollout's layout is not this module's")
+            raise qpctl.native.NativeBuildError("the native rollout's layout is not this module's")
         return cls(owner, lib, handle)
 
     def run(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, steps: int,
