@@ -130,10 +130,11 @@ def test_the_cases_reach_every_ending():
 
 
 def test_a_joint_limit_ends_the_native_loop_as_the_python_one():
+    """The limit set after the rollouts were made (both read the robot's limits at each run)."""
     lib_or_skip()
     ctrl, q, v = cases.planar_case(obstacles=[])
-    ctrl.robot.q_min[1] = q[1] - 0.05
     fast, slow = both(ctrl)
+    ctrl.robot.q_min[1] = q[1] - 0.05
     tau_prev = cases.gravity(ctrl.robot, q)
     a, b = fast.run(q, v, tau_prev, 0.0, 10.0), slow.run(q, v, tau_prev, 0.0, 10.0)
     assert a == b and not a.viable and 0 < a.steps < 100

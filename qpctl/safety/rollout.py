@@ -176,8 +176,6 @@ class NativeBrake:
         self.io = np.zeros(IO_SIZE)
         self._free = weakref.finalize(self, lib.qpb_free, handle)
         self.q, self.v, self.prev = (np.zeros(owner.robot.nv) for _ in range(3))
-        self._const = [np.ascontiguousarray(a, float) for a in (owner.tau_max, owner.window, owner.q_min,
-                                                                 owner.q_max, owner._rho)]
 
     @classmethod
     def create(cls, owner: BrakeRollout) -> NativeBrake | None:
@@ -203,7 +201,9 @@ class NativeBrake:
         io[IO_LEVEL], io[IO_STOP_BELOW], io[IO_GAIN], io[IO_DT] = level, stop_below, gain, self.owner.dt
         io[IO_OBSTACLE_SPEED], io[IO_REST_SPEED], io[IO_REST_TIME] = self.owner.obstacle_speed, REST_SPEED, REST_TIME
         io[IO_LAZY] = float(lazy)
-        ptr = [a.ctypes.data for a in (qq, vv, prev, *self._const, io)]
+        o = self.owner  # its limits read at each run, as the Python loop reads them
+        self._keep = [np.ascontiguousarray(a, float) for a in (o.tau_max, o.window, o.q_min, o.q_max, o._rho)]
+        ptr = [a.ctypes.data for a in (qq, vv, prev, *self._keep, io)]
         advance, world, dt = self.lib.qpb_advance, self.owner.world, self.owner.dt
         while True:
             answer = advance(self.handle, *ptr)
