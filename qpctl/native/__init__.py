@@ -109,11 +109,10 @@ def build(force: bool = False) -> Path:
 
 
 def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
-    p, d, i, L = ctypes.c_void_p, ctypes.c_double, ctypes.c_int, ctypes.c_long
+    p, i, L = ctypes.c_void_p, ctypes.c_int, ctypes.c_long
     sig = {"qpb_new": (p, [ctypes.c_char_p, L]), "qpb_free": (None, [p]), "qpb_nv": (i, [p]),
            "qpb_io_size": (i, []), "qpb_error": (ctypes.c_char_p, []),
            "qpb_aba": (None, [p, p, p, p, p]), "qpb_rnea": (None, [p, p, p, p, p]),
-           "qpb_torque": (None, [p, p, p, p, d, p, p, p]), "qpb_step": (d, [p, p, p, p, d, p]),
            "qpb_advance": (i, [p] * 10)}
     for name, (res, args) in sig.items():
         f = getattr(lib, name)

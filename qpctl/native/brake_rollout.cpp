@@ -140,21 +140,6 @@ void qpb_rnea(void* h, const double* q, const double* v, const double* a, double
   Map(out, n) = pinocchio::rnea(b.model, b.data, CRef(CMap(q, n)), CRef(CMap(v, n)), CRef(CMap(a, n)));
 }
 
-// The brake's torque at (q, v) after prev into out.
-void qpb_torque(void* h, const double* q, const double* v, const double* prev, double gain,
-                const double* tau_max, const double* window, double* out) {
-  Brake& b = *static_cast<Brake*>(h);
-  brake_torque(b, q, v, prev, gain, tau_max, window);
-  Map(out, b.model.nv) = b.tau;
-}
-
-// One step of the held torque tau from (q, v), in place; returns the step's travel bound.
-double qpb_step(void* h, double* q, double* v, const double* tau, double dt, const double* rho) {
-  Brake& b = *static_cast<Brake*>(h);
-  b.tau = CMap(tau, b.model.nv);
-  return rk4_step(b, q, v, dt, rho);
-}
-
 // The rollout's loop (qpctl.safety.rollout.BrakeRollout.run) from step io[K] on, (q, v, prev) in
 // place, until it needs the clearance at the current step (NEED_CLEARANCE: the caller evaluates it
 // at q, sets io[LAST], io[DRIFT] = 0, io[WORST] = min(io[WORST], clearance), io[EVALUATED] = 1, and
