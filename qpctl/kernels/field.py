@@ -231,15 +231,22 @@ def second_minimum(ds: np.ndarray, best: int, samples: int, truncation: float) -
 
 
 @njit(cache=True, nogil=True, inline="always")
-def speed_excess(px: float, py: float, pz: float, r: float, vx: float, vy: float, vz: float, wx: float, wy: float,
-                 wz: float, d: float, soft_speed: float, gain: float, vmargin: float) -> float:
+def ranked_excess(px: float, py: float, pz: float, r: float, vx: float, vy: float, vz: float, wx: float, wy: float,
+                  wz: float, wn: float, d: float, soft_speed: float, gain: float, vmargin: float, e2: float) -> float:
     """How much the fastest point of the ball of radius r about the axis point (px, py, pz) [m] (inside
     the capsule) outruns its bound b(d) [m/s]: the axis point's velocity c (body velocity v at the
-    origin, ω) plus r ω × e, e = (c × ω)/|c × ω| maximising cᵀ(ω × e): |c| + r|ω ⊥ c| − b(d)."""
+    origin, ω) plus r ω × e, e = (c × ω)/|c × ω| maximising cᵀ(ω × e): |c| + r|ω ⊥ c| − b(d). −inf
+    where it cannot rank among a link's two largest: |ω ⊥ c| ≤ |ω| = ``wn``, so |c| + r·wn − b(d)
+    bounds it, and a bound below the second largest so far ``e2`` (less 1e-9 relative, far above
+    rounding) leaves the selection as it is — the same samples chosen, one square root and a
+    division fewer."""
     cx, cy, cz = vx + wy * pz - wz * py, vy + wz * px - wx * pz, vz + wx * py - wy * px
     c = math.sqrt(cx * cx + cy * cy + cz * cz)
+    b = soft_speed + gain * max(d - vmargin, 0.0)
+    if c + r * wn - b < e2 - 1e-9 * (1.0 + abs(e2)):
+        return -math.inf
     ex, ey, ez = cy * wz - cz * wy, cz * wx - cx * wz, cx * wy - cy * wx
-    return c + r * math.sqrt(ex * ex + ey * ey + ez * ez) / max(c, 1e-300) - (soft_speed + gain * max(d - vmargin, 0.0))
+    return c + r * math.sqrt(ex * ex + ey * ey + ez * ez) / max(c, 1e-300) - b
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -336,6 +343,7 @@ def speed_points(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, orig
             continue  # nothing within the truncation on this axis (1-Lipschitz)
         vx, vy, vz = body_vel[l, 0], body_vel[l, 1], body_vel[l, 2]
         wx, wy, wz = body_vel[l, 3], body_vel[l, 4], body_vel[l, 5]
+        wn = math.sqrt(wx * wx + wy * wy + wz * wz)
         best, second = -1, -1
         e1 = e2 = -math.inf
         for j in range(samples):
@@ -345,7 +353,7 @@ def speed_points(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, orig
             ds[j] = d
             if d + r >= truncation or d >= cutoff:
                 continue
-            excess = speed_excess(px, py, pz, r, vx, vy, vz, wx, wy, wz, d, soft_speed, gain, vmargin)
+            excess = ranked_excess(px, py, pz, r, vx, vy, vz, wx, wy, wz, wn, d, soft_speed, gain, vmargin, e2)
             if excess > e1:
                 second, e2 = best, e1
                 best, e1 = j, excess

@@ -30,8 +30,8 @@ from qpctl.kernels.field import (
     cell,
     cell_distance,
     pair_row,
+    ranked_excess,
     second_minimum,
-    speed_excess,
     speed_row,
 )
 
@@ -89,6 +89,7 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
             continue
         vx, vy, vz = body_vel[l, 0], body_vel[l, 1], body_vel[l, 2]
         wx, wy, wz = body_vel[l, 3], body_vel[l, 4], body_vel[l, 5]
+        wn = math.sqrt(wx * wx + wy * wy + wz * wz)
         best0 = best1 = 0
         best, second = -1, -1
         e1 = e2 = -math.inf
@@ -107,7 +108,7 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
             d = t1 - r
             if d + r >= truncation or d >= cutoff:
                 continue
-            excess = speed_excess(px, py, pz, r, vx, vy, vz, wx, wy, wz, d, soft_speed, gain, vmargin)
+            excess = ranked_excess(px, py, pz, r, vx, vy, vz, wx, wy, wz, wn, d, soft_speed, gain, vmargin, e2)
             if excess > e1:
                 second, e2 = best, e1
                 best, e1 = j, excess
