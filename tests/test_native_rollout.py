@@ -22,9 +22,13 @@ CHECKED_PINOCCHIO = ("4.1.0",)
 
 
 def lib_or_skip():
+    """The library; a skip only on a Pinocchio the build was not checked against (the rollout then
+    runs its Python loop, tested in test_rollout.py); with a checked one, unavailable is a failure."""
     lib = native.brake_library()
     if lib is None and pin.__version__ not in CHECKED_PINOCCHIO:
-        pytest.skip(f"native rollout not built for Pinocchio {pin.__version__}: {native.why_unavailable()}")
+        pytest.skip(f"native rollout not built for Pinocchio {pin.__version__} (the Python loop serves): "
+                    f"{native.why_unavailable()}")
+    assert lib is not None, native.why_unavailable()
     return lib
 
 

@@ -67,23 +67,10 @@ def cell(nx: int, ny: int, nz: int, origin: np.ndarray, voxel: float, x: float, 
 
 
 @njit(cache=True, nogil=True, inline="always")
-def cell_distance(dist: np.ndarray, i: int, j: int, k: int, i1: int, j1: int, k1: int, tx: float, ty: float,
-                  tz: float) -> float:
-    """The trilinear distance [m] of the 3-D grid ``dist`` in the cell (i, j, k)–(i1, j1, k1) at the
-    fractions (tx, ty, tz) (:func:`cell`): along x, then y, then z, in float32 differences."""
-    d00 = dist[i, j, k] + tx * (dist[i1, j, k] - dist[i, j, k])
-    d10 = dist[i, j1, k] + tx * (dist[i1, j1, k] - dist[i, j1, k])
-    d01 = dist[i, j, k1] + tx * (dist[i1, j, k1] - dist[i, j, k1])
-    d11 = dist[i, j1, k1] + tx * (dist[i1, j1, k1] - dist[i, j1, k1])
-    d0 = d00 + ty * (d10 - d00)
-    d1 = d01 + ty * (d11 - d01)
-    return d0 + tz * (d1 - d0)
-
-
-@njit(cache=True, nogil=True, inline="always")
 def _lerp8(c0: float, c1: float, c2: float, c3: float, c4: float, c5: float, c6: float, c7: float, tx: float,
            ty: float, tz: float) -> float:
-    """:func:`cell_distance`'s lerps on the eight corner values (c[4z + 2y + x]), in its order."""
+    """The trilinear lerps on a cell's eight corner values (c[4z + 2y + x]): along x, then y, then z
+    (:func:`cell_distance` of the distance grid, :func:`cell_gradient3` of each gradient component)."""
     d00 = c0 + tx * (c1 - c0)
     d10 = c2 + tx * (c3 - c2)
     d01 = c4 + tx * (c5 - c4)
@@ -91,6 +78,15 @@ def _lerp8(c0: float, c1: float, c2: float, c3: float, c4: float, c5: float, c6:
     d0 = d00 + ty * (d10 - d00)
     d1 = d01 + ty * (d11 - d01)
     return d0 + tz * (d1 - d0)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def cell_distance(dist: np.ndarray, i: int, j: int, k: int, i1: int, j1: int, k1: int, tx: float, ty: float,
+                  tz: float) -> float:
+    """The trilinear distance [m] of the 3-D grid ``dist`` in the cell (i, j, k)–(i1, j1, k1) at the
+    fractions (tx, ty, tz) (:func:`cell`): along x, then y, then z, in float32 differences."""
+    return _lerp8(dist[i, j, k], dist[i1, j, k], dist[i, j1, k], dist[i1, j1, k], dist[i, j, k1], dist[i1, j, k1],
+                  dist[i, j1, k1], dist[i1, j1, k1], tx, ty, tz)
 
 
 @njit(cache=True, nogil=True, inline="always")
