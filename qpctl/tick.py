@@ -5,7 +5,7 @@ views (:func:`rigid_pass` refreshes them in place), allocates every array the ke
 :mod:`qpctl.kernels.tick` write (rigid-body terms, link–obstacle pairs at their full capacity,
 law terms, the QP in DAQP's layout, the output record), and runs a tick as a handful of calls:
 
-    rigid_pass (crba, nonLinearEffects) → kernels.state → [python-fcl for other shapes] → law kernel → [solve]
+    rigid_pass (crba, nonLinearEffects; inside the one-call kernels on the native library) → kernels.state → [python-fcl for other shapes] → law kernel → [solve]
 
 Spheres, capsules, boxes and cylinders are in closed form in the kernels. Obstacles of any other
 shape (a mesh, a shape a user registers) are the only per-pair Python work: python-fcl's queries and
@@ -34,8 +34,10 @@ from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels import codes
 from qpctl.kernels import tick as K
 from qpctl.kernels.lie import joint_angles
+from qpctl.kernels.pin_native import rigid_at
 from qpctl.kernels.work import FIELDS, SJ_ROWS, SV_ROWS, new_tick_work
 from qpctl.law import LawGains, LawTerms
+from qpctl.native.rigid import NativeRigid
 from qpctl.paths import PosePath, Reference, WaypointPath
 from qpctl.qp import Problem
 from qpctl.robot.model import RobotModel
@@ -267,12 +269,15 @@ class Workspace:
         broadphase: a uniform grid over the static obstacles (None: above GRID_MIN_OBSTACLES).
         barrier_drift: compute every pair's barrier drift (the QP's spec implies it unless its drift
             is "rigid").
+        native_rigid: the one-call kernels run Pinocchio's rigid-body pass themselves, on the native
+            library (:mod:`qpctl.native.rigid`; the controllers' workspaces), where it is available and
+            the configuration is a vector space; ``data`` is then not the views' memory.
     """
 
     def __init__(self, robot: RobotModel, obstacles: Sequence[Obstacle], path: object, gains: LawGains | None,
                  cutoff: float, *, spec: QPSpec | None = None, broadphase: bool | None = None,
                  barrier_drift: bool = False, self_pairs: Sequence[tuple[int, int]] = (),
-                 self_cutoff: float = math.inf) -> None:
+                 self_cutoff: float = math.inf, native_rigid: bool = False) -> None:
         model = robot.model
         self.robot, self.model = robot, model
         self.data = model.createData()
@@ -288,6 +293,15 @@ class Workspace:
         self.posture_config: np.ndarray | None = None
         f = self.__dict__
         f.update(bind_pinocchio(model, self.data))
+        # the compiled tick's own rigid-body pass (qpctl.native.rigid): the views then read its Data
+        self._native = NativeRigid.create(model) if native_rigid else None
+        self.pin_native = np.zeros(2, np.int64)
+        if self._native is not None:
+            f.update(self._native.views)
+            self.pin_native[:] = self._native.address, self._native.handle
+        #: True where Python's rigid_pass fills the views before a kernel; False where the one-call
+        #: kernels run the pass themselves (and rigid() calls it for the other paths)
+        self.py_rigid = self._native is None
         # robot
         self.cap_joint = np.array([c.joint_id for c in robot.capsules], dtype=np.int64)
         self.cap_local = np.array([[c.p0, c.p1] for c in robot.capsules], float).reshape(L, 2, 3)
@@ -581,12 +595,30 @@ class Workspace:
             self.q_ref[:] = qa + pin.difference(self.model, q, self.posture_config)
         return qa
 
+    def rigid(self, q: np.ndarray, v: np.ndarray) -> None:
+        """The rigid-body pass at (q, v) into the views: :func:`rigid_pass`, or the native pass
+        (float64 vectors: the callers have checked the state)."""
+        if self.py_rigid:
+            rigid_pass(self.model, self.data, q, v)
+            return
+        code = rigid_at(self.work, q, v)
+        if code == 2:
+            raise ValueError(f"q and v must have shapes ({self.nq},) and ({self.n},), got {np.shape(q)} and {np.shape(v)}")
+        if code:
+            raise RuntimeError(f"Pinocchio's rigid-body pass failed: {self._native.error()}")  # type: ignore[union-attr]
+
+    def before_kernel(self, q: np.ndarray, v: np.ndarray) -> None:
+        """What a one-call kernel needs before it runs: :func:`rigid_pass`, unless the kernel runs the
+        pass itself (the native pass)."""
+        if self.py_rigid:
+            rigid_pass(self.model, self.data, q, v)
+
     def state(self, q: np.ndarray, v: np.ndarray, t: float) -> int:
-        """:func:`rigid_pass` and the state kernel (and python-fcl's pairs, if any); −1 if the dynamics
+        """:meth:`rigid` and the state kernel (and python-fcl's pairs, if any); −1 if the dynamics
         overflow at this state (or q, v are not finite), else 0. Records Pinocchio's and the kernel's wall
         times [s] in ``pin_s`` and ``state_s``."""
         start = time.perf_counter()
-        rigid_pass(self.model, self.data, q, v)
+        self.rigid(q, v)
         mid = time.perf_counter()
         status = K.state(self.work, self.joint_view(q), v, t)
         if status != 0:

@@ -25,7 +25,7 @@ from qpctl.outcome import SOLUTION_RTOL
 from qpctl.paths import WaypointPath
 from qpctl.robot.model import planar_arm
 from qpctl.solvers import daqp_native
-from qpctl.tick import QPSpec, Workspace, WorldClearance, rigid_pass
+from qpctl.tick import QPSpec, Workspace, WorldClearance
 
 _WARM: dict[str, float] | None = None
 
@@ -62,16 +62,17 @@ def warmup() -> dict[str, float]:
 
     start = time.perf_counter()
     for shapes, grid in ((scene, True), (scene[:2], False)):  # python-fcl's box: the state Python finishes
-        ws = Workspace(robot, shapes, path, gains, gains.d_influence, broadphase=grid)
+        ws = Workspace(robot, shapes, path, gains, gains.d_influence, broadphase=grid, native_rigid=True)
         for weighted in (True, False):  # the whole tick, then its second half (after Python's part)
-            rigid_pass(ws.model, ws.data, q, v)
+            ws.rigid(q, v)
             if K.tick_closed_form(ws.work, q, v, t, weighted, np.empty_like(ws.rec)) == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
             K.closed_form_tick(ws.work, weighted)
     times["closed forms"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    ws = Workspace(robot, scene, path, gains, gains.d_influence, spec=_spec(robot, 12), broadphase=True)
+    ws = Workspace(robot, scene, path, gains, gains.d_influence, spec=_spec(robot, 12), broadphase=True,
+                   native_rigid=True)
     hard, relaxed = ws.hard, ws.relaxed
     assert hard is not None and relaxed is not None
     ws.state(q, v, t)
@@ -94,15 +95,15 @@ def warmup() -> dict[str, float]:
         args = (*nat_h.kernel_args, nat_h.lam, *nat_r.kernel_args, SOLUTION_RTOL, 1e6)
         packed = new_native_qp(ws.work, *args)
         for try_hard in (True, False):  # the whole tick, then its part after the state (Python's turn)
-            rigid_pass(ws.model, ws.data, q, v)
+            ws.rigid(q, v)
             if K.tick_qp_native(ws.work, q, v, t, *nat_r.kernel_args, SOLUTION_RTOL) == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
             K.qp_tick_native(ws.work, *nat_r.kernel_args, SOLUTION_RTOL)
-            rigid_pass(ws.model, ws.data, q, v)
+            ws.rigid(q, v)
             if K.tick_qp_native_hard_first(ws.work, q, v, t, *args, try_hard)[0] == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
             K.qp_tick_native_hard_first(ws.work, *args, try_hard)
-            rigid_pass(ws.model, ws.data, q, v)
+            ws.rigid(q, v)
             K.tick_qp(packed, q, v, t, try_hard, np.empty_like(ws.rec))
         nat_h.free()
         nat_r.free()

@@ -24,7 +24,7 @@ CHECKED_PINOCCHIO = ("4.1.0",)
 def lib_or_skip():
     """The library; a skip only on a Pinocchio the build was not checked against (the rollout then
     runs its Python loop, tested in test_rollout.py); with a checked one, unavailable is a failure."""
-    lib = native.brake_library()
+    lib = native.library()
     if lib is None and pin.__version__ not in CHECKED_PINOCCHIO:
         pytest.skip(f"native rollout not built for Pinocchio {pin.__version__} (the Python loop serves): "
                     f"{native.why_unavailable()}")
@@ -37,7 +37,7 @@ def test_the_library_builds_with_a_checked_pinocchio():
     build cannot pass for an unavailable one."""
     if pin.__version__ not in CHECKED_PINOCCHIO:
         pytest.skip(f"Pinocchio {pin.__version__} is not one the native build was checked against")
-    assert native.brake_library() is not None, native.why_unavailable()
+    assert native.library() is not None, native.why_unavailable()
     ctrl, _, _ = cases.planar_case()
     assert BrakeRollout(ctrl.robot, Simulator(ctrl, dt=cases.DT, duration=cases.DT).world, cases.DT).native is not None
 
@@ -204,6 +204,6 @@ def test_a_failed_build_names_its_reason_and_leaves_nothing(tmp_path, monkeypatc
     with pytest.raises(native.NativeBuildError, match="/bin/false failed"):
         native.build()
     assert not list(tmp_path.iterdir())
-    monkeypatch.setattr(native, "brake_library", lambda: None)
+    monkeypatch.setattr(native, "library", lambda: None)
     ctrl, _, _ = cases.planar_case()
     assert BrakeRollout(ctrl.robot, Simulator(ctrl, dt=cases.DT, duration=cases.DT).world, cases.DT).native is None

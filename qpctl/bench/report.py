@@ -216,11 +216,12 @@ STAGE_LEGEND = (
     "**floor** = `pin.computeAllTerms(model, data, q, v)` alone, timed on the same states in the same blocks; "
     "**÷ floor** = median tick ÷ the floor's median tick (the figure that carries across machines). Stage "
     "columns are medians of the per-tick values reported in `out.info`: Pinocchio = `rigid_us` "
-    "(crba and nonLinearEffects inside the tick, `qpctl.tick.rigid_pass`); state kernel = `state_us − rigid_us` (link points and Jacobians, "
+    "(crba and nonLinearEffects: on the native library inside the compiled tick's kernel, "
+    "`qpctl.kernels.pin_native`, else `qpctl.tick.rigid_pass` before it); state kernel = `state_us − rigid_us` (link points and Jacobians, "
     "link–obstacle pairs and distances, barrier drift); law + rows = `build_us` (the law's terms and, for the "
     "QP, its cost and rows written in place; for paper/hsu the terms and the closed form); solve = `solve_us` "
-    "(the solver and the check of its answer, QP only); other = wall − the rest (input checks, the output "
-    "record, the timers). Medians of the parts do not add up exactly to the median tick.")
+    "(the solver and the check of its answer, QP only); other = wall − the rest (the Python around the kernel, "
+    "numba's call, the output record, the timers). Medians of the parts do not add up exactly to the median tick.")
 
 
 def _plots_line(res: dict[str, Any]) -> str:

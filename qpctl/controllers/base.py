@@ -117,6 +117,8 @@ class RecordOutput(ControlOutput):
         if self._info is None:
             pin_s, state_s, build_s, solve_s = self._stages
             r, s = self._rec, self._layout.scalars
+            if pin_s < 0:  # the rigid-body pass ran inside the tick's kernel (qpctl.kernels.pin_native)
+                pin_s = r[s + codes.R_RIGID_US] * 1e-6
             if state_s < 0:  # measured inside the tick's kernel and kept in the record [µs]
                 state_s = r[s + codes.R_STATE_US] * 1e-6
             if build_s < 0:
@@ -296,7 +298,7 @@ class Controller(ABC):
     def _make_workspace(self) -> Workspace:
         """A law written in Python (:meth:`control`) may read any of the state, the barrier drift too."""
         return Workspace(self.robot, self.obstacles, self.path, self.gains, self.cutoff, broadphase=self.broadphase,
-                         barrier_drift=True)
+                         barrier_drift=True, native_rigid=True)
 
     def warmup(self) -> float:
         """Compile (or load from the on-disk cache) every kernel of the tick (:func:`qpctl.warmup.warmup`,

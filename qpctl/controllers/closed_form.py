@@ -70,7 +70,8 @@ class PaperController(Controller):
     _entry: Any = None  # K.tick_closed_form's compiled entry point for float64 C arrays (entry_point)
 
     def _make_workspace(self) -> Workspace:
-        return Workspace(self.robot, self.obstacles, self.path, self.gains, self.cutoff, broadphase=self.broadphase)
+        return Workspace(self.robot, self.obstacles, self.path, self.gains, self.cutoff, broadphase=self.broadphase,
+                         native_rigid=True)
 
     def step(self, q: np.ndarray, v: np.ndarray, t: float) -> ControlOutput:
         """One compiled tick: state, law terms and the closed form; ``compute_us`` its wall time. On the
@@ -79,12 +80,14 @@ class PaperController(Controller):
         start = _now()
         ws, entry = self._ws, self._entry
         if entry is not None and ws is not None and not ws.lie:  # the common tick first, in few statements
-            try:
-                rigid_pass(ws.model, ws.data, q, v)
-                ok = True
-            except Exception:  # noqa: BLE001 — not a state Pinocchio takes: the checks below say why
-                ok = False
+            ok = True
+            if ws.py_rigid:  # (else the kernel runs Pinocchio's pass itself: qpctl.kernels.pin_native)
+                try:
+                    rigid_pass(ws.model, ws.data, q, v)
+                except Exception:  # noqa: BLE001 — not a state Pinocchio takes: the checks below say why
+                    ok = False
             t1 = _now()
+            pin_s = t1 - start if ws.py_rigid else -1.0
             if ok and isinstance(t, float) and plain_vectors(q, v):
                 out = self._out  # reused when nobody else holds it nor a view of its record
                 if out is None or getrefcount(out) > IDLE_REFS or getrefcount(out._rec) > IDLE_REC_REFS:
@@ -94,14 +97,14 @@ class PaperController(Controller):
                 if code == 0:
                     if out is not None:
                         out._extra = out._info = None
-                        out._stages = (t1 - start, -1.0, -1.0, 0.0)
+                        out._stages = (pin_s, -1.0, -1.0, 0.0)
                     else:
-                        out = self._out = RecordOutput(rec, ws.layout, None, 0.0, (t1 - start, -1.0, -1.0, 0.0))
+                        out = self._out = RecordOutput(rec, ws.layout, None, 0.0, (pin_s, -1.0, -1.0, 0.0))
                     out.compute_us = (_now() - start) * 1e6
                     self.last = out
                     return out
                 out = None  # (its record untouched: _after_kernel writes the tick's output)
-                return self._after_kernel(code, q, v, t, start, (t1 - start, -1.0, -1.0, 0.0))
+                return self._after_kernel(code, q, v, t, start, (pin_s, -1.0, -1.0, 0.0))
         if ws is None:
             ws = self.workspace()
         if ws.fast:  # rigid_pass, then one kernel call (stage times measured in it)
@@ -109,7 +112,7 @@ class PaperController(Controller):
                 if not isinstance(t, float):  # a bool or an int would pass numba's conversions
                     raise TypeError(t)
                 t0 = time.perf_counter()
-                rigid_pass(ws.model, ws.data, q, v)
+                ws.before_kernel(q, v)
                 t1 = time.perf_counter()
                 qk = ws.joint_view(q)
                 entry = self._entry
@@ -120,13 +123,13 @@ class PaperController(Controller):
             except Exception:  # noqa: BLE001 — not two float64 arrays and a float: check, convert, once more
                 q, v, t = fast_state(q, v, t, self.n, self.robot.nq)  # InvalidStateError if it cannot
                 t0 = time.perf_counter()
-                rigid_pass(ws.model, ws.data, q, v)
+                ws.before_kernel(q, v)
                 t1 = time.perf_counter()
                 code = call_compiling(K.tick_closed_form, ws.work, ws.joint_view(q), v, t, self.weighted, NO_RECORD)
             lock_compilation(K.tick_closed_form)
             if self._entry is None:
                 self._entry = entry_point(K.tick_closed_form, ws.work, weighted=self.weighted, out=NO_RECORD)
-            return self._after_kernel(code, q, v, t, start, (t1 - t0, -1.0, -1.0, 0.0))
+            return self._after_kernel(code, q, v, t, start, (t1 - t0 if ws.py_rigid else -1.0, -1.0, -1.0, 0.0))
         q, v, t = fast_state(q, v, t, self.n, self.robot.nq)
         self._state(q, v, t)
         mid = time.perf_counter()

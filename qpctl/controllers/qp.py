@@ -240,7 +240,7 @@ class QPController(Controller):
         return Workspace(self.robot, self.obstacles, self.path, self.gains, self.cutoff, spec=spec,
                          broadphase=self.broadphase, barrier_drift=spec is None,
                          self_pairs=selfc.pairs if selfc is not None else (),
-                         self_cutoff=selfc.cutoff if selfc is not None else np.inf)
+                         self_cutoff=selfc.cutoff if selfc is not None else np.inf, native_rigid=True)
 
     def qp_path(self) -> CompiledTick | ReferenceTick:
         """The path this controller's ticks take (module docstring), for its current workspace: the

@@ -115,11 +115,14 @@ class CompiledTick:
         entry, ws = self._entry, self.ws
         if entry is None or ws.lie:  # (an angle view of q: step's)
             return None
-        try:
-            rigid_pass(ws.model, ws.data, q, v)
-        except Exception:  # noqa: BLE001 — not a state Pinocchio takes: step() checks it and says why
-            return None
+        py_rigid = ws.py_rigid  # (else the kernel runs Pinocchio's pass itself: qpctl.kernels.pin_native)
+        if py_rigid:
+            try:
+                rigid_pass(ws.model, ws.data, q, v)
+            except Exception:  # noqa: BLE001 — not a state Pinocchio takes: step() checks it and says why
+                return None
         t1 = _now()
+        pin_s = t1 - start if py_rigid else -1.0
         if not (isinstance(t, float) and plain_vectors(q, v)):
             return None
         relax, nat_h, nat_r = self.relax, self.hard.nat, self.relaxed.nat
@@ -138,7 +141,7 @@ class CompiledTick:
             code, hard = self._state_python(code, hard, q, v, t, try_hard)
             if hard in (3, 4):
                 nat_h.free()  # type: ignore[union-attr]  # as in _native: no warm start from a failed working set
-            return self._after_native(code, hard, (t1 - start, -1.0, -1.0, -1.0), q, start)
+            return self._after_native(code, hard, (pin_s, -1.0, -1.0, -1.0), q, start)
         used_hard = hard == 0
         if relax.skip_rule:  # the skip rule's memory (its rule, hard_next, ran in the kernel)
             relax._try_hard = hard_next
@@ -146,10 +149,10 @@ class CompiledTick:
         words = self._words_hard if used_hard else self._words_relaxed
         if out is not None:
             out._extra = out._info = None
-            out._stages, out._solved, out._words = (t1 - start, -1.0, -1.0, -1.0), True, words
+            out._stages, out._solved, out._words = (pin_s, -1.0, -1.0, -1.0), True, words
             out.compute_us = (_now() - start) * 1e6
             return out
-        out = self._out = QPOutput(rec, ws.layout, None, 0.0, (t1 - start, -1.0, -1.0, -1.0), True, words)
+        out = self._out = QPOutput(rec, ws.layout, None, 0.0, (pin_s, -1.0, -1.0, -1.0), True, words)
         out.compute_us = (_now() - start) * 1e6
         return out
 
@@ -259,7 +262,7 @@ class CompiledTick:
                 if not isinstance(t, float):  # a bool or an int would pass numba's conversions
                     raise TypeError(t)
                 t0 = time.perf_counter()
-                rigid_pass(ws.model, ws.data, q, v)
+                ws.before_kernel(q, v)
                 t1 = time.perf_counter()
                 qk = ws.joint_view(q)
                 entry = self._entry
@@ -270,7 +273,7 @@ class CompiledTick:
             except Exception:  # noqa: BLE001 — not two float64 arrays and a float: check, convert, once more
                 q, v, t = fast_state(q, v, t, ws.n, ws.nq)  # InvalidStateError if it cannot
                 t0 = time.perf_counter()
-                rigid_pass(ws.model, ws.data, q, v)
+                ws.before_kernel(q, v)
                 t1 = time.perf_counter()
                 code, hard, _ = call_compiling(K.tick_qp, self.packed, ws.joint_view(q), v, t, try_hard,
                                                NO_RECORD)
@@ -278,7 +281,7 @@ class CompiledTick:
             if self._entry is None:
                 self._entry = entry_point(K.tick_qp, self.packed, try_hard=True, out=NO_RECORD)
             code, hard = self._state_python(code, hard, q, v, t, try_hard)
-            stages = (t1 - t0, -1.0, -1.0, -1.0)
+            stages = (t1 - t0 if ws.py_rigid else -1.0, -1.0, -1.0, -1.0)
         else:
             q, v, t = fast_state(q, v, t, ws.n, ws.nq)
             self._state(q, v, t)

@@ -47,10 +47,11 @@ FLAG_SIZE = 3
 #   clearance [m], singular (0/1), pairs, pairs dropped (beyond the barrier's rows), slack norm,
 #   active rows, the answer's largest relative violation, the torque clip [N·m], solver iterations,
 #   stage times [µs] (state kernel, law and rows, solve), active families (bit 0: a torque-limit row,
-#   bit 1: an obstacle-barrier row, bit 2: a depth-map field row), joints whose torque moved by its whole rate limit
+#   bit 1: an obstacle-barrier row, bit 2: a depth-map field row), joints whose torque moved by its whole
+#   rate limit, the rigid-body pass's time [µs] when the compiled tick ran it (qpctl.kernels.pin_native)
 R_CLEARANCE, R_SINGULAR, R_PAIRS, R_DROPPED, R_SLACK, R_ACTIVE, R_VIOLATION, R_CLIPPED = range(8)
-R_ITERATIONS, R_STATE_US, R_BUILD_US, R_SOLVE_US, R_ACTIVE_MASK, R_RATE_HITS = range(8, 14)
-R_SCALARS = 14
+R_ITERATIONS, R_STATE_US, R_BUILD_US, R_SOLVE_US, R_ACTIVE_MASK, R_RATE_HITS, R_RIGID_US = range(8, 15)
+R_SCALARS = 15
 
 # What the state kernel returns when Python must finish the state (python-fcl's pairs, or a
 # look-ahead barrier drift) before the law: the tick's entry points pass it on (qpctl.kernels.tick)

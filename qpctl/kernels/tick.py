@@ -1,5 +1,7 @@
 """The tick's entry points: what Python calls, each a whole stage or a whole tick after
-``rigid_pass`` (:func:`qpctl.tick.rigid_pass`: Pinocchio's crba and nonLinearEffects). DESIGN.md §5; docs/tick.md has the module map.
+``rigid_pass`` (:func:`qpctl.tick.rigid_pass`: Pinocchio's crba and nonLinearEffects) — which the
+one-call ticks (:func:`tick_closed_form`, :func:`tick_qp`) run themselves where the workspace has
+the native pass (:mod:`~qpctl.kernels.pin_native`). DESIGN.md §5; docs/tick.md has the module map.
 
 Every kernel reads and writes the fixed-shape arrays of one :class:`~qpctl.kernels.work.TickWork`
 (:mod:`qpctl.kernels.work` lists them); nothing allocates per pair or per row, and the number of
@@ -31,6 +33,7 @@ from qpctl.kernels.codes import (
     CNT_LOOKAHEAD,
     FP_T,
     R_BUILD_US,
+    R_RIGID_US,
     R_SLACK,
     R_STATE_US,
     STATE_PYTHON,
@@ -42,6 +45,7 @@ from qpctl.kernels.finish import qp_finish, write_record
 from qpctl.kernels.hard_first import hard_next, qp_tick_native_hard_first
 from qpctl.kernels.law import closed_form, closed_form_tick, law_terms
 from qpctl.kernels.pairs import find_pairs, finish_pairs
+from qpctl.kernels.pin_native import rigid_native
 from qpctl.kernels.rigid import rigid_terms
 from qpctl.kernels.rows import qp_build
 from qpctl.kernels.scene import obstacles_at, reference
@@ -111,6 +115,21 @@ def state_timed(ws, q: np.ndarray, v: np.ndarray, t: float, ts: np.ndarray) -> i
 
 
 @njit(cache=True)
+def rigid_first(ws, q: np.ndarray, v: np.ndarray, ts: np.ndarray) -> int:  # type: ignore[no-untyped-def]
+    """Where the workspace has the native pass (``ws.pin_native``), (q, v) into it and Pinocchio's
+    rigid-body pass (:mod:`~qpctl.kernels.pin_native`), its time [µs] into the record: 0, or −1 when
+    Pinocchio threw (the state's checks then refuse it). Else nothing: Python ran ``rigid_pass``."""
+    if ws.pin_native[0] == 0:
+        return 0
+    for i in range(q.shape[0]):
+        ws.q[i], ws.v[i] = q[i], v[i]
+    t0 = now_us(ts)
+    code = rigid_native(ws)
+    ws.rec[record_scalars(ws.N.shape[0], ws.a.shape[0]) + R_RIGID_US] = now_us(ts) - t0
+    return -1 if code else 0
+
+
+@njit(cache=True)
 def copy_record(rec: np.ndarray, out: np.ndarray) -> None:
     """The tick's record into ``out``, a tick output's own array (as long as the record)."""
     for i in range(min(rec.shape[0], out.shape[0])):
@@ -130,7 +149,9 @@ def tick_closed_form(ws, q: np.ndarray, v: np.ndarray, t: float, weighted: bool,
     if not abs(t) < np.inf:
         return -1
     ts = ws.ts
-    code = state_timed(ws, q, v, t, ts)
+    code = rigid_first(ws, q, v, ts)
+    if code == 0:
+        code = state_timed(ws, q, v, t, ts)
     if code != 0:
         return code
     t1 = now_us(ts)
@@ -187,7 +208,9 @@ def tick_qp(nq, q: np.ndarray, v: np.ndarray, t: float, try_hard: bool,  # type:
     if not abs(t) < np.inf:  # NaN or ±inf; q and v: the state's overflow test (rigid_terms)
         return -1, -1, try_hard
     ts = ws.ts
-    code = state_timed(ws, q, v, t, ts)
+    code = rigid_first(ws, q, v, ts)
+    if code == 0:
+        code = state_timed(ws, q, v, t, ts)
     if code != 0:
         return code, -1, try_hard
     code, hard = qp_tick_native_hard_first(ws, nq.Hh, nq.fh, nq.rowsh, nq.buh, nq.blh, nq.dqh, nq.xh, nq.lamh,

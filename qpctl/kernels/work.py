@@ -5,7 +5,8 @@ pass, whatever the number of fields; forty separate arrays would cost 3–5 µs 
 while Python keeps its own references to the same numpy arrays (:class:`qpctl.tick.Workspace`).
 Its fields are declared once here, in :data:`FIELDS`, grouped by who writes them:
 
-* bound once: Pinocchio's arrays as numpy views (:func:`qpctl.tick.rigid_pass` refreshes them in place);
+* bound once: Pinocchio's arrays as numpy views (:func:`qpctl.tick.rigid_pass`, or the compiled tick's
+  native pass, refreshes them in place);
 * built once: the robot's capsules and task frame, the scene, the path, gains and QP settings;
 * written every tick: the rigid-body terms, the pairs (fixed capacity: every link × obstacle pair),
   the law's terms, and the output record.
@@ -38,6 +39,8 @@ FIELDS = (
     "Mt",  # (n, n) data.M transposed: its lower triangle holds the inertia matrix
     "nle",  # (n,) C(q, q̇)q̇ + G(q)
     "gravity",  # (3,) model.gravity's linear part [m/s²], a live view of the model: what a_gf omits
+    "pin_native",  # (2,) int: the native rigid pass's function address and handle (qpctl.kernels.pin_native;
+    #                0: Python's rigid_pass fills the views above before the kernels run)
     # -- robot, built once (L capsules, m task coordinates) ------------------------------------------
     "cap_joint",  # (L,) int: the joint whose body carries capsule i
     "cap_local",  # (L, 2, 3) capsule axis end points in that joint's frame [m]

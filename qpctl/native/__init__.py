@@ -1,12 +1,14 @@
 """Native code built against the installed Pinocchio's own C++ (its headers and ``libpinocchio``):
-the brake rollout's loop (``brake_rollout.cpp``, :mod:`qpctl.safety.rollout`). Every rigid-body
-quantity in it is ``pinocchio::rnea`` / ``pinocchio::aba`` — the code the Python bindings call — so
-this is Pinocchio without the interpreter between its calls, not a second dynamics.
+the brake rollout's loop (``brake_rollout.cpp``, :mod:`qpctl.safety.rollout`) and the tick's rigid-body
+pass (``rigid_pass.cpp``, called by the compiled tick: :mod:`qpctl.kernels.pin_native`). Every
+rigid-body quantity in them is ``pinocchio::rnea`` / ``aba`` / ``crba`` / ``nonLinearEffects`` — the
+code the Python bindings call — so this is Pinocchio without the interpreter between its calls, not a
+second dynamics.
 
 The library is compiled on first use (``python -m qpctl.native`` does it ahead; ``make env`` calls
 that) with the system's C++ compiler into :func:`build_dir` (``qpctl/native/_build/`` in a
-checkout), one file per source, Pinocchio version and install prefix, and loaded with :mod:`ctypes`. Where it cannot
-be built (no compiler, no Eigen headers, another Pinocchio layout) :func:`brake_library` returns None
+checkout), one file per set of sources, Pinocchio version and install prefix, and loaded with :mod:`ctypes`. Where it cannot
+be built (no compiler, no Eigen headers, another Pinocchio layout) :func:`library` returns None
 with the reason in :func:`why_unavailable`, and the rollout runs its Python path (the same states).
 Eigen's headers come from the ``cmeel-eigen`` wheel, a dependency.
 """
@@ -24,7 +26,7 @@ from pathlib import Path
 
 import pinocchio as pin
 
-SOURCE = Path(__file__).with_name("brake_rollout.cpp")
+SOURCES = tuple(Path(__file__).with_name(f) for f in ("brake_rollout.cpp", "rigid_pass.cpp"))
 #: Pinocchio's compile definitions for a consumer of ``pinocchio::pinocchio_default`` (from the
 #: wheel's pinocchioTargets.cmake): the extern templates of its instantiated algorithms, and the
 #: Boost.MPL limits its headers were built with.
@@ -61,11 +63,11 @@ def eigen_include(pre: Path) -> Path:
 
 
 def library_path() -> Path:
-    """Where the built library lives: its name carries the source's, Pinocchio's and the prefix's hash."""
+    """Where the built library lives: its name carries the sources', Pinocchio's and the prefix's hash."""
     pre = prefix()
-    key = hashlib.sha256(SOURCE.read_bytes() + pin.__version__.encode() + str(pre).encode()
+    key = hashlib.sha256(b"".join(s.read_bytes() for s in SOURCES) + pin.__version__.encode() + str(pre).encode()
                          + " ".join(FLAGS + DEFINES).encode()).hexdigest()[:16]
-    return build_dir() / f"brake_rollout-{key}.so"
+    return build_dir() / f"qpctl_native-{key}.so"
 
 
 def build_dir() -> Path:
@@ -93,19 +95,31 @@ def build(force: bool = False) -> Path:
     out.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
     os.close(fd)
-    cmd = [cxx, *FLAGS, *(f"-D{d}" for d in DEFINES), f"-I{pre / 'include'}", f"-I{eigen}", str(SOURCE),
-           "-o", tmp, f"-L{lib}", "-lpinocchio_default", "-lboost_serialization", f"-Wl,-rpath,{lib}"]
-    try:
-        r = subprocess.run(cmd, check=False, capture_output=True, text=True)
-        if r.returncode != 0:
-            lines = r.stderr.strip().splitlines()
-            first = next((ln for ln in lines if "error" in ln), lines[-1] if lines else f"exit {r.returncode}")
-            raise NativeBuildError(f"{cxx} failed: {first}")
+    objs = [f"{tmp}.{i}.o" for i in range(len(SOURCES))]
+    common = [cxx, *FLAGS, *(f"-D{d}" for d in DEFINES), f"-I{pre / 'include'}", f"-I{eigen}"]
+    try:  # the sources compiled side by side (each parses Pinocchio's headers: ~30 s), then linked
+        procs = [subprocess.Popen([*common, "-c", str(src), "-o", obj], stdout=subprocess.DEVNULL,
+                                  stderr=subprocess.PIPE, text=True) for src, obj in zip(SOURCES, objs)]
+        errors = [proc.communicate()[1] for proc in procs]  # (every one finished before any is judged)
+        for proc, err in zip(procs, errors):
+            _check(cxx, proc.returncode, err)
+        r = subprocess.run([*common, *objs, "-o", tmp, f"-L{lib}", "-lpinocchio_default", "-lboost_serialization",
+                            f"-Wl,-rpath,{lib}"], check=False, capture_output=True, text=True)
+        _check(cxx, r.returncode, r.stderr)
         os.replace(tmp, out)
     finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        for f in (tmp, *objs):
+            if os.path.exists(f):
+                os.unlink(f)
     return out
+
+
+def _check(cxx: str, returncode: int, stderr: str) -> None:
+    """Raise :class:`NativeBuildError` with the compiler's first error line when it failed."""
+    if returncode != 0:
+        lines = stderr.strip().splitlines()
+        first = next((ln for ln in lines if "error" in ln), lines[-1] if lines else f"exit {returncode}")
+        raise NativeBuildError(f"{cxx} failed: {first}")
 
 
 def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
@@ -113,14 +127,16 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     sig = {"qpb_new": (p, [ctypes.c_char_p, L]), "qpb_free": (None, [p]), "qpb_nv": (i, [p]),
            "qpb_io_size": (i, []), "qpb_error": (ctypes.c_char_p, []),
            "qpb_aba": (None, [p, p, p, p, p]), "qpb_rnea": (None, [p, p, p, p, p]),
-           "qpb_advance": (i, [p] * 10)}
+           "qpb_advance": (i, [p] * 10),
+           "qpr_new": (p, [ctypes.c_char_p, L]), "qpr_free": (None, [p]), "qpr_error": (ctypes.c_char_p, []),
+           "qpr_addresses": (None, [p, p]), "qpr_pass": (i, [p] * 4)}
     for name, (res, args) in sig.items():
         f = getattr(lib, name)
         f.restype, f.argtypes = res, args
     return lib
 
 
-def brake_library() -> ctypes.CDLL | None:
+def library() -> ctypes.CDLL | None:
     """The loaded library (built on first use), or None where it cannot be built
     (:func:`why_unavailable`)."""
     global _lib, _why
@@ -137,6 +153,6 @@ def brake_library() -> ctypes.CDLL | None:
 
 
 def why_unavailable() -> str | None:
-    """Why :func:`brake_library` returned None (None when it did not)."""
-    brake_library()
+    """Why :func:`library` returned None (None when it did not)."""
+    library()
     return _why

@@ -6,4 +6,4 @@ from qpctl.native import NativeBuildError, build
 try:
     print(f"qpctl.native: {build()}")
 except NativeBuildError as e:
-    print(f"qpctl.native: not built ({e}); the brake rollout runs its Python path")
+    print(f"qpctl.native: not built ({e}); the brake rollout and the rigid-body pass run their Python paths")

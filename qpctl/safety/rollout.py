@@ -180,7 +180,7 @@ class NativeBrake:
     @classmethod
     def create(cls, owner: BrakeRollout) -> NativeBrake | None:
         """The native loop for ``owner``'s model, or None where :mod:`qpctl.native` is unavailable."""
-        lib = qpctl.native.brake_library()
+        lib = qpctl.native.library()
         if lib is None:
             return None
         text = owner.model.saveToString().encode()
