@@ -100,9 +100,9 @@ def warmup() -> dict[str, float]:
                 ws.finish_state(q, v, t)
             K.qp_tick_native(ws.work, *nat_r.kernel_args, SOLUTION_RTOL)
             ws.rigid(q, v)
-            if K.tick_qp_native_hard_first(ws.work, q, v, t, *args, try_hard)[0] == codes.STATE_PYTHON:
+            if K.tick_qp_native_hard_first(packed, q, v, t, try_hard)[0] == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
-            K.qp_tick_native_hard_first(ws.work, *args, try_hard)
+            K.qp_tick_native_hard_first(packed, try_hard)
             ws.rigid(q, v)
             K.tick_qp(packed, q, v, t, try_hard, np.empty_like(ws.rec))
         nat_h.free()

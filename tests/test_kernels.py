@@ -652,13 +652,13 @@ def test_sphere_bound_is_a_lower_bound_for_boxes_and_cylinders():
         d, _, _ = fcl_distance(fcl_segment(a, b, rl), fcl_obstacle(o, 0.0))
         if d <= 1e-3:
             continue
-        bound = G.sphere_bound(a, b, rl, c, o.bounding_radius())
+        bound = G.sphere_bound(np.array([[a, b]]), 0, rl, *c, o.bounding_radius())
         assert bound <= d + 1e-12, (k, o.shape, bound, d)
         assert bound >= d - o.bounding_radius() - GJK_TOL[o.shape], (k, o.shape, bound, d)
         checked += 1
     assert checked > 100
     a, b, c = np.zeros(3), np.array([1.0, 0.0, 0.0]), np.array([0.5, 0.7, 0.0])
-    assert abs(G.sphere_bound(a, b, 0.05, c, 0.2) - (0.7 - 0.25 - 1e-9)) <= 1e-15
+    assert abs(G.sphere_bound(np.array([[a, b]]), 0, 0.05, *c, 0.2) - (0.7 - 0.25 - 1e-9)) <= 1e-15
 
 
 # ---------------------------------------------------------------------------------------------------

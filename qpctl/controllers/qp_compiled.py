@@ -288,7 +288,7 @@ class CompiledTick:
             code, hard_ready = self._setup(try_hard)
             hard = -1
             if code == 0:
-                code, hard = K.qp_tick_native_hard_first(ws.work, *self.native_args, try_hard and hard_ready)  # type: ignore[misc]
+                code, hard = K.qp_tick_native_hard_first(self.packed, try_hard and hard_ready)
             if try_hard and not hard_ready:
                 hard = 3  # DAQP could not set the hard QP up (its exit flag in nat_h.flag)
             stages = (ws.pin_s, ws.state_s, -1.0, -1.0)  # the set-up is in "other"
@@ -303,7 +303,7 @@ class CompiledTick:
         a state it refused."""
         if code == codes.STATE_PYTHON:
             self.ws.finish_state(q, v, t)
-            return K.qp_tick_native_hard_first(self.ws.work, *self.native_args, try_hard)  # type: ignore[misc, no-any-return]
+            return K.qp_tick_native_hard_first(self.packed, try_hard)  # type: ignore[no-any-return]
         if code < 0:
             if code == codes.BAD_SHAPE:
                 raise InvalidStateError(f"q and v must have shapes ({self.ws.nq},) and ({self.ws.n},), "

@@ -22,10 +22,11 @@ def min_distance(ws, t: float) -> float:  # type: ignore[no-untyped-def]
     """The least signed distance [m] between any link capsule and any sphere, capsule, box or
     cylinder obstacle at t [s], every pair, no cutoff (a simulator's clearance; python-fcl's shapes
     are left to Python), from the joint placements only (after ``forwardKinematics``); the segments are left in ws."""
-    segments = ws.segments
-    for i in range(ws.cap_joint.shape[0]):
-        world_point(ws, ws.cap_joint[i], ws.cap_local[i, 0], segments[i, 0])
-        world_point(ws, ws.cap_joint[i], ws.cap_local[i, 1], segments[i, 1])
+    segments, cap_joint, cap_local = ws.segments, ws.cap_joint, ws.cap_local
+    for i in range(cap_joint.shape[0]):
+        for e in range(2):
+            x, y, z = world_point(ws, cap_joint[i], cap_local[i, e, 0], cap_local[i, e, 1], cap_local[i, e, 2])
+            segments[i, e, 0], segments[i, e, 1], segments[i, e, 2] = x, y, z
     obstacles_at(ws, t)
     best = np.inf
     for i in range(segments.shape[0]):

@@ -24,13 +24,20 @@ from qpctl.kernels.small import chol_solve
 def torque_window(ws, i: int) -> tuple[float, float]:  # type: ignore[no-untyped-def]
     """The torque joint i may be commanded this tick [N·m]: within ±τ_max and, once a torque was
     commanded at t_prev < t, within τ_prev ± τ̇_max (t − t_prev). Where the two do not meet (τ_prev
-    beyond τ_max: the limit changed) the torque limit wins."""
-    lim = ws.tau_max[i]
+    beyond τ_max: the limit changed) the torque limit wins (:func:`torque_window_at`)."""
+    return torque_window_at(ws.tau_max[i], ws.tau_rate[i], ws.tau_prev[i], ws.fpar[FP_T] - ws.t_prev[0])
+
+
+@njit(cache=True)
+def torque_window_at(lim: float, rate: float, prev: float, dt: float) -> tuple[float, float]:
+    """:func:`torque_window` of a joint with torque limit ``lim`` [N·m], rate limit ``rate`` [N·m/s]
+    and last torque ``prev`` [N·m], dt = t − t_prev [s] (NaN: no torque commanded yet). Scalars: what
+    a loop over the joints calls with its arrays held once (arrays passed or read per joint cost
+    atomic reference counts each time)."""
     lo, hi = -lim, lim
-    dt = ws.fpar[FP_T] - ws.t_prev[0]
     if dt > 0.0:  # False for NaN: no torque commanded yet
-        w = ws.tau_rate[i] * dt
-        lo2, hi2 = max(lo, ws.tau_prev[i] - w), min(hi, ws.tau_prev[i] + w)
+        w = rate * dt
+        lo2, hi2 = max(lo, prev - w), min(hi, prev + w)
         if lo2 <= hi2:
             return lo2, hi2
     return lo, hi

@@ -87,26 +87,30 @@ def speed_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no
     fp = ws.fpar
     h = fp[FP_FD_HORIZON]
     Jp = ws.fd_vjac
+    Jp3 = Jp.reshape((1, 3, n))  # (the scratch as point_jacobian's out[0])
+    # the arrays the loop reads, held once (rows by index: see qpctl.kernels.rigid.world_point)
+    fd_vb, fd_vp, fd_vu, cap_support, acc_K, acc_off, v = ws.fd_vb, ws.fd_vp, ws.fd_vu, ws.cap_support, ws.acc_K, \
+        ws.acc_off, ws.v
     for r in range(C.shape[0]):
-        b = ws.fd_vb[r]
+        b = fd_vb[r]
         if not (b < math.inf):
             for c in range(n):
                 C[r, c] = 0.0
             lower[r] = -math.inf
             continue
         link = r // 2
-        p = ws.fd_vp[r]
-        point_jacobian(ws, ws.cap_support[link], p, Jp)
-        K, off = ws.acc_K[link], ws.acc_off[link]
-        ux, uy, uz = ws.fd_vu[r, 0], ws.fd_vu[r, 1], ws.fd_vu[r, 2]
+        point_jacobian(ws, cap_support, link, fd_vp, r, Jp3, 0)
+        p0, p1, p2 = fd_vp[r, 0], fd_vp[r, 1], fd_vp[r, 2]
+        ux, uy, uz = fd_vu[r, 0], fd_vu[r, 1], fd_vu[r, 2]
         drift = 0.0
         for c in range(3):
-            drift += ws.fd_vu[r, c] * (off[c] + K[c, 0] * p[0] + K[c, 1] * p[1] + K[c, 2] * p[2])
+            drift += fd_vu[r, c] * (acc_off[link, c] + acc_K[link, c, 0] * p0 + acc_K[link, c, 1] * p1
+                                    + acc_K[link, c, 2] * p2)
         w = 0.0
         for c in range(n):
             val = ux * Jp[0, c] + uy * Jp[1, c] + uz * Jp[2, c]
             C[r, c] = -val
-            w += val * ws.v[c]
+            w += val * v[c]
         lower[r] = (w - b) / h + drift
 
 
@@ -123,29 +127,29 @@ def field_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no
     k = L * rpl
     cut, margin, vs = ws.fpar[FP_FD_CUT], ws.fpar[FP_FD_MARGIN], ws.fpar[FP_FD_VS]
     k0, k1, ms, kr = ws.fpar[FP_FD_K0], ws.fpar[FP_FD_K1], ws.fpar[FP_FD_SMARGIN], ws.fpar[FP_FD_KR]
+    fd_n, fd_d, fd_p, fd_jac, fd_drift = ws.fd_n, ws.fd_d, ws.fd_p, ws.fd_jac, ws.fd_drift  # (held, as in speed_rows)
+    cap_support, acc_K, acc_off, v = ws.cap_support, ws.acc_K, ws.acc_off, ws.v
     for r in range(R):
-        nx, ny, nz = ws.fd_n[r, 0], ws.fd_n[r, 1], ws.fd_n[r, 2]
-        d = ws.fd_d[r]
+        nx, ny, nz = fd_n[r, 0], fd_n[r, 1], fd_n[r, 2]
+        d = fd_d[r]
         if not (d < cut) or (nx == 0.0 and ny == 0.0 and nz == 0.0):
             for c in range(n):
                 C[r, c] = 0.0
             lower[r] = -math.inf
             continue
         link = (r % k) // rpl
-        p = ws.fd_p[r]
-        Jp = ws.fd_jac[r]
-        point_jacobian(ws, ws.cap_support[link], p, Jp)
-        K, off = ws.acc_K[link], ws.acc_off[link]
+        point_jacobian(ws, cap_support, link, fd_p, r, fd_jac, r)
+        p0, p1, p2 = fd_p[r, 0], fd_p[r, 1], fd_p[r, 2]
         drift = 0.0
         for c in range(3):
-            a = off[c] + K[c, 0] * p[0] + K[c, 1] * p[1] + K[c, 2] * p[2]
-            ws.fd_drift[r, c] = a
-            drift += ws.fd_n[r, c] * a
+            a = acc_off[link, c] + acc_K[link, c, 0] * p0 + acc_K[link, c, 1] * p1 + acc_K[link, c, 2] * p2
+            fd_drift[r, c] = a
+            drift += fd_n[r, c] * a
         hdot = 0.0
         for c in range(n):
-            val = nx * Jp[0, c] + ny * Jp[1, c] + nz * Jp[2, c]
+            val = nx * fd_jac[r, 0, c] + ny * fd_jac[r, 1, c] + nz * fd_jac[r, 2, c]
             C[r, c] = val
-            hdot += val * ws.v[c]
+            hdot += val * v[c]
         if r >= k:  # soft: the approach no faster than v_s; contact allowed
             lower[r] = -k1 * (hdot + vs) - k0 * max(d - ms, 0.0) - drift
         elif d < margin:  # inside the margin: away at no more than v_s, no more than the drives give

@@ -37,7 +37,7 @@ from qpctl.kernels.codes import (
     R_VIOLATION,
     record_scalars,
 )
-from qpctl.kernels.drives import torque_window
+from qpctl.kernels.drives import torque_window_at
 from qpctl.kernels.small import chol_solve
 
 
@@ -186,12 +186,13 @@ def finish_torque(ws) -> float:  # type: ignore[no-untyped-def]
     hits = 0
     if ws.ipar[IP_TORQUE_ROW0] >= 0:
         dt = ws.fpar[FP_T] - ws.t_prev[0]
+        tau, tau_prev, tau_rate, tau_max = ws.tau, ws.tau_prev, ws.tau_rate, ws.tau_max  # (held: see qp_build)
         for i in range(n):
-            lo, hi = torque_window(ws, i)
-            t = min(max(ws.tau[i], lo), hi)
-            clip = max(clip, abs(t - ws.tau[i]))
-            ws.tau[i] = t
-            if dt > 0.0 and abs(t - ws.tau_prev[i]) >= ws.tau_rate[i] * dt * (1.0 - 1e-6):
+            lo, hi = torque_window_at(tau_max[i], tau_rate[i], tau_prev[i], dt)
+            t = min(max(tau[i], lo), hi)
+            clip = max(clip, abs(t - tau[i]))
+            tau[i] = t
+            if dt > 0.0 and abs(t - tau_prev[i]) >= tau_rate[i] * dt * (1.0 - 1e-6):
                 hits += 1
         if clip > 0.0:
             for i in range(n):

@@ -119,22 +119,27 @@ def segment_params(ax: float, ay: float, az: float, ux: float, uy: float, uz: fl
 @njit(cache=True)
 def contact_frame(px: float, py: float, pz: float, qx: float, qy: float, qz: float, wx: float, wy: float,
                   wz: float, wn: float, ux: float, uy: float, uz: float, sx: float, sy: float, sz: float,
-                  r_link: float, r_obs: float, normal: np.ndarray, p_link: np.ndarray, p_obs: np.ndarray) -> None:
-    """The unit normal n = w/|w| (obstacle → link) of the closest axis points P (link) and Q
-    (obstacle), w = P − Q, and the witness points P − r_link n and Q + r_obs n. Where the axes meet
-    (|w| ≤ 1e-12) n is ⊥ both axes (u × s), or for a point obstacle or parallel axes ⊥ the link's axis
-    and the world axis least aligned with it (:func:`perpendicular`)."""
+                  r_link: float, r_obs: float, normal: np.ndarray, p_link: np.ndarray, p_obs: np.ndarray,
+                  k: int) -> None:
+    """Row k of ``normal``, ``p_link``, ``p_obs`` (each (K, 3)): the unit normal n = w/|w| (obstacle →
+    link) of the closest axis points P (link) and Q (obstacle), w = P − Q, and the witness points
+    P − r_link n and Q + r_obs n. Where the axes meet (|w| ≤ 1e-12) n is ⊥ both axes (u × s), or for
+    a point obstacle or parallel axes ⊥ the link's axis and the world axis least aligned with it
+    (:func:`perpendicular`). Rows by index, not views: a view in the pair loop costs an atomic
+    reference count increment and decrement (:func:`qpctl.kernels.rigid.world_point`)."""
     if wn > 1e-12:
-        normal[0], normal[1], normal[2] = wx / wn, wy / wn, wz / wn
+        nx, ny, nz = wx / wn, wy / wn, wz / wn
     else:
         cx, cy, cz = uy * sz - uz * sy, uz * sx - ux * sz, ux * sy - uy * sx
         cn = math.sqrt(cx * cx + cy * cy + cz * cz)
         if cn > 1e-12 * math.sqrt((ux * ux + uy * uy + uz * uz) * (sx * sx + sy * sy + sz * sz)) and cn > 0.0:
-            normal[0], normal[1], normal[2] = cx / cn, cy / cn, cz / cn
+            nx, ny, nz = cx / cn, cy / cn, cz / cn
         else:
-            perpendicular(ux, uy, uz, normal)
-    p_link[0], p_link[1], p_link[2] = px - r_link * normal[0], py - r_link * normal[1], pz - r_link * normal[2]
-    p_obs[0], p_obs[1], p_obs[2] = qx + r_obs * normal[0], qy + r_obs * normal[1], qz + r_obs * normal[2]
+            perpendicular(ux, uy, uz, normal[k])
+            nx, ny, nz = normal[k, 0], normal[k, 1], normal[k, 2]
+    normal[k, 0], normal[k, 1], normal[k, 2] = nx, ny, nz
+    p_link[k, 0], p_link[k, 1], p_link[k, 2] = px - r_link * nx, py - r_link * ny, pz - r_link * nz
+    p_obs[k, 0], p_obs[k, 1], p_obs[k, 2] = qx + r_obs * nx, qy + r_obs * ny, qz + r_obs * nz
 
 
 @njit(cache=True)
@@ -151,16 +156,22 @@ def capsule_pair(a: np.ndarray, b: np.ndarray, r_link: float, c0: np.ndarray, c1
     qx, qy, qz = c0[0] + to * sx, c0[1] + to * sy, c0[2] + to * sz
     wx, wy, wz = px - qx, py - qy, pz - qz
     wn = math.sqrt(wx * wx + wy * wy + wz * wz)
-    contact_frame(px, py, pz, qx, qy, qz, wx, wy, wz, wn, ux, uy, uz, sx, sy, sz, r_link, r_obs, normal, p_link, p_obs)
+    contact_frame(px, py, pz, qx, qy, qz, wx, wy, wz, wn, ux, uy, uz, sx, sy, sz, r_link, r_obs, normal.reshape((1, 3)),
+                  p_link.reshape((1, 3)), p_obs.reshape((1, 3)), 0)
     return wn - r_link - r_obs
 
 
 @njit(cache=True)
-def sphere_bound(a: np.ndarray, b: np.ndarray, r_link: float, centre: np.ndarray, r_bound: float) -> float:
-    """A lower bound [m] on the distance between the link capsule and a shape inside the sphere of
-    radius r_bound about centre: the axis-to-centre distance less both radii (less 1e-9 for rounding)."""
-    s = closest_on_segment(a, b, centre)
-    wx = a[0] + s * (b[0] - a[0]) - centre[0]
-    wy = a[1] + s * (b[1] - a[1]) - centre[1]
-    wz = a[2] + s * (b[2] - a[2]) - centre[2]
+def sphere_bound(segments: np.ndarray, i: int, r_link: float, cx: float, cy: float, cz: float, r_bound: float) -> float:
+    """A lower bound [m] on the distance between link capsule i (axis ``segments[i]``) and a shape
+    inside the sphere of radius r_bound about (cx, cy, cz): the axis-to-centre distance less both
+    radii (less 1e-9 for rounding). (:func:`closest_on_segment`'s parameter, inline.)"""
+    ax, ay, az = segments[i, 0, 0], segments[i, 0, 1], segments[i, 0, 2]
+    bx, by, bz = segments[i, 1, 0], segments[i, 1, 1], segments[i, 1, 2]
+    dx, dy, dz = bx - ax, by - ay, bz - az
+    denom = dx * dx + dy * dy + dz * dz
+    s = 0.0 if denom == 0.0 else clamp01(((cx - ax) * dx + (cy - ay) * dy + (cz - az) * dz) / denom)
+    wx = ax + s * (bx - ax) - cx
+    wy = ay + s * (by - ay) - cy
+    wz = az + s * (bz - az) - cz
     return math.sqrt(wx * wx + wy * wy + wz * wz) - r_link - r_bound - 1e-9

@@ -61,37 +61,42 @@ def task_rows_hold(x: np.ndarray, rows: np.ndarray, bu: np.ndarray, n_in: int, m
 
 
 @njit(cache=True)
-def qp_tick_native_hard_first(ws, Hh: np.ndarray, fh: np.ndarray, rowsh: np.ndarray,  # type: ignore[no-untyped-def]
-                              buh: np.ndarray, blh: np.ndarray, dqh, xh: np.ndarray, lamh: np.ndarray,
-                              Hr: np.ndarray, fr: np.ndarray, rowsr: np.ndarray, bur: np.ndarray, blr: np.ndarray,
-                              dqr, xr: np.ndarray, tol: float, l1: float, try_hard: bool) -> tuple[int, int]:
+def qp_tick_native_hard_first(nq, try_hard: bool) -> tuple[int, int]:  # type: ignore[no-untyped-def]
     """The QP tick after the state with the task hard first (no slack variables: a smaller QP), its
     answer kept where the exact-penalty condition says the relaxed QP's is the same
-    (:func:`penalty_exact`), the relaxed QP solved otherwise (or when not ``try_hard``). Returns
-    (code, hard): code as :func:`qp_tick_native`'s, for the answer used; hard: −1 not tried, 0 the
-    hard answer used, 3 DAQP failed on it, 4 rejected by the check of its rows (the task rows,
-    :func:`task_rows_hold`, or the others, :func:`qp_finish`), 7 not the relaxed QP's answer."""
+    (:func:`penalty_exact`), the relaxed QP solved otherwise (or when not ``try_hard``). ``nq``: a
+    :class:`~qpctl.kernels.native_qp.NativeQP` (the workspace and both layouts); each layout's arrays
+    are read from it only on the path that uses them (every array a kernel reads or is passed costs
+    an atomic reference count increment and decrement). Returns (code, hard): code as
+    :func:`qp_tick_native`'s, for the answer used; hard: −1 not tried, 0 the hard answer used, 3 DAQP
+    failed on it, 4 rejected by the check of its rows (the task rows, :func:`task_rows_hold`, or the
+    others, :func:`qp_finish`), 7 not the relaxed QP's answer."""
+    ws = nq.ws
     ts = ws.ts
     s = record_scalars(ws.N.shape[0], ws.a.shape[0])
     build = solve = 0.0
     hard = -1
     t0 = now_us(ts)
+    tol = nq.tol
     if try_hard:
-        code = qp_terms_and_build(ws, Hh, fh, rowsh, buh, blh)
+        rowsh, buh, blh = nq.rowsh, nq.buh, nq.blh
+        code = qp_terms_and_build(ws, nq.Hh, nq.fh, rowsh, buh, blh)
         t1 = now_us(ts)
         build += t1 - t0
         if code != 0:
             ws.rec[s + R_BUILD_US], ws.rec[s + R_SOLVE_US] = build, 0.0
             return code, hard
+        dqh = nq.dqh
         ok = native_solve(dqh) > 0
-        nvh = Hh.shape[0]
+        xh = nq.xh
+        nvh = xh.shape[0]
         n_in = ws.ipar[IP_N_IN]
         m = ws.a.shape[0]
         if not ok:
             hard = 3
         elif not task_rows_hold(xh, rowsh, buh, n_in, m, tol):
             hard = 4
-        elif not penalty_exact(lamh, nvh + n_in, m, l1):
+        elif not penalty_exact(nq.lamh, nvh + n_in, m, nq.l1):
             hard = 7
         elif not qp_finish(ws, xh, rowsh, buh, blh, tol):
             hard = 4
@@ -101,14 +106,14 @@ def qp_tick_native_hard_first(ws, Hh: np.ndarray, fh: np.ndarray, rowsh: np.ndar
             return 0, 0
         t0 = now_us(ts)
         solve += t0 - t1
-        code = qp_rebuild(ws, Hr, fr, rowsr, bur, blr)
+        code = qp_rebuild(ws, nq.Hr, nq.fr, nq.rowsr, nq.bur, nq.blr)
     else:
-        code = qp_terms_and_build(ws, Hr, fr, rowsr, bur, blr)
+        code = qp_terms_and_build(ws, nq.Hr, nq.fr, nq.rowsr, nq.bur, nq.blr)
     t1 = now_us(ts)
     build += t1 - t0
     ws.rec[s + R_BUILD_US], ws.rec[s + R_SOLVE_US] = build, solve
     if code != 0:
         return code, hard
-    code = native_solve_finish(ws, rowsr, bur, blr, dqr, xr, tol)
+    code = native_solve_finish(ws, nq.rowsr, nq.bur, nq.blr, nq.dqr, nq.xr, tol)
     ws.rec[s + R_SOLVE_US] = solve + now_us(ts) - t1  # the solve and the check of its answer
     return code, hard

@@ -130,7 +130,7 @@ def find_pairs(ws) -> int:  # type: ignore[no-untyped-def]
             if kind == KIND_SPHERE:
                 sx = sy = sz = 0.0
             else:
-                if sphere_bound(segments[i, 0], segments[i, 1], rl, ob_c[j], ob_bound[j]) >= cutoff:
+                if sphere_bound(segments, i, rl, cx, cy, cz, ob_bound[j]) >= cutoff:
                     continue
                 if kind == KIND_FCL:
                     pr_link[k], pr_obs[k], pr_state[k], pr_d[k] = i, j, PAIR_FCL, np.inf
@@ -156,8 +156,7 @@ def find_pairs(ws) -> int:  # type: ignore[no-untyped-def]
                     pr_link[k], pr_obs[k], pr_state[k], pr_d[k] = i, j, PAIR_OK, d
                     k += 1
                 continue
-            contact_frame(px, py, pz, qx, qy, qz, wx, wy, wz, wn, ux, uy, uz, sx, sy, sz, rl, ro,
-                          pr_n[k], pr_pl[k], pr_po[k])
+            contact_frame(px, py, pz, qx, qy, qz, wx, wy, wz, wn, ux, uy, uz, sx, sy, sz, rl, ro, pr_n, pr_pl, pr_po, k)
             pr_link[k], pr_obs[k], pr_state[k], pr_d[k] = i, j, PAIR_OK, d
             k += 1
     ws.cnt[CNT_PAIRS] = k
@@ -201,28 +200,30 @@ def barrier_drift(ws, r: int) -> bool:  # type: ignore[no-untyped-def]
     if kind == KIND_BOX or kind == KIND_CYLINDER:
         ws.pr_bdrift[r] = _solid_drift(ws, r)
         return True
-    nx, ny, nz = ws.pr_n[r, 0], ws.pr_n[r, 1], ws.pr_n[r, 2]
+    pr_n, pr_pl, pr_po = ws.pr_n, ws.pr_pl, ws.pr_po
+    nx, ny, nz = pr_n[r, 0], pr_n[r, 1], pr_n[r, 2]
     rl, ro = ws.cap_radius[i], ws.ob_radius[j]
-    px, py, pz = ws.pr_pl[r, 0] + rl * nx, ws.pr_pl[r, 1] + rl * ny, ws.pr_pl[r, 2] + rl * nz  # link axis
-    qx, qy, qz = ws.pr_po[r, 0] - ro * nx, ws.pr_po[r, 1] - ro * ny, ws.pr_po[r, 2] - ro * nz  # obstacle's
+    px, py, pz = pr_pl[r, 0] + rl * nx, pr_pl[r, 1] + rl * ny, pr_pl[r, 2] + rl * nz  # link axis
+    qx, qy, qz = pr_po[r, 0] - ro * nx, pr_po[r, 1] - ro * ny, pr_po[r, 2] - ro * nz  # obstacle's
     wx, wy, wz = px - qx, py - qy, pz - qz
-    a, b = ws.segments[i, 0], ws.segments[i, 1]
-    ux, uy, uz = b[0] - a[0], b[1] - a[1], b[2] - a[2]
-    sx, sy, sz = ws.ob_axis[j, 0], ws.ob_axis[j, 1], ws.ob_axis[j, 2]
-    cx, cy, cz = ws.ob_c[j, 0], ws.ob_c[j, 1], ws.ob_c[j, 2]
-    bv = ws.body_vel[i]
-    vx, vy, vz, ox, oy, oz = bv[0], bv[1], bv[2], bv[3], bv[4], bv[5]
+    seg = ws.segments  # (rows by index throughout: no views, see finish_pairs)
+    a0, a1, a2 = seg[i, 0, 0], seg[i, 0, 1], seg[i, 0, 2]
+    ux, uy, uz = seg[i, 1, 0] - a0, seg[i, 1, 1] - a1, seg[i, 1, 2] - a2
+    ob_axis, ob_c = ws.ob_axis, ws.ob_c
+    sx, sy, sz = ob_axis[j, 0], ob_axis[j, 1], ob_axis[j, 2]
+    cx, cy, cz = ob_c[j, 0], ob_c[j, 1], ob_c[j, 2]
+    bv = ws.body_vel
+    vx, vy, vz, ox, oy, oz = bv[i, 0], bv[i, 1], bv[i, 2], bv[i, 3], bv[i, 4], bv[i, 5]
     vpx, vpy, vpz = vx + oy * pz - oz * py, vy + oz * px - ox * pz, vz + ox * py - oy * px  # v + ω × p
     udx, udy, udz = oy * uz - oz * uy, oz * ux - ox * uz, ox * uy - oy * ux  # u̇ = ω × u
-    K = ws.acc_K[i]
-    o = ws.acc_off[i]
-    apx = o[0] + K[0, 0] * px + K[0, 1] * py + K[0, 2] * pz  # a_p = offset + K p
-    apy = o[1] + K[1, 0] * px + K[1, 1] * py + K[1, 2] * pz
-    apz = o[2] + K[2, 0] * px + K[2, 1] * py + K[2, 2] * pz
-    vo, ao = ws.ob_v[j], ws.ob_a[j]
-    dvx, dvy, dvz = vpx - vo[0], vpy - vo[1], vpz - vo[2]
+    K, o = ws.acc_K, ws.acc_off
+    apx = o[i, 0] + K[i, 0, 0] * px + K[i, 0, 1] * py + K[i, 0, 2] * pz  # a_p = offset + K p
+    apy = o[i, 1] + K[i, 1, 0] * px + K[i, 1, 1] * py + K[i, 1, 2] * pz
+    apz = o[i, 2] + K[i, 2, 0] * px + K[i, 2, 1] * py + K[i, 2, 2] * pz
+    ob_v, ob_a = ws.ob_v, ws.ob_a
+    dvx, dvy, dvz = vpx - ob_v[j, 0], vpy - ob_v[j, 1], vpz - ob_v[j, 2]
     L2 = ux * ux + uy * uy + uz * uz
-    tau_l2 = (px - a[0]) * ux + (py - a[1]) * uy + (pz - a[2]) * uz  # τ L²
+    tau_l2 = (px - a0) * ux + (py - a1) * uy + (pz - a2) * uz  # τ L²
     S2 = sx * sx + sy * sy + sz * sz
     sigma_s2 = (qx - cx + 0.5 * sx) * sx + (qy - cy + 0.5 * sy) * sy + (qz - cz + 0.5 * sz) * sz  # σ |s|²
     t_free = L2 > 1e-18 and 1e-9 * L2 < tau_l2 < (1.0 - 1e-9) * L2
@@ -247,7 +248,7 @@ def barrier_drift(ws, r: int) -> bool:  # type: ignore[no-untyped-def]
     wdy = dvy + tau_dot * uy - sigma_dot * sy
     wdz = dvz + tau_dot * uz - sigma_dot * sz
     nw = nx * wdx + ny * wdy + nz * wdz
-    ws.pr_bdrift[r] = (nx * (apx - ao[0]) + ny * (apy - ao[1]) + nz * (apz - ao[2])
+    ws.pr_bdrift[r] = (nx * (apx - ob_a[j, 0]) + ny * (apy - ob_a[j, 1]) + nz * (apz - ob_a[j, 2])
                        + 2.0 * tau_dot * (nx * udx + ny * udy + nz * udz)
                        + (wdx * wdx + wdy * wdy + wdz * wdz - nw * nw) / math.sqrt(max(rho2, 1e-24)))
     return True
@@ -258,33 +259,36 @@ def finish_pairs(ws) -> int:  # type: ignore[no-untyped-def]
     """After python-fcl: drop the pairs it found beyond the cutoff (order kept), then each pair's
     witness-point Jacobian and drift, the barrier drift (closed form where it exists, when the QP
     needs it) and the clearance. Returns the number of pairs left for the look-ahead drift."""
+    pr_link, pr_obs, pr_d, pr_state = ws.pr_link, ws.pr_obs, ws.pr_d, ws.pr_state
+    pr_n, pr_pl, pr_po = ws.pr_n, ws.pr_pl, ws.pr_po
     k = 0
     for r in range(ws.cnt[CNT_PAIRS]):
-        if ws.pr_state[r] == PAIR_FAR:
+        if pr_state[r] == PAIR_FAR:
             continue
         if k != r:
-            ws.pr_link[k], ws.pr_obs[k], ws.pr_d[k], ws.pr_state[k] = (ws.pr_link[r], ws.pr_obs[r], ws.pr_d[r],
-                                                                         ws.pr_state[r])
+            pr_link[k], pr_obs[k], pr_d[k], pr_state[k] = pr_link[r], pr_obs[r], pr_d[r], pr_state[r]
             for c in range(3):
-                ws.pr_n[k, c], ws.pr_pl[k, c], ws.pr_po[k, c] = ws.pr_n[r, c], ws.pr_pl[r, c], ws.pr_po[r, c]
+                pr_n[k, c], pr_pl[k, c], pr_po[k, c] = pr_n[r, c], pr_pl[r, c], pr_po[r, c]
         k += 1
     ws.cnt[CNT_PAIRS] = k
     ws.cnt[CNT_FCL] = 0
     clearance = np.inf
     look = 0
     need = ws.ipar[IP_BDRIFT] != 0
+    # the arrays the loop reads, held once (rows by index: a view per pair costs atomic reference counts)
+    cap_support, pr_jac, pr_drift, acc_off, acc_K = ws.cap_support, ws.pr_jac, ws.pr_drift, ws.acc_off, ws.acc_K
+    pr_bok, pr_bdrift = ws.pr_bok, ws.pr_bdrift
     for r in range(k):
-        i = ws.pr_link[r]
-        clearance = min(clearance, ws.pr_d[r])
-        point_jacobian(ws, ws.cap_support[i], ws.pr_pl[r], ws.pr_jac[r])
-        p = ws.pr_pl[r]
-        K = ws.acc_K[i]
+        i = pr_link[r]
+        clearance = min(clearance, pr_d[r])
+        point_jacobian(ws, cap_support, i, pr_pl, r, pr_jac, r)
+        p0, p1, p2 = pr_pl[r, 0], pr_pl[r, 1], pr_pl[r, 2]
         for c in range(3):
-            ws.pr_drift[r, c] = ws.acc_off[i, c] + K[c, 0] * p[0] + K[c, 1] * p[1] + K[c, 2] * p[2]
-        ws.pr_bok[r] = 1
+            pr_drift[r, c] = acc_off[i, c] + acc_K[i, c, 0] * p0 + acc_K[i, c, 1] * p1 + acc_K[i, c, 2] * p2
+        pr_bok[r] = 1
         if need and not barrier_drift(ws, r):
-            ws.pr_bok[r] = 0
-            ws.pr_bdrift[r] = 0.0
+            pr_bok[r] = 0
+            pr_bdrift[r] = 0.0
             look += 1
     ws.fpar[FP_CLEARANCE] = clearance
     ws.cnt[CNT_LOOKAHEAD] = look

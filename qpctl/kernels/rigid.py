@@ -40,23 +40,29 @@ def _world_acceleration(ws, j: int, out: np.ndarray) -> None:  # type: ignore[no
 
 
 @njit(cache=True)
-def world_point(ws, j: int, local: np.ndarray, out: np.ndarray) -> None:  # type: ignore[no-untyped-def]
-    """out (3,) = oMi[j] · local."""
+def world_point(ws, j: int, lx: float, ly: float, lz: float) -> tuple[float, float, float]:  # type: ignore[no-untyped-def]
+    """oMi[j] · (lx, ly, lz). Scalars in and out: no array view per call (a view of a row costs the
+    tick an atomic reference increment and decrement, which inside the per-link and per-pair loops
+    added up to microseconds)."""
     P = ws.oMi
-    for r in range(3):
-        out[r] = P[j, r] * local[0] + P[j, r + 3] * local[1] + P[j, r + 6] * local[2] + P[j, 9 + r]
+    return (P[j, 0] * lx + P[j, 3] * ly + P[j, 6] * lz + P[j, 9],
+            P[j, 1] * lx + P[j, 4] * ly + P[j, 7] * lz + P[j, 10],
+            P[j, 2] * lx + P[j, 5] * ly + P[j, 8] * lz + P[j, 11])
 
 
 @njit(cache=True)
-def point_jacobian(ws, support: np.ndarray, p: np.ndarray, out: np.ndarray) -> None:  # type: ignore[no-untyped-def]
-    """out (3, n) = J_v − p × J_ω of the body whose joints are ``support`` (world Jacobian columns)."""
+def point_jacobian(ws, S: np.ndarray, si: int, P: np.ndarray, pi: int,  # type: ignore[no-untyped-def]
+                   out: np.ndarray, oi: int) -> None:
+    """out[oi] (3, n) = J_v − p × J_ω of the body whose joints are S[si] (world Jacobian columns),
+    p = P[pi]: rows by index, not views (see :func:`world_point`)."""
     Jt = ws.Jt
+    px, py, pz = P[pi, 0], P[pi, 1], P[pi, 2]
     for k in range(Jt.shape[0]):
-        s = support[k]
+        s = S[si, k]
         wx, wy, wz = Jt[k, 3] * s, Jt[k, 4] * s, Jt[k, 5] * s
-        out[0, k] = Jt[k, 0] * s - (p[1] * wz - p[2] * wy)
-        out[1, k] = Jt[k, 1] * s - (p[2] * wx - p[0] * wz)
-        out[2, k] = Jt[k, 2] * s - (p[0] * wy - p[1] * wx)
+        out[oi, 0, k] = Jt[k, 0] * s - (py * wz - pz * wy)
+        out[oi, 1, k] = Jt[k, 1] * s - (pz * wx - px * wz)
+        out[oi, 2, k] = Jt[k, 2] * s - (px * wy - py * wx)
 
 
 @njit(cache=True)
@@ -91,14 +97,14 @@ def rigid_terms(ws, v: np.ndarray) -> bool:  # type: ignore[no-untyped-def]
     a3 = ws.sv[SV_A3]
     frames = ws.tk_joint.shape[0]
     per = axes.shape[0] // frames
+    tk_support, tk_local, sv, sj = ws.tk_support, ws.tk_local, ws.sv, ws.sj
     for tk in range(frames):
-        support = ws.tk_support[tk]
-        world_point(ws, ws.tk_joint[tk], ws.tk_local[tk], p)
-        point_jacobian(ws, support, p, J3)
+        p[0], p[1], p[2] = world_point(ws, ws.tk_joint[tk], tk_local[tk, 0], tk_local[tk, 1], tk_local[tk, 2])
+        point_jacobian(ws, tk_support, tk, sv, SV_P, sj, SJ_TASK)
         for r in range(6):
             s = 0.0
             for k in range(n):
-                s += Jt[k, r] * support[k] * v[k]
+                s += Jt[k, r] * tk_support[tk, k] * v[k]
             vel[r] = s
         _world_acceleration(ws, ws.tk_joint[tk], acc)
         _classical_acceleration(vel, acc, p, a3)
@@ -123,8 +129,9 @@ def rigid_terms(ws, v: np.ndarray) -> bool:  # type: ignore[no-untyped-def]
     link_jac, acc_off, acc_K = ws.link_jac, ws.acc_off, ws.acc_K
     for i in range(cap_joint.shape[0]):
         j = cap_joint[i]
-        world_point(ws, j, cap_local[i, 0], segments[i, 0])
-        world_point(ws, j, cap_local[i, 1], segments[i, 1])
+        for e in range(2):
+            x, y, z = world_point(ws, j, cap_local[i, e, 0], cap_local[i, e, 1], cap_local[i, e, 2])
+            segments[i, e, 0], segments[i, e, 1], segments[i, e, 2] = x, y, z
         for r in range(6):  # the body's world spatial velocity: its support's Jacobian columns times q̇
             s = 0.0
             for k in range(n):
@@ -132,17 +139,16 @@ def rigid_terms(ws, v: np.ndarray) -> bool:  # type: ignore[no-untyped-def]
             body_vel[i, r] = s
         for r in range(3):
             p[r] = 0.5 * (segments[i, 0, r] + segments[i, 1, r])
-        point_jacobian(ws, cap_support[i], p, link_jac[i])
+        point_jacobian(ws, cap_support, i, sv, SV_P, link_jac, i)
         # q̈ = 0 acceleration field of the body: a(p) = offset + K p, offset = a + ω × v, K = [α]× + [ω]×²
         _world_acceleration(ws, j, acc)
         vx, vy, vz, wx, wy, wz = body_vel[i, 0], body_vel[i, 1], body_vel[i, 2], body_vel[i, 3], body_vel[i, 4], body_vel[i, 5]
         acc_off[i, 0] = acc[0] + wy * vz - wz * vy
         acc_off[i, 1] = acc[1] + wz * vx - wx * vz
         acc_off[i, 2] = acc[2] + wx * vy - wy * vx
-        K = acc_K[i]
-        K[0, 0], K[0, 1], K[0, 2] = -(wy * wy + wz * wz), -acc[5] + wx * wy, acc[4] + wx * wz
-        K[1, 0], K[1, 1], K[1, 2] = acc[5] + wx * wy, -(wx * wx + wz * wz), -acc[3] + wy * wz
-        K[2, 0], K[2, 1], K[2, 2] = -acc[4] + wx * wz, acc[3] + wy * wz, -(wx * wx + wy * wy)
+        acc_K[i, 0, 0], acc_K[i, 0, 1], acc_K[i, 0, 2] = -(wy * wy + wz * wz), -acc[5] + wx * wy, acc[4] + wx * wz
+        acc_K[i, 1, 0], acc_K[i, 1, 1], acc_K[i, 1, 2] = acc[5] + wx * wy, -(wx * wx + wz * wz), -acc[3] + wy * wz
+        acc_K[i, 2, 0], acc_K[i, 2, 1], acc_K[i, 2, 2] = -acc[4] + wx * wz, acc[3] + wy * wz, -(wx * wx + wy * wy)
     return True
 
 
@@ -157,11 +163,13 @@ def _frame_rotation(ws, f: int) -> None:  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def body_point(ws, i: int, p: np.ndarray, vel: np.ndarray, acc: np.ndarray) -> None:  # type: ignore[no-untyped-def]
-    """Velocity and q̈ = 0 acceleration of the point p fixed to capsule i's body."""
-    bv, K, o = ws.body_vel[i], ws.acc_K[i], ws.acc_off[i]
-    vel[0] = bv[0] + bv[4] * p[2] - bv[5] * p[1]
-    vel[1] = bv[1] + bv[5] * p[0] - bv[3] * p[2]
-    vel[2] = bv[2] + bv[3] * p[1] - bv[4] * p[0]
-    for c in range(3):
-        acc[c] = o[c] + K[c, 0] * p[0] + K[c, 1] * p[1] + K[c, 2] * p[2]
+def body_point(ws, i: int, px: float, py: float, pz: float) -> tuple[float, float, float, float, float, float]:  # type: ignore[no-untyped-def]
+    """Velocity and q̈ = 0 acceleration (vx, vy, vz, ax, ay, az) of the point (px, py, pz) fixed to
+    capsule i's body."""
+    bv, K, o = ws.body_vel, ws.acc_K, ws.acc_off
+    return (bv[i, 0] + bv[i, 4] * pz - bv[i, 5] * py,
+            bv[i, 1] + bv[i, 5] * px - bv[i, 3] * pz,
+            bv[i, 2] + bv[i, 3] * py - bv[i, 4] * px,
+            o[i, 0] + K[i, 0, 0] * px + K[i, 0, 1] * py + K[i, 0, 2] * pz,
+            o[i, 1] + K[i, 1, 0] * px + K[i, 1, 1] * py + K[i, 1, 2] * pz,
+            o[i, 2] + K[i, 2, 0] * px + K[i, 2, 1] * py + K[i, 2, 2] * pz)

@@ -39,6 +39,7 @@ from qpctl.kernels.codes import (
     FP_SDS,
     FP_SK0,
     FP_SK1,
+    FP_T,
     FP_WACC,
     FP_WPOST,
     IP_BARRIER_ROW0,
@@ -53,7 +54,7 @@ from qpctl.kernels.codes import (
     IP_SELF_ROW0,
     IP_TORQUE_ROW0,
 )
-from qpctl.kernels.drives import torque_window
+from qpctl.kernels.drives import torque_window_at
 from qpctl.kernels.field_rows import field_rows
 
 
@@ -149,12 +150,15 @@ def qp_build(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray,
     # −τ_max ≤ M q̈ + N ≤ τ_max and |M q̈ + N − τ_prev| ≤ τ̇_max dt (TorqueLimit)
     t0 = ws.ipar[IP_TORQUE_ROW0]
     if t0 >= 0:
+        # (held: a field read in the loop costs atomic reference counts each time)
+        N, tau_max, tau_rate, tau_prev = ws.N, ws.tau_max, ws.tau_rate, ws.tau_prev
+        dt = ws.fpar[FP_T] - ws.t_prev[0]
         for i in range(n):
             for k in range(n):
                 rows[t0 + i, k] = M[i, k]
-            lo, hi = torque_window(ws, i)
-            bl[nv + t0 + i] = lo - ws.N[i]
-            bu[nv + t0 + i] = hi - ws.N[i]
+            lo, hi = torque_window_at(tau_max[i], tau_rate[i], tau_prev[i], dt)
+            bl[nv + t0 + i] = lo - N[i]
+            bu[nv + t0 + i] = hi - N[i]
     # joint position and speed limits as bounds on q̈ (JointLimit)
     if ws.ipar[IP_JOINT_LIMITS] != 0:
         joint_bounds(ws, bl[:n], bu[:n])

@@ -175,19 +175,16 @@ def tick_qp_native(ws, q: np.ndarray, v: np.ndarray, t: float, H: np.ndarray, f:
 
 
 @njit(cache=True)
-def tick_qp_native_hard_first(ws, q: np.ndarray, v: np.ndarray, t: float, Hh: np.ndarray,  # type: ignore[no-untyped-def]
-                              fh: np.ndarray, rowsh: np.ndarray, buh: np.ndarray, blh: np.ndarray, dqh,
-                              xh: np.ndarray, lamh: np.ndarray, Hr: np.ndarray, fr: np.ndarray, rowsr: np.ndarray,
-                              bur: np.ndarray, blr: np.ndarray, dqr, xr: np.ndarray, tol: float, l1: float,
+def tick_qp_native_hard_first(nq, q: np.ndarray, v: np.ndarray, t: float,  # type: ignore[no-untyped-def]
                               try_hard: bool) -> tuple[int, int]:
-    """State and :func:`qp_tick_native_hard_first` in one call: its pair, or (−1 | STATE_PYTHON, −1)
-    as :func:`tick_qp_native`."""
-    ts = ws.ts
-    code = state_timed(ws, q, v, t, ts)
+    """State and :func:`qp_tick_native_hard_first` in one call (``nq`` a
+    :class:`~qpctl.kernels.native_qp.NativeQP`): its pair, or (−1 | STATE_PYTHON, −1) as
+    :func:`tick_qp_native`."""
+    ws = nq.ws
+    code = state_timed(ws, q, v, t, ws.ts)
     if code != 0:
         return code, -1
-    return qp_tick_native_hard_first(ws, Hh, fh, rowsh, buh, blh, dqh, xh, lamh, Hr, fr, rowsr, bur, blr, dqr, xr,
-                                     tol, l1, try_hard)
+    return qp_tick_native_hard_first(nq, try_hard)
 
 
 @njit(cache=True)
@@ -213,9 +210,7 @@ def tick_qp(nq, q: np.ndarray, v: np.ndarray, t: float, try_hard: bool,  # type:
         code = state_timed(ws, q, v, t, ts)
     if code != 0:
         return code, -1, try_hard
-    code, hard = qp_tick_native_hard_first(ws, nq.Hh, nq.fh, nq.rowsh, nq.buh, nq.blh, nq.dqh, nq.xh, nq.lamh,
-                                           nq.Hr, nq.fr, nq.rowsr, nq.bur, nq.blr, nq.dqr, nq.xr, nq.tol, nq.l1,
-                                           try_hard)
+    code, hard = qp_tick_native_hard_first(nq, try_hard)
     if code == 0 and hard <= 0:  # the tick Python ends without a word (else Python copies the record)
         copy_record(ws.rec, out)
     slack = ws.rec[record_scalars(ws.N.shape[0], ws.a.shape[0]) + R_SLACK]

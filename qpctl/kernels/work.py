@@ -188,10 +188,11 @@ FIELDS = (
 
 
 # Rows of the scratch arrays sv and sj: rigid_terms' (a body's spatial velocity, the task point, its
-# acceleration; its Jacobian) and self_pairs' (the witness points, their velocities and accelerations;
-# their Jacobians)
-SV_VEL, SV_P, SV_A3, SV_SP, SV_SQ, SV_SVP, SV_SVQ, SV_SAP, SV_SAQ = range(9)
-SV_ROWS = 9
+# acceleration; its Jacobian) and self_pairs' (the witness points; their Jacobians). The kernels pass
+# rows by index (point_jacobian(ws, S, si, P, pi, out, oi)), not as views: a view taken in a loop costs
+# an atomic reference count increment and decrement each time.
+SV_VEL, SV_P, SV_A3, SV_SP, SV_SQ = range(5)
+SV_ROWS = 5
 SJ_TASK, SJ_SP, SJ_SQ = range(3)
 SJ_ROWS = 3
 
