@@ -62,7 +62,7 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
     :func:`~qpctl.kernels.field.speed_points` writes them for channel 1 (``body_vel``, ``soft_speed``,
     ``gain``, ``vmargin``, ``cutoff`` its arguments). ``ds`` (2, samples) is scratch."""
     L = segments.shape[0]
-    rigid, soft = dist[0], dist[1]
+    rigid, soft, ds_r, ds_s = dist[0], dist[1], ds[0], ds[1]
     for l in range(L):
         r = radii[l]
         ax, ay, az = segments[l, 0, 0], segments[l, 0, 1], segments[l, 0, 2]
@@ -71,7 +71,7 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
             out_vb[2 * l + k] = math.inf
             out_vd[2 * l + k] = truncation - r
             out_vp[2 * l + k, 0], out_vp[2 * l + k, 1], out_vp[2 * l + k, 2] = ax, ay, az
-            out_vu[2 * l + k, :] = 0.0
+            out_vu[2 * l + k, 0] = out_vu[2 * l + k, 1] = out_vu[2 * l + k, 2] = 0.0
         # the separate kernels' early-out, per channel (module docstring)
         half = 0.5 * math.sqrt(ux * ux + uy * uy + uz * uz)
         mx, my, mz = ax + 0.5 * ux, ay + 0.5 * uy, az + 0.5 * uz
@@ -83,7 +83,7 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
                     row = (c * L + l) * rows + rr
                     out_d[row] = truncation - r
                     out_s[row] = 0.5
-                    out_n[row, :] = 0.0
+                    out_n[row, 0] = out_n[row, 1] = out_n[row, 2] = 0.0
                     out_p[row, 0], out_p[row, 1], out_p[row, 2] = mx, my, mz
         if far0 and far1:
             continue
@@ -97,11 +97,11 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
             f = j / (samples - 1.0)
             px, py, pz = ax + f * ux, ay + f * uy, az + f * uz
             t0, t1 = distance_both(rigid, soft, origin, voxel, truncation, px, py, pz)
-            ds[0, j] = t0
-            ds[1, j] = t1
-            if t0 < ds[0, best0]:
+            ds_r[j] = t0
+            ds_s[j] = t1
+            if t0 < ds_r[best0]:
                 best0 = j
-            if t1 < ds[1, best1]:
+            if t1 < ds_s[best1]:
                 best1 = j
             if far1:
                 continue
@@ -118,7 +118,7 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
         for c in range(2):
             if (far0 if c == 0 else far1):
                 continue
-            dc = ds[c]
+            dc = ds_r if c == 0 else ds_s
             b = best0 if c == 0 else best1
             row0 = (c * L + l) * rows
             pair_row(segments, radii, l, _refine(dc, b, samples, smooth), dist[c], grad[c], origin, voxel,
@@ -129,8 +129,8 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
             if sec < 0:  # one minimum only: the second row repeats the first's point, inactive
                 out_d[row0 + 1] = truncation - r
                 out_s[row0 + 1] = out_s[row0]
-                out_n[row0 + 1, :] = 0.0
-                out_p[row0 + 1, :] = out_p[row0, :]
+                out_n[row0 + 1, 0] = out_n[row0 + 1, 1] = out_n[row0 + 1, 2] = 0.0
+                out_p[row0 + 1, 0], out_p[row0 + 1, 1], out_p[row0 + 1, 2] = out_p[row0, 0], out_p[row0, 1], out_p[row0, 2]
             else:
                 pair_row(segments, radii, l, _refine(dc, sec, samples, smooth), dist[c], grad[c], origin, voxel,
                          truncation, smooth, row0 + 1, out_d, out_n, out_p, out_s)
@@ -142,5 +142,5 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
             if j < 0:
                 continue
             f = j / (samples - 1.0)
-            speed_row(ax + f * ux, ay + f * uy, az + f * uz, r, vx, vy, vz, wx, wy, wz, ds[1, j] - r, soft_speed, gain,
+            speed_row(ax + f * ux, ay + f * uy, az + f * uz, r, vx, vy, vz, wx, wy, wz, ds_s[j] - r, soft_speed, gain,
                       vmargin, 2 * l + k, out_vp, out_vu, out_vb, out_vd)
