@@ -7,12 +7,13 @@ interleaved in blocks of 25 ticks (the order rotating from block to block):
 
 * ``floor``: ``pin.computeAllTerms`` alone (the figure ``qpctl bench`` divides by);
 * ``qp``, ``paper``: the controllers' whole ``step``;
-* ``rigid``: ``qpctl.tick.rigid_pass`` alone (crba and nonLinearEffects);
-* ``kernel``: the QP's one-call kernel through its compiled entry point alone, after ``rigid_pass``
-  (outside the timer), on the same workspace: what numba's call and the compiled tick cost.
+* ``rigid``: ``qpctl.tick.rigid_pass`` alone (crba and nonLinearEffects through the bindings);
+* ``kernel``: the QP's one-call kernel through its compiled entry point alone, on the same workspace:
+  what numba's call and the compiled tick cost — Pinocchio's pass included where the kernel runs it
+  (the native library, ``qpctl.kernels.pin_native``), else after ``rigid_pass`` outside the timer.
 
-``shell = qp − rigid − kernel`` is the Python around the kernel: the type guard, the skip rule's
-memory, the output, the timers. Prints one JSON line per run: medians [µs], the shell, and the QP's
+``shell = qp − kernel`` (less ``rigid`` where Python runs the pass) is the Python around the kernel:
+the type guard, the skip rule's memory, the output, the timers. Prints one JSON line per run: medians [µs], the shell, and the QP's
 and the paper law's ratios to the floor. To compare two commits on the same machine, run it
 alternately with ``PYTHONPATH=<a worktree of the other commit>`` (that commit's benchmarks/shell.py
 if it has one; its kernel's signature must be this one's).
@@ -82,14 +83,15 @@ def measure(scenario: str = "panda_spheres", ticks: int = 2500) -> dict[str, flo
                     rigid_pass(ws.model, ws.data, q, v)
                     e = now()
                 else:
-                    rigid_pass(ws.model, ws.data, q, v)
+                    if ws.py_rigid:
+                        rigid_pass(ws.model, ws.data, q, v)
                     try_hard = relax.always_hard or (relax.skip_rule and relax._try_hard)
                     s = now()
                     entry(packed, q, v, t, try_hard, out)
                     e = now()
                 times[name].append((e - s) * 1e6)
     med = {n: float(np.median(v)) for n, v in times.items()}
-    med["shell"] = med["qp"] - med["rigid"] - med["kernel"]
+    med["shell"] = med["qp"] - med["kernel"] - (med["rigid"] if ws.py_rigid else 0.0)
     med["qp_ratio"] = med["qp"] / med["floor"]
     med["paper_ratio"] = med["paper"] / med["floor"]
     return med
