@@ -86,8 +86,7 @@ class PaperController(Controller):
                     rigid_pass(ws.model, ws.data, q, v)
                 except Exception:  # noqa: BLE001 — not a state Pinocchio takes: the checks below say why
                     ok = False
-            t1 = _now()
-            pin_s = t1 - start if ws.py_rigid else -1.0
+            pin_s = _now() - start if ws.py_rigid else -1.0  # (else the kernel times the pass)
             if ok and isinstance(t, float) and plain_vectors(q, v):
                 out = self._out  # reused when nobody else holds it nor a view of its record
                 if out is None or getrefcount(out) > IDLE_REFS or getrefcount(out._rec) > IDLE_REC_REFS:
