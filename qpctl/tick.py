@@ -17,7 +17,6 @@ python-fcl path, :mod:`qpctl.law`, :class:`qpctl.formulation.Formulation`) that 
 
 from __future__ import annotations
 
-import ctypes
 import math
 import time
 from collections.abc import Sequence
@@ -37,7 +36,7 @@ from qpctl.kernels.lie import joint_angles
 from qpctl.kernels.pin_native import rigid_at
 from qpctl.kernels.work import FIELDS, SJ_ROWS, SV_ROWS, new_tick_work
 from qpctl.law import LawGains, LawTerms
-from qpctl.native.rigid import NativeRigid
+from qpctl.native.rigid import NativeRigid, float_view
 from qpctl.paths import PosePath, Reference, WaypointPath
 from qpctl.qp import Problem
 from qpctl.robot.model import RobotModel
@@ -45,12 +44,6 @@ from qpctl.state import SelfPairState, TickState
 
 GRID_MIN_OBSTACLES = 32  # the broad-phase grid is used above this many static obstacles (broadphase=None)
 GRID_MAX_CELLS = 2_000_000
-
-
-def _view(address: int, shape: tuple[int, ...]) -> np.ndarray:
-    """A float64 numpy view of memory owned by someone else (kept alive by the Workspace)."""
-    size = int(np.prod(shape))
-    return np.ctypeslib.as_array((ctypes.c_double * size).from_address(address)).reshape(shape)
 
 
 _crba, _nle, _WORLD = pin.crba, pin.nonLinearEffects, pin.Convention.WORLD
@@ -78,8 +71,8 @@ def bind_pinocchio(model: pin.Model, data: pin.Data) -> dict[str, np.ndarray]:
     raises here rather than returning wrong numbers later.
     """
     nj, n = model.njoints, model.nv
-    placements = _view(data.oMi[0].rotation.__array_interface__["data"][0], (nj, 12))
-    accelerations = _view(data.a_gf[0].linear.__array_interface__["data"][0], (nj, 6))
+    placements = float_view(data.oMi[0].rotation.__array_interface__["data"][0], (nj, 12))
+    accelerations = float_view(data.a_gf[0].linear.__array_interface__["data"][0], (nj, 6))
     gravity = model.gravity.linear  # Pinocchio returns the model's own memory (checked below)
     views = {"oMi": placements, "acc_gf": accelerations, "Jt": data.J.T, "Mt": data.M.T, "nle": data.nle,
              "gravity": gravity}

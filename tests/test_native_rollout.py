@@ -26,7 +26,9 @@ def lib_or_skip():
     runs its Python loop, tested in test_rollout.py); with a checked one, unavailable is a failure."""
     lib = native.library()
     if lib is None and pin.__version__ not in CHECKED_PINOCCHIO:
-        pytest.skip(f"native rollout not built for Pinocchio {pin.__version__} (the Python loop serves): "
+        pytest.skip(f"the native library is not built for Pinocchio {pin.__version__}, a version it was not "
+                    "checked against (the brake rollout and the rigid-body pass then run their Python paths, "
+                    f"tested in test_rollout.py and everywhere else): "
                     f"{native.why_unavailable()}")
     assert lib is not None, native.why_unavailable()
     return lib

@@ -16,7 +16,9 @@ import pinocchio as pin
 import qpctl.native
 
 
-def _view(address: int, shape: tuple[int, ...]) -> np.ndarray:
+def float_view(address: int, shape: tuple[int, ...]) -> np.ndarray:
+    """A float64 numpy view of memory owned by someone else (kept alive by its owner: the handle, or
+    the workspace's ``pin.Data``)."""
     size = int(np.prod(shape))
     return np.ctypeslib.as_array((ctypes.c_double * size).from_address(address)).reshape(shape)
 
@@ -45,8 +47,8 @@ class NativeRigid:
         nj, n = model.njoints, model.nv
         if nj > 1 and addr[5] != 12 * 8:
             raise RuntimeError(f"pinocchio::Data's placements are {addr[5]} bytes apart, not 96, in this build")
-        self.views = {"oMi": _view(addr[0], (nj, 12)), "acc_gf": _view(addr[1], (nj, 6)), "Jt": _view(addr[2], (n, 6)),
-                      "Mt": _view(addr[3], (n, n)), "nle": _view(addr[4], (n,))}
+        self.views = {"oMi": float_view(addr[0], (nj, 12)), "acc_gf": float_view(addr[1], (nj, 6)), "Jt": float_view(addr[2], (n, 6)),
+                      "Mt": float_view(addr[3], (n, n)), "nle": float_view(addr[4], (n,))}
         self._check()
 
     @classmethod
