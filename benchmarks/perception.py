@@ -419,19 +419,20 @@ CLOSED_LOOP_KEYS = ("collided", "min_clearance", "min_soft_clearance", "soft_con
                     "path_extra_s", "fruits_picked", "fruit_misses")
 
 
-def closed_loop(seed: int, duration: float | None = None) -> dict[str, Any]:
-    """``panda_canopy_depth`` under one canopy seed (seed 1 is the packaged scenario), noise on: the
-    closed-loop metrics of issue 21's targets, and the canopy's unreachable fruits with their reasons."""
+def closed_loop(seed: int, duration: float | None = None, overrides: tuple[str, ...] = ()) -> dict[str, Any]:
+    """``panda_canopy_depth`` under one canopy seed (seed 1 is the packaged scenario), noise on, with the
+    scenario ``overrides`` (``--set``'s KEY=VALUE): the closed-loop metrics of issue 21's targets, and the
+    canopy's unreachable fruits with their reasons."""
     from qpctl import Scenario
     from qpctl.run import simulate
 
     extra = [f"sim.duration={duration}"] if duration else []
-    scen = Scenario.load("panda_canopy_depth", overrides=[f"canopy.seed={seed}", *extra])
+    scen = Scenario.load("panda_canopy_depth", overrides=[f"canopy.seed={seed}", *extra, *overrides])
     t0 = time.perf_counter()
     m = simulate(scen).metrics
     row = {"seed": seed, "wall_s": time.perf_counter() - t0, "d_safe": float(scen.data["controller"]["d_safe"]),
            "voxel": scen.perception_config().voxel, "soft_speed": scen.perception_config().soft_speed,
-           "duration_s": float(scen.data["sim"]["duration"])}
+           "duration_s": float(scen.data["sim"]["duration"]), "overrides": list(overrides)}
     row.update({k: m.get(k) for k in CLOSED_LOOP_KEYS})
     canopy = m.get("canopy", {})
     row["unreachable"] = [f.get("reason", "") for f in canopy.get("fruits", []) if not f.get("reachable", True)]
@@ -439,11 +440,13 @@ def closed_loop(seed: int, duration: float | None = None) -> dict[str, Any]:
     return row
 
 
-def closed_loops(seeds: list[int], duration: float | None = None, jobs: int = 1) -> list[dict[str, Any]]:
+def closed_loops(seeds: list[int], duration: float | None = None, jobs: int = 1,
+                 overrides: tuple[str, ...] = ()) -> list[dict[str, Any]]:
     """:func:`closed_loop` on each seed, in seed order, on the sweep engine's local backend (``jobs``
     processes; 1: one after another in this process). A map's costs then share the cores; its latency
     is fixed."""
-    return map_ordered(closed_loop, [(seed, duration) for seed in seeds], LocalBackend(jobs), desc="canopies")
+    return map_ordered(closed_loop, [(seed, duration, tuple(overrides)) for seed in seeds], LocalBackend(jobs),
+                       desc="canopies")
 
 
 def closed_loop_markdown(rows: list[dict[str, Any]]) -> str:
@@ -526,15 +529,18 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     ap.add_argument("--only-tick", action="store_true", help="only the frames' map and the tick with the field")
     ap.add_argument("--duration", type=float, default=None, help="with --canopies: simulated seconds")
     ap.add_argument("--jobs", type=int, default=1, help="with --canopies: runs at once (processes)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="with --canopies: a scenario override for every canopy (repeatable, as qpctl simulate --set)")
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     if args.canopies:
         load = " ".join(f"{x:.2f}" for x in os.getloadavg())
-        rows = closed_loops(list(range(1, args.canopies + 1)), args.duration, args.jobs)
+        rows = closed_loops(list(range(1, args.canopies + 1)), args.duration, args.jobs, tuple(args.set))
         (out / "canopies.json").write_text(json.dumps(rows, indent=2, default=str))
         md = (f"Load before: {load}, after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}; {args.jobs} job(s); "
-              f"{rows[0]['duration_s']:g} s each.\n\n" + closed_loop_markdown(rows))
+              f"{rows[0]['duration_s']:g} s each"
+              + (f"; overrides {' '.join(args.set)}" if args.set else "") + ".\n\n" + closed_loop_markdown(rows))
         (out / "canopies.md").write_text(md)
         print(md)
         return {"canopies": rows}
