@@ -427,7 +427,10 @@ class Workspace:
         self.layout = RecordLayout(n, m)
         self.rec = np.zeros(self.layout.size)
         self.fpar[codes.FP_CLEARANCE] = np.inf
-        self.work = new_tick_work(*(f[name] for name in FIELDS))
+        # the kernels' view holds these arrays borrowed (qpctl.kernels.borrow: no reference counts in the
+        # kernels); this tuple keeps each alive as long as the workspace, whatever its attributes become
+        self._pinned = tuple(f[name] for name in FIELDS)
+        self.work = new_tick_work(*self._pinned)
         # the QP's layouts: with the task slack, and hard (the "on_failure" relaxation's first try)
         self.relaxed = QPBuffers(n, m, spec, relax=True) if spec is not None else None
         self.hard = QPBuffers(n, m, spec, relax=False) if spec is not None else None

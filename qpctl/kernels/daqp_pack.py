@@ -32,6 +32,8 @@ from numba.core import types
 from numba.experimental import structref
 from numba.extending import typeof_impl
 
+from qpctl.kernels.borrow import borrow_all
+
 # DAQP's constraint states (include/constants.h, DAQP 0.11)
 ACTIVE, LOWER, IMMUTABLE, SOFT, AUTO_EQUALITY = 1, 2, 4, 8, 128
 
@@ -76,7 +78,7 @@ def _typeof(val: DaqpPack, c: object) -> types.Type:
 @njit(cache=True)
 def new_daqp_pack(*fields):  # type: ignore[no-untyped-def]
     """A DaqpPack of ``fields`` (in FIELDS order), by a cached compiled constructor."""
-    return DaqpPack(*fields)
+    return DaqpPack(*borrow_all(fields))
 
 
 @njit(cache=True)

@@ -36,6 +36,7 @@ import math
 import numpy as np
 from numba import njit
 
+from qpctl.kernels.borrow import borrow
 from qpctl.kernels.codes import (
     FP_FD_CUT,
     FP_FD_HORIZON,
@@ -63,8 +64,8 @@ REACH_SHARE = 0.25  # a rigid row inside its margin asks at most ℓ − ρ(ℓ 
 def set_field(ws, dist: np.ndarray, grad: np.ndarray) -> None:  # type: ignore[no-untyped-def]
     """The tick reads these grids from now on: ``dist`` (2, nx, ny, nz) and ``grad`` (2, nx, ny, nz, 3),
     float32, read-only (a snapshot's own arrays)."""
-    ws.fd_dist = dist
-    ws.fd_grad = grad
+    ws.fd_dist = borrow(dist)  # (borrowed, as every workspace array: Python's Workspace keeps the snapshot)
+    ws.fd_grad = borrow(grad)
 
 
 @njit(cache=True)

@@ -25,6 +25,7 @@ import math
 import numpy as np
 from numba import njit
 
+from qpctl.kernels.borrow import borrow
 from qpctl.kernels.field import (
     _refine,
     cell,
@@ -62,6 +63,11 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
     :func:`~qpctl.kernels.field.speed_points` writes them for channel 1 (``body_vel``, ``soft_speed``,
     ``gain``, ``vmargin``, ``cutoff`` its arguments). ``ds`` (2, samples) is scratch."""
     L = segments.shape[0]
+    # every array borrowed (qpctl.kernels.borrow): the helpers below take them without reference counts
+    segments, radii, dist, grad, origin, body_vel, ds = (borrow(segments), borrow(radii), borrow(dist), borrow(grad),
+                                                         borrow(origin), borrow(body_vel), borrow(ds))
+    out_d, out_n, out_p, out_s = borrow(out_d), borrow(out_n), borrow(out_p), borrow(out_s)
+    out_vp, out_vu, out_vb, out_vd = borrow(out_vp), borrow(out_vu), borrow(out_vb), borrow(out_vd)
     rigid, soft, ds_r, ds_s = dist[0], dist[1], ds[0], ds[1]
     for l in range(L):
         r = radii[l]

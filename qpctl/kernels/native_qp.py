@@ -19,6 +19,8 @@ from numba.core import types
 from numba.experimental import structref
 from numba.extending import typeof_impl
 
+from qpctl.kernels.borrow import borrow_all
+
 
 @structref.register
 class NativeQPType(types.StructRef):  # type: ignore[name-defined]  # numba is untyped
@@ -59,4 +61,4 @@ def _typeof(val: NativeQP, c: object) -> types.Type:
 @njit(cache=True)
 def new_native_qp(*fields):  # type: ignore[no-untyped-def]
     """A NativeQP of ``fields`` (in FIELDS order), by a cached compiled constructor."""
-    return NativeQP(*fields)
+    return NativeQP(*borrow_all(fields))

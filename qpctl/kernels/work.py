@@ -19,6 +19,8 @@ from numba.core import types
 from numba.experimental import structref
 from numba.extending import typeof_impl
 
+from qpctl.kernels.borrow import borrow_all
+
 
 @structref.register
 class TickWorkType(types.StructRef):  # type: ignore[name-defined]  # numba is untyped
@@ -215,4 +217,4 @@ def _typeof(val: TickWork, c: object) -> types.Type:
 def new_tick_work(*fields):  # type: ignore[no-untyped-def]
     """A TickWork of the arrays ``fields`` (in FIELDS order), built by a cached compiled constructor
     (TickWork(...) itself compiles its constructor anew in every process: ~3 s)."""
-    return TickWork(*fields)
+    return TickWork(*borrow_all(fields))
