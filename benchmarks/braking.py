@@ -68,12 +68,13 @@ def controller_table(raw: dict[str, Any], mode: str) -> dict[str, Any]:
     return c
 
 
-def tick_cost(name: str, overrides: list[str]) -> dict[str, float]:
-    """Interleaved QP tick times [µs], braking off and on, on the states of one run (module docstring)."""
+def tick_cost(name: str, overrides: list[str], solver: str = "daqp") -> dict[str, Any]:
+    """Interleaved QP tick times [µs], braking off and on, on the states of one run (module docstring),
+    both with ``solver`` (daqp: the compiled one-call tick)."""
     sc_off = Scenario.load(name, overrides=['controller.braking="off"'])
     sc_on = Scenario.load(name, overrides=['controller.braking="on"', *overrides])
-    tr = simulate(sc_off).trajectory
-    off, on = sc_off.build_controller("qp"), sc_on.build_controller("qp")
+    tr = simulate(sc_off, kind="qp", solver=solver).trajectory
+    off, on = sc_off.build_controller("qp", solver), sc_on.build_controller("qp", solver)
     off.warmup()
     on.warmup()
     t_off, t_on = [], []
@@ -81,14 +82,14 @@ def tick_cost(name: str, overrides: list[str]) -> dict[str, float]:
         off.reset()
         on.reset()
         for k in range(0, len(tr.t), 5):
-            q, v, t = tr.q[k], tr.v[k], float(tr.t[k])
+            q, v, t = np.ascontiguousarray(tr.q[k]), np.ascontiguousarray(tr.v[k]), float(tr.t[k])
             a = time.perf_counter()
             off.step(q, v, t)
             b = time.perf_counter()
             on.step(q, v, t)
             t_off.append((b - a) * 1e6)
             t_on.append((time.perf_counter() - b) * 1e6)
-    return {"ticks": len(t_off), "off_median": float(np.median(t_off)), "off_p99": float(np.percentile(t_off, 99)),
+    return {"solver": solver, "ticks": len(t_off), "off_median": float(np.median(t_off)), "off_p99": float(np.percentile(t_off, 99)),
             "on_median": float(np.median(t_on)), "on_p99": float(np.percentile(t_on, 99))}
 
 
@@ -152,6 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=None)
     ap.add_argument("--cost", default=None, help="a scenario: time its QP ticks with braking off and on")
     ap.add_argument("--set", action="append", default=[], help="KEY=VALUE for the braking run of --cost")
+    ap.add_argument("--solver", default="daqp", help="the QP's solver for --cost (daqp: the compiled one-call tick)")
     ap.add_argument("--oracle", action="store_true", help="certify every 10th visited state (braking off)")
     ap.add_argument("--rollout", action="store_true", help="time a brake rollout per step: oracle vs lean")
     ap.add_argument("--no-budget", action="store_true", help="tick_budget_us = 0: runs independent of the load")
@@ -165,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
         print(rollout_cost())
         return 0
     if args.cost is not None:
-        print(args.cost, tick_cost(args.cost, args.set))
+        print(args.cost, tick_cost(args.cost, args.set, args.solver))
         return 0
     modes, only = args.modes.split(","), set(args.only)
     rng = np.random.default_rng(soak.SEED)

@@ -33,7 +33,8 @@ def _run(short_ref=0.0, short_x=0.01):
 def _explain(t, x, x_ref, q, kw):
     out = explain_misses(P, t, x, x_ref, q, **kw)
     assert [m["fruit"] for m in out] == [0]  # fruit 2 is reached: not listed
-    assert set(out[0]) == {"fruit", "error_mm", "t_s", "cause", "reason"} and out[0]["cause"] in CAUSES
+    keys = {"fruit", "error_mm", "t_s", "cause", "reason"} | ({"held_by"} if out[0]["cause"] == "reference" else set())
+    assert set(out[0]) == keys and out[0]["cause"] in CAUSES
     return out[0]
 
 
@@ -48,8 +49,27 @@ def test_the_reference_that_never_came():
     m = _explain(t, x, x_ref, q, kw)
     assert m["cause"] == "reference" and m["error_mm"] == pytest.approx(20.0, abs=0.1)
     assert "closest 20 mm" in m["reason"] and "was waiting (κ 0.25" in m["reason"]
+    assert m["held_by"] == "" and "held by none of" in m["reason"]
     kw["kappa"][-1] = 1.0  # at full pace at the end: not waiting, only late
     assert "had not come to it yet" in _explain(t, x, x_ref, q, kw)["reason"]
+
+
+def test_what_held_the_task_point_while_the_reference_waited():
+    """At the run's last tick, in the order of the causes: a fallback, a joint at its limit, the rigid
+    rows' margin; each only where it holds at the end (the same at the closest approach does not count)."""
+    t, x, x_ref, q, kw = _run(short_ref=0.02, short_x=0.0)
+    kw["kappa"][-1] = 0.0
+    q[500, 2] = -2.0 + 1e-3  # at the closest approach only: not what holds it at the end
+    assert _explain(t, x, x_ref, q, kw)["held_by"] == ""
+    kw["believed"][-1] = MARGIN + 2e-3
+    m = _explain(t, x, x_ref, q, kw)
+    assert m["held_by"] == "rigid_margin" and "rigid rows' margin (the map's rigid clearance 64 mm)" in m["reason"]
+    q[-1, 5] = 2.0 - 5e-3
+    m = _explain(t, x, x_ref, q, kw)
+    assert m["held_by"] == "joint_limit" and "joint 6 (upper) at its limit" in m["reason"]
+    kw["fallback"][-30] = "safe_stop"
+    m = _explain(t, x, x_ref, q, kw)
+    assert m["held_by"] == "fallback" and "a fallback (safe_stop)" in m["reason"]
 
 
 def test_a_fallback_at_the_closest_approach():

@@ -8,7 +8,9 @@ run's own records and names, for each miss, the first of these that holds:
 
 1. **the reference never came**: the waiting reference (``perception.lag_*``, ``stale_*``) had not
    brought x_d within the tolerance by the run's end — whether it was still waiting (its progress
-   rate κ < 1) and the task point's lag at the end are given;
+   rate κ < 1) and the task point's lag at the end are given, and what held the task point there
+   (``held_by``: 2–4 below tested at the run's last tick, "" when none holds — a leaf's speed rows or
+   the task's weight, which the records do not name);
 2. **the QP gave up there**: a fallback acted on a tick within 0.1 s of the closest approach;
 3. **a joint at its limit** at the closest approach (within 0.01 rad);
 4. **held by the rigid rows' margin**: the map's rigid clearance (what the rows believed) within
@@ -53,11 +55,7 @@ def explain_misses(points: np.ndarray, t: np.ndarray, x: np.ndarray, x_ref: np.n
             continue
         miss: dict[str, Any] = {"fruit": k, "error_mm": float(err[i] * 1e3), "t_s": float(t[i])}
         ref = float(np.min(np.linalg.norm(x_ref[:T, :3] - p, axis=1)))
-        near = np.abs(t - t[i]) <= FALLBACK_WINDOW
-        fb = [] if fallback is None else sorted({str(f) for f in np.asarray(fallback)[:T][near] if f})
-        lo, hi = q[i] - q_min, q_max - q[i]
-        at_limit = np.flatnonzero((lo < LIMIT_TOL) | (hi < LIMIT_TOL))
-        b = float(believed[i]) if i < len(believed) else math.inf
+        fb, at_limit, lo, b = _holds(i, t, q, q_min, q_max, fallback, believed, T)
         if ref > tol:
             miss["cause"] = "reference"
             why = (f"the path was waiting (κ {kappa[-1]:.2f} at the end" if kappa[-1] < 1.0 - 1e-9 else
@@ -65,6 +63,19 @@ def explain_misses(points: np.ndarray, t: np.ndarray, x: np.ndarray, x_ref: np.n
             miss["reason"] = (f"the reference never came within {tol * 1e3:.0f} mm (closest {ref * 1e3:.0f} mm) by the "
                               f"run's end at {t[T - 1]:.1f} s: {why}, the task point {behind[-1] * 1e3:.0f} mm behind "
                               "its reference)")
+            e_fb, e_lim, e_lo, e_b = _holds(T - 1, t, q, q_min, q_max, fallback, believed, T)
+            if e_fb:
+                miss["held_by"], held = "fallback", f"a fallback ({', '.join(e_fb)})"
+            elif e_lim.size:
+                miss["held_by"] = "joint_limit"
+                held = "joint " + ", ".join(f"{j + 1} ({'lower' if e_lo[j] < LIMIT_TOL else 'upper'})" for j in e_lim) \
+                    + " at its limit"
+            elif e_b <= margin + MARGIN_TOL:
+                miss["held_by"] = "rigid_margin"
+                held = f"the rigid rows' margin (the map's rigid clearance {e_b * 1e3:.0f} mm)"
+            else:
+                miss["held_by"], held = "", "none of a fallback, a joint limit or the rigid rows' margin"
+            miss["reason"] += f"; at the end held by {held}"
         elif fb:
             miss["cause"] = "fallback"
             miss["reason"] = f"the QP failed within {FALLBACK_WINDOW:.1f} s of the closest approach ({', '.join(fb)})"
@@ -84,3 +95,15 @@ def explain_misses(points: np.ndarray, t: np.ndarray, x: np.ndarray, x_ref: np.n
                               f"{t[i]:.1f} s, {behind[i] * 1e3:.0f} mm behind it then)")
         out.append(miss)
     return out
+
+
+def _holds(i: int, t: np.ndarray, q: np.ndarray, q_min: np.ndarray, q_max: np.ndarray, fallback: np.ndarray | None,
+           believed: np.ndarray, T: int) -> tuple[list[str], np.ndarray, np.ndarray, float]:
+    """At tick ``i``: the fallbacks within FALLBACK_WINDOW, the joints within LIMIT_TOL of a limit, the
+    distances to the lower limits, and the map's rigid clearance the rows read."""
+    near = np.abs(t[:T] - t[i]) <= FALLBACK_WINDOW
+    fb = [] if fallback is None else sorted({str(f) for f in np.asarray(fallback)[:T][near] if f})
+    lo, hi = q[i] - q_min, q_max - q[i]
+    at_limit = np.flatnonzero((lo < LIMIT_TOL) | (hi < LIMIT_TOL))
+    b = float(believed[i]) if i < len(believed) else math.inf
+    return fb, at_limit, lo, b
