@@ -7,9 +7,13 @@ hundred times a tick. :func:`borrow` returns the same array (data, shape, stride
 memory-info pointer; numba's reference counting skips a null one, so passing the borrowed array on
 costs a call that returns at once instead of an atomic.
 
-The rule that makes it safe: a borrowed array must not outlive the call that borrowed it — never
-stored into a workspace, a structref or a list, never returned. The caller's own reference (the
-argument, or the workspace's field read once) keeps the memory alive for the call.
+The rule that makes it safe: a borrowed array must not outlive the reference that keeps its memory —
+inside a call, the argument it was borrowed from; in a structref, a Python object that lives as long
+as the structref. That is how the compiled constructors of the tick's structrefs use
+:func:`borrow_all` (:func:`qpctl.kernels.work.new_tick_work`, ``new_native_qp``, ``new_daqp_pack``):
+:class:`qpctl.tick.Workspace` pins every array it builds its ``TickWork`` with (``_pinned``) and holds
+the depth map's newest snapshot, whose grids ``set_field`` stores borrowed; ``NativeDAQP`` and
+``CompiledTick`` hold the arrays of theirs. A borrowed array is never returned to Python.
 """
 
 from __future__ import annotations

@@ -2,7 +2,9 @@
 
 A :class:`TickWork` is a numba structref: the kernels receive it as one argument (about 0.8 µs to
 pass, whatever the number of fields; forty separate arrays would cost 3–5 µs of dispatch per call),
-while Python keeps its own references to the same numpy arrays (:class:`qpctl.tick.Workspace`).
+while Python keeps its own references to the same numpy arrays (:class:`qpctl.tick.Workspace`). The
+structref holds them borrowed (:mod:`qpctl.kernels.borrow`: no memory info, so no kernel pays an
+atomic reference count to read one); the Workspace's references are what keep them alive.
 Its fields are declared once here, in :data:`FIELDS`, grouped by who writes them:
 
 * bound once: Pinocchio's arrays as numpy views (:func:`qpctl.tick.rigid_pass`, or the compiled tick's
