@@ -143,3 +143,47 @@ def test_scenario_keys_and_metric(tmp_path):
     run = simulate(Scenario.load("panda_canopy", ["sim.duration=0.2"]), kind="qp")
     assert run.metrics["min_self_clearance"] == pytest.approx(np.min(run.trajectory.self_clearance))
     assert run.metrics["min_self_clearance"] > 0.02
+
+
+# Canopy seed 2 of panda_canopy_depth at rest after 30 s: the arm nearly straight (joint 4 past its
+# upper limit by 6 mrad), capsules 1 and 3 within self_d_safe (docs/perception.md).
+Q_STRAIGHT = np.array([0.609, 0.618, 0.989, -0.076, -1.114, 1.041, 1.248])
+
+
+def test_inside_self_d_safe_the_row_stops_the_approach_without_a_push(robot, pairs):
+    """Inside self_d_safe a pair's row is ḧ + k₁ḣ ≥ 0 (no k₀ push apart), outside the barrier: the
+    compiled rows' bounds against the law written here from the tick's own distance, rate and drift,
+    and against the Python constraint on the same state. At Q_STRAIGHT at rest the push would ask
+    joint 3 for more than its acceleration limit: scipy's LP on the tick's own rows with the pushing
+    bound is infeasible, and the controller's QP solves."""
+    from scipy.optimize import linprog
+
+    data = robot.model.createData()
+    pin.framesForwardKinematics(robot.model, data, Q_STRAIGHT)
+    x = data.oMf[robot.ee_frame_id].translation.copy()
+    ctrl = QPController(robot, WaypointPath([x, x + [0.0, 0.0, 0.01]], duration=1.0), [],
+                        config=QPConfig(self_collision=True))
+    q, v = Q_STRAIGHT.copy(), np.zeros(7)
+    out = ctrl.step(q, v, 0.0)
+    assert out.info.get("status", "solved") == "solved" and "fallback" not in out.info
+    ws, prob = ctrl.qp_path().ws, ctrl.last_problem
+    sc = next(c for c in ctrl.constraints if c.name == "self_collision")
+    rows = prob.rows_of("self_collision")
+    d, hdot, drift = ws.sc_d, ws.sc_hdot, ws.sc_drift
+    near = d < ws.fpar[codes.FP_SCUT]
+    inside = near & (d < sc.d_safe)
+    assert inside.sum() >= 1
+    law = np.where(near, -sc.k1 * hdot - sc.k0 * np.maximum(d - sc.d_safe, 0.0) - drift, -np.inf)
+    np.testing.assert_allclose(prob.l[rows], law, rtol=0, atol=1e-12)
+    py = sc.compute(ws.snapshot(), None).lower  # the Python path's constraint on the same state
+    np.testing.assert_allclose(py, law, rtol=0, atol=1e-12)
+    # the push the row no longer asks: with it the tick's rows admit no q̈
+    l_push = prob.l.copy()
+    l_push[rows[inside]] += sc.k0 * (sc.d_safe - d[inside])
+    fin_u, fin_l = np.isfinite(prob.u), np.isfinite(l_push)
+    res = linprog(np.zeros(prob.n_var), A_ub=np.vstack([prob.C[fin_u], -prob.C[fin_l]]),
+                  b_ub=np.r_[prob.u[fin_u], -l_push[fin_l]], A_eq=prob.A if prob.A.size else None,
+                  b_eq=prob.b if prob.A.size else None,
+                  bounds=list(zip(np.where(np.isfinite(prob.lb), prob.lb, None),
+                                  np.where(np.isfinite(prob.ub), prob.ub, None))), method="highs")
+    assert res.status == 2, res.message  # infeasible
