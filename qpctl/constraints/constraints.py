@@ -237,16 +237,11 @@ class ObstacleBarrier(Constraint):
 
 
 class SelfCollisionBarrier(Constraint):
-    """ḧ + k₁ḣ + k₀ max(h − d_s, 0) ≥ 0 for each of ``pairs`` (capsule indices) nearer than ``cutoff``
-    [m], one row per pair; h the distance between the two capsules [m], d_s [m]. The cutoff is the
+    """ḧ + k₁ḣ + k₀(h − d_s) ≥ 0 for each of ``pairs`` (capsule indices) nearer than ``cutoff`` [m],
+    one row per pair; h the distance between the two capsules [m], d_s [m]. The cutoff is the
     controller's influence distance, at most d_s + REACH: a pair farther apart has no row (its rows
     would bind only at approach speeds above k₀/k₁·REACH = 1 m/s with the default gains) and costs
-    the tick only its distance.
-
-    Inside d_s the row stops the approach (ḧ + k₁ḣ ≥ 0) and asks no push apart: where a pair's distance
-    hardly moves with the joints (an arm nearly straight), k₀(d_s − h) of push can ask a joint for more
-    than its acceleration limit, and the QP was then infeasible at rest for the rest of the run (canopy
-    seed 2 of ``panda_canopy_depth``: 13,475 ticks on the safe stop; docs/perception.md)."""
+    the tick only its distance."""
 
     name = "self_collision"
     kind = SELF_COLLISION  # not BARRIER: the fallbacks keep the obstacle rows only (as before kinds existed)
@@ -271,6 +266,5 @@ class SelfCollisionBarrier(Constraint):
             raise ValueError("this TickState was built without this constraint's self-collision pairs")
         near = sp.distance < self.cutoff
         C = np.where(near[:, None], sp.row, 0.0)
-        lower = np.where(near, -self.k1 * sp.hdot - self.k0 * np.maximum(sp.distance - self.d_safe, 0.0) - sp.drift,
-                         -np.inf)
+        lower = np.where(near, -self.k1 * sp.hdot - self.k0 * (sp.distance - self.d_safe) - sp.drift, -np.inf)
         return Inequality(C, lower, np.full(self.rows, np.inf))

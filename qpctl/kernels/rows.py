@@ -226,9 +226,8 @@ def barrier_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[
 
 @njit(cache=True)
 def self_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no-untyped-def]
-    """ḧ + k₁ḣ + k₀ max(h − d_s, 0) ≥ 0 for the self-collision pairs within their cutoff (the rest
-    inactive: zero rows, −∞ bounds), as the obstacle barrier's rows (:func:`barrier_rows`) outside d_s;
-    inside it the approach stops without a push apart (:class:`~qpctl.constraints.SelfCollisionBarrier`)."""
+    """ḧ + k₁ḣ + k₀(h − d_s) ≥ 0 for the self-collision pairs within their cutoff (the rest inactive:
+    zero rows, −∞ bounds), as the obstacle barrier's rows (:func:`barrier_rows`)."""
     n = ws.v.shape[0]
     k0, k1, ds, cut = ws.fpar[FP_SK0], ws.fpar[FP_SK1], ws.fpar[FP_SDS], ws.fpar[FP_SCUT]
     for r in range(C.shape[0]):
@@ -236,7 +235,7 @@ def self_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no-
         if d < cut:
             for c in range(n):
                 C[r, c] = ws.sc_row[r, c]
-            lower[r] = -k1 * ws.sc_hdot[r] - k0 * max(d - ds, 0.0) - ws.sc_drift[r]
+            lower[r] = -k1 * ws.sc_hdot[r] - k0 * (d - ds) - ws.sc_drift[r]
         else:
             for c in range(n):
                 C[r, c] = 0.0
