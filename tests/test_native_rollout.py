@@ -22,8 +22,9 @@ CHECKED_PINOCCHIO = ("4.1.0",)
 
 
 def lib_or_skip():
-    """The library; a skip only on a Pinocchio the build was not checked against (the rollout then
-    runs its Python loop, tested in test_rollout.py); with a checked one, unavailable is a failure."""
+    """The library; a skip only on a Pinocchio the build was not checked against (the brake rollout and
+    the rigid-body pass then run their Python paths, tested in test_rollout.py and everywhere else);
+    with a checked one, unavailable is a failure."""
     lib = native.library()
     if lib is None and pin.__version__ not in CHECKED_PINOCCHIO:
         pytest.skip(f"the native library is not built for Pinocchio {pin.__version__}, a version it was not "

@@ -55,35 +55,26 @@ def explain_misses(points: np.ndarray, t: np.ndarray, x: np.ndarray, x_ref: np.n
             continue
         miss: dict[str, Any] = {"fruit": k, "error_mm": float(err[i] * 1e3), "t_s": float(t[i])}
         ref = float(np.min(np.linalg.norm(x_ref[:T, :3] - p, axis=1)))
-        fb, at_limit, lo, b = _holds(i, t, q, q_min, q_max, fallback, believed, T)
+        cause, what, b = _holder(i, t, q, q_min, q_max, fallback, believed, margin, T)
         if ref > tol:
             miss["cause"] = "reference"
             why = (f"the path was waiting (κ {kappa[-1]:.2f} at the end" if kappa[-1] < 1.0 - 1e-9 else
                    "the path had not come to it yet (κ 1 at the end: at full pace after its waits")
+            held, held_what, held_b = _holder(T - 1, t, q, q_min, q_max, fallback, believed, margin, T)
+            miss["held_by"] = held
+            held_words = {"fallback": f"a fallback ({held_what})", "joint_limit": f"joint {held_what} at its limit",
+                          "rigid_margin": f"the rigid rows' margin (the map's rigid clearance {held_b * 1e3:.0f} mm)"}
             miss["reason"] = (f"the reference never came within {tol * 1e3:.0f} mm (closest {ref * 1e3:.0f} mm) by the "
                               f"run's end at {t[T - 1]:.1f} s: {why}, the task point {behind[-1] * 1e3:.0f} mm behind "
-                              "its reference)")
-            e_fb, e_lim, e_lo, e_b = _holds(T - 1, t, q, q_min, q_max, fallback, believed, T)
-            if e_fb:
-                miss["held_by"], held = "fallback", f"a fallback ({', '.join(e_fb)})"
-            elif e_lim.size:
-                miss["held_by"] = "joint_limit"
-                held = "joint " + ", ".join(f"{j + 1} ({'lower' if e_lo[j] < LIMIT_TOL else 'upper'})" for j in e_lim) \
-                    + " at its limit"
-            elif e_b <= margin + MARGIN_TOL:
-                miss["held_by"] = "rigid_margin"
-                held = f"the rigid rows' margin (the map's rigid clearance {e_b * 1e3:.0f} mm)"
-            else:
-                miss["held_by"], held = "", "none of a fallback, a joint limit or the rigid rows' margin"
-            miss["reason"] += f"; at the end held by {held}"
-        elif fb:
+                              "its reference); at the end held by "
+                              + held_words.get(held, "none of a fallback, a joint limit or the rigid rows' margin"))
+        elif cause == "fallback":
             miss["cause"] = "fallback"
-            miss["reason"] = f"the QP failed within {FALLBACK_WINDOW:.1f} s of the closest approach ({', '.join(fb)})"
-        elif at_limit.size:
-            joints = ", ".join(f"{j + 1} ({'lower' if lo[j] < LIMIT_TOL else 'upper'})" for j in at_limit)
+            miss["reason"] = f"the QP failed within {FALLBACK_WINDOW:.1f} s of the closest approach ({what})"
+        elif cause == "joint_limit":
             miss["cause"] = "joint_limit"
-            miss["reason"] = f"joint {joints} at its limit at the closest approach"
-        elif b <= margin + MARGIN_TOL:
+            miss["reason"] = f"joint {what} at its limit at the closest approach"
+        elif cause == "rigid_margin":
             truth = float(clearance[i])
             miss["cause"] = "rigid_margin"
             miss["reason"] = (f"held by the rigid rows' margin ({margin * 1e3:.0f} mm): the map's rigid clearance "
@@ -97,13 +88,20 @@ def explain_misses(points: np.ndarray, t: np.ndarray, x: np.ndarray, x_ref: np.n
     return out
 
 
-def _holds(i: int, t: np.ndarray, q: np.ndarray, q_min: np.ndarray, q_max: np.ndarray, fallback: np.ndarray | None,
-           believed: np.ndarray, T: int) -> tuple[list[str], np.ndarray, np.ndarray, float]:
-    """At tick ``i``: the fallbacks within FALLBACK_WINDOW, the joints within LIMIT_TOL of a limit, the
-    distances to the lower limits, and the map's rigid clearance the rows read."""
+def _holder(i: int, t: np.ndarray, q: np.ndarray, q_min: np.ndarray, q_max: np.ndarray, fallback: np.ndarray | None,
+            believed: np.ndarray, margin: float, T: int) -> tuple[str, str, float]:
+    """What holds the task point at tick ``i``, the first of causes 2–4 (module docstring): (cause,
+    what — the fallbacks' words, or the joints at a limit as "j (lower|upper)" —, the map's rigid
+    clearance the rows read [m]); cause "" when none holds."""
+    b = float(believed[i]) if i < len(believed) else math.inf
     near = np.abs(t[:T] - t[i]) <= FALLBACK_WINDOW
     fb = [] if fallback is None else sorted({str(f) for f in np.asarray(fallback)[:T][near] if f})
+    if fb:
+        return "fallback", ", ".join(fb), b
     lo, hi = q[i] - q_min, q_max - q[i]
     at_limit = np.flatnonzero((lo < LIMIT_TOL) | (hi < LIMIT_TOL))
-    b = float(believed[i]) if i < len(believed) else math.inf
-    return fb, at_limit, lo, b
+    if at_limit.size:
+        return "joint_limit", ", ".join(f"{j + 1} ({'lower' if lo[j] < LIMIT_TOL else 'upper'})" for j in at_limit), b
+    if b <= margin + MARGIN_TOL:
+        return "rigid_margin", "", b
+    return "", "", b
