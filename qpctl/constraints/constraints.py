@@ -26,6 +26,7 @@ import numpy as np
 
 from qpctl.constraints.braking import Braking
 from qpctl.errors import ConfigError
+from qpctl.kernels.drives import REACH_SHARE
 from qpctl.law import LawTerms
 from qpctl.qp import Bounds, Inequality
 from qpctl.state import TickState
@@ -248,7 +249,7 @@ class SelfCollisionBarrier(Constraint):
     REACH = 0.1  # [m] beyond d_s
 
     def __init__(self, pairs: Sequence[tuple[int, int]], d_safe: float, *, k0: float = 400.0,
-                 k1: float = 40.0) -> None:
+                 k1: float = 40.0, torque: TorqueLimit | None = None, qdd_max: np.ndarray | None = None) -> None:
         if not pairs:
             raise ConfigError("needs at least one pair of links", key="controller.self_collision_pairs")
         if not (np.isfinite(d_safe) and d_safe >= 0):
@@ -259,6 +260,8 @@ class SelfCollisionBarrier(Constraint):
         self.k0 = _positive("controller.barrier_k0", k0)
         self.k1 = _positive("controller.barrier_k1", k1)
         self.cutoff = np.inf  # set by the controller: its influence distance
+        self.torque = torque
+        self.qdd_max = None if qdd_max is None else np.asarray(qdd_max, float)
 
     def compute(self, state: TickState, terms: LawTerms) -> Inequality:
         sp = state.self_pairs
@@ -267,4 +270,27 @@ class SelfCollisionBarrier(Constraint):
         near = sp.distance < self.cutoff
         C = np.where(near[:, None], sp.row, 0.0)
         lower = np.where(near, -self.k1 * sp.hdot - self.k0 * (sp.distance - self.d_safe) - sp.drift, -np.inf)
+        inside = np.flatnonzero(near & (sp.distance < self.d_safe))
+        if inside.size and (self.torque is not None or self.qdd_max is not None):
+            lower[inside] = np.minimum(lower[inside], self.reach_cap(state, C[inside]))
         return Inequality(C, lower, np.full(self.rows, np.inf))
+
+    def reach_cap(self, state: TickState, rows: np.ndarray) -> np.ndarray:
+        """What a row inside d_s asks at most (k,): ℓ − ρ(ℓ − ℓ₋), [ℓ₋, ℓ] the range of c q̈ over this
+        tick's torque window and within ±q̈_max, each range alone (:func:`qpctl.kernels.drives.reach_cap`,
+        ρ = its ``REACH_SHARE``); inf where neither bounds it. ``rows`` (k, n)."""
+        least, most = np.full(rows.shape[0], -np.inf), np.full(rows.shape[0], np.inf)
+        if self.torque is not None:
+            lo, hi = self.torque.window(state.t)
+            y = np.linalg.solve(state.M, rows.T)  # (n, k): M⁻¹cᵀ per row
+            with np.errstate(invalid="ignore"):
+                a = np.where(y != 0.0, y * (lo - state.N)[:, None], 0.0)
+                b = np.where(y != 0.0, y * (hi - state.N)[:, None], 0.0)
+            least, most = np.minimum(a, b).sum(axis=0), np.maximum(a, b).sum(axis=0)
+        if self.qdd_max is not None:
+            with np.errstate(invalid="ignore"):  # 0·∞ where a joint has no acceleration limit: not used
+                s = np.where(rows != 0.0, np.abs(rows) * self.qdd_max, 0.0).sum(axis=1)
+            least, most = np.maximum(least, -s), np.minimum(most, s)
+        with np.errstate(invalid="ignore"):
+            cap = most - REACH_SHARE * (most - least)
+        return np.where(np.isnan(cap), np.inf, cap)

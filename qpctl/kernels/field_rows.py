@@ -53,11 +53,9 @@ from qpctl.kernels.codes import (
     IP_FD_RPL,
     IP_FD_SAMPLES,
 )
-from qpctl.kernels.drives import row_range
+from qpctl.kernels.drives import REACH_SHARE, row_range
 from qpctl.kernels.field_samples import field_samples
 from qpctl.kernels.rigid import point_jacobian
-
-REACH_SHARE = 0.25  # a rigid row inside its margin asks at most ℓ − ρ(ℓ − ℓ₋) of its range over the torque window
 
 
 @njit(cache=True)
