@@ -242,7 +242,11 @@ class SelfCollisionBarrier(Constraint):
     one row per pair; h the distance between the two capsules [m], d_s [m]. The cutoff is the
     controller's influence distance, at most d_s + REACH: a pair farther apart has no row (its rows
     would bind only at approach speeds above k₀/k₁·REACH = 1 m/s with the default gains) and costs
-    the tick only its distance."""
+    the tick only its distance. Inside d_s the push apart asks no more than :meth:`reach_cap` of the
+    drives ``torque`` (the controller's :class:`TorqueLimit`, whose window is this tick's) and the
+    joints' acceleration limits ``qdd_max`` [rad/s²] give (either None: not that range): with the arm
+    nearly straight a pair's distance hardly moves with the joints, and the full k₀(d_s − h) asked
+    one joint for more than its limit, tick after tick."""
 
     name = "self_collision"
     kind = SELF_COLLISION  # not BARRIER: the fallbacks keep the obstacle rows only (as before kinds existed)
