@@ -414,7 +414,7 @@ def test_rigid_rows_inside_the_margin_ask_no_more_than_the_torque_window_gives()
     infeasible and the fallback takes the tick."""
     from scipy.optimize import linprog
 
-    from qpctl.kernels.field_rows import REACH_SHARE
+    from qpctl.kernels.drives import REACH_SHARE
 
     ctrl, bar, q, v, t = _inside_the_margin()
     window = bar.torque

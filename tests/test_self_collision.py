@@ -151,7 +151,7 @@ Q_STRAIGHT = np.array([0.609, 0.618, 0.989, -0.076, -1.114, 1.041, 1.248])
 
 
 def _lp_range(c, A_ub, b_ub, bounds):
-    """(least, most) of c x subject to A_ub x ≤ b_ub and the bounds: scipy's linear programme."""
+    """(least, most) of c x subject to A_ub x ≤ b_ub (None: none) and the bounds: scipy's linear programme."""
     from scipy.optimize import linprog
 
     most = linprog(-c, A_ub=A_ub, b_ub=b_ub, bounds=bounds, method="highs")
@@ -161,32 +161,29 @@ def _lp_range(c, A_ub, b_ub, bounds):
 
 
 @pytest.mark.parametrize("moving", [False, True])
-def test_inside_self_d_safe_the_push_asks_no_more_than_the_drives_give(robot, moving):
+def test_inside_self_d_safe_the_push_asks_no_more_than_the_acceleration_limits_give(robot, moving):
     """Inside self_d_safe a pair's row ḧ + k₁ḣ + k₀(h − d_s) ≥ 0 asks at most ℓ − ρ(ℓ − ℓ₋), [ℓ₋, ℓ]
-    the range of the row's c q̈ over this tick's torque window and within ±q̈_max, each from scipy's
-    linear programme on Pinocchio's M and N; outside it the barrier is unchanged. The compiled rows'
-    bounds against that law (from the tick's own distance, rate and drift) and against the Python
-    constraint on the same state. At Q_STRAIGHT at rest the push alone would ask joint 3 for more than
-    its acceleration limit: scipy's LP on the tick's rows with the uncapped bound is infeasible, and the
-    controller's QP solves (moving: a second tick under the rate window, the arm turning inwards)."""
+    the range of the row's c q̈ within ±q̈_max (scipy's linear programme); outside it the barrier is
+    unchanged. The compiled rows' bounds against that law (from the tick's own distance, rate and
+    drift) and against the Python constraint on the same state. At Q_STRAIGHT at rest the push alone
+    would ask joint 3 for more than its acceleration limit: scipy's LP on the tick's rows with the
+    uncapped bound is infeasible, and the controller's QP solves (moving: a second tick, under the
+    rate window, the arm turning joint 3 the way that closes the pair)."""
     from scipy.optimize import linprog
 
     from qpctl.kernels.drives import REACH_SHARE
 
-    model = robot.model
-    data = model.createData()
-    pin.framesForwardKinematics(model, data, Q_STRAIGHT)
+    data = robot.model.createData()
+    pin.framesForwardKinematics(robot.model, data, Q_STRAIGHT)
     x = data.oMf[robot.ee_frame_id].translation.copy()
     ctrl = QPController(robot, WaypointPath([x, x + [0.0, 0.0, 0.01]], duration=1.0), [],
                         config=QPConfig(self_collision=True))
     q, v, t = Q_STRAIGHT.copy(), np.zeros(7), 0.0
     sc = next(c for c in ctrl.constraints if c.name == "self_collision")
-    if moving:  # one tick at rest, then the arm 1 ms later, turning joint 3 the way that closes the pair
+    if moving:
         ctrl.step(q, v, t)
         v = np.array([0.0, 0.0, 0.2, 0.0, 0.0, 0.0, 0.0])
         q, t = q + 1e-3 * v, 1e-3
-    lo, hi = sc.torque.window(t)  # the window this tick sees (before the step remembers its torque)
-    before = sc.torque.previous.copy(), sc.torque.t_previous.copy()
     out = ctrl.step(q, v, t)
     assert out.info.get("status", "solved") == "solved" and out.info.get("fallback") is None
     ws, prob = ctrl.qp_path().ws, ctrl.last_problem
@@ -196,25 +193,16 @@ def test_inside_self_d_safe_the_push_asks_no_more_than_the_drives_give(robot, mo
     inside = near & (d < sc.d_safe)
     assert inside.sum() >= 1
     barrier = np.where(near, -sc.k1 * hdot - sc.k0 * (d - sc.d_safe) - drift, -np.inf)
-    M = pin.crba(model, model.createData(), q)
-    M = np.triu(M) + np.triu(M, 1).T
-    N = pin.rnea(model, model.createData(), q, v, np.zeros(7))
     law = barrier.copy()
     capped = 0
     for r in np.flatnonzero(inside):
         c = np.asarray(prob.C[rows[r]])[:7]
-        t_lo, t_hi = _lp_range(c, np.r_[M, -M], np.r_[hi - N, N - lo], (None, None))
-        b_lo, b_hi = _lp_range(c, None, None, list(zip(-ws.qdd_max, ws.qdd_max)))
-        least, most = max(t_lo, b_lo), min(t_hi, b_hi)
+        least, most = _lp_range(c, None, None, list(zip(-robot.qdd_max, robot.qdd_max)))
         law[r] = min(barrier[r], most - REACH_SHARE * (most - least))
         capped += law[r] < barrier[r]
     assert capped >= 1  # the cap, not the barrier, bound a row
     np.testing.assert_allclose(prob.l[rows], law, rtol=1e-9, atol=1e-9)
-    # the Python path's constraint on the same state, the window as it was at the tick
-    after = sc.torque.previous.copy(), sc.torque.t_previous.copy()
-    sc.torque.previous[:], sc.torque.t_previous[:] = before
-    py = sc.compute(ws.snapshot(), None).lower
-    sc.torque.previous[:], sc.torque.t_previous[:] = after
+    py = sc.compute(ws.snapshot(), None).lower  # the Python path's constraint on the same state
     np.testing.assert_allclose(py, prob.l[rows], rtol=0, atol=1e-12)
     if moving:
         return
@@ -231,9 +219,9 @@ def test_inside_self_d_safe_the_push_asks_no_more_than_the_drives_give(robot, mo
 
 
 def test_a_self_barrier_without_the_drives_goes_the_python_way(robot, pairs):
-    """A SelfCollisionBarrier built by hand without the controller's torque limits and acceleration
-    limits asks the full push inside self_d_safe; the compiled tick would cap it with the tick's own
-    window, so such a controller takes the Python formulation, and its rows are the uncapped law."""
+    """A SelfCollisionBarrier built by hand without the joints' acceleration limits asks the full push
+    inside self_d_safe; the compiled tick would cap it with the JointLimit's ±q̈_max, so such a
+    controller takes the Python formulation, and its rows are the uncapped law."""
     from qpctl.constraints.constraints import JointLimit, SelfCollisionBarrier, TorqueLimit
 
     data = robot.model.createData()
@@ -245,7 +233,7 @@ def test_a_self_barrier_without_the_drives_goes_the_python_way(robot, pairs):
     ctrl = QPController(robot, path, [], constraints=[TorqueLimit(robot.tau_max, robot.tau_rate_max), joints, bare])
     assert ctrl.workspace().spec is None  # the reference path
     torque = TorqueLimit(robot.tau_max, robot.tau_rate_max)
-    wired = SelfCollisionBarrier(pairs.pairs, 0.02, torque=torque, qdd_max=joints.qdd_max)
+    wired = SelfCollisionBarrier(pairs.pairs, 0.02, qdd_max=joints.qdd_max)
     assert QPController(robot, path, [], constraints=[torque, joints, wired]).workspace().spec is not None
     out = ctrl.step(Q_STRAIGHT.copy(), np.zeros(7), 0.0)
     assert out.tau.shape == (7,)

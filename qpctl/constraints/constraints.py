@@ -242,18 +242,19 @@ class SelfCollisionBarrier(Constraint):
     one row per pair; h the distance between the two capsules [m], d_s [m]. The cutoff is the
     controller's influence distance, at most d_s + REACH: a pair farther apart has no row (its rows
     would bind only at approach speeds above k₀/k₁·REACH = 1 m/s with the default gains) and costs
-    the tick only its distance. Inside d_s the push apart asks no more than :meth:`reach_cap` of the
-    drives ``torque`` (the controller's :class:`TorqueLimit`, whose window is this tick's) and the
-    joints' acceleration limits ``qdd_max`` [rad/s²] give (either None: not that range): with the arm
-    nearly straight a pair's distance hardly moves with the joints, and the full k₀(d_s − h) asked
-    one joint for more than its limit, tick after tick."""
+    the tick only its distance. Inside d_s the push apart asks no more than :func:`reach_cap` of what
+    the joints' acceleration limits ``qdd_max`` [rad/s²] give (the controller's JointLimit's; None: no
+    cap): with the arm nearly straight a pair's distance hardly moves with the joints, and the full
+    k₀(d_s − h) asked one joint for more than its limit, tick after tick. (Not the torque window: a
+    row beyond the rate limit's reach is issue 22's, and capping it there measured worse behind the
+    verified backup.)"""
 
     name = "self_collision"
     kind = SELF_COLLISION  # not BARRIER: the fallbacks keep the obstacle rows only (as before kinds existed)
     REACH = 0.1  # [m] beyond d_s
 
     def __init__(self, pairs: Sequence[tuple[int, int]], d_safe: float, *, k0: float = 400.0,
-                 k1: float = 40.0, torque: TorqueLimit | None = None, qdd_max: np.ndarray | None = None) -> None:
+                 k1: float = 40.0, qdd_max: np.ndarray | None = None) -> None:
         if not pairs:
             raise ConfigError("needs at least one pair of links", key="controller.self_collision_pairs")
         if not (np.isfinite(d_safe) and d_safe >= 0):
@@ -264,7 +265,6 @@ class SelfCollisionBarrier(Constraint):
         self.k0 = _positive("controller.barrier_k0", k0)
         self.k1 = _positive("controller.barrier_k1", k1)
         self.cutoff = np.inf  # set by the controller: its influence distance
-        self.torque = torque
         self.qdd_max = None if qdd_max is None else np.asarray(qdd_max, float)
 
     def compute(self, state: TickState, terms: LawTerms) -> Inequality:
@@ -275,26 +275,30 @@ class SelfCollisionBarrier(Constraint):
         C = np.where(near[:, None], sp.row, 0.0)
         lower = np.where(near, -self.k1 * sp.hdot - self.k0 * (sp.distance - self.d_safe) - sp.drift, -np.inf)
         inside = np.flatnonzero(near & (sp.distance < self.d_safe))
-        if inside.size and (self.torque is not None or self.qdd_max is not None):
-            lower[inside] = np.minimum(lower[inside], self.reach_cap(state, C[inside]))
+        if inside.size and self.qdd_max is not None:
+            lower[inside] = np.minimum(lower[inside], reach_cap(state, C[inside], None, self.qdd_max))
         return Inequality(C, lower, np.full(self.rows, np.inf))
 
-    def reach_cap(self, state: TickState, rows: np.ndarray) -> np.ndarray:
-        """What a row inside d_s asks at most (k,): ℓ − ρ(ℓ − ℓ₋), [ℓ₋, ℓ] the range of c q̈ over this
-        tick's torque window and within ±q̈_max, each range alone (:func:`qpctl.kernels.drives.reach_cap`,
-        ρ = its ``REACH_SHARE``); inf where neither bounds it. ``rows`` (k, n)."""
-        least, most = np.full(rows.shape[0], -np.inf), np.full(rows.shape[0], np.inf)
-        if self.torque is not None:
-            lo, hi = self.torque.window(state.t)
-            y = np.linalg.solve(state.M, rows.T)  # (n, k): M⁻¹cᵀ per row
-            with np.errstate(invalid="ignore"):
-                a = np.where(y != 0.0, y * (lo - state.N)[:, None], 0.0)
-                b = np.where(y != 0.0, y * (hi - state.N)[:, None], 0.0)
-            least, most = np.minimum(a, b).sum(axis=0), np.maximum(a, b).sum(axis=0)
-        if self.qdd_max is not None:
-            with np.errstate(invalid="ignore"):  # 0·∞ where a joint has no acceleration limit: not used
-                s = np.where(rows != 0.0, np.abs(rows) * self.qdd_max, 0.0).sum(axis=1)
-            least, most = np.maximum(least, -s), np.minimum(most, s)
+
+def reach_cap(state: TickState, rows: np.ndarray, torque: TorqueLimit | None,
+              qdd_max: np.ndarray | None = None) -> np.ndarray:
+    """What each of ``rows`` (k, n) inside its margin asks at most of c q̈ this tick (k,):
+    ℓ − ρ(ℓ − ℓ₋), [ℓ₋, ℓ] its range over ``torque``'s window at state.t (q̈ = M⁻¹(τ − N)) and within
+    ±``qdd_max`` [rad/s²], each range alone (None: not that one; ρ = REACH_SHARE); inf where neither
+    bounds it. The compiled tick's :func:`qpctl.kernels.drives.box_cap` (the self rows: ``qdd_max``
+    alone) and :func:`~qpctl.kernels.drives.row_range` (the field's rigid rows: ``torque`` alone)."""
+    least, most = np.full(rows.shape[0], -np.inf), np.full(rows.shape[0], np.inf)
+    if torque is not None:
+        lo, hi = torque.window(state.t)
+        y = np.linalg.solve(state.M, rows.T)  # (n, k): M⁻¹cᵀ per row
         with np.errstate(invalid="ignore"):
-            cap = most - REACH_SHARE * (most - least)
-        return np.where(np.isnan(cap), np.inf, cap)
+            a = np.where(y != 0.0, y * (lo - state.N)[:, None], 0.0)
+            b = np.where(y != 0.0, y * (hi - state.N)[:, None], 0.0)
+        least, most = np.minimum(a, b).sum(axis=0), np.maximum(a, b).sum(axis=0)
+    if qdd_max is not None:
+        with np.errstate(invalid="ignore"):  # 0·∞ where a joint has no acceleration limit: not used
+            s = np.where(rows != 0.0, np.abs(rows) * qdd_max, 0.0).sum(axis=1)
+        least, most = np.maximum(least, -s), np.minimum(most, s)
+    with np.errstate(invalid="ignore"):
+        cap = most - REACH_SHARE * (most - least)
+    return np.where(np.isnan(cap), np.inf, cap)

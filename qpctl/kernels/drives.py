@@ -8,9 +8,9 @@ joint-acceleration bounds and the other rows. The field's rigid rows inside thei
 more than a share of it (:mod:`qpctl.kernels.field_rows`); the Python path's
 :meth:`qpctl.perception.rows.FieldBarrier.compute` computes the same from
 :meth:`qpctl.constraints.TorqueLimit.window`, and ``tests/test_field_rows.py`` holds both to
-scipy's linear programme. :func:`reach_cap` is that share, the range taken within ±q̈_max as
-well where the joints' acceleration limits hold: what a self-collision row inside self_d_safe asks
-at most (:func:`qpctl.kernels.rows.self_rows`).
+scipy's linear programme. :func:`box_cap` is the same share of a row's range within ±q̈_max, the
+joints' acceleration limits: what a self-collision row inside self_d_safe asks at most
+(:func:`qpctl.kernels.rows.self_rows`).
 """
 
 from __future__ import annotations
@@ -68,16 +68,12 @@ def row_range(ws, c: np.ndarray, y: np.ndarray) -> tuple[float, float]:  # type:
 
 
 @njit(cache=True)
-def reach_cap(ws, c: np.ndarray, y: np.ndarray, box: bool) -> float:  # type: ignore[no-untyped-def]
-    """ℓ − ρ(ℓ − ℓ₋) (ρ = :data:`REACH_SHARE`): [ℓ₋, ℓ] the range of c q̈ over this tick's torque
-    window (:func:`row_range`) and, with ``box``, within ±q̈_max as well (Σₖ |cₖ| q̈_max,k; each
-    range alone — the intersection's is no wider); NaN where both are unbounded. c (n,) a row on q̈
-    (its first n entries are read), y (n,) scratch."""
-    lo, hi = row_range(ws, c, y)
-    if box:
-        s = 0.0
-        for k in range(ws.v.shape[0]):
-            if c[k] != 0.0:
-                s += abs(c[k]) * ws.qdd_max[k]
-        lo, hi = max(lo, -s), min(hi, s)
-    return hi - REACH_SHARE * (hi - lo)
+def box_cap(ws, c: np.ndarray) -> float:  # type: ignore[no-untyped-def]
+    """ℓ − ρ(ℓ − ℓ₋) (ρ = :data:`REACH_SHARE`) for [ℓ₋, ℓ] = ±Σₖ |cₖ| q̈_max,k, the range of c q̈
+    within the joints' acceleration limits (its first n entries read); inf where a joint the row
+    moves has none."""
+    s = 0.0
+    for k in range(ws.v.shape[0]):
+        if c[k] != 0.0:
+            s += abs(c[k]) * ws.qdd_max[k]
+    return s - REACH_SHARE * (2.0 * s)

@@ -54,7 +54,7 @@ from qpctl.kernels.codes import (
     IP_SELF_ROW0,
     IP_TORQUE_ROW0,
 )
-from qpctl.kernels.drives import reach_cap, torque_window_at
+from qpctl.kernels.drives import box_cap, torque_window_at
 from qpctl.kernels.field_rows import field_rows
 
 
@@ -227,10 +227,10 @@ def barrier_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[
 @njit(cache=True)
 def self_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no-untyped-def]
     """ḧ + k₁ḣ + k₀(h − d_s) ≥ 0 for the self-collision pairs within their cutoff (the rest inactive:
-    zero rows, −∞ bounds), as the obstacle barrier's rows (:func:`barrier_rows`). Inside d_s the
-    push apart asks at most ℓ − ρ(ℓ − ℓ₋) of the row's range this tick over the torque window and
-    ±q̈_max (:func:`qpctl.kernels.drives.reach_cap`; ws.w1 its scratch): at a nearly straight arm the
-    push asked one joint for more than its acceleration limit and the QP stayed infeasible at rest."""
+    zero rows, −∞ bounds), as the obstacle barrier's rows (:func:`barrier_rows`). Inside d_s, with
+    the joint limits on, the push apart asks at most ℓ − ρ(ℓ − ℓ₋) of the row's range within ±q̈_max
+    (:func:`qpctl.kernels.drives.box_cap`): at a nearly straight arm the push asked one joint for more
+    than its acceleration limit and the QP stayed infeasible at rest."""
     n = ws.v.shape[0]
     k0, k1, ds, cut = ws.fpar[FP_SK0], ws.fpar[FP_SK1], ws.fpar[FP_SDS], ws.fpar[FP_SCUT]
     box = ws.ipar[IP_JOINT_LIMITS] != 0
@@ -240,9 +240,9 @@ def self_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no-
             for c in range(n):
                 C[r, c] = ws.sc_row[r, c]
             lower[r] = -k1 * ws.sc_hdot[r] - k0 * (d - ds) - ws.sc_drift[r]
-            if d < ds:
-                cap = reach_cap(ws, C[r], ws.w1, box)
-                if cap < lower[r]:  # noqa: PLR1730 (False for a NaN cap: no limits)
+            if box and d < ds:
+                cap = box_cap(ws, C[r])
+                if cap < lower[r]:  # noqa: PLR1730 (False for a NaN cap)
                     lower[r] = cap
         else:
             for c in range(n):

@@ -13,7 +13,8 @@ rigid-point drift ḧ = nᵀ(J_p q̈ + J̇_p q̇):
   ḧ + k_r(ḣ − v_a) ≥ 0, v_a = min(k₀/k₁·|h|, v_s), k_r = ``recovery_gain`` (10 1/s, a quarter of
   k₁ at its defaults) — and asks no more than a share of what the drives
   can give in this tick: the bound is capped at ℓ − ρ(ℓ − ℓ₋), [ℓ₋, ℓ] the range of nᵀJ_p q̈ over
-  the torque window (:mod:`qpctl.kernels.drives`; ρ = :data:`~qpctl.kernels.field_rows.REACH_SHARE`).
+  the torque window (:mod:`qpctl.kernels.drives`; ρ = :data:`~qpctl.kernels.drives.REACH_SHARE`;
+  :func:`qpctl.constraints.constraints.reach_cap`).
   The margin is the map's uncertainty: a voxel inside it is escaped at a leaf's speed, not at the
   barrier's k₀/k₁·|h| (0.12 m/s for 1.2 cm), and without the cap, under a torque-rate limit, the
   row asked k₀|h| of the witness point at once, the QP was infeasible tick after tick and the safe
@@ -60,9 +61,8 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from qpctl.constraints.constraints import BARRIER, Constraint, TorqueLimit
+from qpctl.constraints.constraints import BARRIER, Constraint, TorqueLimit, reach_cap
 from qpctl.kernels import field as KF
-from qpctl.kernels.field_rows import REACH_SHARE
 from qpctl.law import LawTerms
 from qpctl.perception.config import PerceptionConfig
 from qpctl.perception.snapshot import MapSnapshot
@@ -268,13 +268,7 @@ class FieldBarrier(Constraint):
             if self.torque is not None:  # rigid rows inside the margin: within reach of the torque window
                 inside = np.flatnonzero(~soft & (d < self.margin))
                 if inside.size:
-                    lo, hi = self.torque.window(state.t)
-                    y = np.linalg.solve(state.M, rows[inside].T)  # (n, k): M⁻¹cᵀ per row
-                    a, b = y * (lo - state.N)[:, None], y * (hi - state.N)[:, None]
-                    least, most = np.minimum(a, b).sum(axis=0), np.maximum(a, b).sum(axis=0)
-                    with np.errstate(invalid="ignore"):
-                        cap = most - REACH_SHARE * (most - least)
-                    rhs[inside] = np.where(cap < rhs[inside], cap, rhs[inside])
+                    rhs[inside] = np.minimum(rhs[inside], reach_cap(state, rows[inside], self.torque))
             C[idx] = rows
             lower[idx] = rhs
         # the soft speed rows: the point's velocity h ahead along u no faster than b
