@@ -150,12 +150,12 @@ def test_scenario_keys_and_metric(tmp_path):
 Q_STRAIGHT = np.array([0.609, 0.618, 0.989, -0.076, -1.114, 1.041, 1.248])
 
 
-def _lp_range(c, A_ub, b_ub, bounds):
-    """(least, most) of c x subject to A_ub x ≤ b_ub (None: none) and the bounds: scipy's linear programme."""
+def _lp_range(c, bounds):
+    """(least, most) of c x within the bounds: scipy's linear programme."""
     from scipy.optimize import linprog
 
-    most = linprog(-c, A_ub=A_ub, b_ub=b_ub, bounds=bounds, method="highs")
-    least = linprog(c, A_ub=A_ub, b_ub=b_ub, bounds=bounds, method="highs")
+    most = linprog(-c, bounds=bounds, method="highs")
+    least = linprog(c, bounds=bounds, method="highs")
     assert most.status == 0 and least.status == 0
     return least.fun, -most.fun
 
@@ -197,7 +197,7 @@ def test_inside_self_d_safe_the_push_asks_no_more_than_the_acceleration_limits_g
     capped = 0
     for r in np.flatnonzero(inside):
         c = np.asarray(prob.C[rows[r]])[:7]
-        least, most = _lp_range(c, None, None, list(zip(-robot.qdd_max, robot.qdd_max)))
+        least, most = _lp_range(c, list(zip(-robot.qdd_max, robot.qdd_max)))
         law[r] = min(barrier[r], most - REACH_SHARE * (most - least))
         capped += law[r] < barrier[r]
     assert capped >= 1  # the cap, not the barrier, bound a row
@@ -219,9 +219,10 @@ def test_inside_self_d_safe_the_push_asks_no_more_than_the_acceleration_limits_g
 
 
 def test_a_self_barrier_without_the_drives_goes_the_python_way(robot, pairs):
-    """A SelfCollisionBarrier built by hand without the joints' acceleration limits asks the full push
-    inside self_d_safe; the compiled tick would cap it with the JointLimit's ±q̈_max, so such a
-    controller takes the Python formulation, and its rows are the uncapped law."""
+    """A SelfCollisionBarrier built by hand without the controller's JointLimit asks the full push
+    inside self_d_safe; the compiled tick would cap it with that JointLimit's ±q̈_max, so such a
+    controller takes the Python formulation, and its rows are the uncapped law; given the JointLimit,
+    the compiled path."""
     from qpctl.constraints.constraints import JointLimit, SelfCollisionBarrier, TorqueLimit
 
     data = robot.model.createData()
@@ -229,11 +230,11 @@ def test_a_self_barrier_without_the_drives_goes_the_python_way(robot, pairs):
     x = data.oMf[robot.ee_frame_id].translation.copy()
     path = WaypointPath([x, x + [0.0, 0.0, 0.01]], duration=1.0)
     joints = JointLimit(robot.q_min, robot.q_max, robot.v_max, qdd_max=robot.qdd_max)
-    bare = SelfCollisionBarrier(pairs.pairs, 0.02)
-    ctrl = QPController(robot, path, [], constraints=[TorqueLimit(robot.tau_max, robot.tau_rate_max), joints, bare])
-    assert ctrl.workspace().spec is None  # the reference path
     torque = TorqueLimit(robot.tau_max, robot.tau_rate_max)
-    wired = SelfCollisionBarrier(pairs.pairs, 0.02, qdd_max=joints.qdd_max)
+    bare = SelfCollisionBarrier(pairs.pairs, 0.02)
+    ctrl = QPController(robot, path, [], constraints=[torque, joints, bare])
+    assert ctrl.workspace().spec is None  # the reference path
+    wired = SelfCollisionBarrier(pairs.pairs, 0.02, joints=joints)
     assert QPController(robot, path, [], constraints=[torque, joints, wired]).workspace().spec is not None
     out = ctrl.step(Q_STRAIGHT.copy(), np.zeros(7), 0.0)
     assert out.tau.shape == (7,)

@@ -243,8 +243,7 @@ class SelfCollisionBarrier(Constraint):
     controller's influence distance, at most d_s + REACH: a pair farther apart has no row (its rows
     would bind only at approach speeds above k₀/k₁·REACH = 1 m/s with the default gains) and costs
     the tick only its distance. Inside d_s the push apart asks no more than :func:`reach_cap` of what
-    the joints' acceleration limits ``qdd_max`` [rad/s²] give (the controller's JointLimit's; None: no
-    cap): with the arm nearly straight a pair's distance hardly moves with the joints, and the full
+    the acceleration limits of ``joints`` (the controller's :class:`JointLimit`; None: no cap) give: with the arm nearly straight a pair's distance hardly moves with the joints, and the full
     k₀(d_s − h) asked one joint for more than its limit, tick after tick. (Not the torque window: a
     row beyond the rate limit's reach is issue 22's, and capping it there measured worse behind the
     verified backup.)"""
@@ -254,7 +253,7 @@ class SelfCollisionBarrier(Constraint):
     REACH = 0.1  # [m] beyond d_s
 
     def __init__(self, pairs: Sequence[tuple[int, int]], d_safe: float, *, k0: float = 400.0,
-                 k1: float = 40.0, qdd_max: np.ndarray | None = None) -> None:
+                 k1: float = 40.0, joints: JointLimit | None = None) -> None:
         if not pairs:
             raise ConfigError("needs at least one pair of links", key="controller.self_collision_pairs")
         if not (np.isfinite(d_safe) and d_safe >= 0):
@@ -265,7 +264,7 @@ class SelfCollisionBarrier(Constraint):
         self.k0 = _positive("controller.barrier_k0", k0)
         self.k1 = _positive("controller.barrier_k1", k1)
         self.cutoff = np.inf  # set by the controller: its influence distance
-        self.qdd_max = None if qdd_max is None else np.asarray(qdd_max, float)
+        self.joints = joints
 
     def compute(self, state: TickState, terms: LawTerms) -> Inequality:
         sp = state.self_pairs
@@ -275,8 +274,8 @@ class SelfCollisionBarrier(Constraint):
         C = np.where(near[:, None], sp.row, 0.0)
         lower = np.where(near, -self.k1 * sp.hdot - self.k0 * (sp.distance - self.d_safe) - sp.drift, -np.inf)
         inside = np.flatnonzero(near & (sp.distance < self.d_safe))
-        if inside.size and self.qdd_max is not None:
-            lower[inside] = np.minimum(lower[inside], reach_cap(state, C[inside], None, self.qdd_max))
+        if inside.size and self.joints is not None:
+            lower[inside] = np.minimum(lower[inside], reach_cap(state, C[inside], None, self.joints.qdd_max))
         return Inequality(C, lower, np.full(self.rows, np.inf))
 
 

@@ -153,10 +153,9 @@ class QPController(Controller):
             pairs = (named_pairs(robot, cfg.self_collision_pairs) if cfg.self_collision_pairs is not None
                      else self_collision_pairs(robot, cfg.self_d_safe))
             if pairs.pairs:
-                joints = next((c for c in constraints if isinstance(c, JointLimit)), None)
-                constraints.append(SelfCollisionBarrier(pairs.pairs, cfg.self_d_safe, k0=cfg.barrier_k0,
-                                                        k1=cfg.barrier_k1,
-                                                        qdd_max=None if joints is None else joints.qdd_max))
+                constraints.append(SelfCollisionBarrier(
+                    pairs.pairs, cfg.self_d_safe, k0=cfg.barrier_k0, k1=cfg.barrier_k1,
+                    joints=next((c for c in constraints if isinstance(c, JointLimit)), None)))
         return constraints
 
     @classmethod

@@ -71,9 +71,8 @@ def compiled_spec(tasks: Sequence[Task], constraints: Sequence[Constraint], n: i
     if len(brakes) > 1 or (brakes and torque is None):
         return None  # two different brakes, or one without the torque limits: the Python formulation
     sc = next((c for c in constraints if isinstance(c, SelfCollisionBarrier)), None)
-    if sc is not None and ((sc.qdd_max is None) != (joint is None) or (
-            sc.qdd_max is not None and joint is not None and not np.array_equal(sc.qdd_max, joint.qdd_max))):
-        return None  # the kernel caps the self rows' push with the joint limits' ±q̈_max
+    if sc is not None and sc.joints is not joint:
+        return None  # the kernel caps the self rows' push with this JointLimit's ±q̈_max (or none without one)
     starts = np.cumsum([0] + [c.rows for c in constraints])[:-1].tolist()
     return QPSpec(
         acc_weight=acc.weight, slack_l1=ee.slack_l1, slack_l2=ee.slack_l2,
