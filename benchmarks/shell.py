@@ -54,7 +54,7 @@ def measure(scenario: str = "panda_spheres", ticks: int = 2500) -> dict[str, flo
     path = qp.qp_path()
     ws = path.ws
     model, data = qp.robot.model, qp.robot.model.createData()
-    entry, packed = path._entry, path.packed
+    entry, ty, addr = path._entry, path._ty, path._addr
     if entry is None:
         raise RuntimeError("the QP's one-call kernel has no entry point here (DAQP's C API missing?)")
     out = np.empty(ws.rec.shape[0])
@@ -87,7 +87,7 @@ def measure(scenario: str = "panda_spheres", ticks: int = 2500) -> dict[str, flo
                         rigid_pass(ws.model, ws.data, q, v)
                     try_hard = relax.always_hard or (relax.skip_rule and relax._try_hard)
                     s = now()
-                    entry(packed, q, v, t, try_hard, out)
+                    entry(ty, addr, q, v, t, try_hard, out)
                     e = now()
                 times[name].append((e - s) * 1e6)
     med = {n: float(np.median(v)) for n, v in times.items()}

@@ -67,6 +67,7 @@ def warmup() -> dict[str, float]:
             ws.rigid(q, v)
             if K.tick_closed_form(ws.work, q, v, t, weighted, np.empty_like(ws.rec)) == codes.STATE_PYTHON:
                 ws.finish_state(q, v, t)
+            K.address_entry(K.tick_closed_form_at, ws.work, weighted=weighted, out=ws.rec)  # the common tick's
             K.closed_form_tick(ws.work, weighted)
     times["closed forms"] = time.perf_counter() - start
 
@@ -105,6 +106,7 @@ def warmup() -> dict[str, float]:
             K.qp_tick_native_hard_first(packed, try_hard)
             ws.rigid(q, v)
             K.tick_qp(packed, q, v, t, try_hard, np.empty_like(ws.rec))
+        K.address_entry(K.tick_qp_at, packed, try_hard=True, out=ws.rec)  # the common tick's entry
         nat_h.free()
         nat_r.free()
     times["qp"] = time.perf_counter() - start

@@ -4,6 +4,9 @@ is reused (the same object, its record overwritten) while a kept one keeps its t
 
 from __future__ import annotations
 
+import itertools
+import weakref
+
 import numpy as np
 import pytest
 
@@ -64,6 +67,32 @@ def test_outputs_reused_only_when_nobody_holds_them(law):
     again = law.step(Q0, V0, 0.32)
     assert id(again) == first
     np.testing.assert_array_equal(again._rec, law.workspace().rec)  # the kernel's copy: all of it, timings too
+
+
+def test_outputs_take_turns_in_a_loop_that_keeps_the_last(law):
+    """``out = law.step(...)`` keeps the last output while the next tick runs: the tick writes the one
+    before instead (two objects alternating: weak references to every output all alive at the end), the
+    held one keeps its torque, and every torque equals that of the same tick in a loop that keeps all
+    its outputs (each a new object)."""
+    states = [(Q0 + 0.01 * k, V0 - 0.02 * k, 0.3 + 1e-3 * k) for k in range(12)]
+    kept = [law.step(q, v, t) for q, v, t in states]
+    assert len({id(o) for o in kept}) == len(kept)
+    want = [o.tau.copy() for o in kept]
+    del kept
+    out, refs = None, []
+    for (q, v, t), w in zip(states, want, strict=True):
+        prev, prev_tau = out, (None if out is None else out.tau.copy())
+        out = law.step(q, v, t)
+        refs.append(weakref.ref(out))
+        np.testing.assert_array_equal(out.tau, w)
+        if prev is not None:
+            assert out is not prev
+            np.testing.assert_array_equal(prev.tau, prev_tau)
+        del prev
+    del out
+    alive = [r() for r in refs]
+    assert all(o is not None for o in alive) and len({id(o) for o in alive}) == 2
+    assert all(a is not b for a, b in itertools.pairwise(alive))
 
 
 def test_the_common_tick_goes_past_the_dispatcher(law, monkeypatch):

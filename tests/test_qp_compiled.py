@@ -9,7 +9,9 @@ kept neither it nor a view of its arrays: after warm-up a tick allocates nothing
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import tracemalloc
+import weakref
 
 import numpy as np
 import pytest
@@ -75,6 +77,59 @@ def test_a_tick_allocates_nothing_after_warm_up(scene_and_states):
     fresh = _controller(scene)
     outs = [fresh.step(states.q[k], states.v[k], float(states.t[k])) for k in range(100)]
     for _ in range(7):  # the same ticks in the same order (the warm starts chain alike)
+        outs = [fresh.step(states.q[k], states.v[k], float(states.t[k])) for k in range(100, 400)]
+    np.testing.assert_array_equal(np.array([o.tau for o in outs]), tau)
+
+
+def test_a_loop_keeping_each_output_until_the_next_allocates_nothing(scene_and_states):
+    """The loop users write, ``out = ctrl.step(...)``, holds the last output while the next tick runs:
+    the two outputs take turns (the last one is held, the one before is free). Over 600 such ticks after
+    warm-up the traced memory grows by less than 1 byte a tick and never by more than 4 KiB within one
+    (as the loop that drops its outputs above; allocating an output a tick grows it by ~0.9 KiB);
+    exactly two output objects alternate (weak references to every tick's output: all still alive at
+    the end, two objects among them — an output allocated per tick and freed would leave the memory
+    flat and its id perhaps recycled, but not its weak reference alive); every output still holds its
+    own tick's torque while the next tick runs; and the torques equal those of a fresh controller
+    whose outputs are all kept."""
+    scene, states = scene_and_states
+    ctrl = _controller(scene)
+    tau = np.empty((300, ctrl.n))
+    refs: list[weakref.ref] = []
+
+    def one_pass(check: bool) -> None:
+        out = None
+        for k in range(100, 400):
+            prev, prev_tau = out, (None if out is None else out.tau.copy())
+            out = ctrl.step(states.q[k], states.v[k], float(states.t[k]))
+            if check:
+                refs.append(weakref.ref(out))
+                if prev is not None:  # the held output was not the one overwritten
+                    assert out is not prev
+                    np.testing.assert_array_equal(prev.tau, prev_tau)
+            tau[k - 100] = out.tau
+            del prev
+
+    for k in range(100):
+        ctrl.step(states.q[k], states.v[k], float(states.t[k]))
+    one_pass(check=True)
+    alive = [r() for r in refs]
+    assert all(o is not None for o in alive) and len({id(o) for o in alive}) == 2
+    assert all(a is not b for a, b in itertools.pairwise(alive))
+    del alive
+    tracemalloc.start()
+    try:
+        one_pass(check=False)  # tracemalloc's own first allocations
+        start, _ = tracemalloc.get_traced_memory()
+        tracemalloc.reset_peak()
+        for _ in range(2):
+            one_pass(check=False)
+        end, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert end - start < 600 and peak - start <= 4096, (end - start, peak - start)
+    fresh = _controller(scene)
+    outs = [fresh.step(states.q[k], states.v[k], float(states.t[k])) for k in range(100)]
+    for _ in range(4):  # the same ticks in the same order (the warm starts chain alike)
         outs = [fresh.step(states.q[k], states.v[k], float(states.t[k])) for k in range(100, 400)]
     np.testing.assert_array_equal(np.array([o.tau for o in outs]), tau)
 

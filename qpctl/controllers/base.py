@@ -151,6 +151,11 @@ class RecordOutput(ControlOutput):
 #: and its ``last``, the local name and getrefcount's argument; of the output's record: the output's
 #: and the argument. A compiled tick reuses such an output (its record overwritten): nothing allocated.
 IDLE_REFS, IDLE_REC_REFS = 4, 2
+#: sys.getrefcount of the output before the last (the compiled ticks keep two that take turns) that
+#: only the tick holds: the controller's spare slot, the local name and getrefcount's argument. A loop
+#: that keeps each output until the next tick (``out = ctrl.step(...)``) holds the last one while the
+#: next tick runs, never the one before: the two alternate and nothing is allocated.
+SPARE_REFS = 3
 #: What a one-call kernel is given as ``out`` on a tick whose output Python writes itself: an empty
 #: record, so the kernel copies nothing (qpctl.kernels.tick.copy_record).
 NO_RECORD = np.empty(0)
@@ -178,31 +183,13 @@ def call_compiling(kernel: Any, *args: Any) -> Any:
             kernel.disable_compile()
 
 
-def entry_point(kernel: Any, *leading: Any, **trailing: Any) -> Any:
-    """The compiled entry point of a one-call tick's ``kernel`` for the arguments (``leading``, q and v
-    as float64 C arrays, t a float, then ``trailing``'s values — their types, as numba types them),
-    which skips numba's typing of the arguments (the structrefs' ~1 µs); None where this numba does not
-    expose it. Call it only on arguments checked to be those types: it unboxes without checking a
-    dtype or a number of dimensions."""
-    try:
-        from numba import typeof
-        from numba.core import types
-
-        arr = types.Array(types.float64, 1, "C")
-        sig = (*(typeof(a) for a in leading), arr, arr, types.float64, *(typeof(a) for a in trailing.values()))
-        cres = kernel.overloads.get(sig)
-        return None if cres is None else cres.entry_point
-    except Exception:  # noqa: BLE001 — numba's internals moved: the dispatcher it is
-        return None
-
-
 _F64 = np.dtype(np.float64)
 _ND = np.ndarray
 _STRIDES = (8,)  # one dimension, its float64 entries adjacent: C-contiguous
 
 
 def plain_vectors(q: Any, v: Any) -> bool:
-    """q and v as a one-call tick's compiled entry point (:func:`entry_point`) takes them unchecked:
+    """q and v as a one-call tick's compiled entry point (:func:`qpctl.kernels.tick.address_entry`) takes them unchecked:
     float64, one-dimensional, C-contiguous ndarrays (anything else goes through numba's dispatcher).
     The strides say both of the last two at once (a tuple, where ``flags`` builds an object)."""
     return (type(q) is _ND and type(v) is _ND and q.dtype is _F64 and v.dtype is _F64

@@ -39,12 +39,12 @@ from qpctl.controllers.base import (
     IDLE_REC_REFS,
     IDLE_REFS,
     NO_RECORD,
+    SPARE_REFS,
     Controller,
     ControlOutput,
     RecordOutput,
     TickStatus,
     call_compiling,
-    entry_point,
     fast_state,
     lock_compilation,
     plain_vectors,
@@ -67,7 +67,13 @@ class PaperController(Controller):
     weighted = True
 
     _out: RecordOutput | None = None  # the last output, reused when nobody else holds it
-    _entry: Any = None  # K.tick_closed_form's compiled entry point for float64 C arrays (entry_point)
+    _spare: RecordOutput | None = None  # the one before, reused when nobody else holds it
+    # K.tick_closed_form_at's compiled entry point for float64 C arrays, and its first two: the
+    # workspace's numba type and address (held: _entry_ws, whose work it is) — qpctl.kernels.tick.address_entry
+    _entry: Any = None
+    _entry_ws: Workspace | None = None
+    _ty: Any = None
+    _addr = 0
 
     def _make_workspace(self) -> Workspace:
         return Workspace(self.robot, self.obstacles, self.path, self.gains, self.cutoff, broadphase=self.broadphase,
@@ -79,7 +85,7 @@ class PaperController(Controller):
         the dispatcher the types; anything else goes through :func:`fast_state`'s checks)."""
         start = _now()
         ws, entry = self._ws, self._entry
-        if entry is not None and ws is not None and not ws.lie:  # the common tick first, in few statements
+        if entry is not None and ws is not None and ws is self._entry_ws and not ws.lie:  # the common tick first
             ok = True
             if ws.py_rigid:  # (else the kernel runs Pinocchio's pass itself: qpctl.kernels.pin_native)
                 try:
@@ -88,17 +94,21 @@ class PaperController(Controller):
                     ok = False
             pin_s = _now() - start if ws.py_rigid else -1.0  # (else the kernel times the pass)
             if ok and isinstance(t, float) and plain_vectors(q, v):
-                out = self._out  # reused when nobody else holds it nor a view of its record
+                out, turn = self._out, False  # the last output, else the one before, when nobody else holds it
                 if out is None or getrefcount(out) > IDLE_REFS or getrefcount(out._rec) > IDLE_REC_REFS:
-                    out = None
+                    out, turn = self._spare, True  # (base.SPARE_REFS: a loop keeping each until the next)
+                    if out is None or getrefcount(out) > SPARE_REFS or getrefcount(out._rec) > IDLE_REC_REFS:
+                        out = None
                 rec = np.empty(ws.rec.shape[0]) if out is None else out._rec  # the kernel writes the record into it
-                code = entry(ws.work, q, v, t, self.weighted, rec)
+                code = entry(self._ty, self._addr, q, v, t, self.weighted, rec)
                 if code == 0:
                     if out is not None:
                         out._extra = out._info = None
                         out._stages = (pin_s, -1.0, -1.0, 0.0)
                     else:
-                        out = self._out = RecordOutput(rec, ws.layout, None, 0.0, (pin_s, -1.0, -1.0, 0.0))
+                        out = RecordOutput(rec, ws.layout, None, 0.0, (pin_s, -1.0, -1.0, 0.0))
+                    if turn:
+                        self._spare, self._out = self._out, out
                     out.compute_us = (_now() - start) * 1e6
                     self.last = out
                     return out
@@ -115,8 +125,8 @@ class PaperController(Controller):
                 t1 = time.perf_counter()
                 qk = ws.joint_view(q)
                 entry = self._entry
-                if entry is not None and plain_vectors(qk, v):
-                    code = entry(ws.work, qk, v, t, self.weighted, NO_RECORD)
+                if entry is not None and self._entry_ws is ws and plain_vectors(qk, v):
+                    code = entry(self._ty, self._addr, qk, v, t, self.weighted, NO_RECORD)
                 else:
                     code = K.tick_closed_form(ws.work, qk, v, t, self.weighted, NO_RECORD)
             except Exception:  # noqa: BLE001 — not two float64 arrays and a float: check, convert, once more
@@ -126,8 +136,10 @@ class PaperController(Controller):
                 t1 = time.perf_counter()
                 code = call_compiling(K.tick_closed_form, ws.work, ws.joint_view(q), v, t, self.weighted, NO_RECORD)
             lock_compilation(K.tick_closed_form)
-            if self._entry is None:
-                self._entry = entry_point(K.tick_closed_form, ws.work, weighted=self.weighted, out=NO_RECORD)
+            if self._entry is None or self._entry_ws is not ws:  # (ws holds the work the address is of)
+                self._entry_ws = ws
+                found = K.address_entry(K.tick_closed_form_at, ws.work, weighted=self.weighted, out=NO_RECORD)
+                self._entry, self._ty, self._addr = found or (None, None, 0)
             return self._after_kernel(code, q, v, t, start, (t1 - t0 if ws.py_rigid else -1.0, -1.0, -1.0, 0.0))
         q, v, t = fast_state(q, v, t, self.n, self.robot.nq)
         self._state(q, v, t)
@@ -156,7 +168,8 @@ class PaperController(Controller):
             np.copyto(out._rec, ws.rec)  # nobody kept the last output nor a view of it: reuse it
             out.renew((time.perf_counter() - start) * 1e6, stages)
         else:
-            out = self._out = RecordOutput(ws.rec.copy(), ws.layout, None, (time.perf_counter() - start) * 1e6, stages)
+            out = RecordOutput(ws.rec.copy(), ws.layout, None, (time.perf_counter() - start) * 1e6, stages)
+            self._spare, self._out = self._out, out
         self.last = out
         return out
 

@@ -277,10 +277,11 @@ class QPController(Controller):
         start = _now()
         path = self._path
         if type(path) is CompiledTick and path.ws is self._ws:  # the common tick first (fast_step)
-            fast = path.fast_step(q, v, t, start)
-            if fast is not None:
-                self.last, self._last_from = fast, path
-                return fast
+            if not self.config.tick_budget_us:  # (a budget: step's stages, each within what is left)
+                fast = path.fast_step(q, v, t, start)
+                if fast is not None:
+                    self.last, self._last_from = fast, path
+                    return fast
         else:
             path = self.qp_path()
         if isinstance(path, CompiledTick):

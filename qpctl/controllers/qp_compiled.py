@@ -28,8 +28,8 @@ from qpctl.controllers.base import (
     IDLE_REC_REFS,
     IDLE_REFS,
     NO_RECORD,
+    SPARE_REFS,
     call_compiling,
-    entry_point,
     fast_state,
     lock_compilation,
     plain_vectors,
@@ -50,6 +50,7 @@ from qpctl.tick import QPBuffers, Workspace, rigid_pass
 
 _now = time.perf_counter
 getrefcount = sys.getrefcount
+IN_KERNEL = (-1.0, -1.0, -1.0, -1.0)  # a one-call tick's stage times: every one measured in its kernel
 
 
 class CompiledTick:
@@ -85,7 +86,12 @@ class CompiledTick:
         self._words_relaxed = ("solved", None, self.relaxed.solver.name, self.relax.hard_first(True), False, "", None,
                                False)
         self._out: QPOutput | None = None  # the last output, reused when nobody else holds it
-        self._entry: Any = None  # K.tick_qp's compiled entry point for these argument types (_entry_point)
+        self._spare: QPOutput | None = None  # the one before, reused when nobody else holds it (fast_step)
+        # K.tick_qp_at's compiled entry point for these argument types, and its first two: the packed
+        # QP's numba type and address (held: self.packed) — qpctl.kernels.tick.address_entry
+        self._entry: Any = None
+        self._ty: Any = None
+        self._addr = 0
 
     def reset(self) -> None:
         self.relax.reset()
@@ -102,16 +108,22 @@ class CompiledTick:
             out.renew_qp(compute_us, stages, ok, words)
             return out
         out = QPOutput(ws.rec.copy(), ws.layout, extra, compute_us, stages, ok, words)
-        self._out = out
+        self._spare, self._out = self._out, out  # (the last one, kept by the caller, may be the spare next)
         return out
 
     def fast_step(self, q: Any, v: Any, t: Any, start: float) -> QPOutput | None:
         """The common tick in as few Python statements as it takes, or None (before anything ran that
         :meth:`step` would not run again) when this tick is not one: rigid_pass, then the one-call
-        kernel through its compiled entry point (q and v float64 C vectors, t a float, no tick budget,
-        both DAQP workspaces set up), then the output. A tick whose kernel reports anything but a solve
-        on the first QP it tried goes on in :meth:`_after_native`, as :meth:`step`'s would; one before
-        the entry point exists (the first), or of other types, goes to :meth:`step`."""
+        kernel through its compiled entry point (q and v float64 C vectors, t a float, both DAQP
+        workspaces set up; the caller, :meth:`QPController.step`, has seen no tick budget), then the
+        output. A tick whose kernel reports anything but a solve on the first QP it tried goes on in
+        :meth:`_after_native`, as :meth:`step`'s would; one before the entry point exists (the first),
+        or of other types, goes to :meth:`step`.
+
+        The output is one of two that take turns (:data:`~qpctl.controllers.base.IDLE_REFS`): the
+        last one when the caller dropped it, else the one before when the caller dropped that — a loop
+        that keeps each tick's output until the next (``out = ctrl.step(...)``) allocates nothing;
+        one that keeps more gets new ones."""
         entry, ws = self._entry, self.ws
         if entry is None or ws.lie:  # (an angle view of q: step's)
             return None
@@ -121,37 +133,41 @@ class CompiledTick:
                 rigid_pass(ws.model, ws.data, q, v)
             except Exception:  # noqa: BLE001 — not a state Pinocchio takes: step() checks it and says why
                 return None
-        pin_s = _now() - start if py_rigid else -1.0  # (else the kernel times the pass: no clock read here)
+        # the stages' times: all the kernel's (read from the record), or Pinocchio's pass in Python first
+        stages = (_now() - start, -1.0, -1.0, -1.0) if py_rigid else IN_KERNEL
         if not (isinstance(t, float) and plain_vectors(q, v)):
             return None
-        relax, nat_h, nat_r = self.relax, self.hard.nat, self.relaxed.nat
+        relax, nat_h = self.relax, self.hard.nat
         try_hard = relax.always_hard or (relax.skip_rule and relax._try_hard)
-        if not nat_r.ready or (try_hard and not nat_h.ready) or self.budget_us() > 0:  # type: ignore[union-attr]
+        if not self.relaxed.nat.ready or (try_hard and not nat_h.ready):  # type: ignore[union-attr]
             return None
         if ws._field is not None:
             ws.sync_field()
-        out = self._out  # reused when nobody else holds it nor a view of its record: the kernel writes its record
+        out, turn = self._out, False  # the last output, else the one before, when nobody else holds it
         if out is None or getrefcount(out) > IDLE_REFS or getrefcount(out._rec) > IDLE_REC_REFS:
-            out = None
-        rec = np.empty(ws.rec.shape[0]) if out is None else out._rec  # (allocated only when the caller kept the last)
-        code, hard, hard_next = entry(self.packed, q, v, t, try_hard, rec)
+            out, turn = self._spare, True
+            if out is None or getrefcount(out) > SPARE_REFS or getrefcount(out._rec) > IDLE_REC_REFS:
+                out = None
+        rec = np.empty(ws.rec.shape[0]) if out is None else out._rec  # (allocated only when both are kept)
+        code, hard, hard_next = entry(self._ty, self._addr, q, v, t, try_hard, rec)
         if code or hard > 0:
             out = None  # (its record untouched; the tick's output is written by _after_native)
             code, hard = self._state_python(code, hard, q, v, t, try_hard)
             if hard in (3, 4):
                 nat_h.free()  # type: ignore[union-attr]  # as in _native: no warm start from a failed working set
-            return self._after_native(code, hard, (pin_s, -1.0, -1.0, -1.0), q, start)
+            return self._after_native(code, hard, stages, q, start)
         used_hard = hard == 0
         if relax.skip_rule:  # the skip rule's memory (its rule, hard_next, ran in the kernel)
             relax._try_hard = hard_next
         self._last_lay = self.hard if used_hard else self.relaxed  # last and last_problem, when read
         words = self._words_hard if used_hard else self._words_relaxed
-        if out is not None:
+        if out is None:
+            out = QPOutput(rec, ws.layout, None, 0.0, stages, True, words)
+        else:
             out._extra = out._info = None
-            out._stages, out._solved, out._words = (pin_s, -1.0, -1.0, -1.0), True, words
-            out.compute_us = (_now() - start) * 1e6
-            return out
-        out = self._out = QPOutput(rec, ws.layout, None, 0.0, (pin_s, -1.0, -1.0, -1.0), True, words)
+            out._stages, out._solved, out._words = stages, True, words
+        if turn:
+            self._spare, self._out = self._out, out
         out.compute_us = (_now() - start) * 1e6
         return out
 
@@ -266,7 +282,7 @@ class CompiledTick:
                 qk = ws.joint_view(q)
                 entry = self._entry
                 if entry is not None and plain_vectors(qk, v):
-                    code, hard, _ = entry(self.packed, qk, v, t, try_hard, NO_RECORD)
+                    code, hard, _ = entry(self._ty, self._addr, qk, v, t, try_hard, NO_RECORD)
                 else:
                     code, hard, _ = K.tick_qp(self.packed, qk, v, t, try_hard, NO_RECORD)
             except Exception:  # noqa: BLE001 — not two float64 arrays and a float: check, convert, once more
@@ -278,7 +294,8 @@ class CompiledTick:
                                                NO_RECORD)
             lock_compilation(K.tick_qp)
             if self._entry is None:
-                self._entry = entry_point(K.tick_qp, self.packed, try_hard=True, out=NO_RECORD)
+                found = K.address_entry(K.tick_qp_at, self.packed, try_hard=True, out=NO_RECORD)
+                self._entry, self._ty, self._addr = found or (None, None, 0)
             code, hard = self._state_python(code, hard, q, v, t, try_hard)
             stages = (t1 - t0 if ws.py_rigid else -1.0, -1.0, -1.0, -1.0)
         else:

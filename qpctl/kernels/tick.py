@@ -23,9 +23,12 @@ and cylinders — or a look-ahead drift; Python finishes it and calls the stage 
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numba import njit
 
+from qpctl.kernels.borrow import struct_address, struct_at
 from qpctl.kernels.clearance import min_distance, min_self_distance
 from qpctl.kernels.clock import now_us
 from qpctl.kernels.codes import (
@@ -56,6 +59,8 @@ from qpctl.kernels.solve import native_solve_finish, qp_rebuild, qp_terms_and_bu
 # call one by one (a solver other than DAQP's C API, a state Python finishes, a fallback's record,
 # the simulator's clearance). qpctl.warmup.warmup compiles or loads every one of them.
 __all__ = [
+    "address_entry",
+    "address_of",
     "closed_form",
     "closed_form_tick",
     "finish_pairs",
@@ -73,7 +78,9 @@ __all__ = [
     "set_field",
     "state",
     "tick_closed_form",
+    "tick_closed_form_at",
     "tick_qp",
+    "tick_qp_at",
     "tick_qp_native",
     "tick_qp_native_hard_first",
     "write_record",
@@ -215,3 +222,50 @@ def tick_qp(nq, q: np.ndarray, v: np.ndarray, t: float, try_hard: bool,  # type:
         copy_record(ws.rec, out)
     slack = ws.rec[record_scalars(ws.N.shape[0], ws.a.shape[0]) + R_SLACK]
     return code, hard, hard_next(hard == 0, code == 0, slack)
+
+
+# The common tick's entry points take the structref by its address (qpctl.kernels.borrow.struct_at):
+# its type as a TypeRef (unboxed to nothing) and the address as an int, ~0.2 µs a call less than the
+# structref itself. The caller holds the structref's Python proxy while it calls with the address.
+
+
+@njit(cache=True)
+def address_of(s) -> int:  # type: ignore[no-untyped-def]
+    """A structref's address, for the ``*_at`` entry points (valid while its Python proxy lives)."""
+    return struct_address(s)
+
+
+@njit(cache=True)
+def tick_qp_at(ty, addr: int, q: np.ndarray, v: np.ndarray, t: float, try_hard: bool,  # type: ignore[no-untyped-def]
+               out: np.ndarray) -> tuple[int, int, bool]:
+    """:func:`tick_qp` on the NativeQP of type ``ty`` at ``addr`` (:func:`address_of`)."""
+    return tick_qp(struct_at(ty, addr), q, v, t, try_hard, out)
+
+
+@njit(cache=True)
+def tick_closed_form_at(ty, addr: int, q: np.ndarray, v: np.ndarray, t: float,  # type: ignore[no-untyped-def]
+                        weighted: bool, out: np.ndarray) -> int:
+    """:func:`tick_closed_form` on the TickWork of type ``ty`` at ``addr`` (:func:`address_of`)."""
+    return tick_closed_form(struct_at(ty, addr), q, v, t, weighted, out)
+
+
+def address_entry(kernel: Any, struct: Any, **trailing: Any) -> tuple[Any, Any, int] | None:
+    """The compiled entry point of an ``*_at`` kernel (:func:`tick_qp_at`, :func:`tick_closed_form_at`)
+    for ``struct`` (a structref's Python proxy) by its address, with the arguments it is called with
+    before q: (entry, struct's numba type, address). Compiles (or loads from the cache) that signature
+    — q and v float64 C vectors, t a float, then ``trailing``'s values' types — if it is not there yet;
+    None where this numba does not expose an entry point. The entry point unboxes without checking a
+    dtype or a number of dimensions: call it only on arguments checked to be those types, and only
+    while ``struct`` lives (the address is its memory's)."""
+    try:
+        from numba import typeof
+        from numba.core import types
+
+        ty = struct._numba_type_
+        arr = types.Array(types.float64, 1, "C")
+        sig = (types.TypeRef(ty), types.int64, arr, arr, types.float64, *(typeof(a) for a in trailing.values()))
+        if sig not in kernel.overloads:
+            kernel.compile(sig)  # (the *_at kernels are never locked: only ever called through this)
+        return kernel.overloads[sig].entry_point, ty, int(address_of(struct))
+    except Exception:  # noqa: BLE001 — numba's internals moved: the caller takes the dispatcher
+        return None
