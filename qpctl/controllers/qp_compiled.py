@@ -69,6 +69,7 @@ class CompiledTick:
         self.hard = QPLayout(ws, ws.hard, solvers[0])
         self.relaxed = QPLayout(ws, ws.relaxed, solvers[1])
         native = self.relaxed.nat is not None and self.hard.nat is not None
+        self._nat_h, self._nat_r = self.hard.nat, self.relaxed.nat  # (fast_step's: DAQP's C API, when native)
         self.relax = TaskRelaxation(mode if slack else "always", solvers[1].name, native)
         self.native_args: tuple[Any, ...] | None = None  # the one-call kernel's arguments after the state
         if native:
@@ -137,9 +138,9 @@ class CompiledTick:
         stages = (_now() - start, -1.0, -1.0, -1.0) if py_rigid else IN_KERNEL
         if not (isinstance(t, float) and plain_vectors(q, v)):
             return None
-        relax, nat_h = self.relax, self.hard.nat
+        relax, nat_h = self.relax, self._nat_h
         try_hard = relax.always_hard or (relax.skip_rule and relax._try_hard)
-        if not self.relaxed.nat.ready or (try_hard and not nat_h.ready):  # type: ignore[union-attr]
+        if not self._nat_r.ready or (try_hard and not nat_h.ready):  # type: ignore[union-attr]
             return None
         if ws._field is not None:
             ws.sync_field()

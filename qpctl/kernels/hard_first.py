@@ -62,6 +62,12 @@ def task_rows_hold(x: np.ndarray, rows: np.ndarray, bu: np.ndarray, n_in: int, m
 
 @njit(cache=True)
 def qp_tick_native_hard_first(nq, try_hard: bool) -> tuple[int, int]:  # type: ignore[no-untyped-def]
+    """:func:`qp_tick_native_hard_first_from` now: the build's time counted from this call."""
+    return qp_tick_native_hard_first_from(nq, try_hard, now_us(nq.ws.ts))
+
+
+@njit(cache=True)
+def qp_tick_native_hard_first_from(nq, try_hard: bool, t0: float) -> tuple[int, int]:  # type: ignore[no-untyped-def]
     """The QP tick after the state with the task hard first (no slack variables: a smaller QP), its
     answer kept where the exact-penalty condition says the relaxed QP's is the same
     (:func:`penalty_exact`), the relaxed QP solved otherwise (or when not ``try_hard``). ``nq``: a
@@ -70,13 +76,13 @@ def qp_tick_native_hard_first(nq, try_hard: bool) -> tuple[int, int]:  # type: i
     an atomic reference count increment and decrement). Returns (code, hard): code as
     :func:`qp_tick_native`'s, for the answer used; hard: −1 not tried, 0 the hard answer used, 3 DAQP
     failed on it, 4 rejected by the check of its rows (the task rows, :func:`task_rows_hold`, or the
-    others, :func:`qp_finish`), 7 not the relaxed QP's answer."""
+    others, :func:`qp_finish`), 7 not the relaxed QP's answer. ``t0``: the clock [µs] at which the
+    build's time starts (the state's end, read once for both: :func:`qpctl.kernels.tick.tick_qp`)."""
     ws = nq.ws
     ts = ws.ts
     s = record_scalars(ws.N.shape[0], ws.a.shape[0])
     build = solve = 0.0
     hard = -1
-    t0 = now_us(ts)
     tol = nq.tol
     if try_hard:
         rowsh, buh, blh = nq.rowsh, nq.buh, nq.blh

@@ -45,7 +45,7 @@ from qpctl.kernels.codes import (
 from qpctl.kernels.daqp import native_solve
 from qpctl.kernels.field_rows import set_field
 from qpctl.kernels.finish import qp_finish, write_record
-from qpctl.kernels.hard_first import hard_next, qp_tick_native_hard_first
+from qpctl.kernels.hard_first import hard_next, qp_tick_native_hard_first, qp_tick_native_hard_first_from
 from qpctl.kernels.law import closed_form, closed_form_tick, law_terms
 from qpctl.kernels.pairs import find_pairs, finish_pairs
 from qpctl.kernels.pin_native import rigid_native
@@ -108,32 +108,39 @@ def state(ws, q: np.ndarray, v: np.ndarray, t: float) -> int:  # type: ignore[no
 
 
 @njit(cache=True)
-def state_timed(ws, q: np.ndarray, v: np.ndarray, t: float, ts: np.ndarray) -> int:  # type: ignore[no-untyped-def]
-    """:func:`state`, its time [µs] into the record; −1 overflow, STATE_PYTHON if Python must finish
-    the state (python-fcl's pairs, or a look-ahead barrier drift), else 0."""
-    t0 = now_us(ts)
+def state_timed(ws, q: np.ndarray, v: np.ndarray, t: float, ts: np.ndarray,  # type: ignore[no-untyped-def]
+                t0: float) -> tuple[int, float]:
+    """:func:`state`, its time [µs] into the record, counted from ``t0`` (the clock [µs] when the stage
+    before ended; negative: read it here). Returns (−1 overflow, STATE_PYTHON if Python must finish
+    the state (python-fcl's pairs, or a look-ahead barrier drift), else 0; the clock at its end [µs]):
+    one clock read between two stages, not two (a read is 30–80 ns on this project's machines)."""
+    if t0 < 0.0:
+        t0 = now_us(ts)
     st = state(ws, q, v, t)
-    ws.rec[record_scalars(ws.N.shape[0], ws.a.shape[0]) + R_STATE_US] = now_us(ts) - t0
+    t1 = now_us(ts)
+    ws.rec[record_scalars(ws.N.shape[0], ws.a.shape[0]) + R_STATE_US] = t1 - t0
     if st < 0:
-        return -1
+        return -1, t1
     if st > 0 or ws.cnt[CNT_LOOKAHEAD] > 0:
-        return STATE_PYTHON
-    return 0
+        return STATE_PYTHON, t1
+    return 0, t1
 
 
 @njit(cache=True)
-def rigid_first(ws, q: np.ndarray, v: np.ndarray, ts: np.ndarray) -> int:  # type: ignore[no-untyped-def]
+def rigid_first(ws, q: np.ndarray, v: np.ndarray, ts: np.ndarray) -> tuple[int, float]:  # type: ignore[no-untyped-def]
     """Where the workspace has the native pass (``ws.pin_native``), (q, v) into it and Pinocchio's
-    rigid-body pass (:mod:`~qpctl.kernels.pin_native`), its time [µs] into the record: 0, or −1 when
-    Pinocchio threw (the state's checks then refuse it). Else nothing: Python ran ``rigid_pass``."""
+    rigid-body pass (:mod:`~qpctl.kernels.pin_native`), its time [µs] into the record: (0, or −1 when
+    Pinocchio threw (the state's checks then refuse it); the clock at its end [µs]). Else nothing:
+    Python ran ``rigid_pass`` — (0, −1.0)."""
     if ws.pin_native[0] == 0:
-        return 0
+        return 0, -1.0
     for i in range(q.shape[0]):
         ws.q[i], ws.v[i] = q[i], v[i]
     t0 = now_us(ts)
     code = rigid_native(ws)
-    ws.rec[record_scalars(ws.N.shape[0], ws.a.shape[0]) + R_RIGID_US] = now_us(ts) - t0
-    return -1 if code else 0
+    t1 = now_us(ts)
+    ws.rec[record_scalars(ws.N.shape[0], ws.a.shape[0]) + R_RIGID_US] = t1 - t0
+    return (-1 if code else 0), t1
 
 
 @njit(cache=True)
@@ -156,12 +163,11 @@ def tick_closed_form(ws, q: np.ndarray, v: np.ndarray, t: float, weighted: bool,
     if not abs(t) < np.inf:
         return -1
     ts = ws.ts
-    code = rigid_first(ws, q, v, ts)
+    code, t1 = rigid_first(ws, q, v, ts)
     if code == 0:
-        code = state_timed(ws, q, v, t, ts)
+        code, t1 = state_timed(ws, q, v, t, ts, t1)
     if code != 0:
         return code
-    t1 = now_us(ts)
     code = closed_form_tick(ws, weighted)
     ws.rec[record_scalars(ws.N.shape[0], ws.a.shape[0]) + R_BUILD_US] = now_us(ts) - t1
     if code == 0:
@@ -174,8 +180,7 @@ def tick_qp_native(ws, q: np.ndarray, v: np.ndarray, t: float, H: np.ndarray, f:
                    rows: np.ndarray, bu: np.ndarray, bl: np.ndarray, dq, x: np.ndarray, tol: float) -> int:
     """State and :func:`qp_tick_native` in one call: its codes, or −1 (the dynamics overflow) or
     STATE_PYTHON (the state is waiting for Python; then call :func:`qp_tick_native`)."""
-    ts = ws.ts
-    code = state_timed(ws, q, v, t, ts)
+    code, _ = state_timed(ws, q, v, t, ws.ts, -1.0)
     if code != 0:
         return code
     return qp_tick_native(ws, H, f, rows, bu, bl, dq, x, tol)
@@ -188,10 +193,10 @@ def tick_qp_native_hard_first(nq, q: np.ndarray, v: np.ndarray, t: float,  # typ
     :class:`~qpctl.kernels.native_qp.NativeQP`): its pair, or (−1 | STATE_PYTHON, −1) as
     :func:`tick_qp_native`."""
     ws = nq.ws
-    code = state_timed(ws, q, v, t, ws.ts)
+    code, t1 = state_timed(ws, q, v, t, ws.ts, -1.0)
     if code != 0:
         return code, -1
-    return qp_tick_native_hard_first(nq, try_hard)
+    return qp_tick_native_hard_first_from(nq, try_hard, t1)
 
 
 @njit(cache=True)
@@ -212,12 +217,12 @@ def tick_qp(nq, q: np.ndarray, v: np.ndarray, t: float, try_hard: bool,  # type:
     if not abs(t) < np.inf:  # NaN or ±inf; q and v: the state's overflow test (rigid_terms)
         return -1, -1, try_hard
     ts = ws.ts
-    code = rigid_first(ws, q, v, ts)
+    code, t1 = rigid_first(ws, q, v, ts)  # (each stage's end the next one's start: one clock read between)
     if code == 0:
-        code = state_timed(ws, q, v, t, ts)
+        code, t1 = state_timed(ws, q, v, t, ts, t1)
     if code != 0:
         return code, -1, try_hard
-    code, hard = qp_tick_native_hard_first(nq, try_hard)
+    code, hard = qp_tick_native_hard_first_from(nq, try_hard, t1)
     if code == 0 and hard <= 0:  # the tick Python ends without a word (else Python copies the record)
         copy_record(ws.rec, out)
     slack = ws.rec[record_scalars(ws.N.shape[0], ws.a.shape[0]) + R_SLACK]
