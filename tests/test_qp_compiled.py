@@ -134,6 +134,29 @@ def test_a_loop_keeping_each_output_until_the_next_allocates_nothing(scene_and_s
     np.testing.assert_array_equal(np.array([o.tau for o in outs]), tau)
 
 
+def test_the_kernels_by_address_leave_the_structs_counts_as_they_were(scene_and_states):
+    """The common ticks call their kernel with the structref's address (qpctl.kernels.borrow.struct_at
+    makes a reference of its own inside the kernel): over 300 ticks of the QP and of the paper law the
+    reference count of the packed QP's and of the workspace's memory-info record stays what it was (a
+    missing increment would free them under the controller; a missing decrement would leak them)."""
+    from qpctl.controllers.closed_form import PaperController
+
+    scene, states = scene_and_states
+    ctrl = _controller(scene)
+    law = scene.controller("paper")
+    law.warmup()
+    assert isinstance(law, PaperController)
+    for c in (ctrl, law):
+        c.step(states.q[0], states.v[0], float(states.t[0]))
+    structs = (ctrl.qp_path().packed, law.workspace().work)
+    assert ctrl.qp_path()._addr != 0 and law._addr != 0  # the by-address entry points are the ones in use
+    before = [s._meminfo.refcount for s in structs]
+    for k in range(1, 301):
+        for c in (ctrl, law):
+            c.step(states.q[k], states.v[k], float(states.t[k]))
+    assert [s._meminfo.refcount for s in structs] == before
+
+
 def test_kept_outputs_and_views_are_never_overwritten(scene_and_states):
     """An output the caller holds, or a view of its torque, keeps its tick's values after later ticks
     (the reuse only takes an output nobody holds)."""

@@ -189,8 +189,9 @@ _STRIDES = (8,)  # one dimension, its float64 entries adjacent: C-contiguous
 
 
 def plain_vectors(q: Any, v: Any) -> bool:
-    """q and v as a one-call tick's compiled entry point (:func:`qpctl.kernels.tick.address_entry`) takes them unchecked:
-    float64, one-dimensional, C-contiguous ndarrays (anything else goes through numba's dispatcher).
+    """q and v as a one-call tick's compiled entry point (:func:`qpctl.kernels.tick.address_entry`)
+    takes them unchecked: float64, one-dimensional, C-contiguous ndarrays (anything else goes through
+    numba's dispatcher).
     The strides say both of the last two at once (a tuple, where ``flags`` builds an object)."""
     return (type(q) is _ND and type(v) is _ND and q.dtype is _F64 and v.dtype is _F64
             and q.strides == _STRIDES and v.strides == _STRIDES)
