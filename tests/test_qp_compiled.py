@@ -157,6 +157,25 @@ def test_the_kernels_by_address_leave_the_structs_counts_as_they_were(scene_and_
     assert [s._meminfo.refcount for s in structs] == before
 
 
+def test_the_stage_times_are_parts_of_the_tick(scene_and_states):
+    """The kernels time their stages with one clock read at each boundary (each stage's end the next
+    one's start): on 200 common ticks of the QP and the paper law every stage time is positive and
+    together they fit in the tick's own wall time (``compute_us``, read in Python around the call) —
+    a boundary taken from the wrong clock (zero, or a stage's start) would not."""
+    scene, states = scene_and_states
+    ctrl = _controller(scene)
+    law = scene.controller("paper")
+    law.warmup()
+    for c, stages in ((ctrl, ("state_us", "build_us", "solve_us")), (law, ("state_us", "build_us"))):
+        c.step(states.q[0], states.v[0], float(states.t[0]))
+        for k in range(1, 201):
+            out = c.step(states.q[k], states.v[k], float(states.t[k]))
+            info = out.info
+            assert 0 < info["rigid_us"] < info["state_us"], (k, info)
+            assert all(info[s] > 0 for s in stages), (k, info)
+            assert sum(info[s] for s in stages) < out.compute_us, (k, info, out.compute_us)
+
+
 def test_kept_outputs_and_views_are_never_overwritten(scene_and_states):
     """An output the caller holds, or a view of its torque, keeps its tick's values after later ticks
     (the reuse only takes an output nobody holds)."""
