@@ -38,6 +38,17 @@ def _controller(scene):
     return ctrl
 
 
+def _kept_torques(scene, states, passes: int) -> np.ndarray:
+    """A fresh controller's torques on states 100–399 after ticks 0–99 and ``passes`` − 1 passes
+    over 100–399 (the same ticks in the same order as the tests' loops: the warm starts chain alike),
+    every output kept (each a new object: no reuse involved)."""
+    fresh = _controller(scene)
+    outs = [fresh.step(states.q[k], states.v[k], float(states.t[k])) for k in range(100)]
+    for _ in range(passes):
+        outs = [fresh.step(states.q[k], states.v[k], float(states.t[k])) for k in range(100, 400)]
+    return np.array([o.tau for o in outs])
+
+
 def test_a_tick_allocates_nothing_after_warm_up(scene_and_states):
     """tracemalloc over 1,500 ticks (five passes over 300 closed-loop states; outputs not kept, as in
     a control loop that reads τ and moves on), after two traced passes: the traced memory grows by
@@ -74,11 +85,7 @@ def test_a_tick_allocates_nothing_after_warm_up(scene_and_states):
     assert grown - end >= 100 * 8 * kept[0].tau.size  # the measurement sees kept outputs
     first = id(ctrl.step(states.q[0], states.v[0], 0.0))
     assert id(ctrl.step(states.q[1], states.v[1], 1e-3)) == first
-    fresh = _controller(scene)
-    outs = [fresh.step(states.q[k], states.v[k], float(states.t[k])) for k in range(100)]
-    for _ in range(7):  # the same ticks in the same order (the warm starts chain alike)
-        outs = [fresh.step(states.q[k], states.v[k], float(states.t[k])) for k in range(100, 400)]
-    np.testing.assert_array_equal(np.array([o.tau for o in outs]), tau)
+    np.testing.assert_array_equal(_kept_torques(scene, states, passes=7), tau)
 
 
 def test_a_loop_keeping_each_output_until_the_next_allocates_nothing(scene_and_states):
@@ -127,11 +134,7 @@ def test_a_loop_keeping_each_output_until_the_next_allocates_nothing(scene_and_s
     finally:
         tracemalloc.stop()
     assert end - start < 600 and peak - start <= 4096, (end - start, peak - start)
-    fresh = _controller(scene)
-    outs = [fresh.step(states.q[k], states.v[k], float(states.t[k])) for k in range(100)]
-    for _ in range(4):  # the same ticks in the same order (the warm starts chain alike)
-        outs = [fresh.step(states.q[k], states.v[k], float(states.t[k])) for k in range(100, 400)]
-    np.testing.assert_array_equal(np.array([o.tau for o in outs]), tau)
+    np.testing.assert_array_equal(_kept_torques(scene, states, passes=4), tau)
 
 
 def test_the_kernels_by_address_leave_the_structs_counts_as_they_were(scene_and_states):
