@@ -42,7 +42,9 @@ TSID_US = 9.8
 TSID_CREDIT = ("TSID 1.10 built from its sdists against pin 4.1, side by side with qpctl's QP (15.7–16.1 µs "
                "with its 10 spheres) on the same panda_spheres states in one process, three runs of 2,500 "
                "ticks, idle 2-core Intel Xeon, 2026-12-03 (`benchmarks/tsid_tick.py`, a scratch environment; "
-               "issue #10's earlier figure was 16 µs, issue 23's 23 µs); not measured by this benchmark")
+               "issue #10's earlier figure was 16 µs, issue 23's 23 µs); on 2026-12-06 the same script gave "
+               "TSID 11.5–13.1 µs against qpctl's 12.8–14.5 µs (TSID ÷ qpctl 0.90, the floor 3.4–3.9 µs; "
+               "0.61–0.64 on 2026-12-03); not measured by this benchmark")
 
 
 def cpu_model() -> str:
