@@ -16,6 +16,9 @@ pairs changes the work inside a loop, never the number of Python calls. In tick 
    :func:`tick_qp_native`; the task hard first (:mod:`~qpctl.kernels.hard_first`):
    :func:`tick_qp_native_hard_first`.
 
+The controllers' common tick calls :func:`tick_qp_at` and :func:`tick_closed_form_at` — :func:`tick_qp`
+and :func:`tick_closed_form` on the structref given by its type and address (:func:`address_entry`).
+
 Return codes: those of :mod:`qpctl.kernels.solve`, and −1 (the dynamics overflow) or STATE_PYTHON
 (the state is waiting for Python: python-fcl's pairs — shapes other than spheres, capsules, boxes
 and cylinders — or a look-ahead drift; Python finishes it and calls the stage after the state).
