@@ -137,6 +137,26 @@ def test_a_loop_keeping_each_output_until_the_next_allocates_nothing(scene_and_s
     np.testing.assert_array_equal(_kept_torques(scene, states, passes=4), tau)
 
 
+def test_a_torque_loop_takes_turns_too(scene_and_states):
+    """``tau = ctrl.torque(q, v, t)`` keeps a view of the last output's record until the next tick:
+    that record is not overwritten (the held torque keeps its value) and the two outputs still take
+    turns (weak references to every tick's output, ``ctrl.last``, all alive at the end: two objects)."""
+    scene, states = scene_and_states
+    ctrl = _controller(scene)
+    for k in range(100):
+        ctrl.step(states.q[k], states.v[k], float(states.t[k]))
+    tau, refs = None, []
+    for k in range(100, 200):
+        prev, prev_value = tau, (None if tau is None else tau.copy())
+        tau = ctrl.torque(states.q[k], states.v[k], float(states.t[k]))
+        refs.append(weakref.ref(ctrl.last))
+        if prev is not None:
+            np.testing.assert_array_equal(prev, prev_value)
+        del prev
+    alive = [r() for r in refs]
+    assert all(o is not None for o in alive) and len({id(o) for o in alive}) == 2
+
+
 def test_the_kernels_by_address_leave_the_structs_counts_as_they_were(scene_and_states):
     """The common ticks call their kernel with the structref's address (qpctl.kernels.borrow.struct_at
     makes a reference of its own inside the kernel): over 300 ticks of the QP and of the paper law the
