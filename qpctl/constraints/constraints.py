@@ -243,7 +243,8 @@ class SelfCollisionBarrier(Constraint):
     controller's influence distance, at most d_s + REACH: a pair farther apart has no row (its rows
     would bind only at approach speeds above k₀/k₁·REACH = 1 m/s with the default gains) and costs
     the tick only its distance. Inside d_s the push apart asks no more than :func:`reach_cap` of what
-    the acceleration limits of ``joints`` (the controller's :class:`JointLimit`; None: no cap) give: with the arm nearly straight a pair's distance hardly moves with the joints, and the full
+    the acceleration limits of ``joints`` (the controller's :class:`JointLimit`; None: no cap) give:
+    with the arm nearly straight a pair's distance hardly moves with the joints, and the full
     k₀(d_s − h) asked one joint for more than its limit, tick after tick. (Not the torque window: a
     row beyond the rate limit's reach is issue 22's, and capping it there measured worse behind the
     verified backup.)"""
@@ -275,11 +276,11 @@ class SelfCollisionBarrier(Constraint):
         lower = np.where(near, -self.k1 * sp.hdot - self.k0 * (sp.distance - self.d_safe) - sp.drift, -np.inf)
         inside = np.flatnonzero(near & (sp.distance < self.d_safe))
         if inside.size and self.joints is not None:
-            lower[inside] = np.minimum(lower[inside], reach_cap(state, C[inside], None, self.joints.qdd_max))
+            lower[inside] = np.minimum(lower[inside], reach_cap(state, C[inside], qdd_max=self.joints.qdd_max))
         return Inequality(C, lower, np.full(self.rows, np.inf))
 
 
-def reach_cap(state: TickState, rows: np.ndarray, torque: TorqueLimit | None,
+def reach_cap(state: TickState, rows: np.ndarray, *, torque: TorqueLimit | None = None,
               qdd_max: np.ndarray | None = None) -> np.ndarray:
     """What each of ``rows`` (k, n) inside its margin asks at most of c q̈ this tick (k,):
     ℓ − ρ(ℓ − ℓ₋), [ℓ₋, ℓ] its range over ``torque``'s window at state.t (q̈ = M⁻¹(τ − N)) and within

@@ -69,11 +69,11 @@ def row_range(ws, c: np.ndarray, y: np.ndarray) -> tuple[float, float]:  # type:
 
 @njit(cache=True)
 def box_cap(ws, c: np.ndarray) -> float:  # type: ignore[no-untyped-def]
-    """ℓ − ρ(ℓ − ℓ₋) (ρ = :data:`REACH_SHARE`) for [ℓ₋, ℓ] = ±Σₖ |cₖ| q̈_max,k, the range of c q̈
-    within the joints' acceleration limits (its first n entries read); NaN (no cap: compared with a
-    bound, False) where a joint the row moves has none."""
+    """ℓ − ρ(ℓ − ℓ₋) = (1 − 2ρ)s (ρ = :data:`REACH_SHARE`) for [ℓ₋, ℓ] = ±s, s = Σₖ |cₖ| q̈_max,k, the
+    range of c q̈ within the joints' acceleration limits (its first n entries read); +inf (no cap)
+    where a joint the row moves has none."""
     s = 0.0
     for k in range(ws.v.shape[0]):
         if c[k] != 0.0:
             s += abs(c[k]) * ws.qdd_max[k]
-    return s - REACH_SHARE * (2.0 * s)
+    return (1.0 - 2.0 * REACH_SHARE) * s

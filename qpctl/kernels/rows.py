@@ -242,7 +242,7 @@ def self_rows(ws, C: np.ndarray, lower: np.ndarray) -> None:  # type: ignore[no-
             lower[r] = -k1 * ws.sc_hdot[r] - k0 * (d - ds) - ws.sc_drift[r]
             if box and d < ds:
                 cap = box_cap(ws, C[r])
-                if cap < lower[r]:  # noqa: PLR1730 (False for a NaN cap)
+                if cap < lower[r]:  # noqa: PLR1730
                     lower[r] = cap
         else:
             for c in range(n):

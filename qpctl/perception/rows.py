@@ -268,7 +268,7 @@ class FieldBarrier(Constraint):
             if self.torque is not None:  # rigid rows inside the margin: within reach of the torque window
                 inside = np.flatnonzero(~soft & (d < self.margin))
                 if inside.size:
-                    rhs[inside] = np.minimum(rhs[inside], reach_cap(state, rows[inside], self.torque))
+                    rhs[inside] = np.minimum(rhs[inside], reach_cap(state, rows[inside], torque=self.torque))
             C[idx] = rows
             lower[idx] = rhs
         # the soft speed rows: the point's velocity h ahead along u no faster than b
