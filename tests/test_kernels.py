@@ -397,6 +397,43 @@ def test_pinv_t_normal_equals_pinv_t(case):
         assert fast == 0
 
 
+@pytest.mark.parametrize("case", PINV_CASES)
+def test_pinv_t_apply_equals_numpy_pseudo_inverse_times_a_vector(case):
+    """pinv_t_apply (A⁺ s as one right-hand side of the normal equations) against numpy's SVD
+    pseudo-inverse times s, where numpy's condition (σ_min/σ_max, and the bound from numpy's
+    eigenvalues and inverse) says the normal equations are certainly undamped; elsewhere it declines
+    (False) and leaves z and B as they were, so that the caller forms the damped A⁺."""
+    rng = np.random.default_rng(SEED + 50 + PINV_CASES.index(case))
+    eps = 1e-3
+    applied = 0
+    for m in range(1, 7):
+        for n in range(m, 10):
+            for _ in range(3):
+                A = _pinv_case(rng, case, m, n, eps)
+                s = rng.standard_normal(m)
+                B = np.ascontiguousarray(A.T)
+                z = np.full(n, 7.0)
+                ok = S.pinv_t_apply(B, eps, np.zeros((m, m)), np.zeros((m, m + 2)), s, z)
+                G = A @ A.T
+                lam = np.linalg.eigvalsh(G)
+                expect = bool(lam[0] > 1e-12 * max(lam[-1], 1e-300)
+                              and np.sqrt(1 / (np.trace(G) * np.trace(np.linalg.inv(G)))) >= eps)
+                assert ok == expect, f"m={m} n={n}"
+                assert np.array_equal(B, A.T)
+                if ok:
+                    applied += 1
+                    ref = np.linalg.pinv(A) @ s
+                    np.testing.assert_allclose(z, ref, rtol=0, atol=1e-9 * max(np.abs(ref).max(), 1e-300))
+                else:
+                    assert (z == 7.0).all()
+    if case == "full":
+        assert applied == 3 * sum(10 - m for m in range(1, 7))
+    if case in ("below", "far_below"):
+        assert applied == 3 * 9
+    if case == "zero":
+        assert applied == 0
+
+
 # ---------------------------------------------------------------------------------------------------
 # 2. qpctl.kernels.geometry
 # ---------------------------------------------------------------------------------------------------

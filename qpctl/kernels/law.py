@@ -32,6 +32,8 @@ from qpctl.kernels.small import (
     chol_solve,
     cholesky,
     gram_lower,
+    pinv_t,
+    pinv_t_apply,
     pinv_t_normal,
     solve_lower,
     solve_lower_t,
@@ -83,22 +85,58 @@ def reference_velocity(ws) -> None:  # type: ignore[no-untyped-def]
 
 @njit(cache=True)
 def _weighted_pinv(ws, L: np.ndarray, out: np.ndarray, mode: int) -> bool:  # type: ignore[no-untyped-def]
-    """out (n, m) = J_W⁺ of the task Jacobian: mode 0 unweighted, 1 with W = L Lᵀ (a Cholesky factor),
-    2 with W = MᵀM (L is M's Cholesky factor). Returns whether the damping was used."""
+    """out (n, m) = J_W⁺ of the task Jacobian: mode 0 unweighted, 2 with W = MᵀM (L is M's Cholesky
+    factor): the closed forms' J_M⁺ and J⁺. Returns whether the damping was used."""
+    n, m = ws.Bt.shape
+    Bt = ws.Bt
+    for i in range(n):
+        for r in range(m):
+            Bt[i, r] = ws.J[r, i]
+    if mode == 2:
+        chol_solve(L, Bt)  # J̃ᵀ = M⁻¹ Jᵀ
+    singular, _ratio = pinv_t_normal(Bt, ws.fpar[FP_PINV_EPS], ws.Vm, out, ws.Gm)
+    if mode == 2:
+        chol_solve(L, out)  # M⁻¹ J̃⁺
+    return singular
+
+
+@njit(cache=True)
+def _null_error(ws, mode: int) -> bool:  # type: ignore[no-untyped-def]
+    """e_N = (I − J_b⁺J)(g − q̇) into ``ws.e_null``, J_b⁺ the task Jacobian's pseudo-inverse weighted
+    by W_b = L_b L_bᵀ (mode 1) or unweighted (mode 0): where the normal equations are certainly
+    undamped, J_b⁺ (J y) as one right-hand side, L_b⁻ᵀ B (BᵀB)⁻¹ J y with B = L_b⁻¹ Jᵀ
+    (:func:`~qpctl.kernels.small.pinv_t_apply`), without forming J_b⁺; else J_b⁺ itself, damped
+    (:func:`_weighted_pinv`'s). Returns whether the damping was used."""
     n, m = ws.Bt.shape
     Bt = ws.Bt
     for i in range(n):
         for r in range(m):
             Bt[i, r] = ws.J[r, i]
     if mode == 1:
-        solve_lower(L, Bt)  # J̃ᵀ = L⁻¹ Jᵀ
-    elif mode == 2:
-        chol_solve(L, Bt)  # J̃ᵀ = M⁻¹ Jᵀ
-    singular, _ratio = pinv_t_normal(Bt, ws.fpar[FP_PINV_EPS], ws.Vm, out, ws.Gm)
-    if mode == 1:
-        solve_lower_t(L, out)  # L⁻ᵀ J̃⁺
-    elif mode == 2:
-        chol_solve(L, out)  # M⁻¹ J̃⁺
+        solve_lower(ws.Lb, Bt)  # B = J̃ᵀ = L⁻¹ Jᵀ
+    gv, Jgv, z = ws.w1, ws.w3, ws.e_null
+    for i in range(n):
+        gv[i] = ws.g[i] - ws.v[i]
+    for r in range(m):
+        s = 0.0
+        for i in range(n):
+            s += ws.J[r, i] * gv[i]
+        Jgv[r] = s
+    singular = False
+    if pinv_t_apply(Bt, ws.fpar[FP_PINV_EPS], ws.Vm, ws.Gm, Jgv, z):
+        if mode == 1:
+            solve_lower_t(ws.Lb, z)  # L⁻ᵀ J̃⁺ J y
+    else:  # near the damping threshold: J_b⁺ in full, damped (pinv_t), then its product
+        singular, _ratio = pinv_t(Bt, ws.fpar[FP_PINV_EPS], ws.Vm, ws.Jb)
+        if mode == 1:
+            solve_lower_t(ws.Lb, ws.Jb)
+        for i in range(n):
+            s = 0.0
+            for r in range(m):
+                s += ws.Jb[i, r] * Jgv[r]
+            z[i] = s
+    for i in range(n):
+        z[i] = gv[i] - z[i]
     return singular
 
 
@@ -126,24 +164,9 @@ def law_terms(ws, weighted: bool) -> bool:  # type: ignore[no-untyped-def]
         gram_lower(A, k, W)
         add_trace_ridge(W)
         cholesky(W, ws.Lb)
-        singular = _weighted_pinv(ws, ws.Lb, ws.Jb, 1)
-    else:
-        singular = _weighted_pinv(ws, ws.Lb, ws.Jb, 0)
-    ws.flags[FLAG_SINGULAR_TERMS] = 1 if singular else 0
     # e_N = (I − J_b⁺J)(g − q̇)
-    gv, Jgv = ws.w1, ws.w3
-    for i in range(n):
-        gv[i] = ws.g[i] - ws.v[i]
-    for r in range(m):
-        s = 0.0
-        for i in range(n):
-            s += ws.J[r, i] * gv[i]
-        Jgv[r] = s
-    for i in range(n):
-        s = gv[i]
-        for r in range(m):
-            s -= ws.Jb[i, r] * Jgv[r]
-        ws.e_null[i] = s
+    singular = _null_error(ws, 1 if weighted else 0)
+    ws.flags[FLAG_SINGULAR_TERMS] = 1 if singular else 0
     if ws.ipar[IP_JDOT_EN] != 0:
         for r in range(m):
             s = 0.0

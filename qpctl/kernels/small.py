@@ -12,6 +12,9 @@ Their references are numpy's own routines and :func:`qpctl.linalg.weighted_pinv`
 * :func:`pinv_t` — the damped pseudo-inverse of a wide matrix given by its transpose, by one-sided
   (Hestenes) Jacobi SVD: accurate to rounding like LAPACK's SVD, without squaring the condition
   number as the normal equations would; with the variable damping of :mod:`qpctl.linalg`.
+* :func:`normal_factor`, :func:`pinv_t_normal`, :func:`pinv_t_apply` — the normal equations where a
+  bound says they are certainly undamped: A⁺ itself, or A⁺ s for one vector s (the law's e_N), and
+  :func:`pinv_t` where they are not.
 """
 
 from __future__ import annotations
@@ -190,15 +193,12 @@ def pinv_t(B: np.ndarray, eps: float, V: np.ndarray, out: np.ndarray) -> tuple[b
 
 
 @njit(cache=True)
-def pinv_t_normal(B: np.ndarray, eps: float, V: np.ndarray, out: np.ndarray,
-                  G: np.ndarray) -> tuple[bool, float]:
-    """:func:`pinv_t`, by the normal equations where that is certainly undamped: A⁺ = B (BᵀB)⁻¹ by
-    Cholesky when the lower bound √(1/(tr G · tr G⁻¹)) ≤ σ_min/σ_max of G = BᵀB = A Aᵀ (tr G ≥ λ_max,
-    tr G⁻¹ ≥ 1/λ_min) is at least ``eps`` (then :func:`pinv_t` would not damp either); otherwise, and
-    where G is not positive definite, :func:`pinv_t` itself. The bound is loose by at most a factor
-    m, so the Jacobi SVD runs only within a factor m of the damping threshold. Returns (singular,
-    that lower bound) on the fast path, :func:`pinv_t`'s pair otherwise; B is kept on the fast path.
-    G is an (m, m + 2) scratch (the Gram matrix, then two vectors): nothing is allocated."""
+def normal_factor(B: np.ndarray, eps: float, V: np.ndarray, G: np.ndarray) -> tuple[bool, float]:
+    """The normal equations of B = Aᵀ (n, m) where they are certainly undamped: G = BᵀB = A Aᵀ into
+    ``G[:, :m]``, its Cholesky factor into V (m, m), and whether the lower bound √(1/(tr G · tr G⁻¹))
+    ≤ σ_min/σ_max (tr G ≥ λ_max, tr G⁻¹ ≥ 1/λ_min) is at least ``eps`` — then :func:`pinv_t` would not
+    damp. Returns (that, the bound); (False, 0) where G is not positive definite. G is (m, m + 2):
+    its column m is scratch."""
     n, m = B.shape
     tr = 0.0
     for p in range(m):
@@ -209,34 +209,76 @@ def pinv_t_normal(B: np.ndarray, eps: float, V: np.ndarray, out: np.ndarray,
             G[p, q] = G[q, p] = s
         tr += G[p, p]
     if not (tr > 0.0 and cholesky(G, V)):
-        return pinv_t(B, eps, V, out)
+        return False, 0.0
     # tr G⁻¹ = ‖L⁻¹‖_F², column by column of L⁻¹ (forward substitution on the unit vectors)
-    col = G[:, m]
     tr_inv = 0.0
     for j in range(m):
         for i in range(m):
             s = 1.0 if i == j else 0.0
             for k in range(j, i):
-                s -= V[i, k] * col[k]
-            col[i] = s / V[i, i] if i >= j else 0.0
+                s -= V[i, k] * G[k, m]
+            G[i, m] = s / V[i, i] if i >= j else 0.0
             if i >= j:
-                tr_inv += col[i] * col[i]
+                tr_inv += G[i, m] * G[i, m]
     bound = math.sqrt(1.0 / (tr * tr_inv))
-    if bound < eps:
+    return bound >= eps, bound
+
+
+@njit(cache=True, inline="always")
+def _gram_solve(V: np.ndarray, G: np.ndarray, m: int) -> None:
+    """G[:, m + 1] ← (V Vᵀ)⁻¹ G[:, m + 1] (V the normal matrix's Cholesky factor)."""
+    for j in range(m):
+        s = G[j, m + 1]
+        for k in range(j):
+            s -= V[j, k] * G[k, m + 1]
+        G[j, m + 1] = s / V[j, j]
+    for j in range(m - 1, -1, -1):
+        s = G[j, m + 1]
+        for k in range(j + 1, m):
+            s -= V[k, j] * G[k, m + 1]
+        G[j, m + 1] = s / V[j, j]
+
+
+@njit(cache=True)
+def pinv_t_normal(B: np.ndarray, eps: float, V: np.ndarray, out: np.ndarray,
+                  G: np.ndarray) -> tuple[bool, float]:
+    """:func:`pinv_t`, by the normal equations where that is certainly undamped (:func:`normal_factor`):
+    A⁺ = B (BᵀB)⁻¹ by Cholesky; otherwise, and where G is not positive definite, :func:`pinv_t` itself.
+    The bound is loose by at most a factor m, so the Jacobi SVD runs only within a factor m of the
+    damping threshold. Returns (singular, that lower bound) on the fast path, :func:`pinv_t`'s pair
+    otherwise; B is kept on the fast path. G is an (m, m + 2) scratch (the Gram matrix, then two
+    vectors): nothing is allocated."""
+    n, m = B.shape
+    ok, bound = normal_factor(B, eps, V, G)
+    if not ok:
         return pinv_t(B, eps, V, out)
     # out = B G⁻¹, row by row: G y = B[i, :]
-    y = G[:, m + 1]
     for i in range(n):
         for j in range(m):
-            s = B[i, j]
-            for k in range(j):
-                s -= V[j, k] * y[k]
-            y[j] = s / V[j, j]
-        for j in range(m - 1, -1, -1):
-            s = y[j]
-            for k in range(j + 1, m):
-                s -= V[k, j] * y[k]
-            y[j] = s / V[j, j]
+            G[j, m + 1] = B[i, j]
+        _gram_solve(V, G, m)
         for j in range(m):
-            out[i, j] = y[j]
+            out[i, j] = G[j, m + 1]
     return False, bound
+
+
+@njit(cache=True)
+def pinv_t_apply(B: np.ndarray, eps: float, V: np.ndarray, G: np.ndarray, s: np.ndarray,
+                 z: np.ndarray) -> bool:
+    """z (n,) = A⁺ s for s (m,), B = Aᵀ (n, m), where the normal equations are certainly undamped
+    (:func:`normal_factor`): z = B (BᵀB)⁻¹ s — one right-hand side, not A⁺'s m columns. Returns False
+    (z untouched, B kept, G's Gram matrix and V its factor when positive definite) where they are
+    not: then form A⁺ with :func:`pinv_t`, which damps."""
+    n, m = B.shape
+    ok, _bound = normal_factor(B, eps, V, G)
+    if not ok:
+        return False
+    for j in range(m):
+        G[j, m + 1] = s[j]
+    _gram_solve(V, G, m)
+    for i in range(n):
+        acc = 0.0
+        for j in range(m):
+            acc += B[i, j] * G[j, m + 1]
+        z[i] = acc
+    return True

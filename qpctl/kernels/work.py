@@ -168,7 +168,7 @@ FIELDS = (
     "g",  # (n,) obstacle reference joint velocity [rad/s]
     "e_null",  # (n,) null-space velocity error [rad/s]
     "qdd0",  # (n,) null-space acceleration target [rad/s²]
-    "Jb",  # (n, m) J_b⁺ (Ryu-weighted, or Moore–Penrose for Hsu)
+    "Jb",  # (n, m) J_b⁺ (Ryu-weighted, or Moore–Penrose for Hsu), formed only where damped (law._null_error)
     "Jp",  # (n, m) J_M⁺ of the closed form
     "qdd",  # (n,) commanded acceleration [rad/s²]
     "tau",  # (n,) commanded torque [N·m]
@@ -177,7 +177,7 @@ FIELDS = (
     "S",  # (n, n) scratch
     "Bt",  # (n, m) scratch: the transposed weighted Jacobian
     "Vm",  # (m, m) scratch: Jacobi rotations
-    "Gm",  # (m, m + 2) scratch: pinv_t_normal's Gram matrix and vectors
+    "Gm",  # (m, m + 2) scratch: the normal equations' Gram matrix and vectors (qpctl.kernels.small.normal_factor)
     "gA",  # (n, 3 max(KC, L)) scratch: the weighted rows of g's and W_b's normal matrices, packed
     "w1",  # (n,) scratch
     "w2",  # (n,) scratch
