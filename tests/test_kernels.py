@@ -286,6 +286,14 @@ def _pinv_case(rng: np.random.Generator, case: str, m: int, n: int, eps: float) 
     return A
 
 
+def _pinv_cases(rng: np.random.Generator, case: str, eps: float):  # type: ignore[no-untyped-def]
+    """(m, n, A): three matrices of the kind ``case`` for each m = 1..6 rows and n = m..9 columns."""
+    for m in range(1, 7):
+        for n in range(m, 10):
+            for _ in range(3):
+                yield m, n, _pinv_case(rng, case, m, n, eps)
+
+
 @pytest.mark.parametrize("case", PINV_CASES)
 def test_pinv_t_equals_numpy_svd_damped_pseudo_inverse(case):
     """pinv_t against weighted_pinv (numpy's LAPACK SVD, same damping) for m = 1..6 rows, n = m..9
@@ -295,32 +303,29 @@ def test_pinv_t_equals_numpy_svd_damped_pseudo_inverse(case):
     rng = np.random.default_rng(SEED + PINV_CASES.index(case))
     eps = 1e-3
     checked = 0
-    for m in range(1, 7):
-        for n in range(m, 10):
-            for _ in range(3):
-                A = _pinv_case(rng, case, m, n, eps)
-                B = np.ascontiguousarray(A.T)
-                V, out = np.full((m, m), 5.0), np.full((n, m), 7.0)
-                singular, ratio = S.pinv_t(B, eps, V, out)
-                ref = weighted_pinv(A, None, eps=eps)
-                assert singular == ref.singular, f"m={m} n={n}: singular {singular} != {ref.singular}"
-                assert abs(ratio - ref.sigma_ratio) <= 1e-12, f"m={m} n={n}: ratio {ratio} != {ref.sigma_ratio}"
-                if case == "zero":
-                    assert singular and ratio == 0.0 and np.array_equal(out, np.zeros((n, m)))
-                    checked += 1
-                    continue
-                smax = np.linalg.svd(A, compute_uv=False)[0]
-                tol = 1e-11 * np.abs(ref.matrix).max()
-                if ref.singular:  # the damped inverse's own sensitivity to σ_min (module docstring)
-                    tol += 100 * np.finfo(float).eps / (eps**2 * smax)
-                err = np.abs(out - ref.matrix).max()
-                assert err <= tol, f"m={m} n={n}: |Δ| = {err:.3e} > {tol:.3e}"
-                if case in ("full", "above"):  # undamped: the Moore–Penrose inverse itself
-                    assert not singular
-                    np.testing.assert_allclose(out, np.linalg.pinv(A), rtol=0, atol=1e-11 * np.abs(out).max())
-                if case in ("below", "far_below", "duplicate_row", "zero_row") and m > 1:
-                    assert singular
-                checked += 1
+    for m, n, A in _pinv_cases(rng, case, eps):
+        B = np.ascontiguousarray(A.T)
+        V, out = np.full((m, m), 5.0), np.full((n, m), 7.0)
+        singular, ratio = S.pinv_t(B, eps, V, out)
+        ref = weighted_pinv(A, None, eps=eps)
+        assert singular == ref.singular, f"m={m} n={n}: singular {singular} != {ref.singular}"
+        assert abs(ratio - ref.sigma_ratio) <= 1e-12, f"m={m} n={n}: ratio {ratio} != {ref.sigma_ratio}"
+        if case == "zero":
+            assert singular and ratio == 0.0 and np.array_equal(out, np.zeros((n, m)))
+            checked += 1
+            continue
+        smax = np.linalg.svd(A, compute_uv=False)[0]
+        tol = 1e-11 * np.abs(ref.matrix).max()
+        if ref.singular:  # the damped inverse's own sensitivity to σ_min (module docstring)
+            tol += 100 * np.finfo(float).eps / (eps**2 * smax)
+        err = np.abs(out - ref.matrix).max()
+        assert err <= tol, f"m={m} n={n}: |Δ| = {err:.3e} > {tol:.3e}"
+        if case in ("full", "above"):  # undamped: the Moore–Penrose inverse itself
+            assert not singular
+            np.testing.assert_allclose(out, np.linalg.pinv(A), rtol=0, atol=1e-11 * np.abs(out).max())
+        if case in ("below", "far_below", "duplicate_row", "zero_row") and m > 1:
+            assert singular
+        checked += 1
     assert checked == 3 * sum(10 - m for m in range(1, 7))
 
 
@@ -362,6 +367,15 @@ def test_gram_lower_equals_numpy():
     assert np.isnan(H[2, :3]).all() and np.isnan(H[3, 2]) and np.isnan(H[2, 2]) and np.isfinite(H[1, 0])
 
 
+def _normal_equations_undamped(A: np.ndarray, eps: float) -> bool:
+    """The normal equations' fast path's condition, from numpy: G = A Aᵀ positive definite and the
+    bound √(1/(tr G · tr G⁻¹)) at least eps."""
+    G = A @ A.T
+    lam = np.linalg.eigvalsh(G)
+    return bool(lam[0] > 1e-12 * max(lam[-1], 1e-300)
+                and np.sqrt(1 / (np.trace(G) * np.trace(np.linalg.inv(G)))) >= eps)
+
+
 @pytest.mark.parametrize("case", PINV_CASES)
 def test_pinv_t_normal_equals_pinv_t(case):
     """pinv_t_normal (the normal equations where the bound certainly says undamped) against pinv_t on
@@ -371,24 +385,18 @@ def test_pinv_t_normal_equals_pinv_t(case):
     rng = np.random.default_rng(SEED + 40 + PINV_CASES.index(case))
     eps = 1e-3
     fast = 0
-    for m in range(1, 7):
-        for n in range(m, 10):
-            for _ in range(3):
-                A = _pinv_case(rng, case, m, n, eps)
-                B1, B2 = np.ascontiguousarray(A.T), np.ascontiguousarray(A.T)
-                o1, o2 = np.full((n, m), 7.0), np.full((n, m), 7.0)
-                s1, _ = S.pinv_t(B1, eps, np.zeros((m, m)), o1)
-                s2, bound = S.pinv_t_normal(B2, eps, np.zeros((m, m)), o2, np.zeros((m, m + 2)))
-                assert s1 == s2, f"m={m} n={n}: singular {s2} != {s1}"
-                np.testing.assert_allclose(o2, o1, rtol=0, atol=1e-9 * max(np.abs(o1).max(), 1e-300))
-                G = A @ A.T  # the fast path's condition, from numpy
-                lam = np.linalg.eigvalsh(G)
-                took_fast = bool(lam[0] > 1e-12 * max(lam[-1], 1e-300)
-                                 and np.sqrt(1 / (np.trace(G) * np.trace(np.linalg.inv(G)))) >= eps)
-                fast += took_fast
-                if took_fast:  # the bound: a lower bound on σ_min/σ_max, at least eps; B kept
-                    sv = np.linalg.svd(A, compute_uv=False)
-                    assert eps <= bound <= sv[-1] / sv[0] * (1 + 1e-9) and np.array_equal(B2, A.T)
+    for m, n, A in _pinv_cases(rng, case, eps):
+        B1, B2 = np.ascontiguousarray(A.T), np.ascontiguousarray(A.T)
+        o1, o2 = np.full((n, m), 7.0), np.full((n, m), 7.0)
+        s1, _ = S.pinv_t(B1, eps, np.zeros((m, m)), o1)
+        s2, bound = S.pinv_t_normal(B2, eps, np.zeros((m, m)), o2, np.zeros((m, m + 2)))
+        assert s1 == s2, f"m={m} n={n}: singular {s2} != {s1}"
+        np.testing.assert_allclose(o2, o1, rtol=0, atol=1e-9 * max(np.abs(o1).max(), 1e-300))
+        took_fast = _normal_equations_undamped(A, eps)
+        fast += took_fast
+        if took_fast:  # the bound: a lower bound on σ_min/σ_max, at least eps; B kept
+            sv = np.linalg.svd(A, compute_uv=False)
+            assert eps <= bound <= sv[-1] / sv[0] * (1 + 1e-9) and np.array_equal(B2, A.T)
     if case == "full":
         assert fast == 3 * sum(10 - m for m in range(1, 7))
     if case in ("below", "far_below"):
@@ -406,26 +414,20 @@ def test_pinv_t_apply_equals_numpy_pseudo_inverse_times_a_vector(case):
     rng = np.random.default_rng(SEED + 50 + PINV_CASES.index(case))
     eps = 1e-3
     applied = 0
-    for m in range(1, 7):
-        for n in range(m, 10):
-            for _ in range(3):
-                A = _pinv_case(rng, case, m, n, eps)
-                s = rng.standard_normal(m)
-                B = np.ascontiguousarray(A.T)
-                z = np.full(n, 7.0)
-                ok = S.pinv_t_apply(B, eps, np.zeros((m, m)), np.zeros((m, m + 2)), s, z)
-                G = A @ A.T
-                lam = np.linalg.eigvalsh(G)
-                expect = bool(lam[0] > 1e-12 * max(lam[-1], 1e-300)
-                              and np.sqrt(1 / (np.trace(G) * np.trace(np.linalg.inv(G)))) >= eps)
-                assert ok == expect, f"m={m} n={n}"
-                assert np.array_equal(B, A.T)
-                if ok:
-                    applied += 1
-                    ref = np.linalg.pinv(A) @ s
-                    np.testing.assert_allclose(z, ref, rtol=0, atol=1e-9 * max(np.abs(ref).max(), 1e-300))
-                else:
-                    assert (z == 7.0).all()
+    for m, n, A in _pinv_cases(rng, case, eps):
+        s = rng.standard_normal(m)
+        B = np.ascontiguousarray(A.T)
+        z = np.full(n, 7.0)
+        ok = S.pinv_t_apply(B, eps, np.zeros((m, m)), np.zeros((m, m + 2)), s, z)
+        expect = _normal_equations_undamped(A, eps)
+        assert ok == expect, f"m={m} n={n}"
+        assert np.array_equal(B, A.T)
+        if ok:
+            applied += 1
+            ref = np.linalg.pinv(A) @ s
+            np.testing.assert_allclose(z, ref, rtol=0, atol=1e-9 * max(np.abs(ref).max(), 1e-300))
+        else:
+            assert (z == 7.0).all()
     if case == "full":
         assert applied == 3 * sum(10 - m for m in range(1, 7))
     if case in ("below", "far_below"):

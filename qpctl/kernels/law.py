@@ -84,14 +84,20 @@ def reference_velocity(ws) -> None:  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
+def _jacobian_t(ws) -> np.ndarray:  # type: ignore[no-untyped-def]
+    """The task Jacobian's transpose into the scratch ``ws.Bt`` (n, m), returned."""
+    Bt = ws.Bt
+    for i in range(Bt.shape[0]):
+        for r in range(Bt.shape[1]):
+            Bt[i, r] = ws.J[r, i]
+    return Bt
+
+
+@njit(cache=True)
 def _weighted_pinv(ws, L: np.ndarray, out: np.ndarray, mode: int) -> bool:  # type: ignore[no-untyped-def]
     """out (n, m) = J_W⁺ of the task Jacobian: mode 0 unweighted, 2 with W = MᵀM (L is M's Cholesky
     factor): the closed forms' J_M⁺ and J⁺. Returns whether the damping was used."""
-    n, m = ws.Bt.shape
-    Bt = ws.Bt
-    for i in range(n):
-        for r in range(m):
-            Bt[i, r] = ws.J[r, i]
+    Bt = _jacobian_t(ws)
     if mode == 2:
         chol_solve(L, Bt)  # J̃ᵀ = M⁻¹ Jᵀ
     singular, _ratio = pinv_t_normal(Bt, ws.fpar[FP_PINV_EPS], ws.Vm, out, ws.Gm)
@@ -107,11 +113,8 @@ def _null_error(ws, mode: int) -> bool:  # type: ignore[no-untyped-def]
     undamped, J_b⁺ (J y) as one right-hand side, L_b⁻ᵀ B (BᵀB)⁻¹ J y with B = L_b⁻¹ Jᵀ
     (:func:`~qpctl.kernels.small.pinv_t_apply`), without forming J_b⁺; else J_b⁺ itself, damped
     (:func:`_weighted_pinv`'s). Returns whether the damping was used."""
-    n, m = ws.Bt.shape
-    Bt = ws.Bt
-    for i in range(n):
-        for r in range(m):
-            Bt[i, r] = ws.J[r, i]
+    Bt = _jacobian_t(ws)
+    n, m = Bt.shape
     if mode == 1:
         solve_lower(ws.Lb, Bt)  # B = J̃ᵀ = L⁻¹ Jᵀ
     gv, Jgv, z = ws.w1, ws.w3, ws.e_null
