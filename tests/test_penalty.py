@@ -158,10 +158,14 @@ def test_daqp_native_hard_first_gives_the_relaxed_answer():
 
 
 def test_daqp_native_hard_first_at_a_singular_configuration():
-    """The planar arm starting outstretched (the x row of J ~1e-5): DAQP drops the nearly dependent
-    task row of the hard QP and reports it solved with the row missed by 0.2 m/s²; the hard-first
-    tick must see that (:func:`qpctl.kernels.hard_first.task_rows_hold`) and take the relaxed QP. Over the
-    whole run its torques equal those of the relaxed QP solved every tick."""
+    """The planar arm starting outstretched (the x row of J ~1e-5): the hard QP's answer is not the
+    relaxed QP's, and the hard-first tick must refuse it and take the relaxed QP. DAQP drops the nearly
+    dependent task row and reports the hard QP solved with the row missed by 0.2 m/s² (caught by
+    :func:`qpctl.kernels.hard_first.task_rows_hold`, "inaccurate"); since the minimum on the task's
+    rows answers the hard QP where no inequality binds (:mod:`qpctl.kernels.equality_qp`), it meets the
+    rows exactly but with multipliers beyond the ℓ₁ weight ("penalty_inexact"). Either way: refused at
+    least once, and over the whole run the torques equal those of the relaxed QP solved every tick
+    (task_rows_hold's own cases: tests/test_relaxation.py)."""
     def scenario(relaxation: str) -> Scenario:
         raw = {"name": "singular", "robot": {"kind": "planar3", "q0": [0.0, 0.0, 0.0]},
                "path": {"waypoints": [[1.5, -1.5]], "duration": 1.2},
@@ -176,7 +180,7 @@ def test_daqp_native_hard_first_at_a_singular_configuration():
         b = always.step(traj.q[k], traj.v[k], float(traj.t[k]))
         scale = max(float(np.abs(b.tau).max()), 1.0)
         np.testing.assert_allclose(a.tau, b.tau, rtol=0, atol=1e-6 * scale, err_msg=str(k))
-        refused += a.info.get("hard_status") == "inaccurate"
+        refused += a.info.get("hard_status") in ("inaccurate", "penalty_inexact")
     assert refused >= 1
 
 

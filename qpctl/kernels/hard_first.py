@@ -14,6 +14,7 @@ from numba import njit
 from qpctl.kernels.clock import now_us
 from qpctl.kernels.codes import IP_N_IN, R_BUILD_US, R_ITERATIONS, R_SOLVE_US, record_scalars
 from qpctl.kernels.daqp import native_solve
+from qpctl.kernels.equality_qp import equality_minimum, inequality_active
 from qpctl.kernels.finish import qp_finish
 from qpctl.kernels.solve import native_solve_finish, qp_rebuild, qp_terms_and_build
 
@@ -93,11 +94,18 @@ def qp_tick_native_hard_first_from(nq, try_hard: bool, t0: float) -> tuple[int, 
             ws.rec[s + R_BUILD_US], ws.rec[s + R_SOLVE_US] = build, 0.0
             return code, hard
         dqh = nq.dqh
-        ok = native_solve(dqh) > 0
         xh = nq.xh
         nvh = xh.shape[0]
         n_in = ws.ipar[IP_N_IN]
         m = ws.a.shape[0]
+        # no inequality binding: the minimum on the task's rows is the answer, DAQP not called (equality_qp)
+        if (nvh == ws.N.shape[0] and not inequality_active(dqh)
+                and equality_minimum(nq.Hh, nq.fh, rowsh, buh, blh, n_in, m, xh, nq.lamh, ws.S, ws.Bt, ws.Vm, ws.Gm,
+                                     ws.w1)):
+            dqh.flag[0], dqh.flag[1] = 1, 0  # DAQP's words for it: solved, no iteration
+            ok = True
+        else:
+            ok = native_solve(dqh) > 0
         if not ok:
             hard = 3
         elif not task_rows_hold(xh, rowsh, buh, n_in, m, tol):
