@@ -44,7 +44,8 @@ TSID_CREDIT = ("TSID 1.10 built from its sdists against pin 4.1, side by side wi
                "ticks, idle 2-core Intel Xeon, 2026-12-03 (`benchmarks/tsid_tick.py`, a scratch environment; "
                "issue #10's earlier figure was 16 µs, issue 23's 23 µs); on 2026-12-06 the same script gave "
                "TSID 11.5–13.1 µs against qpctl's 12.8–14.5 µs (TSID ÷ qpctl 0.90, the floor 3.4–3.9 µs; "
-               "0.61–0.64 on 2026-12-03); not measured by this benchmark")
+               "0.61–0.64 on 2026-12-03), and after the equality shortcut 0.89–0.95 (0.84–0.90 the code "
+               "before, alternated, the floor 5.2–5.5 µs); not measured by this benchmark")
 
 
 def cpu_model() -> str:
