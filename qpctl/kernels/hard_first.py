@@ -78,7 +78,10 @@ def qp_tick_native_hard_first_from(nq, try_hard: bool, t0: float) -> tuple[int, 
     :func:`qp_tick_native`'s, for the answer used; hard: −1 not tried, 0 the hard answer used, 3 DAQP
     failed on it, 4 rejected by the check of its rows (the task rows, :func:`task_rows_hold`, or the
     others, :func:`qp_finish`), 7 not the relaxed QP's answer. ``t0``: the clock [µs] at which the
-    build's time starts (the state's end, read once for both: :func:`qpctl.kernels.tick.tick_qp`)."""
+    build's time starts (the state's end, read once for both: :func:`qpctl.kernels.tick.tick_qp`).
+    Where DAQP's working set holds no inequality, the hard QP's minimum on the task's rows is tried
+    first and, where every other row and bound holds there, is the answer without DAQP
+    (:mod:`~qpctl.kernels.equality_qp`; DAQP's flags then read solved, 0 iterations)."""
     ws = nq.ws
     ts = ws.ts
     s = record_scalars(ws.N.shape[0], ws.a.shape[0])

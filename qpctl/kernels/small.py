@@ -12,7 +12,7 @@ Their references are numpy's own routines and :func:`qpctl.linalg.weighted_pinv`
 * :func:`pinv_t` — the damped pseudo-inverse of a wide matrix given by its transpose, by one-sided
   (Hestenes) Jacobi SVD: accurate to rounding like LAPACK's SVD, without squaring the condition
   number as the normal equations would; with the variable damping of :mod:`qpctl.linalg`.
-* :func:`normal_factor`, :func:`pinv_t_normal`, :func:`pinv_t_apply` — the normal equations where a
+* :func:`normal_factor`, :func:`normal_solve`, :func:`pinv_t_normal`, :func:`pinv_t_apply` — the normal equations where a
   bound says they are certainly undamped: A⁺ itself, or A⁺ s for one vector s (the law's e_N), and
   :func:`pinv_t` where they are not.
 """
@@ -225,8 +225,9 @@ def normal_factor(B: np.ndarray, eps: float, V: np.ndarray, G: np.ndarray) -> tu
 
 
 @njit(cache=True, inline="always")
-def _gram_solve(V: np.ndarray, G: np.ndarray, m: int) -> None:
-    """G[:, m + 1] ← (V Vᵀ)⁻¹ G[:, m + 1] (V the normal matrix's Cholesky factor)."""
+def normal_solve(V: np.ndarray, G: np.ndarray, m: int) -> None:
+    """G[:, m + 1] ← (V Vᵀ)⁻¹ G[:, m + 1]: V an m × m Cholesky factor (of the normal matrix in G's first
+    m columns, :func:`normal_factor`), G's column m + 1 the right-hand side, solved in place."""
     for j in range(m):
         s = G[j, m + 1]
         for k in range(j):
@@ -256,7 +257,7 @@ def pinv_t_normal(B: np.ndarray, eps: float, V: np.ndarray, out: np.ndarray,
     for i in range(n):
         for j in range(m):
             G[j, m + 1] = B[i, j]
-        _gram_solve(V, G, m)
+        normal_solve(V, G, m)
         for j in range(m):
             out[i, j] = G[j, m + 1]
     return False, bound
@@ -275,7 +276,7 @@ def pinv_t_apply(B: np.ndarray, eps: float, V: np.ndarray, G: np.ndarray, s: np.
         return False
     for j in range(m):
         G[j, m + 1] = s[j]
-    _gram_solve(V, G, m)
+    normal_solve(V, G, m)
     for i in range(n):
         acc = 0.0
         for j in range(m):
