@@ -19,7 +19,7 @@ from qpctl.constraints.constraints import TorqueLimit
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.kernels import codes
 from qpctl.kernels import tick as K
-from qpctl.kernels.native_qp import new_native_qp
+from qpctl.kernels.native_qp import new_native_qp, shortcut_scratch
 from qpctl.law import LawGains
 from qpctl.outcome import SOLUTION_RTOL
 from qpctl.paths import WaypointPath
@@ -93,7 +93,7 @@ def warmup() -> dict[str, float]:
         nat_r.setup()
         K.native_solve(nat_r.dq)
         K.native_solve_finish(ws.work, relaxed.rows, relaxed.bu, relaxed.bl, nat_r.dq, nat_r.x, SOLUTION_RTOL)
-        args = (*nat_h.kernel_args, nat_h.lam, *nat_r.kernel_args, SOLUTION_RTOL, 1e6)
+        args = (*nat_h.kernel_args, nat_h.lam, *nat_r.kernel_args, SOLUTION_RTOL, 1e6, *shortcut_scratch(nat_h.x.shape[0]))
         packed = new_native_qp(ws.work, *args)
         for try_hard in (True, False):  # the whole tick, then its part after the state (Python's turn)
             ws.rigid(q, v)

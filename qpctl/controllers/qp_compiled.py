@@ -41,7 +41,7 @@ from qpctl.errors import InvalidStateError
 from qpctl.fallbacks import FallbackContext
 from qpctl.kernels import codes
 from qpctl.kernels import tick as K
-from qpctl.kernels.native_qp import new_native_qp
+from qpctl.kernels.native_qp import new_native_qp, shortcut_scratch
 from qpctl.law import LawGains
 from qpctl.outcome import SOLUTION_RTOL
 from qpctl.qp import Problem, Solution
@@ -75,7 +75,8 @@ class CompiledTick:
         if native:
             nh, nr = self.hard.nat, self.relaxed.nat
             assert nh is not None and nr is not None
-            self.native_args = (*nh.kernel_args, nh.lam, *nr.kernel_args, SOLUTION_RTOL, float(ws.spec.slack_l1))
+            self.native_args = (*nh.kernel_args, nh.lam, *nr.kernel_args, SOLUTION_RTOL, float(ws.spec.slack_l1),
+                                *shortcut_scratch(nh.x.shape[0]))
         # the one-call tick's QP arguments as one compiled argument (qpctl.kernels.native_qp)
         self.packed: Any = None if self.native_args is None else new_native_qp(ws.work, *self.native_args)
         self._last_problem: Problem | None = None

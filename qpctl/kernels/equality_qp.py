@@ -1,29 +1,34 @@
-"""Stage 6 of the tick, before DAQP: the hard QP's answer where no inequality binds.
+"""Stage 6 of the tick, before DAQP: the hard QP's answer on DAQP's last working set.
 
 The hard QP (the task's rows as equalities, :mod:`~qpctl.kernels.hard_first`) is
 
     min ½xᵀHx + fᵀx   s.t.   E x = e (the task's m rows),   bl ≤ C x ≤ bu,   bl ≤ x ≤ bu,
 
-H positive definite. Its minimum on the equalities alone is x* = −H⁻¹f + H⁻¹Eᵀμ with
-(E H⁻¹ Eᵀ) μ = e + E H⁻¹ f (two Cholesky factorisations, of H and of the m × m matrix E H⁻¹ Eᵀ).
-Where x* meets every other row and bound — exactly, no tolerance — it is the QP's answer: the KKT
-conditions hold with every inequality's multiplier zero, and the minimum of a strictly convex QP is
-unique. DAQP (a dual active-set method) would reach the same point: its working set would end with the
-equalities alone. :func:`equality_minimum` computes x*, checks it, and gives the multipliers in DAQP's
-convention (Hx + f + Aᵀλ = 0: λ = −μ on the equalities, 0 elsewhere); the hard-first tick then skips
+H positive definite. DAQP (a dual active-set method) ends each solve with a working set W: the
+equalities and the rows and bounds it holds at one side. Given W, the answer is a linear system: the
+minimum on Ē x = ē (E and W's rows, each at the bound of its side) is x* = −H⁻¹f + H⁻¹Ēᵀμ with
+(Ē H⁻¹ Ēᵀ) μ = ē + Ē H⁻¹ f (two Cholesky factorisations, of H and of the p × p matrix Ē H⁻¹ Ēᵀ,
+p = m + |W|). Where x* meets every row and bound outside W — exactly, no tolerance — and each of W's
+multipliers has its side's sign (DAQP's convention, Hx + f + Aᵀλ = 0, λ = −μ: λ ≥ 0 at an upper
+bound, ≤ 0 at a lower one), x* satisfies the KKT conditions, and the minimum of a strictly convex QP
+is unique: it is the QP's answer, the one DAQP would return, and W is its working set.
+
+The controller's QP changes little from one tick to the next, and so does its working set: on the
+Panda's packaged scenes DAQP's working set is the same as the tick before on all but 7 of 6,001 ticks
+(`panda_spheres`: empty on 3,722, joint 6's acceleration bound on 1,711, one torque-rate row on 422).
+:func:`working_set` reads W from DAQP's states (the simple bounds' in ``sense_c``, where they stay; the
+rows' by layout index in ``sense_full``, unpacked after each solve), :func:`active_set_minimum`
+computes x*, checks it and writes the multipliers by layout index; the hard-first tick then skips
 DAQP's pack, update, solve and unpack (2.2 µs in a compiled loop on the Panda among 10 spheres, this
-minimum and its checks about 1 µs) and checks the answer as it checks DAQP's (:func:`~qpctl.kernels.hard_first.qp_tick_native_hard_first_from`). Where a row or
-bound would be violated, or either factorisation fails, it returns False and DAQP solves the QP.
+minimum and its checks about 1 µs) and checks the answer as it checks DAQP's
+(:func:`~qpctl.kernels.hard_first.qp_tick_native_hard_first_from`). DAQP's working set is left as it
+is — it is the answer's —, so the next solve warm-starts as it would have. Where x* misses a row or
+bound, a multiplier has the wrong sign (W changes this tick), a side's bound is not finite, or a
+factorisation fails (W's rows dependent), it returns False and DAQP solves the QP from W.
 
-On the Panda's packaged scenes no inequality binds on about 60 % of the ticks (`info["active"]` 0).
-It is tried only where the last answer had no inequality binding (:func:`inequality_active`, DAQP's
-working set): a tick after one with a binding row goes to DAQP directly, so that the minimum is
-computed in vain (about 1 µs) only on the ticks where a row starts to bind. DAQP's working set is then
-already the equalities alone, as its own solve would leave it at this answer: the next solve
-warm-starts as it would have.
-
-References (``tests/test_equality_qp.py``): DAQP's own solve of the same QP — x and λ — where this
-path is taken, and a violated row or bound declining it.
+References (``tests/test_equality_qp.py``): DAQP's own cold solve of the same QP — x, λ and its
+working set — where this path is taken, numpy's KKT residual, a row or bound cut through the minimum
+and a multiplier of the wrong sign declining it.
 """
 
 from __future__ import annotations
@@ -31,53 +36,107 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from qpctl.kernels.daqp_pack import ACTIVE, IMMUTABLE
-from qpctl.kernels.small import chol_solve, cholesky, normal_solve
+from qpctl.kernels.daqp_pack import ACTIVE, IMMUTABLE, LOWER
+from qpctl.kernels.small import chol_solve, chol_solve_cols, cholesky, cholesky_lead, normal_solve
 
 
 @njit(cache=True)
-def equality_minimum(H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarray, n_in: int,
-                     m: int, x: np.ndarray, lam: np.ndarray, L: np.ndarray, Y: np.ndarray, V: np.ndarray,
-                     G: np.ndarray, z: np.ndarray) -> bool:
+def working_set(dq, n_in: int, m: int, w: np.ndarray, low: np.ndarray) -> int:  # type: ignore[no-untyped-def]
+    """The equalities and DAQP's working set of inequalities (``dq``: a DaqpPack after a solve) as
+    layout indices into the bounds' arrays, ascending, in ``w`` (the m task rows first, then W) with
+    ``low`` True where a constraint is held at its lower bound. Returns p = m + |W|, or −1 where more
+    than ``w.shape[0]`` (= nv: more cannot be independent) would be held."""
+    sc, sf = dq.sense_c, dq.sense_full
+    nv = dq.rows.shape[1]
+    cap = w.shape[0]
+    if m > cap:
+        return -1
+    for r in range(m):
+        w[r], low[r] = nv + n_in + r, False
+    p = m
+    for j in range(nv):  # the simple bounds: their states stay in DAQP's array (daqp_pack.pack)
+        s = sc[j]
+        if s & ACTIVE and not s & IMMUTABLE:
+            if p == cap:
+                return -1
+            w[p], low[p] = j, (s & LOWER) != 0
+            p += 1
+    for r in range(n_in):  # the inequality rows, by layout index (daqp_pack.unpack)
+        s = sf[nv + r]
+        if s & ACTIVE and not s & IMMUTABLE:
+            if p == cap:
+                return -1
+            w[p], low[p] = nv + r, (s & LOWER) != 0
+            p += 1
+    return p
+
+
+@njit(cache=True)
+def active_set_minimum(H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarray, n_in: int,
+                       m: int, w: np.ndarray, low: np.ndarray, p: int, x: np.ndarray, lam: np.ndarray, L: np.ndarray,
+                       Y: np.ndarray, V: np.ndarray, G: np.ndarray, z: np.ndarray) -> bool:
     """The minimum of the QP (H, f; ``rows`` with bounds ``bu``, ``bl`` in DAQP's convention: the nv simple
-    bounds first, then one per row) on its equality rows ``n_in`` … ``n_in + m`` alone, where it meets
-    every inequality row (0 … ``n_in``) and simple bound: then True, the answer in ``x`` (nv,) and the
-    multipliers by layout index in ``lam`` (DAQP's sign: Hx + f + Aᵀλ = 0). Else False, ``x`` and
-    ``lam`` untouched. Scratch: L (nv, nv), Y (nv, m), V (m, m), G (m, m + 2), z (nv,)."""
+    bounds first, then one per row) on the p constraints ``w[:p]`` held as equalities (layout indices,
+    ascending after the m task rows ``n_in`` … ``n_in + m`` first; ``low``: held at the lower bound,
+    else the upper), where it meets every other row and bound and each held inequality's multiplier
+    has its side's sign: then True, the answer in ``x`` (nv,) and the multipliers by layout index in
+    ``lam`` (DAQP's sign: Hx + f + Aᵀλ = 0; 0 outside ``w``). Else False, ``x`` and ``lam`` untouched.
+    Scratch, each at least: L (nv, nv), Y (nv, p), V (p, p), G (p, p + 2), z (nv,)."""
     nv = x.shape[0]
-    if not cholesky(H, L):
+    if p < 0 or p > nv or not cholesky(H, L):
         return False
     for i in range(nv):
         z[i] = -f[i]
     chol_solve(L, z)  # z = −H⁻¹f
-    for i in range(nv):
-        for r in range(m):
-            Y[i, r] = rows[n_in + r, i]
-    chol_solve(L, Y)  # Y = H⁻¹Eᵀ
-    for p in range(m):
-        s = bu[nv + n_in + p]  # e − E z
+    for c in range(p):
+        j = w[c]
         for i in range(nv):
-            s -= rows[n_in + p, i] * z[i]
-        G[p, m + 1] = s
-        for q in range(p + 1):
-            s = 0.0
+            Y[i, c] = rows[j - nv, i] if j >= nv else (1.0 if i == j else 0.0)
+    chol_solve_cols(L, Y, p)  # Y = H⁻¹Ēᵀ
+    for c in range(p):
+        j = w[c]
+        b = bl[j] if low[c] else bu[j]
+        if not np.isfinite(b):
+            return False
+        s = b  # ē − Ē z (row products written out: through a helper the checks below cost 0.9 µs more)
+        if j < nv:
+            s -= z[j]
+        else:
             for i in range(nv):
-                s += rows[n_in + p, i] * Y[i, q]
-            G[p, q] = G[q, p] = s  # E H⁻¹ Eᵀ
-    if not cholesky(G, V):
+                s -= rows[j - nv, i] * z[i]
+        G[c, p + 1] = s
+        for c2 in range(c + 1):  # Ē H⁻¹ Ēᵀ (no view of Y's columns: each would cost its reference count)
+            if j < nv:
+                s = Y[j, c2]
+            else:
+                s = 0.0
+                for i in range(nv):
+                    s += rows[j - nv, i] * Y[i, c2]
+            G[c, c2] = G[c2, c] = s
+    if not cholesky_lead(G, V, p):
         return False
-    normal_solve(V, G, m)  # μ = (E H⁻¹ Eᵀ)⁻¹ (e − E z), in G's column m + 1
-    mu = G[:, m + 1]
+    normal_solve(V, G, p)  # μ = (Ē H⁻¹ Ēᵀ)⁻¹ (ē − Ē z), in G's column p + 1
+    for c in range(m, p):  # each held inequality pushes from its own side: λ = −μ ≥ 0 at an upper bound
+        mu = G[c, p + 1]
+        if not (mu >= 0.0 if low[c] else mu <= 0.0):
+            return False
     for i in range(nv):
         s = z[i]
-        for r in range(m):
-            s += Y[i, r] * mu[r]
+        for c in range(p):
+            s += Y[i, c] * G[c, p + 1]
         z[i] = s
-    for i in range(nv):  # every simple bound and inequality row met exactly (NaN fails too)
-        if not (bl[i] <= z[i] <= bu[i]):
+    c = m  # the held inequalities, ascending: skipped by the checks below (they hold to rounding)
+    for i in range(nv):  # every other simple bound and inequality row met exactly (NaN fails too)
+        if c < p and w[c] == i:
+            c += 1
+        elif not (bl[i] <= z[i] <= bu[i]):
             return False
     for r in range(n_in):
-        lo, hi = bl[nv + r], bu[nv + r]
+        j = nv + r
+        if c < p and w[c] == j:
+            c += 1
+            continue
+        lo, hi = bl[j], bu[j]
         if lo > -np.inf or hi < np.inf:
             s = 0.0
             for i in range(nv):
@@ -87,18 +146,6 @@ def equality_minimum(H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndar
     for i in range(nv):
         x[i] = z[i]
     lam[:] = 0.0
-    for r in range(m):
-        lam[nv + n_in + r] = -mu[r]
+    for c in range(p):
+        lam[w[c]] = -G[c, p + 1]
     return True
-
-
-@njit(cache=True)
-def inequality_active(dq) -> bool:  # type: ignore[no-untyped-def]
-    """Whether DAQP's working set (``dq.sense_full``) holds a row or bound other than the equalities:
-    the last answer had an inequality binding, and this one likely has too (then the hard-first tick
-    goes to DAQP directly rather than try :func:`equality_minimum` first)."""
-    sf = dq.sense_full
-    for j in range(sf.shape[0]):
-        if sf[j] & ACTIVE and not sf[j] & IMMUTABLE:
-            return True
-    return False

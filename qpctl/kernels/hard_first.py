@@ -14,7 +14,7 @@ from numba import njit
 from qpctl.kernels.clock import now_us
 from qpctl.kernels.codes import IP_N_IN, R_BUILD_US, R_ITERATIONS, R_SOLVE_US, record_scalars
 from qpctl.kernels.daqp import native_solve
-from qpctl.kernels.equality_qp import equality_minimum, inequality_active
+from qpctl.kernels.equality_qp import active_set_minimum, working_set
 from qpctl.kernels.finish import qp_finish
 from qpctl.kernels.solve import native_solve_finish, qp_rebuild, qp_terms_and_build
 
@@ -79,9 +79,9 @@ def qp_tick_native_hard_first_from(nq, try_hard: bool, t0: float) -> tuple[int, 
     failed on it, 4 rejected by the check of its rows (the task rows, :func:`task_rows_hold`, or the
     others, :func:`qp_finish`), 7 not the relaxed QP's answer. ``t0``: the clock [µs] at which the
     build's time starts (the state's end, read once for both: :func:`qpctl.kernels.tick.tick_qp`).
-    Where DAQP's working set holds no inequality, the hard QP's minimum on the task's rows is tried
-    first and, where every other row and bound holds there, is the answer without DAQP
-    (:mod:`~qpctl.kernels.equality_qp`; DAQP's flags then read solved, 0 iterations)."""
+    The hard QP's minimum on its task rows and DAQP's last working set is tried first and, where it is
+    the QP's answer (every other row and bound holds, every held multiplier has its side's sign), is
+    taken without DAQP (:mod:`~qpctl.kernels.equality_qp`; DAQP's flags then read solved, 0 iterations)."""
     ws = nq.ws
     ts = ws.ts
     s = record_scalars(ws.N.shape[0], ws.a.shape[0])
@@ -101,10 +101,12 @@ def qp_tick_native_hard_first_from(nq, try_hard: bool, t0: float) -> tuple[int, 
         nvh = xh.shape[0]
         n_in = ws.ipar[IP_N_IN]
         m = ws.a.shape[0]
-        # no inequality binding: the minimum on the task's rows is the answer, DAQP not called (equality_qp)
-        if (nvh == ws.N.shape[0] and not inequality_active(dqh)
-                and equality_minimum(nq.Hh, nq.fh, rowsh, buh, blh, n_in, m, xh, nq.lamh, ws.S, ws.Bt, ws.Vm, ws.Gm,
-                                     ws.w1)):
+        # the minimum on the task's rows and DAQP's last working set, where it is the answer: DAQP not
+        # called (equality_qp)
+        if nvh == ws.N.shape[0] and active_set_minimum(
+                nq.Hh, nq.fh, rowsh, buh, blh, n_in, m, nq.eq_w, nq.eq_low,
+                working_set(dqh, n_in, m, nq.eq_w, nq.eq_low), xh, nq.lamh, nq.eq_L, nq.eq_Y, nq.eq_V, nq.eq_G,
+                nq.eq_z):
             dqh.flag[0], dqh.flag[1] = 1, 0  # DAQP's words for it: solved, no iteration
             ok = True
         else:

@@ -14,6 +14,7 @@ arrays as the layouts (:class:`qpctl.tick.QPBuffers`) and :class:`qpctl.solvers.
 
 from __future__ import annotations
 
+import numpy as np
 from numba import njit
 from numba.core import types
 from numba.experimental import structref
@@ -41,6 +42,11 @@ FIELDS = (
     "Hr", "fr", "rowsr", "bur", "blr", "dqr", "xr",
     "tol",  # the answer's check: every hard row to this, relative to 1 + |its bound| (SOLUTION_RTOL)
     "l1",  # the task's ℓ₁ slack weight (the exact-penalty test of the hard answer)
+    # the hard QP's answer on DAQP's last working set (qpctl.kernels.equality_qp), its own scratch
+    # (nv: the hard layout's): the held constraints' layout indices and sides (nv,), H's Cholesky
+    # factor (nv, nv), H⁻¹Ēᵀ (nv, nv), the held rows' Cholesky factor (nv, nv) and normal matrix with
+    # two vectors (nv, nv + 2), a vector (nv,)
+    "eq_w", "eq_low", "eq_L", "eq_Y", "eq_V", "eq_G", "eq_z",
 )
 
 
@@ -56,6 +62,12 @@ def _typeof(val: NativeQP, c: object) -> types.Type:
     """Its numba type, directly: numba's generic typeof first tries the object as a buffer, an
     exception on every kernel call (~1 µs of the dispatch, and allocations tracemalloc sees)."""
     return val._numba_type_
+
+
+def shortcut_scratch(nv: int) -> tuple[np.ndarray, ...]:
+    """The arrays of :data:`FIELDS`' last seven (the working-set shortcut's scratch) for nv variables."""
+    return (np.zeros(nv, np.int64), np.zeros(nv, np.bool_), np.zeros((nv, nv)), np.zeros((nv, nv)),
+            np.zeros((nv, nv)), np.zeros((nv, nv + 2)), np.zeros(nv))
 
 
 @njit(cache=True)

@@ -32,7 +32,12 @@ JACOBI_SWEEPS = 40  # a 6-column matrix converges in 5–7 sweeps; this only bou
 def cholesky(A: np.ndarray, L: np.ndarray) -> bool:
     """L (lower, upper triangle zeroed) with A = L Lᵀ, reading A's lower triangle; False if A is
     not (numerically) positive definite."""
-    n = A.shape[0]
+    return cholesky_lead(A, L, A.shape[0])
+
+
+@njit(cache=True)
+def cholesky_lead(A: np.ndarray, L: np.ndarray, n: int) -> bool:
+    """:func:`cholesky` of A's leading n × n block into L's (arrays at least that large)."""
     for j in range(n):
         s = A[j, j]
         for k in range(j):
@@ -89,12 +94,19 @@ def solve_lower(L: np.ndarray, X: np.ndarray) -> None:
                 s -= L[i, k] * X[k]
             X[i] = s / L[i, i]
     else:
-        for c in range(X.shape[1]):
-            for i in range(n):
-                s = X[i, c]
-                for k in range(i):
-                    s -= L[i, k] * X[k, c]
-                X[i, c] = s / L[i, i]
+        solve_lower_cols(L, X, X.shape[1])
+
+
+@njit(cache=True)
+def solve_lower_cols(L: np.ndarray, X: np.ndarray, cols: int) -> None:
+    """:func:`solve_lower` on X's first ``cols`` columns (X 2-D)."""
+    n = L.shape[0]
+    for c in range(cols):
+        for i in range(n):
+            s = X[i, c]
+            for k in range(i):
+                s -= L[i, k] * X[k, c]
+            X[i, c] = s / L[i, i]
 
 
 @njit(cache=True)
@@ -108,12 +120,19 @@ def solve_lower_t(L: np.ndarray, X: np.ndarray) -> None:
                 s -= L[k, i] * X[k]
             X[i] = s / L[i, i]
     else:
-        for c in range(X.shape[1]):
-            for i in range(n - 1, -1, -1):
-                s = X[i, c]
-                for k in range(i + 1, n):
-                    s -= L[k, i] * X[k, c]
-                X[i, c] = s / L[i, i]
+        solve_lower_t_cols(L, X, X.shape[1])
+
+
+@njit(cache=True)
+def solve_lower_t_cols(L: np.ndarray, X: np.ndarray, cols: int) -> None:
+    """:func:`solve_lower_t` on X's first ``cols`` columns (X 2-D)."""
+    n = L.shape[0]
+    for c in range(cols):
+        for i in range(n - 1, -1, -1):
+            s = X[i, c]
+            for k in range(i + 1, n):
+                s -= L[k, i] * X[k, c]
+            X[i, c] = s / L[i, i]
 
 
 @njit(cache=True)
@@ -121,6 +140,13 @@ def chol_solve(L: np.ndarray, X: np.ndarray) -> None:
     """X ← A⁻¹ X with A = L Lᵀ."""
     solve_lower(L, X)
     solve_lower_t(L, X)
+
+
+@njit(cache=True)
+def chol_solve_cols(L: np.ndarray, X: np.ndarray, cols: int) -> None:
+    """:func:`chol_solve` on X's first ``cols`` columns (X 2-D)."""
+    solve_lower_cols(L, X, cols)
+    solve_lower_t_cols(L, X, cols)
 
 
 @njit(cache=True)
