@@ -231,6 +231,9 @@ def main(argv: list[str] | None = None) -> int:
                          "exact reference, CPU µs per check and the outcomes that differ")
     ap.add_argument("--no-budget", action="store_true",
                     help="tick_budget_us = 0 in every scene: the runs do not depend on the machine's load")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a controller key for every scene, e.g. backup_check_steps=400 (the output file gets "
+                         "the settings in its name)")
     ap.add_argument("--faults", action="store_true",
                     help="the faults soak's first --scenes scenes without and with the guard (summary_brake_faults.json)")
     args = ap.parse_args(argv)
@@ -248,12 +251,16 @@ def main(argv: list[str] | None = None) -> int:
     scenes = list((fresh_scenes if args.scene_set == "fresh" else soak_scenes)(args.scenes))
     if args.no_budget:
         scenes = [{**raw, "controller": {**raw["controller"], "tick_budget_us": 0.0}} for raw in scenes]
+    settings = {k.strip(): json.loads(v) for k, v in (kv.split("=", 1) for kv in args.set)}
+    scenes = [{**raw, "controller": {**raw["controller"], **settings}} for raw in scenes]
     if args.compare:
         jobs = [(raw, 0, b) for raw in scenes for b in (True, False)]
         path = args.out / f"summary_brake_compare_{args.scene_set}.json"
     else:
         jobs = [(raw, args.oracle_every, True) for raw in scenes]
         path = args.out / ("summary_brake.json" if args.scene_set == "fresh" else "summary_brake_soakset.json")
+    if settings:
+        path = path.with_name(path.stem + "".join(f"_{k}={v}" for k, v in settings.items()) + ".json")
     rows: list[dict[str, Any]] = []
     bare: list[dict[str, Any]] = []
     errors: list[dict[str, Any]] = []

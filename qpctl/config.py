@@ -130,6 +130,7 @@ RULES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "nonnegative": (lambda v: math.isfinite(v) and v >= 0, "a number >= 0"),
     "seconds": (lambda v: math.isfinite(v) and v > 0, "a positive number of seconds"),
     "distance_or_inf": (lambda v: v >= 0, "a number >= 0 (inf: no limit)"),
+    "count_or_inf": (lambda v: v == math.inf or (v >= 1 and float(v).is_integer()), "a whole number >= 1 (inf: no limit)"),
 }
 
 

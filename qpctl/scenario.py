@@ -741,7 +741,7 @@ class Scenario:
         from qpctl.safety import BackupGuard
 
         return BackupGuard(ctrl, self.data["sim"]["dt"], check_distance=c["backup_check_distance"],
-                           margin=c["backup_margin"])
+                           margin=c["backup_margin"], check_steps=c["backup_check_steps"])
 
     def to_toml(self, **changes: dict[str, Any]) -> str:
         """The validated scenario as a TOML file that :meth:`load` reads back to the same ``data``:

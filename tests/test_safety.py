@@ -250,3 +250,48 @@ def test_backup_guard_tries_only_as_many_gains_as_told():
             assert guard._gain == 4.0 and np.array_equal(out.tau, brake_torque(robot, data, q, v, hold, 4.0, DT))
         else:
             assert guard._gain == 25.0 and np.array_equal(out.tau, hold)
+
+
+def test_backup_guard_spends_at_most_its_check_steps_on_a_proposal():
+    """``check_steps``: the rollout steps one check may spend on the proposal's successor, all gains
+    together. With the stored soft brake (κ = 4) refuted from the successor after n₄ steps and κ = 25
+    at rest after n₂₅ (both counted on the Simulator-based rollout), n₄ + n₂₅ + 1 steps (the rest is
+    seen on the step after the last one integrated) apply the proposal and store 25; one step fewer
+    falls back to the stored brake and says the steps ran out; so does a limit within the first
+    rollout; the default (inf) spends n₄ + n₂₅."""
+    robot, q, inner, guard = pushed_arm(1.0)
+    v = np.array([-0.5, 0.0, 0.0])
+    data = robot.model.createData()
+    hold = pin.computeGeneralizedGravity(robot.model, data, q)
+    sim = Simulator(inner, dt=DT, duration=DT)
+    sim.reset(q, v)
+    sim.apply(hold)
+    sim.step(0.0)
+    q1, v1 = (x.copy() for x in sim.read())
+    soft, firm = rollout(sim, q1, v1, hold, DT, 4.0, stop_below=0.0), rollout(sim, q1, v1, hold, DT, 25.0, stop_below=0.0)
+    assert not soft.viable and firm.viable and 0 < soft.steps < firm.steps
+    n4, n25 = soft.steps, firm.steps
+    for steps, applied in ((np.inf, True), (n4 + n25 + 1, True), (n4 + n25, False), (n4 // 2, False)):
+        guard._gain, guard._tau_prev, guard.check_steps = 4.0, hold.copy(), steps
+        out = guard.step(q, v, 0.0)
+        spent = guard.stats["check_steps"][-1]
+        assert spent <= steps
+        if applied:
+            assert guard._gain == 25.0 and np.array_equal(out.tau, hold) and "backup_out_of_steps" not in out.info
+            assert spent == n4 + n25
+        else:
+            assert out.info["backup"] == 4.0 and out.info["backup_out_of_steps"]
+            assert np.array_equal(out.tau, brake_torque(robot, data, q, v, hold, 4.0, DT))
+            assert spent == (n4 + n25 if steps > n4 else steps)
+    assert guard.stats["out_of_steps"] == 2 and guard.stats["unverified"] == 0
+
+
+@pytest.mark.parametrize("value", ["0", "2.5", "-1", "nan"])
+def test_backup_check_steps_is_a_whole_number_or_inf(value):
+    from qpctl import ConfigError, Scenario
+
+    with pytest.raises(ConfigError) as exc:
+        Scenario.load("paper", overrides=[f"controller.backup_check_steps={value}"])
+    assert exc.value.key == "controller.backup_check_steps"
+    sc = Scenario.load("paper", overrides=["controller.backup=true", "controller.backup_check_steps=300"])
+    assert sc.build_controller().check_steps == 300

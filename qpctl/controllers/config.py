@@ -31,7 +31,9 @@ class ControllerConfig:
     backup: the controller behind the verified backup (:class:`qpctl.safety.BackupGuard`, issue 22): its
     torque applied only where a brake from the state it leads to is verified by rollout, at ``sim.dt``;
     backup_margin [m]: the clearance kept all along the brake; backup_check_distance [m]: ticks whose
-    world clearance is at least this are not checked (inf: every tick, the default).
+    world clearance is at least this are not checked (inf: every tick, the default); backup_check_steps:
+    the rollout steps one check may spend on a proposal, all its gains together (inf: no limit, the
+    default) — one not verified within them is refused and the stored brake continues.
     """
 
     kind: str = "paper"
@@ -45,6 +47,7 @@ class ControllerConfig:
     backup: bool = False
     backup_margin: float = setting(0.0, valid="nonnegative", unit="m")
     backup_check_distance: float = setting(float("inf"), valid="distance_or_inf", unit="m")
+    backup_check_steps: float = setting(float("inf"), valid="count_or_inf")
 
     def __post_init__(self) -> None:
         check_fields(self, "controller")

@@ -10,6 +10,9 @@ then, where the world clearance (exact, every pair: :class:`qpctl.tick.WorldClea
    (:class:`qpctl.safety.rollout.BrakeRollout`) with the stored brake's gain first, then the others; a
    rollout ends at rest, on the first step below ``margin`` [m] or past a joint limit; the first that
    comes to rest with the clearance above ``margin`` all along is stored and τ applied;
+   with ``check_steps`` (default inf) the rollouts of one check take at most that many steps in
+   all — a proposal not verified within them is refuted, which bounds a check's cost (the guarantee is
+   untouched: a refuted proposal only means the stored brake continues);
 2. if none does, the stored brake's torque from (q, q̇, τ_prev) is applied (``info["backup"]``: its
    gain): it was verified from this very state one tick ago, and the rollout is the simulator's own
    integration, so under the exact model following it stays verified;
@@ -62,17 +65,19 @@ class BackupGuard:
     the longest brake rolled out. A tick's ``compute_us`` is the controller's plus the check's."""
 
     def __init__(self, controller: Any, dt: float, *, check_distance: float = np.inf, margin: float = 0.0,
-                 horizon: float = 3.0, gains: tuple[float, ...] = GUARD_GAINS) -> None:
+                 horizon: float = 3.0, gains: tuple[float, ...] = GUARD_GAINS, check_steps: float = np.inf) -> None:
         self.controller = controller
         self.dt, self.check_distance, self.margin, self.horizon = float(dt), float(check_distance), float(margin), \
             float(horizon)
+        self.check_steps = float(check_steps)  # rollout steps a proposal's check may spend (module docstring)
         self.gains = tuple(gains)
         self.exact = False  # the lazy clearance (True: every step's clearance evaluated; the same verdicts)
         self.tries: int | None = None  # gains tried from a proposal's successor (None: the whole family)
         self.world = WorldClearance(controller.robot, controller.obstacles)  # obstacles only: no self pairs
         self.brake = BrakeRollout(controller.robot, self.world, self.dt)
         self._limit = next((c for c in getattr(controller, "constraints", []) if isinstance(c, TorqueLimit)), None)
-        self.stats: dict[str, Any] = {"checked": 0, "backup": 0, "unverified": 0, "check_us": []}
+        self.stats: dict[str, Any] = {"checked": 0, "backup": 0, "unverified": 0, "out_of_steps": 0, "check_us": [],
+                                      "check_steps": []}
         self._reset_backup()
 
     def __getattr__(self, name: str) -> Any:
@@ -94,27 +99,45 @@ class BackupGuard:
         return float(out)
 
     def _first_verified(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float,
-                        tries: int | None = None) -> float | None:
-        """The gain of the first brake (the stored one first) verified from (q, q̇) after τ_prev at t,
-        trying at most ``tries`` gains (None: all)."""
+                        tries: int | None = None, steps: float = np.inf) -> tuple[float | None, int, bool]:
+        """(The gain of the first brake (the stored one first) verified from (q, q̇) after τ_prev at t, or
+        None; the rollout steps spent; whether ``steps`` ran out), trying at most ``tries`` gains (None:
+        all) in at most ``steps`` rollout steps over all of them (a rollout they cut short is not
+        verified)."""
         order = ([self._gain] if self._gain is not None else []) + [g for g in self.gains if g != self._gain]
+        full = round(self.horizon / self.dt)
+        left, spent = steps, 0
         for g in order[:tries]:
-            if self.brake.run(q, v, tau_prev, t, g, horizon=self.horizon, margin=self.margin,
-                              stop_below=self.margin, exact=self.exact).viable:
-                return g
-        return None
+            n = full if left >= full else int(left)
+            if n < 1:
+                return None, spent, True
+            cert = self.brake.run(q, v, tau_prev, t, g, horizon=n * self.dt, margin=self.margin,
+                                  stop_below=self.margin, exact=self.exact)
+            spent += cert.steps
+            if cert.viable:
+                return g, spent, False
+            if n < full and cert.steps >= n:  # the step limit ended this rollout, not the brake
+                return None, spent, True
+            left -= max(cert.steps, 1)
+        return None, spent, False
 
     def check(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float, info: dict[str, Any]) -> np.ndarray:
         """The check of one tick (module docstring, steps 1–3): the torque to apply [N·m] given the
         proposal ``tau`` at (q, q̇, t), the stored gain and the torque applied last; ``info`` gets
         ``backup`` / ``backup_unverified`` where they apply."""
         q1, v1 = self.brake.successor(q, v, tau)
-        gain = self._first_verified(q1, v1, tau, t + self.dt, self.tries)
+        gain, spent, cut = self._first_verified(q1, v1, tau, t + self.dt, self.tries, self.check_steps)
+        if cut:
+            info["backup_out_of_steps"] = True
+            self.stats["out_of_steps"] += 1
         if gain is not None:
+            self.stats["check_steps"].append(spent)
             self._gain = gain
             return tau
-        if self._gain is None:  # nothing stored: is the state itself verified? (step 3)
-            self._gain = self._first_verified(q, v, self._tau_prev, t)
+        if self._gain is None:  # nothing stored: is the state itself verified? (step 3, no step limit)
+            self._gain, more, _ = self._first_verified(q, v, self._tau_prev, t)
+            spent += more
+        self.stats["check_steps"].append(spent)
         if self._gain is None:
             self.stats["unverified"] += 1
             info["backup_unverified"] = True
