@@ -49,7 +49,7 @@ def test_the_minimum_on_the_working_set_is_daqps_answer(name, duration, held_kin
     multiplier has its side's sign (≥ 0 at an upper bound, ≤ 0 at a lower one) and is zero off its
     bound. Almost every tick takes the path (the working set changes rarely), among them ticks with an
     inequality held (a nonzero multiplier outside the task rows): on the Panda both a simple bound (joint
-    6's acceleration bound, held from t ≈ 4 s) and a row, on the planar arm a row."""
+    6's upper q̈ bound, held from t ≈ 4 s) and a row (an obstacle's barrier), on the planar arm a row."""
     scen = Scenario.load(name, [f"sim.duration={duration}"])
     traj = simulate(scen, kind="qp", solver="daqp").trajectory
     ctrl = scen.build_controller("qp", "daqp")

@@ -15,7 +15,8 @@ is unique: it is the QP's answer, the one DAQP would return, and W is its workin
 
 The controller's QP changes little from one tick to the next, and so does its working set: on the
 Panda's packaged scenes DAQP's working set is the same as the tick before on all but 7 of 6,001 ticks
-(`panda_spheres`: empty on 3,722, joint 6's acceleration bound on 1,711, one torque-rate row on 422).
+(`panda_spheres`: empty on 3,722, joint 6's upper q̈ bound — its position and speed limits — on 1,711, an
+obstacle's barrier row on 422).
 :func:`working_set` reads W from DAQP's states (the simple bounds' in ``sense_c``, where they stay; the
 rows' by layout index in ``sense_full``, unpacked after each solve), :func:`active_set_minimum`
 computes x*, checks it and writes the multipliers by layout index; the hard-first tick then skips
