@@ -226,11 +226,10 @@ def test_backup_guard_verifies_the_state_itself_when_nothing_is_stored():
     assert np.array_equal(out.tau, Pusher(inner, 0.0).step(q, v, 0.0).tau)
 
 
-def test_backup_guard_tries_only_as_many_gains_as_told():
-    """``tries``: the gains tried from the proposal's successor, the stored one first. With a soft
-    stored brake (κ = 4) that the successor's rollout refutes while κ = 25 verifies it (both checked
-    here on the Simulator-based rollout), one try falls back to the stored brake and the whole family
-    applies the proposal and stores 25."""
+def closing_tip() -> tuple[Any, ...]:
+    """The pushed arm (held until t = 1 s) with its tip closing on the sphere at 0.5 rad/s, gravity held:
+    (robot, q, q̇, data, the holding torque, the guard, and the Simulator-based rollouts of κ = 4 and
+    κ = 25 from the successor of one held step)."""
     robot, q, inner, guard = pushed_arm(1.0)  # the stand-in holds gravity until t = 1 s
     v = np.array([-0.5, 0.0, 0.0])  # the tip closing on the sphere
     data = robot.model.createData()
@@ -240,8 +239,17 @@ def test_backup_guard_tries_only_as_many_gains_as_told():
     sim.apply(hold)
     sim.step(0.0)
     q1, v1 = (x.copy() for x in sim.read())
-    assert not rollout(sim, q1, v1, hold, DT, 4.0, stop_below=0.0).viable
-    assert rollout(sim, q1, v1, hold, DT, 25.0, stop_below=0.0).viable
+    soft, firm = (rollout(sim, q1, v1, hold, DT, g, stop_below=0.0) for g in (4.0, 25.0))
+    return robot, q, v, data, hold, guard, soft, firm
+
+
+def test_backup_guard_tries_only_as_many_gains_as_told():
+    """``tries``: the gains tried from the proposal's successor, the stored one first. With a soft
+    stored brake (κ = 4) that the successor's rollout refutes while κ = 25 verifies it (both checked
+    here on the Simulator-based rollout), one try falls back to the stored brake and the whole family
+    applies the proposal and stores 25."""
+    robot, q, v, data, hold, guard, soft, firm = closing_tip()
+    assert not soft.viable and firm.viable
     for tries, falls_back in ((1, True), (None, False)):
         guard._gain, guard._tau_prev, guard.tries = 4.0, hold.copy(), tries
         out = guard.step(q, v, 0.0)
@@ -259,16 +267,7 @@ def test_backup_guard_spends_at_most_its_check_steps_on_a_proposal():
     seen on the step after the last one integrated) apply the proposal and store 25; one step fewer
     falls back to the stored brake and says the steps ran out; so does a limit within the first
     rollout; the default (inf) spends n₄ + n₂₅."""
-    robot, q, inner, guard = pushed_arm(1.0)
-    v = np.array([-0.5, 0.0, 0.0])
-    data = robot.model.createData()
-    hold = pin.computeGeneralizedGravity(robot.model, data, q)
-    sim = Simulator(inner, dt=DT, duration=DT)
-    sim.reset(q, v)
-    sim.apply(hold)
-    sim.step(0.0)
-    q1, v1 = (x.copy() for x in sim.read())
-    soft, firm = rollout(sim, q1, v1, hold, DT, 4.0, stop_below=0.0), rollout(sim, q1, v1, hold, DT, 25.0, stop_below=0.0)
+    robot, q, v, data, hold, guard, soft, firm = closing_tip()
     assert not soft.viable and firm.viable and 0 < soft.steps < firm.steps
     n4, n25 = soft.steps, firm.steps
     for steps, applied in ((np.inf, True), (n4 + n25 + 1, True), (n4 + n25, False), (n4 // 2, False)):
