@@ -168,6 +168,7 @@ def test_a_held_row_or_bound_gives_daqps_answer_and_the_wrong_side_declines(whic
     bu2 = bu.copy()
     bu2[idx] = val + 0.2  # cut the other way: the minimum is inside, holding it at val + 0.2 pulls x out
     xd2, lamd2, _ = _daqp_cold(H, f, rows, bu2, bl)
-    assert lamd2[idx] == 0.0
+    assert lamd2[idx] == 0.0  # it does not bind: DAQP's answer is the minimum on the equality alone
+    np.testing.assert_allclose(xd2, xs, rtol=0, atol=1e-10)
     ok, x, lam = _run(H, f, rows, bu2, bl, held=(idx,), low=(False,))
     assert not ok and (x == 7.0).all() and (lam == 7.0).all()
