@@ -124,7 +124,8 @@ class BackupGuard:
     def check(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float, info: dict[str, Any]) -> np.ndarray:
         """The check of one tick (module docstring, steps 1–3): the torque to apply [N·m] given the
         proposal ``tau`` at (q, q̇, t), the stored gain and the torque applied last; ``info`` gets
-        ``backup`` / ``backup_unverified`` where they apply."""
+        ``backup`` / ``backup_unverified`` / ``backup_out_of_steps`` where they apply; ``stats["check_steps"]``
+        the rollout steps the check spent."""
         q1, v1 = self.brake.successor(q, v, tau)
         gain, spent, cut = self._first_verified(q1, v1, tau, t + self.dt, self.tries, self.check_steps)
         if cut:
