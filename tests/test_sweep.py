@@ -247,8 +247,10 @@ def _sweep_cmd(spec: Path, out: Path, backend: str) -> list[str]:
             "--jobs", "2", "--quiet", "--no-summary"]
 
 
-def _kill_halfway(cmd: list[str], runs: Path, at_least: int, timeout: float = 120.0) -> int:
-    """Start ``cmd`` in its own session, SIGKILL its whole process group once ``at_least`` rows exist."""
+def _kill_halfway(cmd: list[str], runs: Path, at_least: int, timeout: float = 300.0) -> int:
+    """Start ``cmd`` in its own session, SIGKILL its whole process group once ``at_least`` rows exist.
+    (``timeout``: the workers may compile every kernel first where the cache is stale — two at once took
+    more than 120 s here after a kernel module changed; the sweep itself takes about 10 s.)"""
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True)
     t0 = time.monotonic()
     try:
