@@ -226,3 +226,30 @@ def test_profile_reports_every_part_of_a_tick() -> None:
     assert res["QP: whole tick"] > res["state kernel: rigid terms, pairs, distances, barrier drift (both)"]
     assert res["QP: whole tick"] > res["Pinocchio crba + nonLinearEffects (both)"]
     assert "qpctl/controllers/qp.py" in profile(solver, 100, top=10, duration=0.05)
+
+
+def test_a_speed_change_in_the_floor_is_flagged(tiny: tuple[dict, dict, Path]) -> None:
+    """The floor's 25-tick block medians: one speed gives a spread of 1 and no flag; a floor that steps
+    from 4 µs to 5.5 µs a third of the way through (block medians 4 and 5.5: 10th and 90th percentiles
+    by numpy on the same blocks) is flagged, and the report's scene line says so for that group only."""
+    from qpctl.bench.harness import SPEED_CHANGE, floor_spread
+
+    rng = np.random.default_rng(3)
+    steady = 4.0 + 0.01 * rng.standard_normal(3000)
+    fb = floor_spread(steady)
+    assert not fb["speed_change"] and fb["ratio"] < 1.02
+    stepped = np.concatenate([np.full(1000, 4.0), np.full(2000, 5.5)]) + 0.01 * rng.standard_normal(3000)
+    fb = floor_spread(stepped)
+    meds = np.median(stepped.reshape(-1, 25), axis=1)
+    lo, hi = np.percentile(meds, [10, 90])
+    assert fb["speed_change"] and math.isclose(fb["p10_us"], lo) and math.isclose(fb["p90_us"], hi)
+    assert hi / lo > SPEED_CHANGE and 3.9 < lo < 4.1 and 5.4 < hi < 5.6
+    _, data, _ = tiny
+    assert "floor_blocks" in data["scene_groups"]["spheres"]
+    for g in data["scene_groups"].values():
+        g["floor_blocks"] = {"p10_us": 4.0, "p90_us": 4.0, "ratio": 1.0, "speed_change": False}
+    assert "changed speed" not in report.scene_groups_line(data)
+    data["scene_groups"]["spheres"]["floor_blocks"] = floor_spread(stepped)
+    line = report.scene_groups_line(data)
+    title = data["scene_groups"]["spheres"]["title"]
+    assert f"changed speed during {title} (the floor's 25-tick blocks 4.0–5.5 µs" in line

@@ -44,7 +44,7 @@ from qpctl.bench.suites import (
     same_ticks,
     scaling,
 )
-from qpctl.bench.timing import BREAKDOWN, FLOOR, STAGES, TickTimes, breakdown, summary
+from qpctl.bench.timing import BLOCK, BREAKDOWN, FLOOR, STAGES, TickTimes, breakdown, summary
 from qpctl.run import simulate
 from qpctl.scenario import Scenario
 from qpctl.solvers import available_solvers
@@ -182,7 +182,26 @@ def _group_block(merged: dict[str, TickTimes]) -> dict[str, Any]:
     some = next((t for lb, t in merged.items() if lb != FLOOR), None)
     pairs = float(np.nanmedian(some.pairs)) if some is not None and np.isfinite(some.pairs).any() else None
     ticks = int(next(iter(merged.values())).wall.size)
-    return {"ticks": ticks, "pairs_median": pairs, "controllers": block}
+    out: dict[str, Any] = {"ticks": ticks, "pairs_median": pairs, "controllers": block}
+    if FLOOR in merged:
+        out["floor_blocks"] = floor_spread(merged[FLOOR].wall)
+    return out
+
+
+#: A group whose floor's block medians spread by more than this (90th ÷ 10th percentile) ran at two
+#: machine speeds (the 2-core Xeon VM switches between floors of about 3.5 and 5.5 µs on the Panda).
+SPEED_CHANGE = 1.15
+
+
+def floor_spread(wall: np.ndarray, block: int = BLOCK) -> dict[str, float]:
+    """The floor's medians over consecutive blocks of ``block`` ticks [µs]: their 10th and 90th
+    percentiles and the ratio of the two (``speed_change``: above :data:`SPEED_CHANGE`)."""
+    w = np.asarray(wall, float)
+    meds = np.array([np.median(w[k:k + block]) for k in range(0, w.size, block) if np.isfinite(w[k:k + block]).all()])
+    if meds.size == 0:
+        return {"p10_us": float("nan"), "p90_us": float("nan"), "ratio": float("nan"), "speed_change": False}
+    lo, hi = (float(x) for x in np.percentile(meds, [10, 90]))
+    return {"p10_us": lo, "p90_us": hi, "ratio": hi / lo, "speed_change": bool(hi / lo > SPEED_CHANGE)}
 
 
 def _quality_summary(runs: list[ClosedLoop], families: dict[str, str]) -> dict[str, dict[str, Any]]:

@@ -17,6 +17,8 @@ from typing import Any
 
 import numpy as np
 
+from qpctl.bench.timing import BLOCK
+
 PACKAGES = ("numpy", "numba", "pin", "python-fcl", "qpsolvers", "proxsuite", "osqp", "daqp", "quadprog", "clarabel",
             "scipy")
 
@@ -166,7 +168,14 @@ def scene_groups_line(res: dict[str, Any], groups: tuple[str, ...] | None = None
         pairs = "" if b.get("pairs_median") is None else f", {b['pairs_median']:.0f} link–obstacle pairs (median)"
         names = ", ".join(b["scenes"]) if len(b["scenes"]) <= 2 else f"{b['scenes'][0]} … {b['scenes'][-1]}"
         parts.append(f"{b['title']}: {names}, {b['ticks']} ticks{pairs}")
-    return "; ".join(parts) + "."
+    line = "; ".join(parts) + "."
+    changed = [(sg[g]["title"], sg[g]["floor_blocks"]) for g in keys if sg[g].get("floor_blocks", {}).get("speed_change")]
+    if changed:
+        line += (" **The machine changed speed during " + "; ".join(
+            f"{title} (the floor's {BLOCK}-tick blocks {fb['p10_us']:.1f}–{fb['p90_us']:.1f} µs, 10th–90th percentile)"
+            for title, fb in changed) + "**: those times mix two speeds; their ratios to the floor (same blocks) "
+            "hold better than their µs.")
+    return line
 
 
 def same_ticks_table(res: dict[str, Any]) -> str:
