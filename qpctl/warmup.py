@@ -80,7 +80,7 @@ def warmup() -> dict[str, float]:
     K.qp_terms_and_build(ws.work, hard.H, hard.f, hard.rows, hard.bu, hard.bl)
     K.qp_rebuild(ws.work, relaxed.H, relaxed.f, relaxed.rows, relaxed.bu, relaxed.bl)
     K.qp_build(ws.work, relaxed.H, relaxed.f, relaxed.rows, relaxed.bu, relaxed.bl)
-    K.qp_finish(ws.work, relaxed.x, relaxed.rows, relaxed.bu, relaxed.bl, SOLUTION_RTOL)
+    K.qp_finish(ws.work, relaxed.x, relaxed.rows, relaxed.bu, relaxed.bl, SOLUTION_RTOL, False)
     K.law_terms(ws.work, True)
     K.closed_form(ws.work, True)
     K.write_record(ws.work, False)

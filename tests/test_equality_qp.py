@@ -61,11 +61,21 @@ def test_the_minimum_on_the_working_set_is_daqps_answer(name, duration, held_kin
     ticks = range(0, len(traj.t), 4)
     for k in ticks:
         out = ctrl.step(traj.q[k], traj.v[k], float(traj.t[k]))
-        if out.info.get("relaxed") is not None or out.iterations != 0:
+        if out.info.get("relaxed") is not None:
             continue
-        taken += 1
         H, f, rows, bu, bl = buf.H, buf.f, buf.rows, buf.bu, buf.bl
         x, lam = nat.x.copy(), nat.lam.copy()
+        # the record's count of rows and bounds at a bound (the check reads the row products the
+        # working-set answer left, or computes them after DAQP) against numpy's on the same x
+        Cx = rows[:n_in] @ x
+        bounded = np.isfinite(bl[nv:nv + n_in]) | np.isfinite(bu[nv:nv + n_in])
+        at_row = bounded & (np.minimum(abs(Cx - bl[nv:nv + n_in]), abs(Cx - bu[nv:nv + n_in])) <= 1e-6 * (1 + abs(Cx)))
+        n = buf.n
+        at_bound = np.minimum(abs(x[:n] - bl[:n]), abs(x[:n] - bu[:n])) <= 1e-6
+        assert out.info["active"] == at_row.sum() + at_bound.sum(), k
+        if out.iterations != 0:
+            continue
+        taken += 1
         xd, lamd, flag = _daqp_cold(H, f, rows, bu, bl)
         assert flag > 0
         scale = max(1.0, np.abs(xd).max())
@@ -116,8 +126,11 @@ def _run(H, f, rows, bu, bl, held=(), low=()):
     w = np.array([4, *held, 0, 0], np.int64)[:nv]
     lw = np.array([False, *low, False, False])[:nv]
     x, lam = np.full(nv, 7.0), np.full(nv + n_in + m, 7.0)
+    cx = np.full(n_in, 7.0)
     ok = active_set_minimum(H, f, rows, bu, bl, n_in, m, w, lw, 1 + len(held), x, lam, np.zeros((nv, nv)),
-                            np.zeros((nv, nv)), np.zeros((nv, nv)), np.zeros((nv, nv + 2)), np.zeros(nv))
+                            np.zeros((nv, nv)), np.zeros((nv, nv)), np.zeros((nv, nv + 2)), np.zeros(nv), cx)
+    if ok:  # the inequality row's product, for the tick's check to read (held or not)
+        np.testing.assert_allclose(cx, rows[:n_in] @ x, rtol=1e-14, atol=1e-14)
     return ok, x, lam
 
 

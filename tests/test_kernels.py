@@ -1358,3 +1358,29 @@ def test_kernels_load_from_the_cache_in_a_worker_process(tmp_path):
     for name, (hits, misses, path) in out.items():
         assert hits > 0 and misses == 0, (name, hits, misses, path)
         assert os.path.isdir(path), path
+
+
+def test_finite_problem_matches_numpys_finiteness_tests():
+    """The QP's data check (read as the values' bits) against numpy: False exactly when H, f or a row
+    holds a NaN or ±∞, or a bound holds a NaN (±∞ in a bound means "no bound"); every kind of IEEE
+    value tried in every array, including the largest finite double, −0 and a subnormal."""
+    from qpctl.kernels.finish import finite_problem
+
+    rng = np.random.default_rng(3)
+    H, f, rows = rng.standard_normal((7, 7)), rng.standard_normal(7), rng.standard_normal((51, 7))
+    bu = rng.standard_normal(58)
+    bl = bu - 1.0
+    bu[3], bl[5] = np.inf, -np.inf
+    specials = [np.nan, -np.nan, np.inf, -np.inf, np.finfo(float).max, -np.finfo(float).max, -0.0, 5e-324]
+    seen = {True: 0, False: 0}
+    for k in range(5):
+        for value in specials:
+            for _ in range(4):
+                arrs = [H.copy(), f.copy(), rows.copy(), bu.copy(), bl.copy()]
+                flat = arrs[k].reshape(-1)
+                flat[rng.integers(flat.size)] = value
+                expected = bool(all(np.isfinite(a).all() for a in arrs[:3]) and not np.isnan(arrs[3]).any()
+                                and not np.isnan(arrs[4]).any())
+                assert finite_problem(*arrs) is expected, (k, value)
+                seen[expected] += 1
+    assert seen[True] and seen[False]

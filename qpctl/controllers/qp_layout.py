@@ -250,7 +250,7 @@ class QPLayout:
             refusal = TaskRelaxation.judge(buf.problem, x, l1, SOLUTION_RTOL)
             if refusal:  # feasible, the hard QP's optimum, but not the relaxed QP's
                 status, x = refusal, None
-        if x is not None and not K.qp_finish(ws.work, x, buf.rows, buf.bu, buf.bl, SOLUTION_RTOL):
+        if x is not None and not K.qp_finish(ws.work, x, buf.rows, buf.bu, buf.bl, SOLUTION_RTOL, False):
             # The solver's own test runs on its scaled problem: a row it scaled up (say nᵀJ_p ≈ 1e-5
             # at a link's fixed base) can be violated by m/s² in our units while it reports "solved".
             status = "inaccurate" if np.isfinite(x).all() else "nonfinite_solution"

@@ -75,14 +75,16 @@ def working_set(dq, n_in: int, m: int, w: np.ndarray, low: np.ndarray) -> int:  
 @njit(cache=True)
 def active_set_minimum(H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarray, n_in: int,
                        m: int, w: np.ndarray, low: np.ndarray, p: int, x: np.ndarray, lam: np.ndarray, L: np.ndarray,
-                       Y: np.ndarray, V: np.ndarray, G: np.ndarray, z: np.ndarray) -> bool:
+                       Y: np.ndarray, V: np.ndarray, G: np.ndarray, z: np.ndarray, cx: np.ndarray) -> bool:
     """The minimum of the QP (H, f; ``rows`` with bounds ``bu``, ``bl`` in DAQP's convention: the nv simple
     bounds first, then one per row) on the p constraints ``w[:p]`` held as equalities (layout indices,
     ascending after the m task rows ``n_in`` … ``n_in + m`` first; ``low``: held at the lower bound,
     else the upper), where it meets every other row and bound and each held inequality's multiplier
     has its side's sign: then True, the answer in ``x`` (nv,) and the multipliers by layout index in
-    ``lam`` (DAQP's sign: Hx + f + Aᵀλ = 0; 0 outside ``w``). Else False, ``x`` and ``lam`` untouched.
-    Scratch, each at least: L (nv, nv), Y (nv, p), V (p, p), G (p, p + 2), z (nv,)."""
+    ``lam`` (DAQP's sign: Hx + f + Aᵀλ = 0; 0 outside ``w``), and each row's C x in ``cx`` (n_in,) as
+    :func:`~qpctl.kernels.finish.violation` writes it (0 for a row without a bound), so that the tick's
+    check of the answer reads them instead of computing them again. Else False, ``x`` and ``lam``
+    untouched. Scratch, each at least: L (nv, nv), Y (nv, p), V (p, p), G (p, p + 2), z (nv,)."""
     nv = x.shape[0]
     if p < 0 or p > nv or not cholesky(H, L):
         return False
@@ -132,18 +134,18 @@ def active_set_minimum(H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.nd
             c += 1
         elif not (bl[i] <= z[i] <= bu[i]):
             return False
-    for r in range(n_in):
+    for r in range(n_in):  # C x into cx as qp_finish's check computes it (it then reads them: cx_known)
         j = nv + r
-        if c < p and w[c] == j:
-            c += 1
-            continue
         lo, hi = bl[j], bu[j]
+        s = 0.0
         if lo > -np.inf or hi < np.inf:
-            s = 0.0
             for i in range(nv):
                 s += rows[r, i] * z[i]
-            if not (lo <= s <= hi):
-                return False
+        cx[r] = s
+        if c < p and w[c] == j:
+            c += 1
+        elif not (lo <= s <= hi):
+            return False
     for i in range(nv):
         x[i] = z[i]
     lam[:] = 0.0

@@ -77,41 +77,52 @@ def write_record(ws, singular: bool) -> None:  # type: ignore[no-untyped-def]
     ws.t_prev[0] = ws.fpar[FP_T]
 
 
+#: IEEE 754 binary64: a value is ±∞ or NaN exactly when its exponent bits are all ones, i.e. when its
+#: bits without the sign are at least those of +∞ (NaN strictly above them).
+_INF_BITS = np.uint64(0x7FF0000000000000)
+_NO_SIGN = np.uint64(0x7FFFFFFFFFFFFFFF)
+
+
 @njit(cache=True)
 def finite_problem(H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarray) -> bool:
-    """No NaN anywhere and no infinity outside the bounds (where ±∞ means "no bound")."""
-    acc = 0.0
-    for i in range(H.shape[0]):
-        acc += f[i] * 0.0
-        for j in range(H.shape[1]):
-            acc += H[i, j] * 0.0
-    for i in range(rows.shape[0]):
-        for j in range(rows.shape[1]):
-            acc += rows[i, j] * 0.0
-    if acc != 0.0:  # NaN (0·∞ or NaN itself)
+    """No NaN anywhere and no infinity outside the bounds (where ±∞ means "no bound"). Read as the
+    values' bits (``_INF_BITS``): the largest magnitude's bits in one integer pass, which the compiler
+    vectorises (0.19 µs against 0.35–0.45 µs for a sum of x·0 over the same 530 values on the Panda's
+    hard layout; a float sum cannot be reordered without fastmath). H, f, rows: C-contiguous."""
+    top = np.uint64(0)
+    for a in (H.reshape(-1).view(np.uint64), f.view(np.uint64), rows.reshape(-1).view(np.uint64)):
+        for i in range(a.shape[0]):
+            top = max(top, a[i] & _NO_SIGN)
+    if top >= _INF_BITS:
         return False
-    for i in range(bu.shape[0]):
-        if math.isnan(bu[i]) or math.isnan(bl[i]):
-            return False
-    return True
+    ub, lb = bu.view(np.uint64), bl.view(np.uint64)
+    top = np.uint64(0)
+    for i in range(ub.shape[0]):
+        top = max(top, max(ub[i] & _NO_SIGN, lb[i] & _NO_SIGN))
+    return top <= _INF_BITS
 
 
 @njit(cache=True)
 def violation(x: np.ndarray, n: int, n_in: int, rows: np.ndarray, bu: np.ndarray, bl: np.ndarray,
-              Cx: np.ndarray) -> float:
+              Cx: np.ndarray, cx_known: bool) -> float:
     """Largest violation at x of the inequality rows and of the bounds on q̈, each relative to
     1 + |its bound| (infinite bounds never count); the task's equality is the solver's business.
-    Leaves C x in ``Cx`` (n_in,), 0 for a row without a bound (an empty slot: not computed)."""
+    Leaves C x in ``Cx`` (n_in,), 0 for a row without a bound (an empty slot: not computed); where
+    ``cx_known``, ``Cx`` already holds them for this x and is read (the working-set answer computed
+    them: :func:`~qpctl.kernels.equality_qp.active_set_minimum`)."""
     nv = x.shape[0]
     worst = 0.0
     for r in range(n_in + n):
         if r < n_in:
             lo, hi = bl[nv + r], bu[nv + r]
-            s = 0.0
-            if lo > -np.inf or hi < np.inf:
-                for c in range(nv):
-                    s += rows[r, c] * x[c]
-            Cx[r] = s
+            if cx_known:
+                s = Cx[r]
+            else:
+                s = 0.0
+                if lo > -np.inf or hi < np.inf:
+                    for c in range(nv):
+                        s += rows[r, c] * x[c]
+                Cx[r] = s
         else:
             s = x[r - n_in]
             lo, hi = bl[r - n_in], bu[r - n_in]
@@ -124,10 +135,11 @@ def violation(x: np.ndarray, n: int, n_in: int, rows: np.ndarray, bu: np.ndarray
 
 @njit(cache=True)
 def qp_finish(ws, x: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarray,  # type: ignore[no-untyped-def]
-              tol: float) -> bool:
+              tol: float, cx_known: bool) -> bool:
     """Check the solver's x against the hard rows (relative violation ≤ tol); if it holds, τ = M q̈ + N
     within ±τ_max (the solver's residue clipped, q̈ recomputed), slack and active-row counts, and the
-    record. False (nothing written) if x is not finite or violates a row."""
+    record. False (nothing written) if x is not finite or violates a row. ``cx_known``: ws.cx already
+    holds this x's row products (:func:`violation`)."""
     n = ws.N.shape[0]
     ip = ws.ipar
     n_in = ip[IP_N_IN]
@@ -136,7 +148,7 @@ def qp_finish(ws, x: np.ndarray, rows: np.ndarray, bu: np.ndarray, bl: np.ndarra
         if not math.isfinite(x[c]):
             return False
     Cx = ws.cx
-    viol = violation(x, n, n_in, rows, bu, bl, Cx)
+    viol = violation(x, n, n_in, rows, bu, bl, Cx, cx_known)
     if viol > tol:
         return False
     for i in range(n):

@@ -103,10 +103,11 @@ def qp_tick_native_hard_first_from(nq, try_hard: bool, t0: float) -> tuple[int, 
         m = ws.a.shape[0]
         # the minimum on the task's rows and DAQP's last working set, where it is the answer: DAQP not
         # called (equality_qp)
-        if nvh == ws.N.shape[0] and active_set_minimum(
-                nq.Hh, nq.fh, rowsh, buh, blh, n_in, m, nq.eq_w, nq.eq_low,
-                working_set(dqh, n_in, m, nq.eq_w, nq.eq_low), xh, nq.lamh, nq.eq_L, nq.eq_Y, nq.eq_V, nq.eq_G,
-                nq.eq_z):
+        shortcut = nvh == ws.N.shape[0] and active_set_minimum(
+            nq.Hh, nq.fh, rowsh, buh, blh, n_in, m, nq.eq_w, nq.eq_low,
+            working_set(dqh, n_in, m, nq.eq_w, nq.eq_low), xh, nq.lamh, nq.eq_L, nq.eq_Y, nq.eq_V, nq.eq_G,
+            nq.eq_z, ws.cx)
+        if shortcut:
             dqh.flag[0], dqh.flag[1] = 1, 0  # DAQP's words for it: solved, no iteration
             ok = True
         else:
@@ -117,7 +118,7 @@ def qp_tick_native_hard_first_from(nq, try_hard: bool, t0: float) -> tuple[int, 
             hard = 4
         elif not penalty_exact(nq.lamh, nvh + n_in, m, nq.l1):
             hard = 7
-        elif not qp_finish(ws, xh, rowsh, buh, blh, tol):
+        elif not qp_finish(ws, xh, rowsh, buh, blh, tol, shortcut):  # (its C x in ws.cx)
             hard = 4
         else:  # the solve and the check of its answer (the relaxed QP's below, the same)
             ws.rec[s + R_BUILD_US], ws.rec[s + R_SOLVE_US] = build, now_us(ts) - t1

@@ -58,7 +58,7 @@ def qp_tick_native(ws, H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.nd
     ws.rec[s + R_SOLVE_US] = now_us(ts) - t1
     if not ok:
         return 3
-    if not qp_finish(ws, x, rows, bu, bl, tol):
+    if not qp_finish(ws, x, rows, bu, bl, tol, False):
         return 4
     ws.rec[s + R_ITERATIONS] = dq.flag[1]
     return 0
@@ -70,7 +70,7 @@ def native_solve_finish(ws, rows: np.ndarray, bu: np.ndarray, bl: np.ndarray, dq
     """:func:`qp_tick_native` after its rows are built (the tick that set DAQP's workspace up)."""
     if native_solve(dq) <= 0:
         return 3
-    if not qp_finish(ws, x, rows, bu, bl, tol):
+    if not qp_finish(ws, x, rows, bu, bl, tol, False):
         return 4
     ws.rec[record_scalars(ws.N.shape[0], ws.a.shape[0]) + R_ITERATIONS] = dq.flag[1]
     return 0
