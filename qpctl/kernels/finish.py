@@ -99,7 +99,7 @@ def finite_problem(H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.ndarra
     top = np.uint64(0)
     for i in range(ub.shape[0]):
         top = max(top, max(ub[i] & _NO_SIGN, lb[i] & _NO_SIGN))
-    return top <= _INF_BITS
+    return bool(top <= _INF_BITS)
 
 
 @njit(cache=True)
