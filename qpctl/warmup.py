@@ -93,7 +93,7 @@ def warmup() -> dict[str, float]:
         nat_r.setup()
         K.native_solve(nat_r.dq)
         K.native_solve_finish(ws.work, relaxed.rows, relaxed.bu, relaxed.bl, nat_r.dq, nat_r.x, SOLUTION_RTOL)
-        args = (*nat_h.kernel_args, nat_h.lam, *nat_r.kernel_args, SOLUTION_RTOL, 1e6, *shortcut_scratch(nat_h.x.shape[0]))
+        args = (*nat_h.kernel_args, nat_h.lam, *nat_r.kernel_args, SOLUTION_RTOL, 1e6, *shortcut_scratch(nat_h.x.shape[0], ws.n))
         packed = new_native_qp(ws.work, *args)
         for try_hard in (True, False):  # the whole tick, then its part after the state (Python's turn)
             ws.rigid(q, v)

@@ -39,25 +39,15 @@ def _daqp_cold(H, f, rows, bu, bl):
     return np.asarray(x), np.asarray(info["lam"]), flag
 
 
-@C_API
-@pytest.mark.parametrize(("name", "duration", "held_kinds"), [("panda_spheres", 6.0, ("bound", "row")),
-                                                             ("paper", 3.0, ("row",))])
-def test_the_minimum_on_the_working_set_is_daqps_answer(name, duration, held_kinds):
-    """On every 4th state of the scene's closed loop (QP, DAQP): the ticks whose answer came without
-    DAQP (iterations 0) are the hard QP's — DAQP cold on the same arrays gives the same x (1e-9
-    relative) and multipliers (1e-7), and by numpy: Hx + f + Aᵀλ = 0, every row and bound holds, each
-    multiplier has its side's sign (≥ 0 at an upper bound, ≤ 0 at a lower one) and is zero off its
-    bound. Almost every tick takes the path (the working set changes rarely), among them ticks with an
-    inequality held (a nonzero multiplier outside the task rows): on the Panda both a simple bound (joint
-    6's upper q̈ bound, held from t ≈ 4 s) and a row (an obstacle's barrier), on the planar arm a row."""
-    scen = Scenario.load(name, [f"sim.duration={duration}"])
-    traj = simulate(scen, kind="qp", solver="daqp").trajectory
-    ctrl = scen.build_controller("qp", "daqp")
+def _check_closed_loop(ctrl, traj, held_kinds):
+    """Every 4th state of ``traj`` through ``ctrl`` (QP, DAQP): the record's active count against numpy's on
+    every hard tick; on those whose answer came without DAQP (iterations 0) DAQP's cold solve, numpy's
+    KKT conditions and the multipliers' sides (the docstring below). Returns the held kinds' counts."""
     hard = ctrl.qp_path().hard
     buf, nat = hard.buf, hard.nat
-    nv, n_in, m = buf.nv, buf.n_in, buf.n_eq
+    nv, n_in, m, n = buf.nv, buf.n_in, buf.n_eq, buf.n
     taken = 0
-    held = {"bound": 0, "row": 0}
+    held = {"bound": 0, "row": 0, "slack": 0}
     ticks = range(0, len(traj.t), 4)
     for k in ticks:
         out = ctrl.step(traj.q[k], traj.v[k], float(traj.t[k]))
@@ -70,7 +60,6 @@ def test_the_minimum_on_the_working_set_is_daqps_answer(name, duration, held_kin
         Cx = rows[:n_in] @ x
         bounded = np.isfinite(bl[nv:nv + n_in]) | np.isfinite(bu[nv:nv + n_in])
         at_row = bounded & (np.minimum(abs(Cx - bl[nv:nv + n_in]), abs(Cx - bu[nv:nv + n_in])) <= 1e-6 * (1 + abs(Cx)))
-        n = buf.n
         at_bound = np.minimum(abs(x[:n] - bl[:n]), abs(x[:n] - bu[:n])) <= 1e-6
         assert out.info["active"] == at_row.sum() + at_bound.sum(), k
         if out.iterations != 0:
@@ -90,12 +79,69 @@ def test_the_minimum_on_the_working_set_is_daqps_answer(name, duration, held_kin
         up, lo = lam > 0, lam < 0  # a multiplier pushes from the side its constraint is held at
         assert np.allclose(Ax[up], bu[up], rtol=0, atol=1e-9 * scale), k
         assert np.allclose(Ax[lo], bl[lo], rtol=0, atol=1e-9 * scale), k
-        held["bound"] += bool(lam[:nv].any())
+        held["bound"] += bool(lam[:n].any())
+        held["slack"] += bool(lam[n:nv].any())
         held["row"] += bool(lam[nv:nv + n_in].any())
         assert (bu[nv + n_in:nv + n_in + m] == bl[nv + n_in:nv + n_in + m]).all()  # the task rows: equalities
     assert taken >= 0.9 * len(ticks), (taken, len(ticks))
     for kind in held_kinds:
         assert held[kind] > 0, f"no tick took the path with a {kind} held"
+    return held
+
+
+@C_API
+@pytest.mark.parametrize(("name", "duration", "held_kinds"), [("panda_spheres", 6.0, ("bound", "row")),
+                                                             ("paper", 3.0, ("row",))])
+def test_the_minimum_on_the_working_set_is_daqps_answer(name, duration, held_kinds):
+    """On every 4th state of the scene's closed loop (QP, DAQP): the ticks whose answer came without
+    DAQP (iterations 0) are the hard QP's — DAQP cold on the same arrays gives the same x (1e-9
+    relative) and multipliers (1e-7), and by numpy: Hx + f + Aᵀλ = 0, every row and bound holds, each
+    multiplier has its side's sign (≥ 0 at an upper bound, ≤ 0 at a lower one) and is zero off its
+    bound. Almost every tick takes the path (the working set changes rarely), among them ticks with an
+    inequality held (a nonzero multiplier outside the task rows): on the Panda both a simple bound (joint
+    6's upper q̈ bound, held from t ≈ 4 s) and a row (an obstacle's barrier), on the planar arm a row."""
+    scen = Scenario.load(name, [f"sim.duration={duration}"])
+    traj = simulate(scen, kind="qp", solver="daqp").trajectory
+    _check_closed_loop(scen.build_controller("qp", "daqp"), traj, held_kinds)
+
+
+@C_API
+def test_slack_columns_held_at_zero_are_fixed_and_the_answer_is_daqps():
+    """A depth map's rows add a slack column σ_l ≥ 0 per link (H 1e-9 there, ℓ₁ cost 1e7): the
+    kernel fixes each σ at its held bound and solves on q̈, each σ's multiplier from its row of the KKT
+    conditions. On the Panda's closed loop among the ``panda_spheres`` spheres seen as a point cloud
+    (2,000 points on each, 2 cm voxels; 3 s): the same checks as above, against DAQP's cold solve of
+    the whole 14-variable QP — ≥ 90 % of the hard ticks take it, with a σ bound, a q̈ bound and a row
+    held among them."""
+    from qpctl.perception import DepthMap, PerceptionConfig, PointCloud
+    from qpctl.perception.rows import FieldBarrier
+    from qpctl.simulation.simulator import Simulator
+
+    class Fixed:  # a fixed map, as a Perception hands its snapshot
+        def __init__(self, snapshot):
+            self.snapshot = snapshot
+
+    scen = Scenario.load("panda_spheres")
+    rng = np.random.default_rng(0)
+    pts = []
+    for o in scen.build_obstacles():
+        d = rng.normal(size=(2000, 3))
+        pts.append(o.position + o.radius * d / np.linalg.norm(d, axis=1, keepdims=True))
+    cfg = PerceptionConfig(voxel=0.02, bounds_min=[-0.8, -0.8, -0.1], bounds_max=[0.8, 0.8, 1.2], truncation=0.3,
+                           depth_noise=0.0)
+    m = DepthMap(cfg)
+    m.integrate(PointCloud(np.concatenate(pts), 0.0))
+
+    def controller():
+        ctrl = scen.build_controller("qp", "daqp")
+        ctrl.add_constraint(FieldBarrier(Fixed(m.snapshot()), ctrl.robot, cfg, d_safe=ctrl.gains.d_safe,
+                                         cutoff=ctrl.cutoff, k0=ctrl.config.barrier_k0, k1=ctrl.config.barrier_k1))
+        return ctrl
+
+    ctrl = controller()
+    assert ctrl.qp_path().hard.buf.nv > ctrl.robot.nv  # the slack columns are there
+    traj = Simulator(ctrl, dt=1e-3, duration=3.0, obstacles=scen.build_obstacles()).run(scen.q0(ctrl.robot))
+    _check_closed_loop(controller(), traj, ("slack", "bound", "row"))
 
 
 def _qp3():
@@ -185,3 +231,55 @@ def test_a_held_row_or_bound_gives_daqps_answer_and_the_wrong_side_declines(whic
     np.testing.assert_allclose(xd2, xs, rtol=0, atol=1e-10)
     ok, x, lam = _run(H, f, rows, bu2, bl, held=(idx,), low=(False,))
     assert not ok and (x == 7.0).all() and (lam == 7.0).all()
+
+
+def _soft_qp(weight):
+    """_qp3 with a slack column σ ≥ 0 on its inequality row made soft and raised through the minimum:
+    c x + σ ≥ c x* + 0.5, σ's cost ``weight``·σ + 1e-9·σ²/2 (the field rows' form)."""
+    H, f, rows, e, c, xs = _qp3()
+    H4 = np.zeros((4, 4))
+    H4[:3, :3], H4[3, 3] = H, 1e-9
+    f4 = np.append(f, weight)
+    rows4 = np.zeros((2, 4))
+    rows4[0, :3], rows4[0, 3], rows4[1, :3] = c, 1.0, rows[1]
+    bu = np.concatenate([np.full(3, 10.0), [np.inf], [np.inf], e])
+    bl = np.concatenate([np.full(3, -10.0), [0.0], [c @ xs + 0.5], e])
+    return H4, f4, rows4, bu, bl
+
+
+@pytest.mark.parametrize("weight", [1e7, 1e-3])
+def test_a_slack_column_is_fixed_at_its_bound_and_declined_where_it_should_give(weight):
+    """The QP's slack column held at σ = 0 with the soft row held at its bound: with σ dear (1e7) the
+    kernel's answer on q̈ alone is DAQP's, x and every multiplier (σ's from its KKT row, 1e7 − μ < 0 at
+    its lower bound); with σ cheap (1e-3) σ's multiplier has the wrong sign — DAQP's answer uses σ > 0 —
+    and the kernel declines, x and λ untouched. The slack column left out of the working set declines."""
+    H, f, rows, bu, bl = _soft_qp(weight)
+    nv, n_in, m = 4, 1, 1
+    xd, lamd, flag = _daqp_cold(H, f, rows, bu, bl)
+    assert flag > 0
+
+    def run(w, low):
+        x, lam, cx = np.full(nv, 7.0), np.full(nv + n_in + m, 7.0), np.zeros(n_in)
+        ok = active_set_minimum(H, f, rows, bu, bl, n_in, m, np.array(w + [0] * (nv - len(w)), np.int64),
+                                np.array(low + [False] * (nv - len(low))), len(w), x, lam, np.zeros((3, 3)),
+                                np.zeros((nv, nv)), np.zeros((nv, nv)), np.zeros((nv, nv + 2)), np.zeros(nv), cx)
+        return ok, x, lam
+
+    ok, x, lam = run([5, 3, 4], [False, True, True])  # the task row, σ at 0, the soft row at its lower bound
+    if weight > 1.0:
+        assert ok and xd[3] == 0.0
+        # numpy's KKT solve on q̈ with σ = 0 and both rows held: x and their multipliers, exactly; DAQP's
+        # cold solve of the whole QP agrees within its own tolerance (H's 1e-9 beside 1e7 costs it ~1e-7)
+        K = np.block([[H[:3, :3], rows[:, :3].T], [rows[:, :3], np.zeros((2, 2))]])
+        kkt = np.linalg.solve(K, np.concatenate([-f[:3], bl[4:]]))
+        np.testing.assert_allclose(x, np.append(kkt[:3], 0.0), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(lam[4:], kkt[3:], rtol=1e-12)
+        assert lam[3] == pytest.approx(-(f[3] + kkt[3] * rows[0, 3]), rel=1e-12)  # σ's row of Hx + f + Aᵀλ = 0
+        assert lam[3] < 0  # σ pushed from its lower bound
+        np.testing.assert_allclose(x, xd, rtol=0, atol=1e-5)
+        np.testing.assert_allclose(lam, lamd, rtol=1e-5, atol=1e-5)
+    else:
+        assert xd[3] > 0.1  # DAQP lets the row give way through σ
+        assert not ok and (x == 7.0).all() and (lam == 7.0).all()
+    ok, x, _ = run([5, 4], [False, True])  # σ not held: not fixed, so not this kernel's
+    assert not ok and (x == 7.0).all()

@@ -76,7 +76,7 @@ class CompiledTick:
             nh, nr = self.hard.nat, self.relaxed.nat
             assert nh is not None and nr is not None
             self.native_args = (*nh.kernel_args, nh.lam, *nr.kernel_args, SOLUTION_RTOL, float(ws.spec.slack_l1),
-                                *shortcut_scratch(nh.x.shape[0]))
+                                *shortcut_scratch(nh.x.shape[0], ws.n))
         # the one-call tick's QP arguments as one compiled argument (qpctl.kernels.native_qp)
         self.packed: Any = None if self.native_args is None else new_native_qp(ws.work, *self.native_args)
         self._last_problem: Problem | None = None

@@ -103,7 +103,7 @@ def qp_tick_native_hard_first_from(nq, try_hard: bool, t0: float) -> tuple[int, 
         m = ws.a.shape[0]
         # the minimum on the task's rows and DAQP's last working set, where it is the answer: DAQP not
         # called (equality_qp)
-        shortcut = nvh == ws.N.shape[0] and active_set_minimum(
+        shortcut = active_set_minimum(
             nq.Hh, nq.fh, rowsh, buh, blh, n_in, m, nq.eq_w, nq.eq_low,
             working_set(dqh, n_in, m, nq.eq_w, nq.eq_low), xh, nq.lamh, nq.eq_L, nq.eq_Y, nq.eq_V, nq.eq_G,
             nq.eq_z, ws.cx)

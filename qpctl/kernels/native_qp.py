@@ -64,9 +64,11 @@ def _typeof(val: NativeQP, c: object) -> types.Type:
     return val._numba_type_
 
 
-def shortcut_scratch(nv: int) -> tuple[np.ndarray, ...]:
-    """The arrays of :data:`FIELDS`' last seven (the working-set shortcut's scratch) for nv variables."""
-    return (np.zeros(nv, np.int64), np.zeros(nv, np.bool_), np.zeros((nv, nv)), np.zeros((nv, nv)),
+def shortcut_scratch(nv: int, n: int) -> tuple[np.ndarray, ...]:
+    """The arrays of :data:`FIELDS`' last seven (the working-set shortcut's scratch) for nv variables of
+    which the first n are the robot's q̈ (the rest, slack columns, are fixed at their bounds there:
+    :func:`~qpctl.kernels.equality_qp.active_set_minimum` factors H's leading n × n block into L)."""
+    return (np.zeros(nv, np.int64), np.zeros(nv, np.bool_), np.zeros((n, n)), np.zeros((nv, nv)),
             np.zeros((nv, nv)), np.zeros((nv, nv + 2)), np.zeros(nv))
 
 
