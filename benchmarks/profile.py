@@ -83,7 +83,7 @@ def parts(solver: str = "daqp", seed: int = 100, duration: float | None = None) 
         else:
             x = solver_obj.solve(buf.problem).x
         c.append(time.perf_counter())
-        K.qp_finish(ws.work, x, buf.rows, buf.bu, buf.bl, 1e-4)
+        K.qp_finish(ws.work, x, buf.rows, buf.bu, buf.bl, 1e-4, False)
         c.append(time.perf_counter())
         times[i] = np.diff(c)
     out.update({name: float(np.median(times[:, j]) * 1e6) for j, name in enumerate(names)})
