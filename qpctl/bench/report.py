@@ -52,7 +52,9 @@ TSID_CREDIT = ("TSID 1.10 built from its sdists against pin 4.1, side by side wi
                "0.61–0.64 on 2026-12-03), after the equality shortcut 0.89–0.95 (0.84–0.90 the code "
                "before, alternated, the floor 5.2–5.5 µs), after the answer on DAQP's last working set "
                "0.89–0.97, median 0.935 (0.87–1.04, median 0.94, the code before, eight runs each alternated, "
-               "the floor 4.1–6.2 µs); not measured by this benchmark")
+               "the floor 4.1–6.2 µs), after the data's check by its bits and the answer's row products reused "
+               "0.92–1.03, median 0.99 (0.88–1.03, median 1.00, the code before, fourteen runs each alternated, "
+               "the floor 3.5–5.3 µs); not measured by this benchmark")
 
 
 def cpu_model() -> str:
