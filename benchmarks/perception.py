@@ -312,18 +312,14 @@ def tick_with_field(reps: int) -> dict[str, Any]:
     from qpctl import Scenario
     from qpctl.perception import PointCloud
     from qpctl.perception.rows import FieldBarrier
+    from qpctl.perception.synthetic import sphere_surface_points
     from qpctl.simulation.simulator import Simulator
 
     scen = Scenario.load("panda_spheres")
-    rng = np.random.default_rng(0)
-    pts = []
-    for o in scen.build_obstacles():
-        d = rng.normal(size=(2000, 3))
-        pts.append(o.position + o.radius * d / np.linalg.norm(d, axis=1, keepdims=True))
     cfg = PerceptionConfig(voxel=0.02, bounds_min=[-0.8, -0.8, -0.1], bounds_max=[0.8, 0.8, 1.2], truncation=0.3,
                            depth_noise=0.0)
     m = DepthMap(cfg)
-    m.integrate(PointCloud(np.concatenate(pts), 0.0))
+    m.integrate(PointCloud(sphere_surface_points(scen.build_obstacles()), 0.0))
     plain, field = scen.build_controller("qp"), scen.build_controller("qp")
     bar = FieldBarrier(_Snapshot(m.snapshot()), field.robot, cfg, d_safe=field.gains.d_safe, cutoff=field.cutoff,
                        k0=field.config.barrier_k0, k1=field.config.barrier_k1)

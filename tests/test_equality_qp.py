@@ -115,6 +115,7 @@ def test_slack_columns_held_at_zero_are_fixed_and_the_answer_is_daqps():
     held among them."""
     from qpctl.perception import DepthMap, PerceptionConfig, PointCloud
     from qpctl.perception.rows import FieldBarrier
+    from qpctl.perception.synthetic import sphere_surface_points
     from qpctl.simulation.simulator import Simulator
 
     class Fixed:  # a fixed map, as a Perception hands its snapshot
@@ -122,15 +123,10 @@ def test_slack_columns_held_at_zero_are_fixed_and_the_answer_is_daqps():
             self.snapshot = snapshot
 
     scen = Scenario.load("panda_spheres")
-    rng = np.random.default_rng(0)
-    pts = []
-    for o in scen.build_obstacles():
-        d = rng.normal(size=(2000, 3))
-        pts.append(o.position + o.radius * d / np.linalg.norm(d, axis=1, keepdims=True))
     cfg = PerceptionConfig(voxel=0.02, bounds_min=[-0.8, -0.8, -0.1], bounds_max=[0.8, 0.8, 1.2], truncation=0.3,
                            depth_noise=0.0)
     m = DepthMap(cfg)
-    m.integrate(PointCloud(np.concatenate(pts), 0.0))
+    m.integrate(PointCloud(sphere_surface_points(scen.build_obstacles()), 0.0))
 
     def controller():
         ctrl = scen.build_controller("qp", "daqp")

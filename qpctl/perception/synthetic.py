@@ -8,10 +8,12 @@ simulator). Each sphere is intersected only over the pixels of its image-space b
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
+from qpctl.geometry.obstacles import Obstacle
 from qpctl.perception.frames import RIGID, SOFT, DepthFrame, Intrinsics
 
 
@@ -22,6 +24,21 @@ class Sphere:
     centre: tuple[float, float, float]
     radius: float
     label: int = RIGID
+
+
+def sphere_surface_points(obstacles: Sequence[Obstacle], per: int = 2000, seed: int = 0) -> np.ndarray:
+    """(spheres·per, 3) points [m] uniform on the surface of each sphere among ``obstacles`` (the
+    other shapes skipped) at its position at t = 0, seeded: a cloud that sees every sphere all round,
+    for a map whose rows stand where the spheres' primitive rows do (the field's tick in
+    ``benchmarks/perception.py``, ``tests/test_equality_qp.py``)."""
+    rng = np.random.default_rng(seed)
+    pts = []
+    for o in obstacles:
+        if o.shape != "sphere":
+            continue
+        d = rng.normal(size=(per, 3))
+        pts.append(np.asarray(o.position) + o.radius * d / np.linalg.norm(d, axis=1, keepdims=True))
+    return np.concatenate(pts) if pts else np.empty((0, 3))
 
 
 def look_at(eye: np.ndarray | list[float], target: np.ndarray | list[float]) -> np.ndarray:
