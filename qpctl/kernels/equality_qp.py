@@ -48,7 +48,7 @@ import numpy as np
 from numba import njit
 
 from qpctl.kernels.daqp_pack import ACTIVE, IMMUTABLE, LOWER
-from qpctl.kernels.small import chol_solve, chol_solve_cols, cholesky, cholesky_lead, normal_solve
+from qpctl.kernels.small import chol_solve, chol_solve_cols, cholesky_lead, normal_solve
 
 
 @njit(cache=True)
