@@ -12,6 +12,7 @@ angular velocity ω_d = (ṡ/T_k) θ_k and acceleration ω̇_d = (s̈/T_k²) θ_
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, NamedTuple
@@ -210,3 +211,70 @@ class PosePath(WaypointPath):
         k, s, ds, dds = self.timing(t)
         th = self.frame_theta[frame, k]
         return pin.exp3(s * th) @ self.frame_rotations[frame, k], ds * th, dds * th
+
+
+class TimeScaledPath:
+    """A path whose clock runs at κ (set each tick with :meth:`advance`): wraps any path callable
+    ``path(t) -> Reference``; other attributes (``dim``, ``points`` …) are the path's. The stale-map
+    policy and the waiting reference drive it (:mod:`qpctl.perception.stale`).
+
+    Over a plain :class:`WaypointPath` the compiled tick evaluates it itself: a workspace that takes
+    it (:meth:`bind`: its parameter array), and every :meth:`advance` writes the clock (s, κ, κ̇ and
+    the time of the advance) there (:func:`qpctl.kernels.scene.reference`), so that the tick stays one
+    kernel call with a time-scaled path."""
+
+    def __init__(self, path: Any, start: float = 0.0) -> None:
+        self.path = path
+        self.s = float(start)  # the path's own time [s]
+        self.kappa = 1.0
+        self.kappa_rate = 0.0  # κ̇ [1/s]
+        self._t = float(start)
+        self._sinks: list[np.ndarray] = []  # the bound workspaces' clocks: (s, κ, κ̇, t) each
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the compiled tick can evaluate it (the wrapped path is a plain WaypointPath)."""
+        return type(self.__dict__["path"]) is WaypointPath
+
+    def bind(self, sink: np.ndarray) -> None:
+        """Keep ``sink`` (4,) — a workspace's view of its clock parameters — written on every advance."""
+        self._sinks.append(sink)
+        self._write(sink)
+
+    def _write(self, sink: np.ndarray) -> None:
+        sink[0], sink[1], sink[2], sink[3] = self.s, self.kappa, self.kappa_rate, self._t
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.__dict__["path"], name)
+
+    def advance(self, t: float, kappa: float) -> None:
+        """Move the clock to t [s] at the κ in force since the last call, then set κ for what follows."""
+        if t > self._t:
+            dt = t - self._t
+            self.s += self.kappa * dt
+            self.kappa_rate = (kappa - self.kappa) / dt
+            self._t = t
+        self.kappa = float(kappa)
+        for sink in self._sinks:
+            self._write(sink)
+
+    def time_at(self, t: float) -> float:
+        """The path's own time [s] at t [s]: the clock's, extrapolated at the current κ beyond the last
+        :meth:`advance`."""
+        return self.s + self.kappa * max(0.0, float(t) - self._t)
+
+    def __call__(self, t: float) -> Reference:
+        """The reference at the clock's time (``t`` is taken from :meth:`advance`; a t beyond it is
+        extrapolated at the current κ)."""
+        s = self.time_at(t)
+        ref = self.path(s)
+        k = self.kappa
+        xdd = k * k * ref.xdd + self.kappa_rate * ref.xd
+        return Reference(ref.x, k * ref.xd, xdd if math.isfinite(self.kappa_rate) else k * k * ref.xdd)
+
+    def orientation(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A pose path's (R_d, ω_d, ω̇_d) at the clock's time, scaled like the position."""
+        s = self.time_at(t)
+        R, w, wd = self.path.orientation(s)
+        k = self.kappa
+        return R, k * w, k * k * wd + self.kappa_rate * w

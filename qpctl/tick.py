@@ -37,7 +37,7 @@ from qpctl.kernels.pin_native import rigid_at
 from qpctl.kernels.work import FIELDS, SJ_ROWS, SV_ROWS, new_tick_work
 from qpctl.law import LawGains, LawTerms
 from qpctl.native.rigid import NativeRigid, float_view
-from qpctl.paths import PosePath, Reference, WaypointPath
+from qpctl.paths import PosePath, Reference, TimeScaledPath, WaypointPath
 from qpctl.qp import Problem
 from qpctl.robot.model import RobotModel
 from qpctl.state import SelfPairState, TickState
@@ -357,11 +357,16 @@ class Workspace:
         self.fpar = np.zeros(codes.FP_SIZE)
         self.ipar = np.zeros(codes.IP_SIZE, dtype=np.int64)
         self._grid(broadphase, cutoff)
-        # path (None: state only)
-        self.path_in_kernel = isinstance(path, WaypointPath) or path is None
-        if isinstance(path, WaypointPath):
+        # path (None: state only); a time-scaled WaypointPath in the kernel too, its clock bound to fpar
+        scaled = isinstance(path, TimeScaledPath) and path.compiled
+        self.path_in_kernel = isinstance(path, WaypointPath) or path is None or scaled
+        if isinstance(path, WaypointPath) or scaled:
+            base = path.path if scaled else path  # type: ignore[union-attr]
             self.path_pts, self.path_t0, self.path_T = (np.ascontiguousarray(a, dtype=float)
-                                                        for a in (path.points, path.starts, path.durations))
+                                                        for a in (base.points, base.starts, base.durations))
+            if scaled:
+                self.ipar[codes.IP_TIME_SCALED] = 1
+                path.bind(self.fpar[codes.FP_TS:codes.FP_TS + 4])  # type: ignore[union-attr]
         else:  # None, or any callable t → Reference (evaluated in Python each tick)
             self.path_pts, self.path_t0, self.path_T = np.zeros((2, m_p)), np.zeros(1), np.ones(1)
         if isinstance(path, PosePath):

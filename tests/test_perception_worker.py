@@ -154,3 +154,43 @@ def test_time_scaled_reference_is_the_path_at_the_scaled_clock() -> None:
     assert ts.s == pytest.approx(0.4, abs=1e-3)
     assert np.allclose(xs[-1], path(ts.s).x, atol=1e-12) and not np.any(xds[-1])
     assert ts.dim == path.dim
+
+
+def test_the_compiled_tick_evaluates_a_time_scaled_waypoint_path() -> None:
+    """A TimeScaledPath over a WaypointPath stays in the one-call kernel (the clock bound to the
+    workspace, written by every advance): the record's x_d, ẋ_d, ẍ_d at each tick equal the path's own
+    Python evaluation at that tick (1e-12), while κ slows, halts and resumes; and the torques equal those
+    of the same controller whose path is evaluated in Python each tick (the same clock through a wrapper
+    the kernel cannot read), to 1e-9."""
+    from qpctl import Scenario
+
+    scen = Scenario.load("panda_spheres", ["sim.duration=1.0"])
+
+    def build(wrap):
+        ctrl = scen.build_controller("qp", "daqp")
+        scaled = TimeScaledPath(wrap(ctrl.path))
+        ctrl.path = scaled
+        ctrl._ws = None  # rebuilt on the next tick with the new path (as perception.attach does)
+        return ctrl, scaled
+
+    compiled, ts_c = build(lambda p: p)
+    python, ts_p = build(lambda p: (lambda t: p(t)))
+    assert ts_c.compiled and not ts_p.compiled
+    q, v = scen.q0(compiled.robot), np.zeros(compiled.robot.nv)
+    dt = 1e-3
+    for k in range(600):
+        t = k * dt
+        kappa = 1.0 if t < 0.1 else (0.0 if t < 0.25 else min(1.0, 0.5 + (t - 0.25)))  # slows, halts, resumes
+        for ts in (ts_c, ts_p):
+            ts.advance(t, kappa)
+        out_c, out_p = compiled.step(q, v, t), python.step(q, v, t)
+        ref = ts_p(t)
+        np.testing.assert_allclose(out_c.ref.x, ref.x, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(out_c.ref.xd, ref.xd, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(out_c.ref.xdd, ref.xdd, rtol=0, atol=1e-12 * max(1.0, np.abs(ref.xdd).max()))
+        np.testing.assert_allclose(out_c.tau, out_p.tau, rtol=0, atol=1e-9 * max(1.0, np.abs(out_p.tau).max()))
+        q = q + dt * v
+        v = v + dt * out_c.qdd
+    ws = compiled.workspace()
+    assert ws.path_in_kernel and ws.fast  # the one-call tick
+    assert not python.workspace().path_in_kernel

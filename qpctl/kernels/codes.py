@@ -28,14 +28,18 @@ FP_BRK_SHARE, FP_BRK_MARGIN, FP_BRK_DT = 38, 39, 40
 # the field's soft speed rows: where their bound reaches soft_speed [m], their horizon [s], the funnel's slope [1/s]
 FP_FD_VMARGIN, FP_FD_HORIZON, FP_FD_VSLOPE = 41, 42, 43
 FP_FD_KR = 44  # the rigid rows' recovery gain inside their margin [1/s]
-FP_SIZE = 45
+# a time-scaled path's clock (qpctl.paths.TimeScaledPath, written by its advance): the path's time s [s] at
+# the advance, κ, κ̇ [1/s], the time of the advance [s]
+FP_TS = 45
+FP_SIZE = 49
 # Int settings (TickWork.ipar)
 IP_JDOT_EN, IP_DRIFT_RIGID, IP_CAPACITY, IP_TORQUE_ROW0, IP_BARRIER_ROW0, IP_JOINT_LIMITS = range(6)
 IP_POSTURE, IP_N_IN, IP_BDRIFT, IP_DAMPING, IP_SELF_ROW0 = range(6, 11)
 IP_FIELD_ROW0, IP_FD_SAMPLES, IP_FD_RPL = range(11, 14)  # the field rows' first row (−1: none), samples, rows per link
 IP_BRAKING = 14  # 1: the barrier and joint-limit rows are braking-aware too
 IP_N_SIGMA = 15  # the constraints' own slack columns σ (after the task's s⁺, s⁻)
-IP_SIZE = 16
+IP_TIME_SCALED = 16  # 1: the path is time-scaled (FP_TS … FP_TS + 3 its clock)
+IP_SIZE = 17
 # Counters (TickWork.cnt)
 CNT_PAIRS, CNT_FCL, CNT_LOOKAHEAD, CNT_DROPPED = range(4)
 CNT_SIZE = 4

@@ -13,6 +13,7 @@ import math
 import numpy as np
 from numba import njit
 
+from qpctl.kernels.codes import FP_TS, IP_TIME_SCALED
 from qpctl.kernels.rotation import exp3, log3, matmul3, matmul3_bt
 
 
@@ -108,7 +109,15 @@ def obstacles_at(ws, t: float) -> None:  # type: ignore[no-untyped-def]
 @njit(cache=True)
 def reference(ws, t: float) -> None:  # type: ignore[no-untyped-def]
     """x_d, ẋ_d, ẍ_d at t [s] into ws.ref: straight segments with quintic timing (WaypointPath), and
-    the orientation rows' (PosePath, after :func:`rigid_terms`)."""
+    the orientation rows' (PosePath, after :func:`rigid_terms`). A time-scaled path
+    (:class:`qpctl.paths.TimeScaledPath` over a WaypointPath; IP_TIME_SCALED) is evaluated at its own
+    time s = s₀ + κ·max(0, t − t₀), with ẋ_d = κ x'(s) and ẍ_d = κ² x''(s) + κ̇ x'(s) (κ² x''(s) alone
+    where κ̇ is not finite), as its ``__call__`` does."""
+    scaled = ws.ipar[IP_TIME_SCALED] != 0
+    if scaled:
+        fp = ws.fpar
+        kappa, rate = fp[FP_TS + 1], fp[FP_TS + 2]
+        t = fp[FP_TS] + kappa * max(0.0, t - fp[FP_TS + 3])
     t0, T_all = ws.path_t0, ws.path_T
     nseg = T_all.shape[0]
     k = 0
@@ -132,5 +141,10 @@ def reference(ws, t: float) -> None:  # type: ignore[no-untyped-def]
         ws.ref[0, r] = pts[k, r] + s * delta
         ws.ref[1, r] = (ds / T) * delta
         ws.ref[2, r] = (dds / T**2) * delta
+        if scaled:
+            xd = ws.ref[1, r]
+            ws.ref[1, r] = kappa * xd
+            ws.ref[2, r] = (kappa * kappa * ws.ref[2, r] + rate * xd if np.isfinite(rate)
+                            else kappa * kappa * ws.ref[2, r])
     if ws.ori_rows.shape[0]:
         orientation_reference(ws, k, s, ds / T, dds / T**2)

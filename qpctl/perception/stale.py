@@ -23,15 +23,12 @@ reference is x_d(s), κ x_d'(s), κ² x_d''(s) + κ̇ x_d'(s).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-from typing import Any
 
-import numpy as np
-
-from qpctl.paths import Reference
+from qpctl.paths import TimeScaledPath
 
 OK, SLOW, STOP = "ok", "slow", "stop"
+__all__ = ["OK", "SLOW", "STOP", "StalePolicy", "Staleness", "TimeScaledPath"]
 
 
 @dataclass(frozen=True)
@@ -103,48 +100,3 @@ class StalePolicy:
         self.kappa = min(self.kappa_age, self.kappa_lag)
         mode = STOP if not age < self.stop else (SLOW if age > self.slow or self.kappa_age < 1.0 else OK)
         return Staleness(float(age), float(self.kappa), mode, float(lag), float(self.kappa_lag))
-
-
-class TimeScaledPath:
-    """A path whose clock runs at κ (set each tick with :meth:`advance`): wraps any path callable
-    ``path(t) -> Reference``; other attributes (``dim``, ``points`` …) are the path's."""
-
-    def __init__(self, path: Any, start: float = 0.0) -> None:
-        self.path = path
-        self.s = float(start)  # the path's own time [s]
-        self.kappa = 1.0
-        self.kappa_rate = 0.0  # κ̇ [1/s]
-        self._t = float(start)
-
-    def __getattr__(self, name: str) -> Any:
-        return getattr(self.__dict__["path"], name)
-
-    def advance(self, t: float, kappa: float) -> None:
-        """Move the clock to t [s] at the κ in force since the last call, then set κ for what follows."""
-        if t > self._t:
-            dt = t - self._t
-            self.s += self.kappa * dt
-            self.kappa_rate = (kappa - self.kappa) / dt
-            self._t = t
-        self.kappa = float(kappa)
-
-    def time_at(self, t: float) -> float:
-        """The path's own time [s] at t [s]: the clock's, extrapolated at the current κ beyond the last
-        :meth:`advance`."""
-        return self.s + self.kappa * max(0.0, float(t) - self._t)
-
-    def __call__(self, t: float) -> Reference:
-        """The reference at the clock's time (``t`` is taken from :meth:`advance`; a t beyond it is
-        extrapolated at the current κ)."""
-        s = self.time_at(t)
-        ref = self.path(s)
-        k = self.kappa
-        xdd = k * k * ref.xdd + self.kappa_rate * ref.xd
-        return Reference(ref.x, k * ref.xd, xdd if math.isfinite(self.kappa_rate) else k * k * ref.xdd)
-
-    def orientation(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """A pose path's (R_d, ω_d, ω̇_d) at the clock's time, scaled like the position."""
-        s = self.time_at(t)
-        R, w, wd = self.path.orientation(s)
-        k = self.kappa
-        return R, k * w, k * k * wd + self.kappa_rate * w
