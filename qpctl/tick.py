@@ -358,15 +358,15 @@ class Workspace:
         self.ipar = np.zeros(codes.IP_SIZE, dtype=np.int64)
         self._grid(broadphase, cutoff)
         # path (None: state only); a time-scaled WaypointPath in the kernel too, its clock bound to fpar
-        scaled = isinstance(path, TimeScaledPath) and path.compiled
-        self.path_in_kernel = isinstance(path, WaypointPath) or path is None or scaled
-        if isinstance(path, WaypointPath) or scaled:
-            base = path.path if scaled else path  # type: ignore[union-attr]
+        scaled = path if isinstance(path, TimeScaledPath) and path.compiled else None
+        base = scaled.path if scaled is not None else path
+        self.path_in_kernel = isinstance(base, WaypointPath) or path is None
+        if isinstance(base, WaypointPath):
             self.path_pts, self.path_t0, self.path_T = (np.ascontiguousarray(a, dtype=float)
                                                         for a in (base.points, base.starts, base.durations))
-            if scaled:
+            if scaled is not None:
                 self.ipar[codes.IP_TIME_SCALED] = 1
-                path.bind(self.fpar[codes.FP_TS:codes.FP_TS + 4])  # type: ignore[union-attr]
+                scaled.bind(self.fpar[codes.FP_TS:codes.FP_TS + 4])
         else:  # None, or any callable t → Reference (evaluated in Python each tick)
             self.path_pts, self.path_t0, self.path_T = np.zeros((2, m_p)), np.zeros(1), np.ones(1)
         if isinstance(path, PosePath):
