@@ -43,9 +43,9 @@ FIELDS = (
     "tol",  # the answer's check: every hard row to this, relative to 1 + |its bound| (SOLUTION_RTOL)
     "l1",  # the task's ℓ₁ slack weight (the exact-penalty test of the hard answer)
     # the hard QP's answer on DAQP's last working set (qpctl.kernels.equality_qp), its own scratch
-    # (nv: the hard layout's): the held constraints' layout indices and sides (nv,), H's Cholesky
-    # factor (nv, nv), H⁻¹Ēᵀ (nv, nv), the held rows' Cholesky factor (nv, nv) and normal matrix with
-    # two vectors (nv, nv + 2), a vector (nv,)
+    # (nv: the hard layout's variables, n of them the robot's q̈, the rest slack columns): the held
+    # constraints' layout indices and sides (nv,), H's leading Cholesky factor (n, n), H⁻¹Ēᵀ (nv, nv),
+    # the held rows' Cholesky factor (nv, nv) and normal matrix with two vectors (nv, nv + 2), a vector (nv,)
     "eq_w", "eq_low", "eq_L", "eq_Y", "eq_V", "eq_G", "eq_z",
 )
 
