@@ -234,7 +234,7 @@ class TimeScaledPath:
     @property
     def compiled(self) -> bool:
         """Whether the compiled tick can evaluate it (the wrapped path is a plain WaypointPath)."""
-        return type(self.__dict__["path"]) is WaypointPath
+        return type(self.path) is WaypointPath
 
     def bind(self, sink: np.ndarray) -> None:
         """Keep ``sink`` (4,) — a workspace's view of its clock parameters — written on every advance."""

@@ -172,7 +172,8 @@ def active_set_minimum(H: np.ndarray, f: np.ndarray, rows: np.ndarray, bu: np.nd
         for c in range(p):
             if w[c] >= nv:
                 s -= rows[w[c] - nv, j] * G[c, p + 1]
-        if not (-s <= 0.0 if z[j] == bl[j] else -s >= 0.0):  # (its side: at bl, or at bu)
+        # its side: at bl, or at bu (z[j] is one of them exactly); both the same: an equality, any sign
+        if bl[j] != bu[j] and not (-s <= 0.0 if z[j] == bl[j] else -s >= 0.0):
             return False
         Y[j, 0] = -s  # (Y's rows past nf are not used above)
     c = m  # the held inequalities, ascending: skipped by the checks below (they hold to rounding)

@@ -117,6 +117,8 @@ def reference(ws, t: float) -> None:  # type: ignore[no-untyped-def]
     if scaled:
         fp = ws.fpar
         kappa, rate = fp[FP_TS + 1], fp[FP_TS + 2]
+        if not np.isfinite(rate):  # (κ² x'' alone)
+            rate = 0.0
         t = fp[FP_TS] + kappa * max(0.0, t - fp[FP_TS + 3])
     t0, T_all = ws.path_t0, ws.path_T
     nseg = T_all.shape[0]
@@ -144,7 +146,6 @@ def reference(ws, t: float) -> None:  # type: ignore[no-untyped-def]
         if scaled:
             xd = ws.ref[1, r]
             ws.ref[1, r] = kappa * xd
-            ws.ref[2, r] = (kappa * kappa * ws.ref[2, r] + rate * xd if np.isfinite(rate)
-                            else kappa * kappa * ws.ref[2, r])
+            ws.ref[2, r] = kappa * kappa * ws.ref[2, r] + rate * xd
     if ws.ori_rows.shape[0]:
         orientation_reference(ws, k, s, ds / T, dds / T**2)
