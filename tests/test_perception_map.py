@@ -148,6 +148,32 @@ def test_a_flying_pixel_beside_a_dropout_has_no_nearer_neighbour_but_no_support_
     assert np.all(status[0::2, 161] != FLYING) and np.all(status[1::2, 161] == FLYING)
 
 
+@pytest.mark.parametrize("support", [0, 2, 5])
+def test_the_flying_test_on_a_noisy_image_is_numpys_neighbour_test(support: int, rng: np.random.Generator) -> None:
+    """The kernel's row-wise (vectorised) flying test marks exactly the pixels that numpy's neighbour
+    comparisons, written here on shifted copies of the image, mark: on an image of random depth steps,
+    noise, and NaN, inf, 0 and negative dropouts at image borders and inside."""
+    H, W = K.height, K.width
+    depth = rng.choice([0.6, 0.9, 1.2], size=(H // 8, W // 8)).repeat(8, 0).repeat(8, 1)
+    depth = depth + rng.normal(0.0, 0.004, (H, W)) * (rng.random((H, W)) < 0.5)
+    for bad in (np.nan, np.inf, 0.0, -1.0):
+        depth[rng.random((H, W)) < 0.03] = bad
+    cfg = PerceptionConfig(**{**CFG.__dict__, "flying_support": support, "min_range": 0.0, "max_range": 10.0})
+    status = DepthMap(cfg).integrate(DepthFrame(depth, K, EYE, 0.0)).status
+    z = np.zeros((H + 2, W + 2))
+    with np.errstate(invalid="ignore"):
+        z[1:-1, 1:-1] = np.where((depth > 0) & np.isfinite(depth), depth, 0.0)
+    zc = z[1:-1, 1:-1]
+    thr = cfg.flying_pixel * zc
+    shifts = [(0, -1), (0, 1), (-1, 0), (1, 0), (-1, -1), (-1, 1), (1, -1), (1, 1)]
+    nb = [z[1 + a:H + 1 + a, 1 + b:W + 1 + b] for a, b in shifts]
+    edge = np.any([(n > 0) & (n < zc - thr) for n in nb[:4]], axis=0)
+    support_n = np.sum([(n > 0) & (np.abs(n - zc) <= thr) for n in nb], axis=0)
+    expected = (zc > 0) & (edge | ((support > 0) & (support_n < support)))
+    assert np.array_equal(status == FLYING, expected)
+    assert 1000 < expected.sum() < 0.5 * H * W  # edges, dropouts' rims and noise: a test that can fail
+
+
 def test_range_limits_drop_returns() -> None:
     cfg = PerceptionConfig(**{**CFG.__dict__, "min_range": 0.7, "max_range": 0.95})
     rep = DepthMap(cfg).integrate(render(EYE, [BALL]))
