@@ -83,6 +83,21 @@ def record_frames(path: Path, n: int, seed: int = 7) -> list[DepthFrame]:
     return record_frames(path, n, seed)
 
 
+def floor_us(robot: Any, calls: int = 3000) -> float:
+    """The machine's speed now: ``pin.computeAllTerms`` on the Panda at rest at its home pose, median
+    wall time of ``calls`` calls [µs] (``qpctl bench``'s floor; this machine runs at two speeds)."""
+    import pinocchio as pin
+
+    data = robot.model.createData()
+    q, v = robot.q_home, np.zeros(robot.nv)
+    ts = np.empty(calls)
+    for i in range(calls):
+        t0 = time.perf_counter()
+        pin.computeAllTerms(robot.model, data, q, v)
+        ts[i] = time.perf_counter() - t0
+    return float(np.median(ts) * 1e6)
+
+
 def _stats(v: list[float] | np.ndarray) -> dict[str, float]:
     a = np.asarray(v, float)
     return {"median": float(np.median(a)), "p99": float(np.percentile(a, 99)), "max": float(a.max())}
@@ -471,7 +486,9 @@ def closed_loop_markdown(rows: list[dict[str, Any]]) -> str:
 
 
 def markdown(res: dict[str, Any]) -> str:
-    lines = [f"Machine: {res['machine']}; load before: {res['load_before']}, after: {res['load_after']}.", ""]
+    lines = [f"Machine: {res['machine']}; load before: {res['load_before']}, after: {res['load_after']}; "
+             f"its speed, `pin.computeAllTerms` on the Panda (`qpctl bench`'s floor): {res['floor_us_before']:.2f} µs "
+             f"before, {res['floor_us_after']:.2f} µs after.", ""]
     lines += [("| frame → field (640×480) | grid | wall median [ms] | wall p99 [ms] | CPU median [ms] | CPU p99 [ms] "
               "| integrate median [ms] | field median [ms] |"), "|---|---|---|---|---|---|---|---|"]
     for name in ("2 cm, 1.6×1.2×1.0 m", "1 cm, 0.4 m about the hand"):
@@ -543,7 +560,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     robot = panda()
     n = 12 if args.quick else 61
     res: dict[str, Any] = {"machine": f"{os.cpu_count()} cores, {os.uname().machine}",
-                           "load_before": " ".join(f"{x:.2f}" for x in os.getloadavg())}
+                           "load_before": " ".join(f"{x:.2f}" for x in os.getloadavg()),
+                           "floor_us_before": floor_us(robot)}
     if args.tau_dot:
         res["tau_dot"] = tau_dot(args.tau_dot, out)
         (out / "tau_dot.json").write_text(json.dumps(res["tau_dot"], indent=1))
@@ -565,6 +583,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     res["tick_with_field"] = tick_with_field(2000 if args.quick else 20000)
     res["tick_beside_worker"] = tick_beside_worker(frames, robot, 2 if args.quick else 4, 1.0 if args.quick else 3.0)
     res["load_after"] = " ".join(f"{x:.2f}" for x in os.getloadavg())
+    res["floor_us_after"] = floor_us(robot)
     (out / "perception.json").write_text(json.dumps(res, indent=2))
     md = markdown(res)
     (out / "perception.md").write_text(md)
