@@ -486,9 +486,9 @@ def closed_loop_markdown(rows: list[dict[str, Any]]) -> str:
 
 
 def markdown(res: dict[str, Any]) -> str:
-    lines = [f"Machine: {res['machine']}; load before: {res['load_before']}, after: {res['load_after']}; "
-             f"its speed, `pin.computeAllTerms` on the Panda (`qpctl bench`'s floor): {res['floor_us_before']:.2f} µs "
-             f"before, {res['floor_us_after']:.2f} µs after.", ""]
+    lines = [(f"Machine: {res['machine']}; load before: {res['load_before']}, after: {res['load_after']}; "
+              f"its speed, `pin.computeAllTerms` on the Panda (`qpctl bench`'s floor): {res['floor_us_before']:.2f} µs "
+              f"before, {res['floor_us_after']:.2f} µs after."), ""]
     lines += [("| frame → field (640×480) | grid | wall median [ms] | wall p99 [ms] | CPU median [ms] | CPU p99 [ms] "
               "| integrate median [ms] | field median [ms] |"), "|---|---|---|---|---|---|---|---|"]
     for name in ("2 cm, 1.6×1.2×1.0 m", "1 cm, 0.4 m about the hand"):
