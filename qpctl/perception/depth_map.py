@@ -105,6 +105,8 @@ class DepthMap:
         self._no_capsules = (np.zeros((0, 2, 3)), np.zeros(0))
         self._spans = np.zeros((len(robot.capsules) if robot is not None else 0, 0, 2), np.int32)  # the shadow's
         self._reach = np.zeros(self._spans.shape[0])  # ... scratch
+        self._boxes = np.zeros((self._spans.shape[0], 6))  # the capsules' boxes (qpctl.kernels.depth.robot_bounds_into)
+        self._robot_box = np.zeros(6)
 
     # -- what the controller tells the map --------------------------------------------------------
     def record(self, t: float, q: np.ndarray) -> None:
@@ -171,7 +173,8 @@ class DepthMap:
                                    c.max_range, c.flying_pixel, c.flying_support, segs, radii, target, target_r, g.origin, g.voxel,
                                    self.last, frame.stamp, status, counts, self._hits, c.min_points,
                                    c.soft_depth, self._depth_scratch(depth.shape), c.self_shadow,
-                                   self._shadow_scratch(depth.shape[0])[:len(radii)], self._reach[:len(radii)])
+                                   self._shadow_scratch(depth.shape[0])[:len(radii)], self._reach[:len(radii)],
+                                   self._boxes[:len(radii)], self._robot_box)
                 cleared = KD.clear_depth(depth, scale, status, K.fx, K.fy, K.cx, K.cy, frame.pose, margin,
                                          g.origin, g.voxel, self.last, frame.stamp)
             else:
@@ -180,7 +183,8 @@ class DepthMap:
                 sensor = frame.origin if frame.origin is not None else np.zeros(3)
                 KD.integrate_points(frame.points, point_labels, segs, radii, target, target_r, g.origin, g.voxel,
                                     self.last, frame.stamp, status, counts, sensor,
-                                    c.self_shadow and frame.origin is not None)
+                                    c.self_shadow and frame.origin is not None, self._boxes[:len(radii)],
+                                    self._robot_box)
                 cleared = 0
                 if frame.origin is not None:
                     cleared = KD.clear_rays(frame.points, status, frame.origin, margin, g.origin, g.voxel,
