@@ -2,7 +2,7 @@
 
 A pixel on the robot's silhouette sees the link and what lies behind it at once; a sensor reports a
 mixed depth somewhere between the two (a *flying pixel*), on no surface. The image-space flying-pixel
-test (:func:`qpctl.kernels.depth._flying`) drops most of them, but not one whose nearer neighbour is
+test (:func:`qpctl.kernels.depth.flying_row`) drops most of them, but not one whose nearer neighbour is
 itself a dropout or another flying pixel; such a point lies behind the link's silhouette, beyond the
 self-filter's inflated capsule, and becomes a rigid voxel a few centimetres from the link — inside
 the rigid rows' margin, where the QP has no feasible torque (measured on ``panda_canopy_depth``, canopy
