@@ -44,6 +44,7 @@ import numpy as np
 from numba import njit
 from scipy import ndimage
 
+from qpctl.bench.timing import PinocchioFloor
 from qpctl.kernels import edt as KE
 from qpctl.kernels import field as KF
 from qpctl.kernels import field_samples as KS
@@ -86,18 +87,12 @@ def record_frames(path: Path, n: int, seed: int = 7) -> list[DepthFrame]:
 
 
 def floor_us(robot: Any, calls: int = 3000) -> float:
-    """The machine's speed now: ``pin.computeAllTerms`` on the Panda at rest at its home pose, median
-    wall time of ``calls`` calls [µs] (``qpctl bench``'s floor; this machine runs at two speeds)."""
-    import pinocchio as pin
-
-    data = robot.model.createData()
+    """The machine's speed now: ``qpctl bench``'s floor (:class:`~qpctl.bench.timing.PinocchioFloor`,
+    ``pin.computeAllTerms``) on the Panda at rest at its home pose, median of ``calls`` calls [µs]
+    (this machine runs at two speeds)."""
+    floor = PinocchioFloor(robot)
     q, v = robot.q_home, np.zeros(robot.nv)
-    ts = np.empty(calls)
-    for i in range(calls):
-        t0 = time.perf_counter()
-        pin.computeAllTerms(robot.model, data, q, v)
-        ts[i] = time.perf_counter() - t0
-    return float(np.median(ts) * 1e6)
+    return float(np.median([floor.step(q, v, 0.0).compute_us for _ in range(calls)]))
 
 
 def _stats(v: list[float] | np.ndarray) -> dict[str, float]:

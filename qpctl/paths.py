@@ -263,18 +263,19 @@ class TimeScaledPath:
         :meth:`advance`."""
         return self.s + self.kappa * max(0.0, float(t) - self._t)
 
+    def _rate(self) -> float:
+        """κ̇ as the acceleration's term uses it: 0 where it is not finite (κ² x'' alone; the kernel's rule)."""
+        return self.kappa_rate if math.isfinite(self.kappa_rate) else 0.0
+
     def __call__(self, t: float) -> Reference:
         """The reference at the clock's time (``t`` is taken from :meth:`advance`; a t beyond it is
         extrapolated at the current κ)."""
-        s = self.time_at(t)
-        ref = self.path(s)
+        ref = self.path(self.time_at(t))
         k = self.kappa
-        xdd = k * k * ref.xdd + self.kappa_rate * ref.xd
-        return Reference(ref.x, k * ref.xd, xdd if math.isfinite(self.kappa_rate) else k * k * ref.xdd)
+        return Reference(ref.x, k * ref.xd, k * k * ref.xdd + self._rate() * ref.xd)
 
     def orientation(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """A pose path's (R_d, ω_d, ω̇_d) at the clock's time, scaled like the position."""
-        s = self.time_at(t)
-        R, w, wd = self.path.orientation(s)
+        R, w, wd = self.path.orientation(self.time_at(t))
         k = self.kappa
-        return R, k * w, k * k * wd + self.kappa_rate * w
+        return R, k * w, k * k * wd + self._rate() * w

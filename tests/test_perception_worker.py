@@ -156,6 +156,27 @@ def test_time_scaled_reference_is_the_path_at_the_scaled_clock() -> None:
     assert ts.dim == path.dim
 
 
+def test_time_scaled_position_and_orientation_drop_a_non_finite_rate_alike() -> None:
+    """Where κ̇ is not finite (a jump of κ over a vanishing step) the acceleration is κ² x'' alone —
+    for the position and the orientation alike, as the compiled tick's reference does — compared with
+    the wrapped pose path read directly at the scaled clock."""
+    from qpctl.paths import PosePath
+
+    Rz = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    path = PosePath([[0.0, 0.0, 0.0], [0.3, 0.1, -0.2]], [np.eye(3), Rz], duration=1.0)
+    ts = TimeScaledPath(path)
+    ts.advance(0.4, 0.5)
+    ts.kappa_rate = float("inf")
+    t = 0.45
+    s = ts.time_at(t)
+    ref, (R, w, wd) = path(s), path.orientation(s)
+    got, (gR, gw, gwd) = ts(t), ts.orientation(t)
+    assert np.all(np.isfinite(got.xdd)) and np.all(np.isfinite(gwd))
+    assert np.allclose(got.xdd, 0.25 * ref.xdd, atol=1e-15) and np.allclose(got.xd, 0.5 * ref.xd, atol=1e-15)
+    assert np.allclose(gwd, 0.25 * wd, atol=1e-15) and np.allclose(gw, 0.5 * w, atol=1e-15)
+    assert np.array_equal(gR, R) and np.any(wd != 0.0)
+
+
 def test_the_compiled_tick_evaluates_a_time_scaled_waypoint_path() -> None:
     """A TimeScaledPath over a WaypointPath stays in the one-call kernel (the clock bound to the
     workspace, written by every advance): the record's x_d, ẋ_d, ẍ_d at each tick equal the path's own

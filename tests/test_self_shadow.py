@@ -82,7 +82,8 @@ def test_a_capsule_that_holds_the_sensor_casts_no_shadow(rng: np.random.Generato
     pose = np.eye(4)
     pose[:3, :3] = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # optical z along +x
     pose[:3, 3] = sensor
-    boxes, _ = KD.robot_bounds(segs, radii)
+    boxes = np.empty((2, 6))
+    KD.capsule_boxes(segs, radii, boxes)
     spans, reach = np.zeros((2, 240, 2), np.int32), np.zeros(2)
     union = SS.shadow_spans(segs, radii, pose, 300.0, 300.0, 160.0, 120.0, 320, 240, spans, reach)
     assert reach[1] == pytest.approx((0.5 - 0.05) ** 2)  # capsule 1's surface is 0.45 m from the camera

@@ -112,15 +112,6 @@ def robot_bounds_into(segments: np.ndarray, radii: np.ndarray, boxes: np.ndarray
             box[3 + a] = max(box[3 + a], boxes[i, 3 + a])
 
 
-@njit(cache=True, nogil=True)
-def robot_bounds(segments: np.ndarray, radii: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The capsules' boxes (L, 6) and the box (6,) around them all (empty: an inverted box)."""
-    boxes = np.empty((segments.shape[0], 6))
-    box = np.empty(6)
-    robot_bounds_into(segments, radii, boxes, box)
-    return boxes, box
-
-
 @njit(cache=True, nogil=True, inline="always")
 def _valid(z: float) -> bool:
     return z > 0.0 and z < math.inf  # NaN fails both
