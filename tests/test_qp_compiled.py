@@ -158,8 +158,8 @@ def test_a_torque_loop_takes_turns_too(scene_and_states):
 
 
 def test_the_kernels_by_address_leave_the_structs_counts_as_they_were(scene_and_states):
-    """The common ticks call their kernel with the structref's address (qpctl.kernels.borrow.struct_at
-    makes a reference of its own inside the kernel): over 300 ticks of the QP and of the paper law the
+    """The common ticks call their kernel with the structref's address (qpctl.kernels.lend.lent_at lends
+    it to the kernel without a count of its own): over 300 ticks of the QP and of the paper law the
     reference count of the packed QP's and of the workspace's memory-info record stays what it was (a
     missing increment would free them under the controller; a missing decrement would leak them)."""
     from qpctl.controllers.closed_form import PaperController

@@ -81,7 +81,8 @@ def borrow_all(typingctx: Any, tup: Any) -> Any:
 
 @intrinsic
 def struct_address(typingctx: Any, s: Any) -> Any:
-    """The address of a structref's memory-info record, as an integer (:func:`struct_at` inverts it)."""
+    """The address of a structref's memory-info record, as an integer (:func:`qpctl.kernels.lend.lent_at`
+    inverts it)."""
     if not isinstance(s, types.StructRef):
         return None
 
@@ -90,23 +91,3 @@ def struct_address(typingctx: Any, s: Any) -> Any:
         return builder.ptrtoint(mi, cgutils.intp_t)
 
     return types.intp(s), codegen
-
-
-@intrinsic
-def struct_at(typingctx: Any, tyref: Any, addr: Any) -> Any:
-    """The structref of type ``tyref`` (a TypeRef) whose memory-info record is at ``addr`` (from
-    :func:`struct_address`): a reference of its own (its count incremented, as an argument's is)."""
-    if not (isinstance(tyref, types.TypeRef) and isinstance(tyref.instance_type, types.StructRef)
-            and isinstance(addr, types.Integer)):
-        return None
-    typ = tyref.instance_type
-
-    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        mip = types.MemInfoPointer(types.voidptr)
-        mi = builder.inttoptr(args[1], context.get_value_type(mip))
-        context.nrt.incref(builder, mip, mi)
-        ref = cgutils.create_struct_proxy(typ)(context, builder)
-        ref.meminfo = mi
-        return ref._getvalue()
-
-    return typ(tyref, addr), codegen

@@ -33,6 +33,7 @@ from numba.experimental import structref
 from numba.extending import typeof_impl
 
 from qpctl.kernels.borrow import borrow_all
+from qpctl.kernels.lend import lent_type
 
 # DAQP's constraint states (include/constants.h, DAQP 0.11)
 ACTIVE, LOWER, IMMUTABLE, SOFT, AUTO_EQUALITY = 1, 2, 4, 8, 128
@@ -46,6 +47,12 @@ class DaqpPackType(types.StructRef):  # type: ignore[name-defined]  # numba is u
 
 class DaqpPack(structref.StructRefProxy):
     """One DAQP workspace on one QP layout, packed (fields: :data:`FIELDS`)."""
+
+    @property
+    def _numba_type_(self) -> types.Type:
+        """Its numba type as kernels take it: lent (:mod:`qpctl.kernels.lend`). numba's dispatcher reads
+        this attribute to match a call to its compiled versions without calling Python."""
+        return lent_type(self._type)
 
 
 FIELDS = (

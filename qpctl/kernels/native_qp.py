@@ -21,6 +21,7 @@ from numba.experimental import structref
 from numba.extending import typeof_impl
 
 from qpctl.kernels.borrow import borrow_all
+from qpctl.kernels.lend import lent_type, own_all
 
 
 @structref.register
@@ -31,6 +32,12 @@ class NativeQPType(types.StructRef):  # type: ignore[name-defined]  # numba is u
 
 class NativeQP(structref.StructRefProxy):
     """Both QP layouts and their DAQP structs (fields: :data:`FIELDS`)."""
+
+    @property
+    def _numba_type_(self) -> types.Type:
+        """Its numba type as kernels take it: lent (:mod:`qpctl.kernels.lend`). numba's dispatcher reads
+        this attribute to match a call to its compiled versions without calling Python."""
+        return lent_type(self._type)
 
 
 FIELDS = (
@@ -75,4 +82,4 @@ def shortcut_scratch(nv: int, n: int) -> tuple[np.ndarray, ...]:
 @njit(cache=True)
 def new_native_qp(*fields):  # type: ignore[no-untyped-def]
     """A NativeQP of ``fields`` (in FIELDS order), by a cached compiled constructor."""
-    return NativeQP(*borrow_all(fields))
+    return NativeQP(*borrow_all(own_all(fields)))

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from qpctl.kernels.borrow import struct_address, struct_at
+from qpctl.kernels.borrow import borrow, struct_address
 from qpctl.kernels.clearance import min_distance, min_self_distance
 from qpctl.kernels.clock import now_us
 from qpctl.kernels.codes import (
@@ -50,6 +50,7 @@ from qpctl.kernels.field_rows import set_field
 from qpctl.kernels.finish import qp_finish, write_record
 from qpctl.kernels.hard_first import hard_next, qp_tick_native_hard_first, qp_tick_native_hard_first_from
 from qpctl.kernels.law import closed_form, closed_form_tick, law_terms
+from qpctl.kernels.lend import lent_at
 from qpctl.kernels.pairs import find_pairs, finish_pairs
 from qpctl.kernels.pin_native import rigid_native
 from qpctl.kernels.rigid import rigid_terms
@@ -232,9 +233,11 @@ def tick_qp(nq, q: np.ndarray, v: np.ndarray, t: float, try_hard: bool,  # type:
     return code, hard, hard_next(hard == 0, code == 0, slack)
 
 
-# The common tick's entry points take the structref by its address (qpctl.kernels.borrow.struct_at):
-# its type as a TypeRef (unboxed to nothing) and the address as an int, ~0.2 µs a call less than the
-# structref itself. The caller holds the structref's Python proxy while it calls with the address.
+# The common tick's entry points take the structref by its address (qpctl.kernels.lend.lent_at): its
+# type as a TypeRef (unboxed to nothing) and the address as an int, ~0.2 µs a call less than the
+# structref itself; it is lent to the tick as every structref argument is (qpctl.kernels.lend), and q,
+# v and the record are borrowed (qpctl.kernels.borrow): no stage pays an atomic count for them. The
+# caller holds the structref's Python proxy and the arrays while it calls with the address.
 
 
 @njit(cache=True)
@@ -247,14 +250,14 @@ def address_of(s) -> int:  # type: ignore[no-untyped-def]
 def tick_qp_at(ty, addr: int, q: np.ndarray, v: np.ndarray, t: float, try_hard: bool,  # type: ignore[no-untyped-def]
                out: np.ndarray) -> tuple[int, int, bool]:
     """:func:`tick_qp` on the NativeQP of type ``ty`` at ``addr`` (:func:`address_of`)."""
-    return tick_qp(struct_at(ty, addr), q, v, t, try_hard, out)
+    return tick_qp(lent_at(ty, addr), borrow(q), borrow(v), t, try_hard, borrow(out))
 
 
 @njit(cache=True)
 def tick_closed_form_at(ty, addr: int, q: np.ndarray, v: np.ndarray, t: float,  # type: ignore[no-untyped-def]
                         weighted: bool, out: np.ndarray) -> int:
     """:func:`tick_closed_form` on the TickWork of type ``ty`` at ``addr`` (:func:`address_of`)."""
-    return tick_closed_form(struct_at(ty, addr), q, v, t, weighted, out)
+    return tick_closed_form(lent_at(ty, addr), borrow(q), borrow(v), t, weighted, borrow(out))
 
 
 def address_entry(kernel: Any, struct: Any, **trailing: Any) -> tuple[Any, Any, int] | None:

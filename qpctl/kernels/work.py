@@ -22,6 +22,7 @@ from numba.experimental import structref
 from numba.extending import typeof_impl
 
 from qpctl.kernels.borrow import borrow_all
+from qpctl.kernels.lend import lent_type
 
 
 @structref.register
@@ -32,6 +33,12 @@ class TickWorkType(types.StructRef):  # type: ignore[name-defined]  # numba is u
 
 class TickWork(structref.StructRefProxy):
     """The compiled kernels' view of a :class:`qpctl.tick.Workspace` (fields: :data:`FIELDS`)."""
+
+    @property
+    def _numba_type_(self) -> types.Type:
+        """Its numba type as kernels take it: lent (:mod:`qpctl.kernels.lend`). numba's dispatcher reads
+        this attribute to match a call to its compiled versions without calling Python."""
+        return lent_type(self._type)
 
 
 FIELDS = (

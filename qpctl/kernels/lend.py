@@ -1,0 +1,123 @@
+"""Lent structrefs: a kernel's view of a structref that carries no reference count.
+
+numba counts references to a structref's memory as it does an array's (:mod:`qpctl.kernels.borrow`):
+every compiled function that takes one as an argument increments its count on entry and decrements
+it on return, an atomic ``lock`` instruction each. The tick passes its workspace (a
+:class:`~qpctl.kernels.work.TickWork`) and its QP (a :class:`~qpctl.kernels.native_qp.NativeQP`) to
+every stage, and to helpers called once per pair or row: 7 % of the compiled tick's samples were in
+``NRT_incref``/``NRT_decref`` (perf, the Panda among 10 spheres, 2026-12-06).
+
+A :class:`Lent` type is the same structref — the same fields (a structref field is lent too), read
+and written the same way — whose data model holds the memory-info record as a plain pointer, which
+numba's reference counting does not see. Kernels never meet the counted types: the three proxies
+(``TickWork``, ``NativeQP``, ``DaqpPack``) give their lent type as their ``_numba_type_`` (what
+numba's dispatcher matches a call by), a proxy argument unboxes to it (:func:`_unbox_lent`), and
+:func:`lent_at` makes one from an address (:func:`qpctl.kernels.borrow.struct_address`). So every
+kernel compiles for the lent types only — none twice — and no stage pays a count for them.
+
+The rule that makes it safe is :mod:`~qpctl.kernels.borrow`'s: a lent structref must not outlive the
+reference that keeps its memory — the Python proxy the caller holds for the call, or whose address
+:func:`lent_at` was given. A kernel never returns one to Python (numba has no boxing for it: such a
+kernel does not compile) and never assigns a structref field through one. The one structref that
+holds others, ``NativeQP``, is built by :func:`own_all`: its fields are counted references of its
+own, as before.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from numba.core import cgutils, types
+from numba.core.datamodel import models
+from numba.experimental import structref
+from numba.extending import NativeValue, intrinsic, register_model, unbox
+
+
+class Lent(types.StructRef):  # type: ignore[name-defined]  # numba is untyped
+    """A structref type ``of`` (a :class:`numba.types.StructRef`), lent: the same fields, structref
+    fields lent too, and no reference count (module docstring)."""
+
+    def __init__(self, of: Any) -> None:
+        self.of = of
+        super().__init__(tuple((name, lent_type(t) if isinstance(t, types.StructRef) else t) for name, t in of._fields))
+
+
+@register_model(Lent)
+class LentModel(models.StructModel):  # type: ignore[misc]  # numba is untyped
+    """The structref's model with its memory-info pointer as a raw pointer: the same layout
+    (``{ptr}``), nothing for the reference counting to visit."""
+
+    def __init__(self, dmm: Any, fe_typ: Any) -> None:
+        super().__init__(dmm, fe_typ, [("meminfo", types.voidptr)])
+
+
+structref.define_attributes(Lent)
+
+
+@intrinsic
+def lent_at(typingctx: Any, tyref: Any, addr: Any) -> Any:
+    """The structref of type ``tyref`` (a TypeRef of a StructRef) whose memory-info record is at
+    ``addr`` (:func:`qpctl.kernels.borrow.struct_address`), lent: its count untouched. Valid while
+    the Python proxy the address was read from lives."""
+    if not (isinstance(tyref, types.TypeRef) and isinstance(tyref.instance_type, types.StructRef)
+            and isinstance(addr, types.Integer)):
+        return None
+    lt = lent_type(tyref.instance_type)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        out = cgutils.create_struct_proxy(lt)(context, builder)
+        out.meminfo = builder.inttoptr(args[1], context.get_value_type(types.voidptr))
+        return out._getvalue()
+
+    return lt(tyref, addr), codegen
+
+
+_LENT: dict[Any, Lent] = {}
+
+
+def lent_type(ty: Any) -> Lent:
+    """The :class:`Lent` type of the structref type ``ty`` (one object per type, kept)."""
+    lt = _LENT.get(ty)
+    if lt is None:
+        lt = _LENT[ty] = ty if isinstance(ty, Lent) else Lent(ty)
+    return lt
+
+
+@unbox(Lent)
+def _unbox_lent(typ: Any, obj: Any, c: Any) -> Any:
+    """A structref's Python proxy as its lent type: its memory-info record's address, the count
+    acquired and released at once (the proxy, which the caller holds for the call, keeps it)."""
+    mi_obj = c.pyapi.object_getattr_string(obj, "_meminfo")
+    mi = c.pyapi.nrt_meminfo_from_pyobject(mi_obj)
+    failed = cgutils.is_null(c.builder, mi)
+    with c.builder.if_then(c.builder.not_(failed)):
+        c.context.nrt.decref(c.builder, types.MemInfoPointer(types.voidptr), mi)
+    c.pyapi.decref(mi_obj)
+    out = cgutils.create_struct_proxy(typ)(c.context, c.builder)
+    out.meminfo = c.builder.bitcast(mi, c.context.get_value_type(types.voidptr))
+    return NativeValue(out._getvalue(), is_error=failed)
+
+
+@intrinsic
+def own_all(typingctx: Any, tup: Any) -> Any:
+    """A tuple with its lent structrefs as counted ones of their own (each count incremented): what a
+    structref's constructor stores, so that the structref it builds holds the ones it refers to."""
+    if not isinstance(tup, types.BaseTuple):
+        return None
+    out_types = [t.of if isinstance(t, Lent) else t for t in tup]
+    outty = types.Tuple(out_types)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        vals = []
+        for i, (ty, oty) in enumerate(zip(signature.args[0], outty, strict=True)):
+            val = builder.extract_value(args[0], i)
+            if isinstance(ty, Lent):
+                ref = cgutils.create_struct_proxy(oty)(context, builder)
+                mi = cgutils.create_struct_proxy(ty)(context, builder, value=val).meminfo
+                ref.meminfo = builder.bitcast(mi, context.get_value_type(types.MemInfoPointer(types.voidptr)))
+                val = ref._getvalue()
+            context.nrt.incref(builder, oty, val)  # returned: a reference of its own
+            vals.append(val)
+        return context.make_tuple(builder, outty, vals)
+
+    return outty(tup), codegen
