@@ -48,7 +48,7 @@ def test_a_stage_takes_the_workspace_without_an_atomic_count(packed):
 
 
 def test_a_native_qp_holds_a_reference_to_its_workspace_and_packs(packed):
-    """new_native_qp stores counted references of its own (own_all): building one from the lent
+    """new_native_qp stores counted references of its own (borrow_all): building one from the lent
     proxies adds one to the workspace's and each pack's count, dropping it gives them back — the
     NativeQP keeps what it refers to alive, as before the structrefs were lent."""
     from qpctl.kernels.native_qp import new_native_qp

@@ -24,6 +24,8 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from qpctl.kernels.lend import Lent
+
 
 @intrinsic
 def borrow(typingctx: Any, arr: Any) -> Any:
@@ -50,25 +52,31 @@ def _borrowed(context: Any, builder: Any, aryty: Any, value: Any) -> Any:
 
 @intrinsic
 def borrow_all(typingctx: Any, tup: Any) -> Any:
-    """A tuple's arrays borrowed (:func:`borrow`), its other members as they are: what a structref's
-    compiled constructor stores when the Python object that builds it keeps the arrays alive."""
+    """A tuple's arrays borrowed (:func:`borrow`), a lent structref (:class:`qpctl.kernels.lend.Lent`) as
+    a counted reference of its own, its other members as they are: what a structref's compiled
+    constructor stores when the Python object that builds it keeps the arrays alive — and itself keeps
+    the structrefs it refers to."""
     if not isinstance(tup, types.BaseTuple):
         return None
-    sig = tup(tup)
+    outty = types.Tuple([t.of if isinstance(t, Lent) else t for t in tup])
 
     def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        tupty = signature.args[0]
         vals = []
-        for i, ty in enumerate(tupty):
+        for i, (ty, oty) in enumerate(zip(signature.args[0], outty, strict=True)):
             val = builder.extract_value(args[0], i)
             if isinstance(ty, types.Array):
                 val = _borrowed(context, builder, ty, val)
             else:
-                context.nrt.incref(builder, ty, val)  # returned: a reference of its own
+                if isinstance(ty, Lent):  # the same memory-info pointer, as the counted type's
+                    mi = cgutils.create_struct_proxy(ty)(context, builder, value=val).meminfo
+                    ref = cgutils.create_struct_proxy(oty)(context, builder)
+                    ref.meminfo = builder.bitcast(mi, context.get_value_type(types.MemInfoPointer(types.voidptr)))
+                    val = ref._getvalue()
+                context.nrt.incref(builder, oty, val)  # returned: a reference of its own
             vals.append(val)
-        return context.make_tuple(builder, tupty, vals)
+        return context.make_tuple(builder, outty, vals)
 
-    return sig, codegen
+    return outty(tup), codegen
 
 
 # -- a structref by its address --------------------------------------------------------------------

@@ -30,10 +30,9 @@ import numpy as np
 from numba import njit
 from numba.core import types
 from numba.experimental import structref
-from numba.extending import typeof_impl
 
 from qpctl.kernels.borrow import borrow_all
-from qpctl.kernels.lend import lent_type
+from qpctl.kernels.lend import LentProxy
 
 # DAQP's constraint states (include/constants.h, DAQP 0.11)
 ACTIVE, LOWER, IMMUTABLE, SOFT, AUTO_EQUALITY = 1, 2, 4, 8, 128
@@ -45,14 +44,8 @@ class DaqpPackType(types.StructRef):  # type: ignore[name-defined]  # numba is u
         return tuple((name, types.unliteral(typ)) for name, typ in fields)  # type: ignore[attr-defined]
 
 
-class DaqpPack(structref.StructRefProxy):
+class DaqpPack(LentProxy):
     """One DAQP workspace on one QP layout, packed (fields: :data:`FIELDS`)."""
-
-    @property
-    def _numba_type_(self) -> types.Type:
-        """Its numba type as kernels take it: lent (:mod:`qpctl.kernels.lend`). numba's dispatcher reads
-        this attribute to match a call to its compiled versions without calling Python."""
-        return lent_type(self._type)
 
 
 FIELDS = (
@@ -75,11 +68,6 @@ def _make_proxy() -> None:
 
 _make_proxy()
 
-
-@typeof_impl.register(DaqpPack)
-def _typeof(val: DaqpPack, c: object) -> types.Type:
-    """Its numba type, directly (as TickWork's: no buffer probe on every call)."""
-    return val._numba_type_
 
 
 @njit(cache=True)

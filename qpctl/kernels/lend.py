@@ -10,17 +10,18 @@ every stage, and to helpers called once per pair or row: 7 % of the compiled tic
 A :class:`Lent` type is the same structref — the same fields (a structref field is lent too), read
 and written the same way — whose data model holds the memory-info record as a plain pointer, which
 numba's reference counting does not see. Kernels never meet the counted types: the three proxies
-(``TickWork``, ``NativeQP``, ``DaqpPack``) give their lent type as their ``_numba_type_`` (what
-numba's dispatcher matches a call by), a proxy argument unboxes to it (:func:`_unbox_lent`), and
-:func:`lent_at` makes one from an address (:func:`qpctl.kernels.borrow.struct_address`). So every
+(``TickWork``, ``NativeQP``, ``DaqpPack``) are :class:`LentProxy` objects, which give their lent type
+as their ``_numba_type_`` (what numba's dispatcher matches a call by), a proxy argument unboxes to it
+(:func:`_unbox_lent`), and :func:`lent_at` makes one from an address
+(:func:`qpctl.kernels.borrow.struct_address`). So every
 kernel compiles for the lent types only — none twice — and no stage pays a count for them.
 
 The rule that makes it safe is :mod:`~qpctl.kernels.borrow`'s: a lent structref must not outlive the
 reference that keeps its memory — the Python proxy the caller holds for the call, or whose address
 :func:`lent_at` was given. A kernel never returns one to Python (numba has no boxing for it: such a
 kernel does not compile) and never assigns a structref field through one. The one structref that
-holds others, ``NativeQP``, is built by :func:`own_all`: its fields are counted references of its
-own, as before.
+holds others, ``NativeQP``, is built by :func:`qpctl.kernels.borrow.borrow_all`, which stores a lent
+structref as a counted reference of its own: the NativeQP keeps its fields alive, as before.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from numba import types
 from numba.core import cgutils
 from numba.core.datamodel import models
 from numba.experimental import structref
-from numba.extending import NativeValue, intrinsic, register_model, unbox
+from numba.extending import NativeValue, intrinsic, register_model, typeof_impl, unbox
 
 
 class Lent(types.StructRef):  # type: ignore[name-defined]  # numba is untyped
@@ -99,26 +100,27 @@ def _unbox_lent(typ: Any, obj: Any, c: Any) -> Any:
     return NativeValue(out._getvalue(), is_error=failed)
 
 
-@intrinsic
-def own_all(typingctx: Any, tup: Any) -> Any:
-    """A tuple with its lent structrefs as counted ones of their own (each count incremented): what a
-    structref's constructor stores, so that the structref it builds holds the ones it refers to."""
-    if not isinstance(tup, types.BaseTuple):
-        return None
-    out_types = [t.of if isinstance(t, Lent) else t for t in tup]
-    outty = types.Tuple(out_types)
+class LentProxy(structref.StructRefProxy):  # type: ignore[misc]  # numba is untyped
+    """The Python proxy of a structref that kernels take lent (module docstring): its ``_numba_type_``
+    — what numba's dispatcher matches a call by, without calling Python — and its ``typeof`` are its
+    :class:`Lent` type, found once when the proxy is made. ``TickWork``, ``NativeQP`` and ``DaqpPack``
+    are such proxies."""
 
-    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        vals = []
-        for i, (ty, oty) in enumerate(zip(signature.args[0], outty, strict=True)):
-            val = builder.extract_value(args[0], i)
-            if isinstance(ty, Lent):
-                ref = cgutils.create_struct_proxy(oty)(context, builder)
-                mi = cgutils.create_struct_proxy(ty)(context, builder, value=val).meminfo
-                ref.meminfo = builder.bitcast(mi, context.get_value_type(types.MemInfoPointer(types.voidptr)))
-                val = ref._getvalue()
-            context.nrt.incref(builder, oty, val)  # returned: a reference of its own
-            vals.append(val)
-        return context.make_tuple(builder, outty, vals)
+    __slots__ = ("_lent",)
 
-    return outty(tup), codegen
+    @classmethod
+    def _numba_box_(cls, ty: Any, mi: Any) -> Any:
+        instance = super()._numba_box_(ty, mi)
+        instance._lent = lent_type(ty)
+        return instance
+
+    @property
+    def _numba_type_(self) -> Any:
+        return self._lent
+
+
+@typeof_impl.register(LentProxy)
+def _typeof(val: LentProxy, c: object) -> Any:
+    """Its lent type, directly: numba's generic typeof first tries the object as a buffer, an exception
+    on every kernel call (~1 µs of the dispatch, and allocations tracemalloc sees)."""
+    return val._lent

@@ -18,10 +18,9 @@ import numpy as np
 from numba import njit
 from numba.core import types
 from numba.experimental import structref
-from numba.extending import typeof_impl
 
 from qpctl.kernels.borrow import borrow_all
-from qpctl.kernels.lend import lent_type, own_all
+from qpctl.kernels.lend import LentProxy
 
 
 @structref.register
@@ -30,14 +29,8 @@ class NativeQPType(types.StructRef):  # type: ignore[name-defined]  # numba is u
         return tuple((name, types.unliteral(typ)) for name, typ in fields)  # type: ignore[attr-defined]
 
 
-class NativeQP(structref.StructRefProxy):
+class NativeQP(LentProxy):
     """Both QP layouts and their DAQP structs (fields: :data:`FIELDS`)."""
-
-    @property
-    def _numba_type_(self) -> types.Type:
-        """Its numba type as kernels take it: lent (:mod:`qpctl.kernels.lend`). numba's dispatcher reads
-        this attribute to match a call to its compiled versions without calling Python."""
-        return lent_type(self._type)
 
 
 FIELDS = (
@@ -64,12 +57,6 @@ def _make_proxy() -> None:
 _make_proxy()
 
 
-@typeof_impl.register(NativeQP)
-def _typeof(val: NativeQP, c: object) -> types.Type:
-    """Its numba type, directly: numba's generic typeof first tries the object as a buffer, an
-    exception on every kernel call (~1 µs of the dispatch, and allocations tracemalloc sees)."""
-    return val._numba_type_
-
 
 def shortcut_scratch(nv: int, n: int) -> tuple[np.ndarray, ...]:
     """The arrays of :data:`FIELDS`' last seven (the working-set shortcut's scratch) for nv variables of
@@ -82,4 +69,4 @@ def shortcut_scratch(nv: int, n: int) -> tuple[np.ndarray, ...]:
 @njit(cache=True)
 def new_native_qp(*fields):  # type: ignore[no-untyped-def]
     """A NativeQP of ``fields`` (in FIELDS order), by a cached compiled constructor."""
-    return NativeQP(*borrow_all(own_all(fields)))
+    return NativeQP(*borrow_all(fields))

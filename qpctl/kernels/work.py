@@ -19,10 +19,9 @@ from __future__ import annotations
 from numba import njit
 from numba.core import types
 from numba.experimental import structref
-from numba.extending import typeof_impl
 
 from qpctl.kernels.borrow import borrow_all
-from qpctl.kernels.lend import lent_type
+from qpctl.kernels.lend import LentProxy
 
 
 @structref.register
@@ -31,14 +30,8 @@ class TickWorkType(types.StructRef):  # type: ignore[name-defined]  # numba is u
         return tuple((name, types.unliteral(typ)) for name, typ in fields)  # type: ignore[attr-defined]
 
 
-class TickWork(structref.StructRefProxy):
+class TickWork(LentProxy):
     """The compiled kernels' view of a :class:`qpctl.tick.Workspace` (fields: :data:`FIELDS`)."""
-
-    @property
-    def _numba_type_(self) -> types.Type:
-        """Its numba type as kernels take it: lent (:mod:`qpctl.kernels.lend`). numba's dispatcher reads
-        this attribute to match a call to its compiled versions without calling Python."""
-        return lent_type(self._type)
 
 
 FIELDS = (
@@ -214,12 +207,6 @@ def _make_proxy() -> None:
 
 _make_proxy()
 
-
-@typeof_impl.register(TickWork)
-def _typeof(val: TickWork, c: object) -> types.Type:
-    """Its numba type, directly: numba's generic typeof first tries the object as a buffer, an
-    exception on every kernel call (~1 µs of the dispatch, and allocations tracemalloc sees)."""
-    return val._numba_type_
 
 
 @njit(cache=True)
