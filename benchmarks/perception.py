@@ -171,14 +171,14 @@ def _repeat_separate(reps: int, states: np.ndarray, vels: np.ndarray, radii: np.
 
 @njit(cache=True)
 def _repeat_one_pass(reps: int, states: np.ndarray, vels: np.ndarray, radii: np.ndarray, dist: np.ndarray,
-                     grad: np.ndarray, origin: np.ndarray, voxel: float, trunc: float, samples: int, rows: int,
+                     pairs: np.ndarray, grad: np.ndarray, origin: np.ndarray, voxel: float, trunc: float, samples: int, rows: int,
                      vs: float, gain: float, vmargin: float, cutoff: float, ds2: np.ndarray, out_d: np.ndarray,
                      out_n: np.ndarray, out_p: np.ndarray, out_s: np.ndarray, vp: np.ndarray, vu: np.ndarray,
                      vb: np.ndarray, vd: np.ndarray) -> None:
     """The same lookups as the tick makes them: field_samples (one pass, both channels)."""
     for i in range(reps * states.shape[0]):
         segs, vel = states[i % states.shape[0]], vels[i % states.shape[0]]
-        KS.field_samples(segs, radii, dist, grad, origin, voxel, trunc, samples, rows, True, vel, vs, gain, vmargin,
+        KS.field_samples(segs, radii, dist, pairs, grad, origin, voxel, trunc, samples, rows, True, vel, vs, gain, vmargin,
                          cutoff, ds2, out_d, out_n, out_p, out_s, vp, vu, vb, vd)
 
 
@@ -209,12 +209,12 @@ def field_queries(m: DepthMap, robot: Any, reps: int, states: int = 16) -> dict[
                 np.empty((2 * L, 3)), np.empty((2 * L, 3)), np.empty(2 * L), np.empty(2 * L))
 
     o_sep, o_one = outs(), outs()
-    ways = {"one pass (the tick)": (_repeat_one_pass, (np.empty((2, S)), *o_one)),
-            "separate kernels": (_repeat_separate, (np.empty(S), *o_sep))}
+    ways = {"one pass (the tick)": (_repeat_one_pass, (snap.dist, snap.pairs, snap.grad), (np.empty((2, S)), *o_one)),
+            "separate kernels": (_repeat_separate, (snap.dist, snap.grad), (np.empty(S), *o_sep))}
     active = speed_rows = 0
     for i in range(states):
-        for rep, extra in ways.values():
-            rep(1, segs[i:i + 1], vels[i:i + 1], radii, snap.dist, snap.grad, *grid, *speed, *extra)
+        for rep, grids, extra in ways.values():
+            rep(1, segs[i:i + 1], vels[i:i + 1], radii, *grids, *grid, *speed, *extra)
         for a, b in zip(o_sep, o_one, strict=True):
             if not np.array_equal(a, b):
                 raise AssertionError("the one-pass field lookups differ from the separate kernels'")
@@ -225,13 +225,13 @@ def field_queries(m: DepthMap, robot: Any, reps: int, states: int = 16) -> dict[
     cpu: dict[str, list[float]] = {k: [] for k in ways}
     for r in range(max(reps // (per * states), 5)):
         for k in list(ways)[:: 1 if r % 2 else -1]:
-            rep, extra = ways[k]
+            rep, grids, extra = ways[k]
             c0 = time.thread_time()
             t0 = time.perf_counter()
-            rep(per, segs, vels, radii, snap.dist, snap.grad, *grid, *speed, *extra)
+            rep(per, segs, vels, radii, *grids, *grid, *speed, *extra)
             wall[k].append((time.perf_counter() - t0) * 1e6 / (per * states))
             cpu[k].append((time.thread_time() - c0) * 1e6 / (per * states))
-    one = (snap.dist, snap.grad, *grid, True, vels[0], *speed, *ways["one pass (the tick)"][1])
+    one = (snap.dist, snap.pairs, snap.grad, *grid, True, vels[0], *speed, *ways["one pass (the tick)"][2])
     KS.field_samples(segs[0], radii, *one)
     us = []
     for i in range(reps):  # called from Python, the dispatch included

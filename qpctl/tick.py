@@ -462,7 +462,9 @@ class Workspace:
             ip[codes.IP_FD_SAMPLES], ip[codes.IP_FD_RPL] = S, rpl
         self.fd_dist = np.zeros((2, *shape), np.float32)
         self.fd_grad = np.zeros((2, *shape, 3), np.float32)
-        self.fd_dist.flags.writeable = self.fd_grad.flags.writeable = False  # a snapshot's arrays are read-only
+        self.fd_pairs = np.zeros((*shape, 2), np.float32)
+        for a in (self.fd_dist, self.fd_grad, self.fd_pairs):
+            a.flags.writeable = False  # a snapshot's arrays are read-only
         self.fd_origin = origin
         self.fd_d, self.fd_n, self.fd_p = np.zeros(R), np.zeros((R, 3)), np.zeros((R, 3))
         self.fd_s, self.fd_ds = np.zeros(R), np.zeros((2, S))
@@ -486,8 +488,8 @@ class Workspace:
         if snap.dist.shape != self.fd_dist.shape or not np.array_equal(snap.grid.origin, self.fd_origin):
             raise ValueError(f"a snapshot of grid {snap.dist.shape[1:]} at {snap.grid.origin} in a workspace of "
                              f"{self.fd_dist.shape[1:]} at {self.fd_origin}")
-        K.set_field(self.work, snap.dist, snap.grad)
-        self.fd_dist, self.fd_grad = snap.dist, snap.grad
+        K.set_field(self.work, snap.dist, snap.grad, snap.pairs)
+        self.fd_dist, self.fd_grad, self.fd_pairs = snap.dist, snap.grad, snap.pairs
         self._field_snap = snap
 
     def field_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

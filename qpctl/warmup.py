@@ -85,7 +85,7 @@ def warmup() -> dict[str, float]:
     K.closed_form(ws.work, True)
     K.write_record(ws.work, False)
     K.finish_pairs(ws.work)
-    K.set_field(ws.work, ws.fd_dist, ws.fd_grad)  # a depth map's snapshot arrives (the same array types)
+    K.set_field(ws.work, ws.fd_dist, ws.fd_grad, ws.fd_pairs)  # a depth map's snapshot arrives (the same array types)
     if daqp_native.available():
         nat_h = daqp_native.NativeDAQP(hard.H, hard.f, hard.rows, hard.bu, hard.bl, hard.sense)
         nat_r = daqp_native.NativeDAQP(relaxed.H, relaxed.f, relaxed.rows, relaxed.bu, relaxed.bl, relaxed.sense)

@@ -228,6 +228,7 @@ def test_one_pass_field_samples_equal_the_separate_kernels(samples: int, rows: i
     outside the grid; at trunc = 0.06 the fields (capped at 0.2) exceed the truncation passed, so the
     per-link early-out fires too."""
     from qpctl.kernels.field_samples import field_samples
+    from qpctl.perception.snapshot import side_by_side
 
     for density in (0.003, 0.02, 0.0):
         dist = np.empty((2, *GRID.shape), np.float32)
@@ -244,8 +245,8 @@ def test_one_pass_field_samples_equal_the_separate_kernels(samples: int, rows: i
         got = (np.full(2 * L * rows, np.nan), np.full((2 * L * rows, 3), np.nan), np.full((2 * L * rows, 3), np.nan),
                np.full(2 * L * rows, np.nan), np.full((2 * L, 3), np.nan), np.full((2 * L, 3), np.nan),
                np.full(2 * L, np.nan), np.full(2 * L, np.nan))
-        field_samples(segs, radii, dist, grad, GRID.origin, GRID.voxel, trunc, samples, rows, smooth, vel, *speed,
-                      np.empty((2, samples)), *got)
+        field_samples(segs, radii, dist, side_by_side(dist), grad, GRID.origin, GRID.voxel, trunc, samples, rows, smooth,
+                      vel, *speed, np.empty((2, samples)), *got)
         for w, g in zip(want, got, strict=True):
             np.testing.assert_array_equal(g, w)
         if density:  # the comparison covers active pairs and speed rows

@@ -59,11 +59,12 @@ from qpctl.kernels.rigid import point_jacobian
 
 
 @njit(cache=True)
-def set_field(ws, dist: np.ndarray, grad: np.ndarray) -> None:  # type: ignore[no-untyped-def]
-    """The tick reads these grids from now on: ``dist`` (2, nx, ny, nz) and ``grad`` (2, nx, ny, nz, 3),
-    float32, read-only (a snapshot's own arrays)."""
+def set_field(ws, dist: np.ndarray, grad: np.ndarray, pairs: np.ndarray) -> None:  # type: ignore[no-untyped-def]
+    """The tick reads these grids from now on: ``dist`` (2, nx, ny, nz), ``grad`` (2, nx, ny, nz, 3) and
+    ``pairs`` (nx, ny, nz, 2), float32, read-only (a snapshot's own arrays)."""
     ws.fd_dist = borrow(dist)  # (borrowed, as every workspace array: Python's Workspace keeps the snapshot)
     ws.fd_grad = borrow(grad)
+    ws.fd_pairs = borrow(pairs)
 
 
 @njit(cache=True)
@@ -72,7 +73,7 @@ def field_pairs_both(ws) -> None:  # type: ignore[no-untyped-def]
     soft channel's speed points into fd_vp, fd_vu, fd_vb, fd_vd: one pass along each axis
     (:func:`qpctl.kernels.field_samples.field_samples`, the numbers of the separate kernels)."""
     fp = ws.fpar
-    field_samples(ws.segments, ws.cap_radius, ws.fd_dist, ws.fd_grad, ws.fd_origin, fp[FP_FD_VOXEL], fp[FP_FD_TRUNC],
+    field_samples(ws.segments, ws.cap_radius, ws.fd_dist, ws.fd_pairs, ws.fd_grad, ws.fd_origin, fp[FP_FD_VOXEL], fp[FP_FD_TRUNC],
                   ws.ipar[IP_FD_SAMPLES], ws.ipar[IP_FD_RPL], True, ws.body_vel, fp[FP_FD_VS], fp[FP_FD_VSLOPE],
                   fp[FP_FD_VMARGIN], fp[FP_FD_CUT], ws.fd_ds, ws.fd_d, ws.fd_n, ws.fd_p, ws.fd_s, ws.fd_vp,
                   ws.fd_vu, ws.fd_vb, ws.fd_vd)

@@ -5,9 +5,11 @@ channel 1, and what :func:`qpctl.kernels.field.speed_points` writes for channel 
 operation for operation — from one walk along each link's axis. The separate kernels sample every
 axis three times (the soft channel twice, at the same points with the same interpolation); here the
 two channels' grids, which share one lattice (shape, origin, voxel), are read at each sample from one
-cell (:func:`qpctl.kernels.field.cell`, computed once for both), and the soft channel's samples serve
-both its pairs and its speed points. The arithmetic is field.py's own (:func:`~qpctl.kernels.field.cell_distance`,
-:func:`~qpctl.kernels.field.pair_row`), so the numbers are the same by construction.
+cell (:func:`qpctl.kernels.field.cell`, computed once for both) in the snapshot's ``pairs`` layout
+(nx, ny, nz, 2) — a voxel's two values in one 8-byte word, 8 reads a sample instead of 16 —, and the soft
+channel's samples serve both its pairs and its speed points. The arithmetic is field.py's own
+(:func:`~qpctl.kernels.field.cell_distance`'s lerps, :func:`~qpctl.kernels.field.pair_row`), so the
+numbers are the same by construction.
 
 The per-link early-out (the midpoint farther than the truncation plus half the axis) is kept as the
 separate kernels have it, per channel, so that the outputs stay theirs; on a snapshot's field, which is
@@ -27,9 +29,9 @@ from numba import njit
 
 from qpctl.kernels.borrow import borrow
 from qpctl.kernels.field import (
+    _lerp8,
     _refine,
     cell,
-    cell_distance,
     pair_row,
     ranked_excess,
     second_minimum,
@@ -38,19 +40,28 @@ from qpctl.kernels.field import (
 
 
 @njit(cache=True, nogil=True, inline="always")
-def distance_both(rigid: np.ndarray, soft: np.ndarray, origin: np.ndarray, voxel: float, truncation: float,
-                  x: float, y: float, z: float) -> tuple[float, float]:
-    """Both channels' trilinear distances at (x, y, z) [m] (each (nx, ny, nz), one lattice): one cell."""
-    nx, ny, nz = rigid.shape
+def distance_both(pairs: np.ndarray, origin: np.ndarray, voxel: float, truncation: float, x: float, y: float,
+                  z: float) -> tuple[float, float]:
+    """Both channels' trilinear distances at (x, y, z) [m] from ``pairs`` (nx, ny, nz, 2): one cell, each
+    corner's two values read together, :func:`~qpctl.kernels.field.cell_distance`'s lerps per channel.
+    Outside the bounds the truncation, chosen after the reads (a select, no branch: the cell is clamped)."""
+    nx, ny, nz, _ = pairs.shape
     inside, i, j, k, i1, j1, k1, tx, ty, tz = cell(nx, ny, nz, origin, voxel, x, y, z)
-    if not inside:
-        return truncation, truncation
-    return (cell_distance(rigid, i, j, k, i1, j1, k1, tx, ty, tz),
-            cell_distance(soft, i, j, k, i1, j1, k1, tx, ty, tz))
+    a0, a1 = pairs[i, j, k, 0], pairs[i, j, k, 1]
+    b0, b1 = pairs[i1, j, k, 0], pairs[i1, j, k, 1]
+    c0, c1 = pairs[i, j1, k, 0], pairs[i, j1, k, 1]
+    d0, d1 = pairs[i1, j1, k, 0], pairs[i1, j1, k, 1]
+    e0, e1 = pairs[i, j, k1, 0], pairs[i, j, k1, 1]
+    f0, f1 = pairs[i1, j, k1, 0], pairs[i1, j, k1, 1]
+    g0, g1 = pairs[i, j1, k1, 0], pairs[i, j1, k1, 1]
+    h0, h1 = pairs[i1, j1, k1, 0], pairs[i1, j1, k1, 1]
+    r = _lerp8(a0, b0, c0, d0, e0, f0, g0, h0, tx, ty, tz)
+    s = _lerp8(a1, b1, c1, d1, e1, f1, g1, h1, tx, ty, tz)
+    return (r if inside else truncation), (s if inside else truncation)
 
 
 @njit(cache=True, nogil=True)
-def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, grad: np.ndarray,
+def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, pairs: np.ndarray, grad: np.ndarray,
                   origin: np.ndarray, voxel: float, truncation: float, samples: int, rows: int, smooth: bool,
                   body_vel: np.ndarray, soft_speed: float, gain: float, vmargin: float, cutoff: float,
                   ds: np.ndarray, out_d: np.ndarray, out_n: np.ndarray, out_p: np.ndarray,
@@ -59,16 +70,18 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
     """Both channels' pairs and the soft channel's speed points (module docstring): ``dist`` (2, nx, ny,
     nz) and ``grad`` (2, nx, ny, nz, 3); ``out_d`` (2·L·rows,), ``out_n``, ``out_p`` (2·L·rows, 3) and
     ``out_s`` (2·L·rows,) channel-major, each channel's block as :func:`~qpctl.kernels.field.field_pairs`
-    writes it; ``out_vp``, ``out_vu`` (2L, 3), ``out_vb``, ``out_vd`` (2L,) as
+    writes it; ``pairs`` (nx, ny, nz, 2) is ``dist`` with the channels side by side (the samples read it,
+    the pairs' refined points ``dist`` and ``grad``: :attr:`qpctl.perception.MapSnapshot.pairs`); ``out_vp``, ``out_vu`` (2L, 3), ``out_vb``, ``out_vd`` (2L,) as
     :func:`~qpctl.kernels.field.speed_points` writes them for channel 1 (``body_vel``, ``soft_speed``,
     ``gain``, ``vmargin``, ``cutoff`` its arguments). ``ds`` (2, samples) is scratch."""
     L = segments.shape[0]
     # every array borrowed (qpctl.kernels.borrow): the helpers below take them without reference counts
     segments, radii, dist, grad, origin, body_vel, ds = (borrow(segments), borrow(radii), borrow(dist), borrow(grad),
                                                          borrow(origin), borrow(body_vel), borrow(ds))
+    pairs = borrow(pairs)
     out_d, out_n, out_p, out_s = borrow(out_d), borrow(out_n), borrow(out_p), borrow(out_s)
     out_vp, out_vu, out_vb, out_vd = borrow(out_vp), borrow(out_vu), borrow(out_vb), borrow(out_vd)
-    rigid, soft, ds_r, ds_s = dist[0], dist[1], ds[0], ds[1]
+    ds_r, ds_s = ds[0], ds[1]
     for l in range(L):
         r = radii[l]
         ax, ay, az = segments[l, 0, 0], segments[l, 0, 1], segments[l, 0, 2]
@@ -81,7 +94,7 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
         # the separate kernels' early-out, per channel (module docstring)
         half = 0.5 * math.sqrt(ux * ux + uy * uy + uz * uz)
         mx, my, mz = ax + 0.5 * ux, ay + 0.5 * uy, az + 0.5 * uz
-        m0, m1 = distance_both(rigid, soft, origin, voxel, truncation, mx, my, mz)
+        m0, m1 = distance_both(pairs, origin, voxel, truncation, mx, my, mz)
         far0, far1 = m0 >= truncation + half, m1 >= truncation + half
         for c in range(2):
             if (far0 if c == 0 else far1):
@@ -102,7 +115,7 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, gra
         for j in range(samples):
             f = j / (samples - 1.0)
             px, py, pz = ax + f * ux, ay + f * uy, az + f * uz
-            t0, t1 = distance_both(rigid, soft, origin, voxel, truncation, px, py, pz)
+            t0, t1 = distance_both(pairs, origin, voxel, truncation, px, py, pz)
             ds_r[j] = t0
             ds_s[j] = t1
             if t0 < ds_r[best0]:

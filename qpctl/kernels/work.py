@@ -148,6 +148,7 @@ FIELDS = (
     # -- the depth map's field (qpctl.kernels.field_rows; R = 2 channels × L × rows per link) ----------
     "fd_dist",  # (2, nx, ny, nz) float32, read-only: the newest snapshot's distance grids [m] (set_field)
     "fd_grad",  # (2, nx, ny, nz, 3) float32, read-only: their gradients
+    "fd_pairs",  # (nx, ny, nz, 2) float32, read-only: fd_dist with the channels side by side (the samples' reads)
     "fd_origin",  # (3,) the grid's lower corner [m]
     "fd_d",  # (R,) per tick: the field pairs' distances from the capsules' surfaces [m]
     "fd_n",  # (R, 3) unit normals, away from the obstacle (zero: no pair)
