@@ -18,7 +18,6 @@ from qpctl.perception.config import PerceptionConfig
 from qpctl.perception.depth_map import DepthMap
 from qpctl.perception.reference import classify_points
 from qpctl.perception.self_filter import JointHistory
-from qpctl.perception.snapshot import MapSnapshot
 
 CFG = PerceptionConfig(voxel=0.02, bounds_min=[-0.2, -0.4, 0.0], bounds_max=[0.6, 0.4, 0.8], truncation=0.2,
                        decay=1.0, depth_noise=0.002)
@@ -349,14 +348,6 @@ def test_snapshots_are_immutable_and_independent() -> None:
     assert np.any(first.dist[0] < CFG.truncation)
     for c in range(2):
         assert np.array_equal(first.pairs[:, :, :, c], first.dist[c])
-
-
-def test_a_snapshot_refuses_a_side_by_side_grid_of_another_shape() -> None:
-    snap = DepthMap(CFG).update(render(EYE, [BALL], stamp=0.0))
-    with pytest.raises(ValueError, match="pairs"):
-        MapSnapshot(snap.grid, snap.truncation, snap.dist, snap.grad, 0.0, pairs=np.zeros((2, *snap.grid.shape), np.float32))
-    with pytest.raises(ValueError, match="pairs"):
-        MapSnapshot(snap.grid, snap.truncation, snap.dist, snap.grad, 0.0, pairs=snap.pairs.astype(np.float64))
 
 
 @pytest.mark.parametrize("key,value,match", [

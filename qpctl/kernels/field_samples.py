@@ -71,7 +71,8 @@ def field_samples(segments: np.ndarray, radii: np.ndarray, dist: np.ndarray, pai
     nz) and ``grad`` (2, nx, ny, nz, 3); ``out_d`` (2·L·rows,), ``out_n``, ``out_p`` (2·L·rows, 3) and
     ``out_s`` (2·L·rows,) channel-major, each channel's block as :func:`~qpctl.kernels.field.field_pairs`
     writes it; ``pairs`` (nx, ny, nz, 2) is ``dist`` with the channels side by side (the samples read it,
-    the pairs' refined points ``dist`` and ``grad``: :attr:`qpctl.perception.MapSnapshot.pairs`); ``out_vp``, ``out_vu`` (2L, 3), ``out_vb``, ``out_vd`` (2L,) as
+    the pairs' refined points ``dist`` and ``grad``: :attr:`qpctl.perception.MapSnapshot.pairs`);
+    ``out_vp``, ``out_vu`` (2L, 3), ``out_vb``, ``out_vd`` (2L,) as
     :func:`~qpctl.kernels.field.speed_points` writes them for channel 1 (``body_vel``, ``soft_speed``,
     ``gain``, ``vmargin``, ``cutoff`` its arguments). ``ds`` (2, samples) is scratch."""
     L = segments.shape[0]

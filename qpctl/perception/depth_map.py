@@ -48,7 +48,7 @@ from qpctl.kernels import edt as KE
 from qpctl.perception.config import SQRT3_2, PerceptionConfig
 from qpctl.perception.frames import DepthFrame, PointCloud
 from qpctl.perception.self_filter import JointHistory, SelfFilter
-from qpctl.perception.snapshot import MapSnapshot, VoxelGrid, side_by_side
+from qpctl.perception.snapshot import MapSnapshot, VoxelGrid
 from qpctl.robot.model import RobotModel
 
 Frame = DepthFrame | PointCloud
@@ -216,10 +216,9 @@ class DepthMap:
                     KE.gradient(dist[ch], c.voxel, grad[ch])
                 else:
                     grad[ch] = 0.0
-            pairs = side_by_side(dist)  # the tick's layout (MapSnapshot), in the build's time
             counts = dict(self.last_report.counts) if self.last_report is not None else {}
             return MapSnapshot(self.grid, c.truncation, dist, grad, self.stamp, (time.perf_counter() - t0) * 1e3,
-                               (occupied[0], occupied[1]), self.frames, counts, pairs)
+                               (occupied[0], occupied[1]), self.frames, counts)
 
     def _forget_target_zone(self) -> None:
         """Forget the rigid voxels whose centres lie within ``target_radius`` of the grasp target: the

@@ -8,6 +8,7 @@ figure — can never see a half-built map, and handing a new one over is one ref
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -63,9 +64,11 @@ class MapSnapshot:
     ``dist`` (2, nx, ny, nz) float32 [m]: per channel (0 rigid, 1 soft) the distance from each voxel
     centre to the nearest occupied voxel centre, capped at ``truncation``; ``grad`` (2, nx, ny, nz, 3)
     float32 its central-difference gradient; ``pairs`` (nx, ny, nz, 2) float32 the same distances with
-    the two channels side by side (derived: the tick samples both at each point, and a voxel's two
-    values in one 8-byte word halve the cache lines it touches — :mod:`qpctl.kernels.field_samples`). ``stamp`` [s] is the newest frame's (on the
-    controller's clock); ``build_ms`` [ms] the time from that frame's arrival to this snapshot;
+    the two channels side by side, derived from ``dist`` here (the tick samples both at each point, and
+    a voxel's two values in one 8-byte word halve the cache lines it reads:
+    :mod:`qpctl.kernels.field_samples`). ``stamp`` [s] is the newest frame's (on the controller's
+    clock); ``build_ms`` [ms] the time from that frame's arrival to this snapshot's completion (its
+    derived grid included);
     ``occupied`` the occupied voxels per channel; ``frames`` the frames integrated so far.
     """
 
@@ -78,7 +81,7 @@ class MapSnapshot:
     occupied: tuple[int, int] = (0, 0)
     frames: int = 0
     counts: dict[str, int] = field(default_factory=dict)  # the newest frame's pixels or points by status
-    pairs: np.ndarray | None = field(default=None, repr=False, compare=False)  # derived from dist when not given
+    pairs: np.ndarray = field(init=False, repr=False, compare=False)  # derived from dist (class docstring)
 
     def __post_init__(self) -> None:
         nx, ny, nz = self.grid.shape
@@ -87,10 +90,10 @@ class MapSnapshot:
                              f"(2, {nx}, {ny}, {nz}, 3), got {self.dist.shape} and {self.grad.shape}")
         object.__setattr__(self, "dist", _frozen(np.ascontiguousarray(self.dist, dtype=np.float32)))
         object.__setattr__(self, "grad", _frozen(np.ascontiguousarray(self.grad, dtype=np.float32)))
-        pairs = side_by_side(self.dist) if self.pairs is None else self.pairs
-        if pairs.shape != (nx, ny, nz, 2) or pairs.dtype != np.float32 or not pairs.flags.c_contiguous:
-            raise ValueError(f"a snapshot of grid {self.grid.shape} needs pairs ({nx}, {ny}, {nz}, 2) float32, C order")
-        object.__setattr__(self, "pairs", _frozen(pairs))
+        t0 = time.perf_counter()
+        object.__setattr__(self, "pairs", _frozen(side_by_side(self.dist)))  # never given: never stale
+        if self.build_ms > 0.0:  # a built snapshot's time runs to its completion, this grid included
+            object.__setattr__(self, "build_ms", self.build_ms + (time.perf_counter() - t0) * 1e3)
 
     @staticmethod
     def empty(grid: VoxelGrid, truncation: float, stamp: float = -math.inf) -> MapSnapshot:
