@@ -69,7 +69,6 @@ def _make_proxy() -> None:
 _make_proxy()
 
 
-
 @njit(cache=True)
 def new_daqp_pack(*fields):  # type: ignore[no-untyped-def]
     """A DaqpPack of ``fields`` (in FIELDS order), by a cached compiled constructor."""

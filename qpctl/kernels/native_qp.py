@@ -57,7 +57,6 @@ def _make_proxy() -> None:
 _make_proxy()
 
 
-
 def shortcut_scratch(nv: int, n: int) -> tuple[np.ndarray, ...]:
     """The arrays of :data:`FIELDS`' last seven (the working-set shortcut's scratch) for nv variables of
     which the first n are the robot's q̈ (the rest, slack columns, are fixed at their bounds there:

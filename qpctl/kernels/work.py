@@ -209,7 +209,6 @@ def _make_proxy() -> None:
 _make_proxy()
 
 
-
 @njit(cache=True)
 def new_tick_work(*fields):  # type: ignore[no-untyped-def]
     """A TickWork of the arrays ``fields`` (in FIELDS order), built by a cached compiled constructor

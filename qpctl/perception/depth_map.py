@@ -217,8 +217,8 @@ class DepthMap:
                 else:
                     grad[ch] = 0.0
             counts = dict(self.last_report.counts) if self.last_report is not None else {}
-            return MapSnapshot(self.grid, c.truncation, dist, grad, self.stamp, (time.perf_counter() - t0) * 1e3,
-                               (occupied[0], occupied[1]), self.frames, counts)
+            return MapSnapshot(self.grid, c.truncation, dist, grad, self.stamp, t0, (occupied[0], occupied[1]),
+                               self.frames, counts)
 
     def _forget_target_zone(self) -> None:
         """Forget the rigid voxels whose centres lie within ``target_radius`` of the grasp target: the

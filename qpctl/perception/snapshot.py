@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import InitVar, dataclass, field
 
 import numpy as np
 
@@ -67,8 +67,8 @@ class MapSnapshot:
     the two channels side by side, derived from ``dist`` here (the tick samples both at each point, and
     a voxel's two values in one 8-byte word halve the cache lines it reads:
     :mod:`qpctl.kernels.field_samples`). ``stamp`` [s] is the newest frame's (on the controller's
-    clock); ``build_ms`` [ms] the time from that frame's arrival to this snapshot's completion (its
-    derived grid included);
+    clock); ``build_ms`` [ms] the time from ``started`` (``time.perf_counter()`` when that frame arrived;
+    0 without it) to this snapshot's completion, its derived grid included;
     ``occupied`` the occupied voxels per channel; ``frames`` the frames integrated so far.
     """
 
@@ -77,23 +77,23 @@ class MapSnapshot:
     dist: np.ndarray
     grad: np.ndarray
     stamp: float
-    build_ms: float = 0.0
+    started: InitVar[float | None] = None  # perf_counter when the newest frame arrived (class docstring)
     occupied: tuple[int, int] = (0, 0)
     frames: int = 0
     counts: dict[str, int] = field(default_factory=dict)  # the newest frame's pixels or points by status
+    build_ms: float = field(init=False, default=0.0)
     pairs: np.ndarray = field(init=False, repr=False, compare=False)  # derived from dist (class docstring)
 
-    def __post_init__(self) -> None:
+    def __post_init__(self, started: float | None) -> None:
         nx, ny, nz = self.grid.shape
         if self.dist.shape != (2, nx, ny, nz) or self.grad.shape != (2, nx, ny, nz, 3):
             raise ValueError(f"a snapshot of grid {self.grid.shape} needs dist (2, {nx}, {ny}, {nz}) and grad "
                              f"(2, {nx}, {ny}, {nz}, 3), got {self.dist.shape} and {self.grad.shape}")
         object.__setattr__(self, "dist", _frozen(np.ascontiguousarray(self.dist, dtype=np.float32)))
         object.__setattr__(self, "grad", _frozen(np.ascontiguousarray(self.grad, dtype=np.float32)))
-        t0 = time.perf_counter()
         object.__setattr__(self, "pairs", _frozen(side_by_side(self.dist)))  # never given: never stale
-        if self.build_ms > 0.0:  # a built snapshot's time runs to its completion, this grid included
-            object.__setattr__(self, "build_ms", self.build_ms + (time.perf_counter() - t0) * 1e3)
+        if started is not None:
+            object.__setattr__(self, "build_ms", (time.perf_counter() - started) * 1e3)
 
     @staticmethod
     def empty(grid: VoxelGrid, truncation: float, stamp: float = -math.inf) -> MapSnapshot:
