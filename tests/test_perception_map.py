@@ -4,6 +4,7 @@ decay, the distance field against brute force, and bad input (issue 21, items 1,
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 import pytest
@@ -334,7 +335,11 @@ def test_stamps_going_backwards_raise() -> None:
 
 def test_snapshots_are_immutable_and_independent() -> None:
     m = DepthMap(CFG)
-    first = m.update(render(EYE, [BALL], stamp=0.0))
+    frame = render(EYE, [BALL], stamp=0.0)
+    t0 = time.perf_counter()
+    first = m.update(frame)
+    wall_ms = (time.perf_counter() - t0) * 1e3
+    assert 0.0 < first.build_ms <= wall_ms  # from the frame's arrival to the snapshot's completion
     before = first.dist.copy()
     with pytest.raises(ValueError):
         first.dist[0, 0, 0, 0] = 0.0
