@@ -251,13 +251,53 @@ def test_backup_guard_tries_only_as_many_gains_as_told():
     robot, q, v, data, hold, guard, soft, firm = closing_tip()
     assert not soft.viable and firm.viable
     for tries, falls_back in ((1, True), (None, False)):
-        guard._gain, guard._tau_prev, guard.tries = 4.0, hold.copy(), tries
+        guard._gain, guard._tau_prev, guard.tries, guard._on_brake = 4.0, hold.copy(), tries, False
         out = guard.step(q, v, 0.0)
         assert ("backup" in out.info) is falls_back
         if falls_back:
             assert guard._gain == 4.0 and np.array_equal(out.tau, brake_torque(robot, data, q, v, hold, 4.0, DT))
         else:
             assert guard._gain == 25.0 and np.array_equal(out.tau, hold)
+
+
+def test_backup_guard_tries_fewer_gains_while_it_brakes():
+    """``tries_on_brake`` (default 2): while the last tick applied the stored brake, a check tries that
+    many gains, the stored one first. From the closing tip, whose successor the stored soft brake (κ = 4)
+    does not verify and κ = 25 (the guard's first other gain) does — both on the Simulator-based
+    rollout —, the guard applies the proposal and stores 25 when the last tick applied a proposal, and
+    while braking with 2 tries or the whole family (None); with 1 try it keeps braking with κ = 4 after
+    one refuted rollout, and does so on the next tick too."""
+    robot, q, v, data, hold, guard, soft, firm = closing_tip()
+    assert not soft.viable and firm.viable and guard.gains[0] == 25.0
+    assert guard.tries_on_brake == 2
+    cases = ((False, 1, True), (True, 2, True), (True, None, True), (True, 1, False))
+    for on_brake, tries_on_brake, applied in cases:
+        guard._gain, guard._tau_prev, guard._on_brake = 4.0, hold.copy(), on_brake
+        guard.tries_on_brake = tries_on_brake
+        out = guard.step(q, v, 0.0)
+        if applied:
+            assert "backup" not in out.info and guard._gain == 25.0 and np.array_equal(out.tau, hold)
+            assert guard.stats["check_steps"][-1] == soft.steps + firm.steps
+            guard._gain, guard.tries_on_brake = 4.0, 1  # the last tick applied the proposal: the whole family
+            assert "backup" not in guard.step(q, v, 0.0).info and guard._gain == 25.0
+        else:
+            assert out.info["backup"] == 4.0 and np.array_equal(out.tau, brake_torque(robot, data, q, v, hold, 4.0, DT))
+            assert guard.stats["check_steps"][-1] == soft.steps  # one rollout, refuted
+            again = guard.step(q, v, 0.0)  # braking: the next check again tries κ = 4 alone
+            assert again.info["backup"] == 4.0 and guard.stats["check_steps"][-1] == soft.steps
+
+
+@pytest.mark.parametrize("value", ["0", "1.5", "nan"])
+def test_backup_tries_on_brake_is_a_whole_number_or_inf(value):
+    from qpctl import ConfigError, Scenario
+
+    with pytest.raises(ConfigError) as exc:
+        Scenario.load("paper", overrides=[f"controller.backup_tries_on_brake={value}"])
+    assert exc.value.key == "controller.backup_tries_on_brake"
+    on = ["controller.backup=true"]
+    assert Scenario.load("paper", overrides=on).build_controller().tries_on_brake == 2
+    assert Scenario.load("paper", overrides=[*on, "controller.backup_tries_on_brake=1"]).build_controller().tries_on_brake == 1
+    assert Scenario.load("paper", overrides=[*on, "controller.backup_tries_on_brake=inf"]).build_controller().tries_on_brake is None
 
 
 def test_backup_guard_spends_at_most_its_check_steps_on_a_proposal():
@@ -271,7 +311,7 @@ def test_backup_guard_spends_at_most_its_check_steps_on_a_proposal():
     assert not soft.viable and firm.viable and 0 < soft.steps < firm.steps
     n4, n25 = soft.steps, firm.steps
     for steps, applied in ((np.inf, True), (n4 + n25 + 1, True), (n4 + n25, False), (n4 // 2, False)):
-        guard._gain, guard._tau_prev, guard.check_steps = 4.0, hold.copy(), steps
+        guard._gain, guard._tau_prev, guard.check_steps, guard._on_brake = 4.0, hold.copy(), steps, False
         out = guard.step(q, v, 0.0)
         spent = guard.stats["check_steps"][-1]
         assert spent <= steps

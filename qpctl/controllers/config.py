@@ -33,7 +33,9 @@ class ControllerConfig:
     backup_margin [m]: the clearance kept all along the brake; backup_check_distance [m]: ticks whose
     world clearance is at least this are not checked (inf: every tick, the default); backup_check_steps:
     the rollout steps one check may spend on a proposal, all its gains together (inf: no limit, the
-    default) — one not verified within them is refused and the stored brake continues.
+    default) — one not verified within them is refused and the stored brake continues;
+    backup_tries_on_brake: the gains a check tries while the last tick applied the stored brake (2, the
+    default: the stored one and the first other; inf: the whole family).
     """
 
     kind: str = "paper"
@@ -48,6 +50,7 @@ class ControllerConfig:
     backup_margin: float = setting(0.0, valid="nonnegative", unit="m")
     backup_check_distance: float = setting(float("inf"), valid="distance_or_inf", unit="m")
     backup_check_steps: float = setting(float("inf"), valid="count_or_inf")
+    backup_tries_on_brake: float = setting(2.0, valid="count_or_inf")
 
     def __post_init__(self) -> None:
         check_fields(self, "controller")

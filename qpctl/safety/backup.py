@@ -12,7 +12,10 @@ then, where the world clearance (exact, every pair: :class:`qpctl.tick.WorldClea
    comes to rest with the clearance above ``margin`` all along is stored and τ applied;
    with ``check_steps`` (default inf) the rollouts of one check take at most that many steps in
    all — a proposal not verified within them is refuted, which bounds a check's cost (the guarantee is
-   untouched: a refuted proposal only means the stored brake continues);
+   untouched: a refuted proposal only means the stored brake continues); while the last tick applied
+   the stored brake, only ``tries_on_brake`` gains are tried (default 2: the stored one and the first
+   other) — the checks that refute every gain are the long ones (four rollouts, 2,000–4,000 steps on
+   the soak's heavy arm), and they come in runs while the arm brakes;
 2. if none does, the stored brake's torque from (q, q̇, τ_prev) is applied (``info["backup"]``: its
    gain): it was verified from this very state one tick ago, and the rollout is the simulator's own
    integration, so under the exact model following it stays verified;
@@ -65,7 +68,8 @@ class BackupGuard:
     the longest brake rolled out. A tick's ``compute_us`` is the controller's plus the check's."""
 
     def __init__(self, controller: Any, dt: float, *, check_distance: float = np.inf, margin: float = 0.0,
-                 horizon: float = 3.0, gains: tuple[float, ...] = GUARD_GAINS, check_steps: float = np.inf) -> None:
+                 horizon: float = 3.0, gains: tuple[float, ...] = GUARD_GAINS, check_steps: float = np.inf,
+                 tries_on_brake: int | None = 2) -> None:
         self.controller = controller
         self.dt, self.check_distance, self.margin, self.horizon = float(dt), float(check_distance), float(margin), \
             float(horizon)
@@ -73,6 +77,7 @@ class BackupGuard:
         self.gains = tuple(gains)
         self.exact = False  # the lazy clearance (True: every step's clearance evaluated; the same verdicts)
         self.tries: int | None = None  # gains tried from a proposal's successor (None: the whole family)
+        self.tries_on_brake = tries_on_brake  # the same while the last tick applied the stored brake
         self.world = WorldClearance(controller.robot, controller.obstacles)  # obstacles only: no self pairs
         self.brake = BrakeRollout(controller.robot, self.world, self.dt)
         self._limit = next((c for c in getattr(controller, "constraints", []) if isinstance(c, TorqueLimit)), None)
@@ -85,6 +90,7 @@ class BackupGuard:
 
     def _reset_backup(self) -> None:
         self._gain: float | None = None
+        self._on_brake = False  # the last tick applied the stored brake
         self._tau_prev = np.full(self.controller.robot.nv, np.nan)
 
     def reset(self) -> None:
@@ -127,7 +133,11 @@ class BackupGuard:
         ``backup`` / ``backup_unverified`` / ``backup_out_of_steps`` where they apply; ``stats["check_steps"]``
         the rollout steps the check spent."""
         q1, v1 = self.brake.successor(q, v, tau)
-        gain, spent, cut = self._first_verified(q1, v1, tau, t + self.dt, self.tries, self.check_steps)
+        tries = self.tries
+        if self._on_brake and self.tries_on_brake is not None:
+            tries = self.tries_on_brake if tries is None else min(tries, self.tries_on_brake)
+        gain, spent, cut = self._first_verified(q1, v1, tau, t + self.dt, tries, self.check_steps)
+        self._on_brake = False
         if cut:
             info["backup_out_of_steps"] = True
             self.stats["out_of_steps"] += 1
@@ -145,6 +155,7 @@ class BackupGuard:
             return tau
         tau = self.brake.torque(q, v, self._tau_prev, self._gain).copy()  # the stored brake continues
         info["backup"] = self._gain
+        self._on_brake = True
         self.stats["backup"] += 1
         if self._limit is not None:  # the rate window of the next tick is about the torque applied
             self._limit.remember(tau, t)
@@ -162,7 +173,7 @@ class BackupGuard:
         if near:
             tau = self.check(q, v, tau, t, info)
         else:
-            self._gain = None
+            self._gain, self._on_brake = None, False
         us = (time.perf_counter() - t0) * 1e6
         if near:
             self.stats["check_us"].append(us)
