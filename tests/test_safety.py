@@ -177,6 +177,16 @@ def test_collisions_at_rest_counts_the_contacts_a_stop_cannot_avoid():
     assert m["collided"] and m["collisions_at_rest"] == 1
 
 
+def test_contact_onsets_are_the_ticks_a_contact_begins():
+    """The ticks where the clearance goes below 0 from ≥ 0 (written out here), a run that starts in
+    contact beginning one at tick 0; a contact that lasts counts once, a touch at exactly 0 none."""
+    from qpctl.simulation.metrics import contact_onsets
+
+    clearance = np.array([-0.1, -0.1, 0.0, 0.1, -0.01, -0.02, 0.1, 0.0, -1e-9, 0.2])
+    assert contact_onsets(clearance).tolist() == [0, 4, 8]
+    assert contact_onsets(np.full(5, 0.1)).size == 0
+
+
 @pytest.mark.parametrize("override,key", [("controller.backup=1", "controller.backup"),
                                           ("controller.backup_margin=-0.01", "controller.backup_margin"),
                                           ("controller.backup_check_distance=nan", "controller.backup_check_distance"),
@@ -250,7 +260,7 @@ def test_backup_guard_tries_only_as_many_gains_as_told():
     applies the proposal and stores 25."""
     robot, q, v, data, hold, guard, soft, firm = closing_tip()
     assert not soft.viable and firm.viable
-    for tries, falls_back in ((1, True), (None, False)):
+    for tries, falls_back in ((1, True), (np.inf, False)):
         guard._gain, guard._tau_prev, guard.tries, guard._on_brake = 4.0, hold.copy(), tries, False
         out = guard.step(q, v, 0.0)
         assert ("backup" in out.info) is falls_back
@@ -265,12 +275,12 @@ def test_backup_guard_tries_fewer_gains_while_it_brakes():
     many gains, the stored one first. From the closing tip, whose successor the stored soft brake (κ = 4)
     does not verify and κ = 25 (the guard's first other gain) does — both on the Simulator-based
     rollout —, the guard applies the proposal and stores 25 when the last tick applied a proposal, and
-    while braking with 2 tries or the whole family (None); with 1 try it keeps braking with κ = 4 after
+    while braking with 2 tries or the whole family (inf); with 1 try it keeps braking with κ = 4 after
     one refuted rollout, and does so on the next tick too."""
     robot, q, v, data, hold, guard, soft, firm = closing_tip()
     assert not soft.viable and firm.viable and guard.gains[0] == 25.0
     assert guard.tries_on_brake == 2
-    cases = ((False, 1, True), (True, 2, True), (True, None, True), (True, 1, False))
+    cases = ((False, 1, True), (True, 2, True), (True, np.inf, True), (True, 1, False))
     for on_brake, tries_on_brake, applied in cases:
         guard._gain, guard._tau_prev, guard._on_brake = 4.0, hold.copy(), on_brake
         guard.tries_on_brake = tries_on_brake
@@ -297,7 +307,7 @@ def test_backup_tries_on_brake_is_a_whole_number_or_inf(value):
     on = ["controller.backup=true"]
     assert Scenario.load("paper", overrides=on).build_controller().tries_on_brake == 2
     assert Scenario.load("paper", overrides=[*on, "controller.backup_tries_on_brake=1"]).build_controller().tries_on_brake == 1
-    assert Scenario.load("paper", overrides=[*on, "controller.backup_tries_on_brake=inf"]).build_controller().tries_on_brake is None
+    assert Scenario.load("paper", overrides=[*on, "controller.backup_tries_on_brake=inf"]).build_controller().tries_on_brake == np.inf
 
 
 def test_backup_guard_spends_at_most_its_check_steps_on_a_proposal():

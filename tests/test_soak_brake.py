@@ -32,7 +32,7 @@ from qpctl.safety import certify
 from qpctl.safety.backup import GUARD_GAINS
 from qpctl.safety.oracle import REST_TIME
 from qpctl.simulation import Simulator
-from qpctl.simulation.metrics import compute_metrics
+from qpctl.simulation.metrics import compute_metrics, contact_onsets
 
 ORACLE_EVERY = 10
 #: The oracle's order of its family: any brake certifies, and the firm ones end sooner (the guard's order).
@@ -61,15 +61,16 @@ def guarded_run(raw: dict[str, Any], oracle_every: int = ORACLE_EVERY,
     tr = Simulator(ctrl, dt=dt, duration=raw["sim"]["duration"]).run(sc.q0(ctrl.robot))
     wall = time.perf_counter() - t0
     m = compute_metrics(tr)
+    onsets = contact_onsets(tr.clearance)
     robot = ctrl.robot
     rate = np.abs(np.diff(tr.tau, axis=0))
     row: dict[str, Any] = {
         "name": raw["name"], "robot": raw["name"].split("-")[1], "moving": any(o.moving for o in ctrl.obstacles),
         "rate_limited": bool(np.isfinite(robot.tau_rate_max).any()), "ticks": m["ticks"],
         "min_clearance": float(tr.clearance.min()), "collided": m["collided"],
-        "contacts": int(np.sum((tr.clearance[1:] < 0) & (tr.clearance[:-1] >= 0)) + (tr.clearance[0] < 0)),
+        "contacts": int(onsets.size),
         "collisions_at_rest": m["collisions_at_rest"], "rms_tracking_error": m["rms_tracking_error"],
-        "first_contact_t": first_contact(tr.t, tr.clearance),
+        "first_contact_t": float(tr.t[onsets[0]]) if onsets.size else None,
         "checked": m.get("backup_checked_ticks", 0), "backup_ticks": m.get("backup_ticks", 0),
         "unverified": m.get("backup_unverified_ticks", 0), "check_us": ctrl.stats["check_us"] if backup else [],
         "out_of_steps": m.get("backup_out_of_steps_ticks", 0),
@@ -89,12 +90,6 @@ def guarded_run(raw: dict[str, Any], oracle_every: int = ORACLE_EVERY,
                                                           gains=ORACLE_GAINS).viable]
         row.update(oracle_sampled=len(ks), oracle_uncertified=bad)
     return row
-
-
-def first_contact(t: np.ndarray, clearance: np.ndarray) -> float | None:
-    """The first time [s] at which the clearance [m] is below 0, None if never."""
-    hit = np.flatnonzero(np.asarray(clearance) < 0)
-    return float(t[hit[0]]) if hit.size else None
 
 
 def unexplained_uncertified(row: dict[str, Any]) -> list[float]:

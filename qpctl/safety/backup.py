@@ -69,15 +69,15 @@ class BackupGuard:
 
     def __init__(self, controller: Any, dt: float, *, check_distance: float = np.inf, margin: float = 0.0,
                  horizon: float = 3.0, gains: tuple[float, ...] = GUARD_GAINS, check_steps: float = np.inf,
-                 tries_on_brake: int | None = 2) -> None:
+                 tries_on_brake: float = 2) -> None:
         self.controller = controller
         self.dt, self.check_distance, self.margin, self.horizon = float(dt), float(check_distance), float(margin), \
             float(horizon)
         self.check_steps = float(check_steps)  # rollout steps a proposal's check may spend (module docstring)
         self.gains = tuple(gains)
         self.exact = False  # the lazy clearance (True: every step's clearance evaluated; the same verdicts)
-        self.tries: int | None = None  # gains tried from a proposal's successor (None: the whole family)
-        self.tries_on_brake = tries_on_brake  # the same while the last tick applied the stored brake
+        self.tries = np.inf  # gains tried from a proposal's successor (inf: the whole family)
+        self.tries_on_brake = float(tries_on_brake)  # the same while the last tick applied the stored brake
         self.world = WorldClearance(controller.robot, controller.obstacles)  # obstacles only: no self pairs
         self.brake = BrakeRollout(controller.robot, self.world, self.dt)
         self._limit = next((c for c in getattr(controller, "constraints", []) if isinstance(c, TorqueLimit)), None)
@@ -105,15 +105,15 @@ class BackupGuard:
         return float(out)
 
     def _first_verified(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float,
-                        tries: int | None = None, steps: float = np.inf) -> tuple[float | None, int, bool]:
+                        tries: float = np.inf, steps: float = np.inf) -> tuple[float | None, int, bool]:
         """(The gain of the first brake (the stored one first) verified from (q, q̇) after τ_prev at t, or
-        None; the rollout steps spent; whether ``steps`` ran out), trying at most ``tries`` gains (None:
+        None; the rollout steps spent; whether ``steps`` ran out), trying at most ``tries`` gains (inf:
         all) in at most ``steps`` rollout steps over all of them (a rollout they cut short is not
         verified)."""
         order = ([self._gain] if self._gain is not None else []) + [g for g in self.gains if g != self._gain]
         full = round(self.horizon / self.dt)
         left, spent = steps, 0
-        for g in order[:tries]:
+        for g in order[:int(min(tries, len(order)))]:
             n = full if left >= full else int(left)
             if n < 1:
                 return None, spent, True
@@ -133,9 +133,7 @@ class BackupGuard:
         ``backup`` / ``backup_unverified`` / ``backup_out_of_steps`` where they apply; ``stats["check_steps"]``
         the rollout steps the check spent."""
         q1, v1 = self.brake.successor(q, v, tau)
-        tries = self.tries
-        if self._on_brake and self.tries_on_brake is not None:
-            tries = self.tries_on_brake if tries is None else min(tries, self.tries_on_brake)
+        tries = min(self.tries, self.tries_on_brake) if self._on_brake else self.tries
         gain, spent, cut = self._first_verified(q1, v1, tau, t + self.dt, tries, self.check_steps)
         self._on_brake = False
         if cut:

@@ -18,12 +18,17 @@ def _finite_or_none(x: float) -> float | None:
 REST_SPEED = 1e-2
 
 
+def contact_onsets(clearance: np.ndarray) -> np.ndarray:
+    """The ticks at which a contact begins: the clearance [m] below 0 there and not on the tick before
+    (a run that starts in contact begins one at tick 0)."""
+    inside = np.asarray(clearance) < 0.0
+    return np.flatnonzero(inside & ~np.concatenate([[False], inside[:-1]]))
+
+
 def collisions_at_rest(traj: Trajectory) -> int:
-    """How many contacts (the clearance crossing below 0) began with every joint speed ≤ REST_SPEED
-    [rad/s] (issue 22, item 4: a moving obstacle catching a stopped arm; a stop cannot avoid it)."""
-    inside = traj.clearance < 0.0
-    onsets = np.flatnonzero(inside & ~np.concatenate([[False], inside[:-1]]))
-    return int(sum(bool(np.all(np.abs(traj.v[k]) <= REST_SPEED)) for k in onsets))
+    """How many contacts (:func:`contact_onsets`) began with every joint speed ≤ REST_SPEED [rad/s]
+    (issue 22, item 4: a moving obstacle catching a stopped arm; a stop cannot avoid it)."""
+    return int(sum(bool(np.all(np.abs(traj.v[k]) <= REST_SPEED)) for k in contact_onsets(traj.clearance)))
 
 
 def backup_metrics(infos: list[dict[str, Any]]) -> dict[str, Any]:
