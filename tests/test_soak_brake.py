@@ -73,6 +73,8 @@ def guarded_run(raw: dict[str, Any], oracle_every: int = ORACLE_EVERY,
         "first_contact_t": float(tr.t[onsets[0]]) if onsets.size else None,
         "checked": m.get("backup_checked_ticks", 0), "backup_ticks": m.get("backup_ticks", 0),
         "unverified": m.get("backup_unverified_ticks", 0), "check_us": ctrl.stats["check_us"] if backup else [],
+        "unverified_t": [float(t) for t, i in zip(tr.t, tr.infos, strict=False) if i.get("backup_unverified")],
+        "dt": dt,
         "out_of_steps": m.get("backup_out_of_steps_ticks", 0),
         "tick_us": [float(i.get("backup_check_us", 0.0)) for i in tr.infos] if backup else [],
         "torque_over_limit": bool(np.any(np.abs(tr.tau) > robot.tau_max + 1e-9)),
@@ -93,18 +95,19 @@ def guarded_run(raw: dict[str, Any], oracle_every: int = ORACLE_EVERY,
 
 
 def unexplained_uncertified(row: dict[str, Any]) -> list[float]:
-    """The times [s] of a run's uncertified oracle samples that its guard's verdicts do not explain. Where
-    no tick was unverified, every visited state lies on a verified brake (the proposal's successor's, or
-    the stored one's) until that brake's rollout ends at the oracle's rest, and from then on the arm is at
-    rest, where the oracle's rollout lasts ``REST_TIME``; the oracle tries the same family, so a visited
-    state can lack a certificate only if a contact comes within ``REST_TIME`` of it, or has come. So an
-    uncertified sample before ``first_contact_t − REST_TIME``, or in a run without contact, is a finding;
-    a run with unverified ticks explains none of its samples (it reports them all)."""
-    bad = row.get("oracle_uncertified") or []
-    if row["unverified"]:
-        return list(bad)
-    hit = row.get("first_contact_t")
-    return [t for t in bad if hit is None or t < hit - REST_TIME - 1e-9]
+    """The times [s] of a run's uncertified oracle samples that its guard's verdicts do not explain. A
+    state that a verified tick led to lies on a verified brake (the proposal's successor's, or the stored
+    one's) until that brake's rollout ends at the oracle's rest, and from then on the arm is at rest,
+    where the oracle's rollout lasts ``REST_TIME``; the oracle tries the same family with the same rest
+    test (the swaying obstacles' sweeps cleared), so such a state can lack a certificate only if a
+    contact comes within ``REST_TIME`` of it, or has come. A state that an unverified tick led to (the
+    guard found no brake from the state before it, and counted the tick: ``unverified_t``) has no such
+    claim. So an uncertified sample is a finding unless an unverified tick led to it, or it comes at or
+    after ``first_contact_t − REST_TIME``."""
+    dt, hit = row["dt"], row.get("first_contact_t")
+    led = {round(u / dt) + 1 for u in row["unverified_t"]}  # the states' indices
+    return [t for t in row.get("oracle_uncertified") or []
+            if round(t / dt) not in led and (hit is None or t < hit - REST_TIME - 1e-9)]
 
 
 def held_contact(ctrl: Any, q0: np.ndarray, dt: float, duration: float) -> float | None:
@@ -225,11 +228,16 @@ def test_held_contact_is_the_first_tick_a_moving_obstacle_reaches_the_held_arm()
 
 def test_uncertified_samples_are_explained_only_within_the_rest_window_before_a_contact():
     """A run's uncertified oracle samples are explained when they come at or after its first contact
-    less the oracle's rest window (0.05 s): 0.96 and 1.2 s with a contact at 1.0 s are, 0.9 s is not;
-    none is in a run without contact or with an unverified tick."""
+    less the oracle's rest window (0.05 s) — 0.96 and 1.2 s with a contact at 1.0 s are, 0.9 s is not;
+    none is in a run without contact — or when an unverified tick led to them: the tick at 0.898 s (dt
+    2 ms) explains the sample at 0.9 s, the ticks at 0.896 or 0.9 s do not."""
     assert REST_TIME == pytest.approx(0.05)
-    row = {"oracle_uncertified": [0.9, 0.96, 1.2], "first_contact_t": 1.0, "unverified": 0}
+    row = {"oracle_uncertified": [0.9, 0.96, 1.2], "first_contact_t": 1.0, "unverified": 0, "unverified_t": [],
+           "dt": 2e-3}
     assert unexplained_uncertified(row) == [0.9]
     assert unexplained_uncertified({**row, "first_contact_t": None}) == [0.9, 0.96, 1.2]
-    assert unexplained_uncertified({**row, "unverified": 3}) == [0.9, 0.96, 1.2]
+    assert unexplained_uncertified({**row, "unverified": 1, "unverified_t": [0.898]}) == []
+    assert unexplained_uncertified({**row, "first_contact_t": None, "unverified": 1, "unverified_t": [0.898]}) \
+        == [0.96, 1.2]
+    assert unexplained_uncertified({**row, "unverified": 2, "unverified_t": [0.896, 0.9]}) == [0.9]
     assert unexplained_uncertified({**row, "oracle_uncertified": []}) == []

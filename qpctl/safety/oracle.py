@@ -9,7 +9,8 @@ A brake of gain κ [1/s] is the rate-limited computed-torque stop
 step Δt of the run). :func:`rollout` runs one from (q, q̇, τ_prev) at time t until the arm is at rest
 (every |q̇ᵢ| ≤ ``REST_SPEED`` for ``REST_TIME``) or ``horizon`` ends, and reports the least clearance
 (the simulator's exact world clearance, moving obstacles at their time) and whether the joint limits
-held. :func:`certify` tries the family :data:`BRAKE_GAINS`. A certificate proves the state viable
+held; a rest counts only where the arm clears every swaying obstacle's whole sweep (:func:`rest_clear`:
+such an obstacle comes back to a stopped arm for ever, :mod:`qpctl.safety.sweep`). :func:`certify` tries the family :data:`BRAKE_GAINS`. A certificate proves the state viable
 under the simulated model (the brake is exhibited); a state no brake of the family certifies is not
 proved unviable.
 """
@@ -78,13 +79,24 @@ def rollout(sim: Simulator, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, 
             return Certificate(False, gain, worst, np.inf, k)
         still = still + dt if np.all(np.abs(vv) <= REST_SPEED) else 0.0
         if still >= REST_TIME:
-            return Certificate(limits_ok and worst > margin, gain, worst, k * dt, k)
+            return Certificate(limits_ok and worst > margin and rest_clear(sim, qq, margin), gain, worst, k * dt, k)
         tau = brake_torque(robot, data, qq, vv, tau, gain, dt)
         sim.apply(tau)
         sim.step(tk)
         qq, vv = sim.read()
         qq, vv = qq.copy(), vv.copy()
     return Certificate(False, gain, worst, np.inf, steps)
+
+
+def rest_clear(sim: Simulator, q: np.ndarray, margin: float) -> bool:
+    """True if the arm at rest at q [rad] clears every swaying obstacle of ``sim``'s world over its
+    whole sweep by more than ``margin`` [m] (:class:`qpctl.safety.sweep.RestSweeps`, kept on ``sim``)."""
+    from qpctl.safety.sweep import RestSweeps
+
+    sweeps = getattr(sim, "_rest_sweeps", None)
+    if sweeps is None:
+        sweeps = sim._rest_sweeps = RestSweeps(sim.robot, sim.obstacles)  # type: ignore[attr-defined]
+    return not sweeps or sweeps.clear(q, margin)
 
 
 def certify(controller: Any, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, dt: float, *,

@@ -8,6 +8,9 @@ Per step at (q, q̇, t) after τ_prev, exactly as :func:`qpctl.safety.oracle.rol
     clearance(q, t);  τ = clip(clip(RNEA(q, q̇, −κq̇), ±τ_max), τ_prev ± τ̇_max Δt)
     (q, q̇) ← RK4 of q̇ = v, v̇ = ABA(q, v, τ) over Δt          (simulation.simulator.rk4_step's stages)
 
+A rollout that comes to rest is verified only if the arm at rest also clears every swaying obstacle's
+whole sweep (:mod:`qpctl.safety.sweep`), as the oracle's is.
+
 The arithmetic is rk4_step's operations in the same order, so the states equal the simulator's (the
 tests hold them to 1e-12 against the oracle); a robot with continuous or planar joints integrates on
 its configuration space through ``robot.integrate`` as the simulator does.
@@ -42,6 +45,7 @@ import pinocchio as pin
 import qpctl.native
 from qpctl.kernels import rollout as K
 from qpctl.safety.oracle import REST_SPEED, REST_TIME, Certificate
+from qpctl.safety.sweep import RestSweeps
 from qpctl.tick import WorldClearance
 
 # qpb_advance's io block (brake_rollout.cpp's IO_* order) and answers
@@ -81,6 +85,13 @@ class BrakeRollout:
         self.obstacle_speed = max((float(np.linalg.norm(o.velocity) + 2 * np.pi * o.frequency * np.linalg.norm(o.amplitude))
                                    for o in world.ws.obstacles), default=0.0)
         self.native: NativeBrake | None = NativeBrake.create(self) if not self.lie else None
+        self.sweeps = RestSweeps(robot, world.ws.obstacles)  # a rest must clear the swaying obstacles' sweeps
+
+    def rests_clear(self, q: np.ndarray, worst: float, margin: float) -> bool:
+        """A rollout at rest at q [rad] with least clearance ``worst`` [m] is verified: the clearance kept
+        above ``margin`` [m] all along, and the arm at rest clear of every swaying obstacle's sweep
+        (:class:`qpctl.safety.sweep.RestSweeps`)."""
+        return worst > margin and (not self.sweeps or self.sweeps.clear(q, margin))
 
     def torque(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, gain: float) -> np.ndarray:
         """The brake's torque [N·m] at (q, q̇) after τ_prev into ``self.tau`` (oracle.brake_torque)."""
@@ -158,7 +169,7 @@ class BrakeRollout:
                 return Certificate(False, gain, worst, np.inf, k)
             still = still + dt if code == K.AT_REST else 0.0
             if still >= REST_TIME:
-                return Certificate(worst > margin, gain, worst, k * dt, k)
+                return Certificate(self.rests_clear(qq, worst, margin), gain, worst, k * dt, k)
             self.torque(qq, vv, prev, gain)
             prev[:] = self.tau
             self.step(qq, vv)
@@ -217,7 +228,7 @@ class NativeBrake:
         if answer == FAILED:
             return Certificate(False, gain, worst, np.inf, k)
         if answer == AT_REST_END:
-            return Certificate(worst > margin, gain, worst, k * dt, k)
+            return Certificate(self.owner.rests_clear(qq, worst, margin), gain, worst, k * dt, k)
         return Certificate(False, gain, worst, np.inf, steps)
 
 

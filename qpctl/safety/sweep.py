@@ -1,0 +1,76 @@
+"""Where a stopped arm may rest among swaying obstacles (issue 22, item 4).
+
+An obstacle that sways without drifting — velocity 0, amplitude A ≠ 0 at frequency f > 0, so that
+its centre is p₀ + A sin(2πft) — passes every point p₀ + sA, s ∈ [−1, 1], of its segment once a
+period, for ever. A brake that brings the arm to rest within reach of that sweep has not avoided the
+obstacle, only postponed it: the oracle's rollout ends 50 ms after rest, and the obstacle comes later
+(the five contacts at rest of the soak's 60 scenes before this check). So a rollout that ends at rest
+is verified only if the arm at rest clears every swaying obstacle at every s by more than the margin:
+:class:`RestSweeps` decides it. Obstacles that drift (velocity ≠ 0) go on for ever and are followed over
+the rollout only, as before: an arm at rest in a drifting obstacle's path is still struck later.
+
+**The decision** (:meth:`RestSweeps.clear`): g(s), the world clearance between the arm at rest at q
+and the obstacle at p₀ + sA (:class:`qpctl.tick.WorldClearance` at the time arcsin(s)/(2πf)), is
+|A|-Lipschitz in s (the clearance is 1-Lipschitz in the obstacle's position). On an interval [a, b]
+with g(a), g(b) known, g ≥ (g(a) + g(b))/2 − |A|(b − a)/2 (the two cones' meeting point); intervals
+whose bound is above the margin are done, the others are halved. A sample at or below the margin
+refutes; an interval narrower than ``TOLERANCE`` [m] (|A|(b − a)) whose bound is still below refutes
+too (a refusal is always safe). So "clear" is proved, not sampled: the least clearance over the sweep
+exceeds the margin.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from qpctl.geometry.obstacles import Obstacle
+from qpctl.tick import WorldClearance
+
+#: The narrowest interval of the sweep [m of the obstacle's travel] the decision halves before refusing.
+TOLERANCE = 1e-4
+
+
+def swaying(o: Obstacle) -> bool:
+    """True if the obstacle sways about a fixed centre (amplitude and frequency, no velocity)."""
+    return bool(np.any(o.amplitude) and o.frequency > 0 and not np.any(o.velocity))
+
+
+class RestSweeps:
+    """The swaying obstacles of a world, each with its own exact clearance (module docstring)."""
+
+    def __init__(self, robot: Any, obstacles: Sequence[Obstacle]) -> None:
+        self.sweeps = [(WorldClearance(robot, [o]), float(np.linalg.norm(o.amplitude)), 2 * math.pi * o.frequency)
+                       for o in obstacles if swaying(o)]
+        self.evaluations = 0  # clearance evaluations made (for the cost's accounting)
+
+    def __bool__(self) -> bool:
+        return bool(self.sweeps)
+
+    def _at(self, world: WorldClearance, omega: float, q: np.ndarray, s: float) -> float:
+        self.evaluations += 1
+        return float(world(q, math.asin(s) / omega))
+
+    def clear(self, q: np.ndarray, margin: float) -> bool:
+        """True if the arm at rest at q [rad] clears every swaying obstacle's whole sweep by more than
+        ``margin`` [m] (proved by the Lipschitz bound; module docstring)."""
+        for world, amp, omega in self.sweeps:
+            lo, hi = self._at(world, omega, q, -1.0), self._at(world, omega, q, 1.0)
+            if min(lo, hi) <= margin:
+                return False
+            stack = [(-1.0, lo, 1.0, hi)]
+            while stack:
+                a, ga, b, gb = stack.pop()
+                if 0.5 * (ga + gb) - 0.5 * amp * (b - a) > margin:
+                    continue
+                if amp * (b - a) <= TOLERANCE:
+                    return False
+                m = 0.5 * (a + b)
+                gm = self._at(world, omega, q, m)
+                if gm <= margin:
+                    return False
+                stack += [(a, ga, m, gm), (m, gm, b, gb)]
+        return True
