@@ -79,7 +79,8 @@ def rollout(sim: Simulator, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, 
             return Certificate(False, gain, worst, np.inf, k)
         still = still + dt if np.all(np.abs(vv) <= REST_SPEED) else 0.0
         if still >= REST_TIME:
-            return Certificate(limits_ok and worst > margin and rest_clear(sim, qq, margin), gain, worst, k * dt, k)
+            return Certificate(limits_ok and worst > margin and rest_clear(sim, qq, vv, gain, margin), gain, worst,
+                               k * dt, k)
         tau = brake_torque(robot, data, qq, vv, tau, gain, dt)
         sim.apply(tau)
         sim.step(tk)
@@ -88,15 +89,18 @@ def rollout(sim: Simulator, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, 
     return Certificate(False, gain, worst, np.inf, steps)
 
 
-def rest_clear(sim: Simulator, q: np.ndarray, margin: float) -> bool:
-    """True if the arm at rest at q [rad] clears every swaying obstacle of ``sim``'s world over its
-    whole sweep by more than ``margin`` [m] (:class:`qpctl.safety.sweep.RestSweeps`, kept on ``sim``)."""
-    from qpctl.safety.sweep import RestSweeps
+def rest_clear(sim: Simulator, q: np.ndarray, v: np.ndarray, gain: float, margin: float) -> bool:
+    """True if the arm at rest at (q [rad], q̇ [rad/s]) after a brake of gain κ clears every swaying
+    obstacle of ``sim``'s world over its whole sweep by more than ``margin`` [m] plus the stop's creep
+    (:class:`qpctl.safety.sweep.RestSweeps`, :func:`qpctl.safety.sweep.creep`; kept on ``sim``)."""
+    from qpctl.safety.rollout import lever_arms
+    from qpctl.safety.sweep import RestSweeps, creep
 
-    sweeps = getattr(sim, "_rest_sweeps", None)
-    if sweeps is None:
-        sweeps = sim._rest_sweeps = RestSweeps(sim.robot, sim.obstacles)  # type: ignore[attr-defined]
-    return not sweeps or sweeps.clear(q, margin)
+    kept = getattr(sim, "_rest_sweeps", None)
+    if kept is None:
+        kept = sim._rest_sweeps = (RestSweeps(sim.robot, sim.obstacles), lever_arms(sim.robot))  # type: ignore[attr-defined]
+    sweeps, rho = kept
+    return not sweeps or sweeps.clear(q, margin + creep(rho, v, gain))
 
 
 def certify(controller: Any, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, dt: float, *,

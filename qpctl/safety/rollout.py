@@ -45,7 +45,7 @@ import pinocchio as pin
 import qpctl.native
 from qpctl.kernels import rollout as K
 from qpctl.safety.oracle import REST_SPEED, REST_TIME, Certificate
-from qpctl.safety.sweep import RestSweeps
+from qpctl.safety.sweep import RestSweeps, creep
 from qpctl.tick import WorldClearance
 
 # qpb_advance's io block (brake_rollout.cpp's IO_* order) and answers
@@ -87,11 +87,12 @@ class BrakeRollout:
         self.native: NativeBrake | None = NativeBrake.create(self) if not self.lie else None
         self.sweeps = RestSweeps(robot, world.ws.obstacles)  # a rest must clear the swaying obstacles' sweeps
 
-    def rests_clear(self, q: np.ndarray, worst: float, margin: float) -> bool:
-        """A rollout at rest at q [rad] with least clearance ``worst`` [m] is verified: the clearance kept
-        above ``margin`` [m] all along, and the arm at rest clear of every swaying obstacle's sweep
-        (:class:`qpctl.safety.sweep.RestSweeps`)."""
-        return worst > margin and (not self.sweeps or self.sweeps.clear(q, margin))
+    def rests_clear(self, q: np.ndarray, v: np.ndarray, gain: float, worst: float, margin: float) -> bool:
+        """A rollout of gain κ at rest at (q [rad], q̇ [rad/s]) with least clearance ``worst`` [m] is
+        verified: the clearance kept above ``margin`` [m] all along, and the arm at rest clear of every
+        swaying obstacle's sweep (:class:`qpctl.safety.sweep.RestSweeps`) by the margin plus its creep,
+        :func:`qpctl.safety.sweep.creep`."""
+        return worst > margin and (not self.sweeps or self.sweeps.clear(q, margin + creep(self.rho, v, gain)))
 
     def torque(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, gain: float) -> np.ndarray:
         """The brake's torque [N·m] at (q, q̇) after τ_prev into ``self.tau`` (oracle.brake_torque)."""
@@ -169,7 +170,7 @@ class BrakeRollout:
                 return Certificate(False, gain, worst, np.inf, k)
             still = still + dt if code == K.AT_REST else 0.0
             if still >= REST_TIME:
-                return Certificate(self.rests_clear(qq, worst, margin), gain, worst, k * dt, k)
+                return Certificate(self.rests_clear(qq, vv, gain, worst, margin), gain, worst, k * dt, k)
             self.torque(qq, vv, prev, gain)
             prev[:] = self.tau
             self.step(qq, vv)
@@ -228,7 +229,7 @@ class NativeBrake:
         if answer == FAILED:
             return Certificate(False, gain, worst, np.inf, k)
         if answer == AT_REST_END:
-            return Certificate(self.owner.rests_clear(qq, worst, margin), gain, worst, k * dt, k)
+            return Certificate(self.owner.rests_clear(qq, vv, gain, worst, margin), gain, worst, k * dt, k)
         return Certificate(False, gain, worst, np.inf, steps)
 
 

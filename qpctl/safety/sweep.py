@@ -17,6 +17,12 @@ whose bound is above the margin are done, the others are halved. A sample at or 
 refutes; an interval narrower than ``TOLERANCE`` [m] (|A|(b − a)) whose bound is still below refutes
 too (a refusal is always safe). So "clear" is proved, not sampled: the least clearance over the sweep
 exceeds the margin.
+
+**Creep.** At the oracle's rest the joints still move (|q̇ᵢ| ≤ 0.01 rad/s) and the brake goes on; the
+rest is tested with the margin raised by :func:`creep`, Σᵢρᵢ|q̇ᵢ|/κ — what is left of the stop if it
+decays at κ (exactly so for the continuous, unsaturated brake; an assumption for the simulator's
+steps, docs/reliability.md) — so that the arm still clears the sweep where the stop ends, and so that a
+rollout started later on the same stop (the oracle's, from a visited state) comes to the same verdict.
 """
 
 from __future__ import annotations
@@ -29,6 +35,17 @@ import numpy as np
 
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.tick import WorldClearance
+
+
+def creep(rho: np.ndarray | None, v: np.ndarray, gain: float) -> float:
+    """How far [m] a link point still moves after the oracle's rest at joint speeds q̇ [rad/s] if the
+    brake of gain κ [1/s] goes on decaying as q̇e^{−κt}: Σᵢ ρᵢ|q̇ᵢ|/κ (ρ: :func:`qpctl.safety.rollout.lever_arms`;
+    0 where it is None). Under that decay the bound at a later state is the bound now less the way
+    travelled, so a rest cleared by its creep stays cleared from every later state of the same stop."""
+    if rho is None:
+        return 0.0
+    return float(np.dot(rho, np.abs(v))) / gain
+
 
 #: The narrowest interval of the sweep [m of the obstacle's travel] the decision halves before refusing.
 TOLERANCE = 1e-4
