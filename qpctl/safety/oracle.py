@@ -9,8 +9,9 @@ A brake of gain κ [1/s] is the rate-limited computed-torque stop
 step Δt of the run). :func:`rollout` runs one from (q, q̇, τ_prev) at time t until the arm is at rest
 (every |q̇ᵢ| ≤ ``REST_SPEED`` for ``REST_TIME``) or ``horizon`` ends, and reports the least clearance
 (the simulator's exact world clearance, moving obstacles at their time) and whether the joint limits
-held; a rest counts only where the arm clears every swaying obstacle's whole sweep (:func:`rest_clear`:
-such an obstacle comes back to a stopped arm for ever, :mod:`qpctl.safety.sweep`). :func:`certify` tries the family :data:`BRAKE_GAINS`. A certificate proves the state viable
+held; a rest counts only where the arm clears the static obstacles and every swaying obstacle's whole
+sweep by the stop's creep (:func:`rest_clear`, :mod:`qpctl.safety.sweep`: the stop goes on after the
+rest, and a swaying obstacle comes back to a stopped arm for ever). :func:`certify` tries the family :data:`BRAKE_GAINS`. A certificate proves the state viable
 under the simulated model (the brake is exhibited); a state no brake of the family certifies is not
 proved unviable.
 """
@@ -23,6 +24,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
+from qpctl.safety.sweep import RestClearance, creep, lever_arms
 from qpctl.simulation.simulator import Simulator
 
 #: The family of brake gains tried, hardest last [1/s].
@@ -90,17 +92,15 @@ def rollout(sim: Simulator, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, 
 
 
 def rest_clear(sim: Simulator, q: np.ndarray, v: np.ndarray, gain: float, margin: float) -> bool:
-    """True if the arm at rest at (q [rad], q̇ [rad/s]) after a brake of gain κ clears every swaying
-    obstacle of ``sim``'s world over its whole sweep by more than ``margin`` [m] plus the stop's creep
-    (:class:`qpctl.safety.sweep.RestSweeps`, :func:`qpctl.safety.sweep.creep`; kept on ``sim``)."""
-    from qpctl.safety.rollout import lever_arms
-    from qpctl.safety.sweep import RestSweeps, creep
-
-    kept = getattr(sim, "_rest_sweeps", None)
+    """True if the arm at rest at (q [rad], q̇ [rad/s]) after a brake of gain κ clears the static
+    obstacles of ``sim``'s world and every swaying one over its whole sweep by more than ``margin`` [m]
+    plus the stop's creep (:class:`qpctl.safety.sweep.RestClearance`, :func:`qpctl.safety.sweep.creep`;
+    kept on ``sim``)."""
+    kept = getattr(sim, "_rest_clearance", None)
     if kept is None:
-        kept = sim._rest_sweeps = (RestSweeps(sim.robot, sim.obstacles), lever_arms(sim.robot))  # type: ignore[attr-defined]
-    sweeps, rho = kept
-    return not sweeps or sweeps.clear(q, margin + creep(rho, v, gain))
+        kept = sim._rest_clearance = (RestClearance(sim.robot, sim.obstacles), lever_arms(sim.robot))  # type: ignore[attr-defined]
+    rest, rho = kept
+    return not rest or rest.clear(q, margin + creep(rho, v, gain))
 
 
 def certify(controller: Any, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, dt: float, *,

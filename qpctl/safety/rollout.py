@@ -8,8 +8,8 @@ Per step at (q, q̇, t) after τ_prev, exactly as :func:`qpctl.safety.oracle.rol
     clearance(q, t);  τ = clip(clip(RNEA(q, q̇, −κq̇), ±τ_max), τ_prev ± τ̇_max Δt)
     (q, q̇) ← RK4 of q̇ = v, v̇ = ABA(q, v, τ) over Δt          (simulation.simulator.rk4_step's stages)
 
-A rollout that comes to rest is verified only if the arm at rest also clears every swaying obstacle's
-whole sweep (:mod:`qpctl.safety.sweep`), as the oracle's is.
+A rollout that comes to rest is verified only if the arm at rest also clears the static obstacles and
+every swaying obstacle's whole sweep by its creep (:mod:`qpctl.safety.sweep`), as the oracle's is.
 
 The arithmetic is rk4_step's operations in the same order, so the states equal the simulator's (the
 tests hold them to 1e-12 against the oracle); a robot with continuous or planar joints integrates on
@@ -45,7 +45,7 @@ import pinocchio as pin
 import qpctl.native
 from qpctl.kernels import rollout as K
 from qpctl.safety.oracle import REST_SPEED, REST_TIME, Certificate
-from qpctl.safety.sweep import RestSweeps, creep
+from qpctl.safety.sweep import RestClearance, creep, lever_arms
 from qpctl.tick import WorldClearance
 
 # qpb_advance's io block (brake_rollout.cpp's IO_* order) and answers
@@ -85,14 +85,14 @@ class BrakeRollout:
         self.obstacle_speed = max((float(np.linalg.norm(o.velocity) + 2 * np.pi * o.frequency * np.linalg.norm(o.amplitude))
                                    for o in world.ws.obstacles), default=0.0)
         self.native: NativeBrake | None = NativeBrake.create(self) if not self.lie else None
-        self.sweeps = RestSweeps(robot, world.ws.obstacles)  # a rest must clear the swaying obstacles' sweeps
+        self.rest = RestClearance(robot, world.ws.obstacles)  # what a rest must clear, by its creep
 
     def rests_clear(self, q: np.ndarray, v: np.ndarray, gain: float, worst: float, margin: float) -> bool:
         """A rollout of gain κ at rest at (q [rad], q̇ [rad/s]) with least clearance ``worst`` [m] is
-        verified: the clearance kept above ``margin`` [m] all along, and the arm at rest clear of every
-        swaying obstacle's sweep (:class:`qpctl.safety.sweep.RestSweeps`) by the margin plus its creep,
-        :func:`qpctl.safety.sweep.creep`."""
-        return worst > margin and (not self.sweeps or self.sweeps.clear(q, margin + creep(self.rho, v, gain)))
+        verified: the clearance kept above ``margin`` [m] all along, and the arm at rest clear of the static
+        obstacles and of every swaying obstacle's sweep (:class:`qpctl.safety.sweep.RestClearance`) by the
+        margin plus its creep, :func:`qpctl.safety.sweep.creep`."""
+        return worst > margin and (not self.rest or self.rest.clear(q, margin + creep(self.rho, v, gain)))
 
     def torque(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, gain: float) -> np.ndarray:
         """The brake's torque [N·m] at (q, q̇) after τ_prev into ``self.tau`` (oracle.brake_torque)."""
@@ -231,26 +231,3 @@ class NativeBrake:
         if answer == AT_REST_END:
             return Certificate(self.owner.rests_clear(qq, vv, gain, worst, margin), gain, worst, k * dt, k)
         return Certificate(False, gain, worst, np.inf, steps)
-
-
-REVOLUTE = ("JointModelRX", "JointModelRY", "JointModelRZ", "JointModelRevoluteUnaligned")
-
-
-def lever_arms(robot: Any) -> np.ndarray | None:
-    """ρᵢ [m] per degree of freedom: an upper bound, for every configuration, on the distance between
-    joint i's origin and any capsule point of the links it moves (the joint placements' translation
-    lengths from joint i to the capsule's joint, plus the farther capsule end); None unless every
-    joint is a one-degree-of-freedom revolute one (then ρᵢ|θ̇ᵢ| bounds joint i's share of a point's speed)."""
-    model = robot.model
-    if model.nq != model.nv or any(model.joints[j].shortname() not in REVOLUTE for j in range(1, model.njoints)):
-        return None
-    rho = np.zeros(model.nv)
-    for c in robot.capsules:
-        reach = max(float(np.linalg.norm(c.p0)), float(np.linalg.norm(c.p1)))
-        j = c.joint_id
-        while j > 0:  # joint j's origin is within `reach` of the capsule; walk up the chain
-            idx = model.joints[j].idx_v
-            rho[idx] = max(rho[idx], reach)
-            reach += float(np.linalg.norm(model.jointPlacements[j].translation))
-            j = model.parents[j]
-    return rho

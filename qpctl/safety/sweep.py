@@ -1,4 +1,5 @@
-"""Where a stopped arm may rest among swaying obstacles (issue 22, item 4).
+"""Where a stopped arm may rest: clear of the static obstacles by its creep, and of the swaying
+obstacles' whole sweeps (issue 22, items 2 and 4).
 
 An obstacle that sways without drifting — velocity 0, amplitude A ≠ 0 at frequency f > 0, so that
 its centre is p₀ + A sin(2πft) — passes every point p₀ + sA, s ∈ [−1, 1], of its segment once a
@@ -19,10 +20,12 @@ too (a refusal is always safe). So "clear" is proved, not sampled: the least cle
 exceeds the margin.
 
 **Creep.** At the oracle's rest the joints still move (|q̇ᵢ| ≤ 0.01 rad/s) and the brake goes on; the
-rest is tested with the margin raised by :func:`creep`, Σᵢρᵢ|q̇ᵢ|/κ — what is left of the stop if it
-decays at κ (exactly so for the continuous, unsaturated brake; an assumption for the simulator's
-steps, docs/reliability.md) — so that the arm still clears the sweep where the stop ends, and so that a
+rest is tested against the static obstacles and the sweeps with the margin raised by :func:`creep`,
+Σᵢρᵢ|q̇ᵢ|/κ — what is left of the stop if it decays at κ (exactly so for the continuous, unsaturated
+brake; an assumption for the simulator's steps, docs/reliability.md) — so that the arm still clears
+them where the stop ends (the rollout watches the clearance only until the rest), and so that a
 rollout started later on the same stop (the oracle's, from a visited state) comes to the same verdict.
+Drifting obstacles are not in the test: where they go after the rest is not the stop's doing.
 """
 
 from __future__ import annotations
@@ -36,10 +39,32 @@ import numpy as np
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.tick import WorldClearance
 
+REVOLUTE = ("JointModelRX", "JointModelRY", "JointModelRZ", "JointModelRevoluteUnaligned")
+
+
+def lever_arms(robot: Any) -> np.ndarray | None:
+    """ρᵢ [m] per degree of freedom: an upper bound, for every configuration, on the distance between
+    joint i's origin and any capsule point of the links it moves (the joint placements' translation
+    lengths from joint i to the capsule's joint, plus the farther capsule end); None unless every
+    joint is a one-degree-of-freedom revolute one (then ρᵢ|θ̇ᵢ| bounds joint i's share of a point's speed)."""
+    model = robot.model
+    if model.nq != model.nv or any(model.joints[j].shortname() not in REVOLUTE for j in range(1, model.njoints)):
+        return None
+    rho = np.zeros(model.nv)
+    for c in robot.capsules:
+        reach = max(float(np.linalg.norm(c.p0)), float(np.linalg.norm(c.p1)))
+        j = c.joint_id
+        while j > 0:  # joint j's origin is within `reach` of the capsule; walk up the chain
+            idx = model.joints[j].idx_v
+            rho[idx] = max(rho[idx], reach)
+            reach += float(np.linalg.norm(model.jointPlacements[j].translation))
+            j = model.parents[j]
+    return rho
+
 
 def creep(rho: np.ndarray | None, v: np.ndarray, gain: float) -> float:
     """How far [m] a link point still moves after the oracle's rest at joint speeds q̇ [rad/s] if the
-    brake of gain κ [1/s] goes on decaying as q̇e^{−κt}: Σᵢ ρᵢ|q̇ᵢ|/κ (ρ: :func:`qpctl.safety.rollout.lever_arms`;
+    brake of gain κ [1/s] goes on decaying as q̇e^{−κt}: Σᵢ ρᵢ|q̇ᵢ|/κ (ρ: :func:`lever_arms`;
     0 where it is None). Under that decay the bound at a later state is the bound now less the way
     travelled, so a rest cleared by its creep stays cleared from every later state of the same stop."""
     if rho is None:
@@ -56,24 +81,32 @@ def swaying(o: Obstacle) -> bool:
     return bool(np.any(o.amplitude) and o.frequency > 0 and not np.any(o.velocity))
 
 
-class RestSweeps:
-    """The swaying obstacles of a world, each with its own exact clearance (module docstring)."""
+class RestClearance:
+    """What a rest must clear (module docstring): the static obstacles, and the swaying obstacles' whole
+    sweeps, each with its own exact clearance."""
 
     def __init__(self, robot: Any, obstacles: Sequence[Obstacle]) -> None:
+        static = [o for o in obstacles if not o.moving]
+        self.static = WorldClearance(robot, static) if static else None
         self.sweeps = [(WorldClearance(robot, [o]), float(np.linalg.norm(o.amplitude)), 2 * math.pi * o.frequency)
                        for o in obstacles if swaying(o)]
         self.evaluations = 0  # clearance evaluations made (for the cost's accounting)
 
     def __bool__(self) -> bool:
-        return bool(self.sweeps)
+        return self.static is not None or bool(self.sweeps)
 
     def _at(self, world: WorldClearance, omega: float, q: np.ndarray, s: float) -> float:
         self.evaluations += 1
         return float(world(q, math.asin(s) / omega))
 
     def clear(self, q: np.ndarray, margin: float) -> bool:
-        """True if the arm at rest at q [rad] clears every swaying obstacle's whole sweep by more than
-        ``margin`` [m] (proved by the Lipschitz bound; module docstring)."""
+        """True if the arm at rest at q [rad] clears the static obstacles and every swaying obstacle's
+        whole sweep by more than ``margin`` [m] (the sweeps proved by the Lipschitz bound; module
+        docstring)."""
+        if self.static is not None:
+            self.evaluations += 1
+            if self.static(q, 0.0) <= margin:
+                return False
         for world, amp, omega in self.sweeps:
             lo, hi = self._at(world, omega, q, -1.0), self._at(world, omega, q, 1.0)
             if min(lo, hi) <= margin:
