@@ -7,10 +7,10 @@ period, for ever. A brake that brings the arm to rest within reach of that sweep
 obstacle, only postponed it: the oracle's rollout ends 50 ms after rest, and the obstacle comes later
 (the five contacts at rest of the soak's 60 scenes before this check). So a rollout that ends at rest
 is verified only if the arm at rest clears every swaying obstacle at every s by more than the margin:
-:class:`RestSweeps` decides it. Obstacles that drift (velocity ≠ 0) go on for ever and are followed over
+:class:`RestClearance` decides it. Obstacles that drift (velocity ≠ 0) go on for ever and are followed over
 the rollout only, as before: an arm at rest in a drifting obstacle's path is still struck later.
 
-**The decision** (:meth:`RestSweeps.clear`): g(s), the world clearance between the arm at rest at q
+**The decision** (:meth:`RestClearance.clear`): g(s), the world clearance between the arm at rest at q
 and the obstacle at p₀ + sA (:class:`qpctl.tick.WorldClearance` at the time arcsin(s)/(2πf)), is
 |A|-Lipschitz in s (the clearance is 1-Lipschitz in the obstacle's position). On an interval [a, b]
 with g(a), g(b) known, g ≥ (g(a) + g(b))/2 − |A|(b − a)/2 (the two cones' meeting point); intervals
