@@ -11,9 +11,9 @@ step Δt of the run). :func:`rollout` runs one from (q, q̇, τ_prev) at time t 
 (the simulator's exact world clearance, moving obstacles at their time) and whether the joint limits
 held; a rest counts only where the arm clears the static obstacles and every swaying obstacle's whole
 sweep by the stop's creep (:func:`rest_clear`, :mod:`qpctl.safety.sweep`: the stop goes on after the
-rest, and a swaying obstacle comes back to a stopped arm for ever). :func:`certify` tries the family :data:`BRAKE_GAINS`. A certificate proves the state viable
-under the simulated model (the brake is exhibited); a state no brake of the family certifies is not
-proved unviable.
+rest, and a swaying obstacle comes back to a stopped arm for ever). :func:`certify` tries the family
+:data:`BRAKE_GAINS`. A certificate proves the state viable under the simulated model (the brake is
+exhibited); a state no brake of the family certifies is not proved unviable.
 """
 
 from __future__ import annotations
