@@ -5,7 +5,7 @@ An obstacle that sways without drifting — velocity 0, amplitude A ≠ 0 at fre
 its centre is p₀ + A sin(2πft) — passes every point p₀ + sA, s ∈ [−1, 1], of its segment once a
 period, for ever. A brake that brings the arm to rest within reach of that sweep has not avoided the
 obstacle, only postponed it: the oracle's rollout ends 50 ms after rest, and the obstacle comes later
-(the five contacts at rest of the soak's 60 scenes before this check). So a rollout that ends at rest
+(four of the five contacts at rest of the soak's 60 scenes before this check). So a rollout that ends at rest
 is verified only if the arm at rest clears every swaying obstacle at every s by more than the margin:
 :class:`RestClearance` decides it. Obstacles that drift (velocity ≠ 0) go on for ever and are followed over
 the rollout only, as before: an arm at rest in a drifting obstacle's path is still struck later.
