@@ -149,3 +149,20 @@ def test_a_rest_within_its_creep_of_a_static_obstacle_is_not_verified():
         assert cert.viable == viable and np.isfinite(cert.t_rest) and cert.min_clearance > 0
         lean = BrakeRollout(ctrl.robot, sim.world, DT)
         assert lean.run(Q, v, gravity, 0.0, 25.0, exact=False).viable == viable
+
+
+def test_a_rest_whose_creep_crosses_a_joint_limit_is_not_verified():
+    """Joint 1 at 0.009 rad/s toward its upper limit, the κ = 25 brake: it travels 0.26 mrad before the
+    oracle's rest (50 ms) and 0.36 mrad in all (0.009/25, the law's). With the limit 0.3 mrad ahead the
+    rollout keeps it but the stop's end does not: not verified, by the oracle nor by the guard's
+    rollout; 0.5 mrad ahead it is."""
+    v = np.array([0.009, 0.0, 0.0])
+    for ahead, viable in ((3e-4, False), (5e-4, True)):
+        ctrl = controller([Obstacle("sphere", [3.0, 3.0], radius=0.1)])
+        ctrl.robot.q_max[0] = Q[0] + ahead
+        gravity = pin.computeGeneralizedGravity(ctrl.robot.model, ctrl.robot.model.createData(), Q)
+        sim = Simulator(ctrl, dt=DT, duration=DT)
+        cert = rollout(sim, Q, v, gravity, 0.0, 25.0, margin=0.0, stop_below=0.0)
+        assert cert.viable == viable and np.isfinite(cert.t_rest)
+        lean = BrakeRollout(ctrl.robot, sim.world, DT)
+        assert lean.run(Q, v, gravity, 0.0, 25.0, exact=False).viable == viable

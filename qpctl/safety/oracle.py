@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from qpctl.safety.sweep import RestClearance, creep, lever_arms
+from qpctl.safety.sweep import RestClearance, creep, lever_arms, stops_within
 from qpctl.simulation.simulator import Simulator
 
 #: The family of brake gains tried, hardest last [1/s].
@@ -95,11 +95,13 @@ def rest_clear(sim: Simulator, q: np.ndarray, v: np.ndarray, gain: float, margin
     """True if the arm at rest at (q [rad], q̇ [rad/s]) after a brake of gain κ clears the static
     obstacles of ``sim``'s world and every swaying one over its whole sweep by more than ``margin`` [m]
     plus the stop's creep (:class:`qpctl.safety.sweep.RestClearance`, :func:`qpctl.safety.sweep.creep`;
-    kept on ``sim``)."""
+    kept on ``sim``), with each joint's stop within its limits (:func:`qpctl.safety.sweep.stops_within`)."""
     kept = getattr(sim, "_rest_clearance", None)
     if kept is None:
         kept = sim._rest_clearance = (RestClearance(sim.robot, sim.obstacles), lever_arms(sim.robot))  # type: ignore[attr-defined]
     rest, rho = kept
+    if rho is not None and not stops_within(q, v, gain, sim.robot.q_min, sim.robot.q_max):
+        return False
     return not rest or rest.clear(q, margin + creep(rho, v, gain))
 
 

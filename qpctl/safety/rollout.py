@@ -45,7 +45,7 @@ import pinocchio as pin
 import qpctl.native
 from qpctl.kernels import rollout as K
 from qpctl.safety.oracle import REST_SPEED, REST_TIME, Certificate
-from qpctl.safety.sweep import RestClearance, creep, lever_arms
+from qpctl.safety.sweep import RestClearance, creep, lever_arms, stops_within
 from qpctl.tick import WorldClearance
 
 # qpb_advance's io block (brake_rollout.cpp's IO_* order) and answers
@@ -91,8 +91,11 @@ class BrakeRollout:
         """A rollout of gain κ at rest at (q [rad], q̇ [rad/s]) with least clearance ``worst`` [m] is
         verified: the clearance kept above ``margin`` [m] all along, and the arm at rest clear of the static
         obstacles and of every swaying obstacle's sweep (:class:`qpctl.safety.sweep.RestClearance`) by the
-        margin plus its creep, :func:`qpctl.safety.sweep.creep`."""
-        return worst > margin and (not self.rest or self.rest.clear(q, margin + creep(self.rho, v, gain)))
+        margin plus its creep, :func:`qpctl.safety.sweep.creep`, and — on a robot of revolute joints — its
+        joints' stops within their limits (:func:`qpctl.safety.sweep.stops_within`)."""
+        if worst <= margin or (self.rho is not None and not stops_within(q, v, gain, self.q_min, self.q_max)):
+            return False
+        return not self.rest or self.rest.clear(q, margin + creep(self.rho, v, gain))
 
     def torque(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, gain: float) -> np.ndarray:
         """The brake's torque [N·m] at (q, q̇) after τ_prev into ``self.tau`` (oracle.brake_torque)."""

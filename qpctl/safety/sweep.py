@@ -25,7 +25,9 @@ rest is tested against the static obstacles and the sweeps with the margin raise
 brake; an assumption for the simulator's steps, docs/reliability.md) — so that the arm still clears
 them where the stop ends (the rollout watches the clearance only until the rest), and so that a
 rollout started later on the same stop (the oracle's, from a visited state) comes to the same verdict.
-Drifting obstacles are not in the test: where they go after the rest is not the stop's doing.
+Drifting obstacles are not in the test: where they go after the rest is not the stop's doing. The
+joint limits get the same test in joint space (:func:`stops_within`: each joint's end q + q̇/κ within
+its limits; soak-panda-600 of the fresh set crept past one after its rest).
 """
 
 from __future__ import annotations
@@ -70,6 +72,13 @@ def creep(rho: np.ndarray | None, v: np.ndarray, gain: float) -> float:
     if rho is None:
         return 0.0
     return float(np.dot(rho, np.abs(v))) / gain
+
+
+def stops_within(q: np.ndarray, v: np.ndarray, gain: float, q_min: np.ndarray, q_max: np.ndarray) -> bool:
+    """True if the stop's end, q + q̇/κ (where each joint comes to rest if the brake of gain κ [1/s] goes
+    on decaying as q̇e^{−κt}), lies within the joint limits [rad]: the joint-space form of :func:`creep`."""
+    end = q + v / gain
+    return bool(np.all(end >= q_min) and np.all(end <= q_max))
 
 
 #: The narrowest interval of the sweep [m of the obstacle's travel] the decision halves before refusing.
