@@ -737,8 +737,17 @@ class WorldClearance:
     def __call__(self, q: np.ndarray, t: float) -> float:
         if not self.any and not len(self.ws.sc_pairs):
             return math.inf
+        self.pose(q)
+        return self.at(t)
+
+    def pose(self, q: np.ndarray) -> None:
+        """Place the links at q [rad] (Pinocchio's forward kinematics) for :meth:`at`."""
+        pin.forwardKinematics(self.ws.model, self.ws.data, np.asarray(q, float))
+
+    def at(self, t: float) -> float:
+        """The clearance [m] of the links as last posed (:meth:`pose`) with the obstacles at t [s]: an arm
+        held still against moving obstacles needs its kinematics once."""
         ws = self.ws
-        pin.forwardKinematics(ws.model, ws.data, np.asarray(q, float))
         best = float(K.min_distance(ws.work, float(t)))
         if len(ws.sc_pairs):
             self.self_clearance = float(K.min_self_distance(ws.work))

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
-from qpctl.safety.sweep import RestClearance, creep, lever_arms, stops_within
+from qpctl.safety.sweep import RestClearance
 from qpctl.simulation.simulator import Simulator
 
 #: The family of brake gains tried, hardest last [1/s].
@@ -92,17 +92,14 @@ def rollout(sim: Simulator, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, 
 
 
 def rest_clear(sim: Simulator, q: np.ndarray, v: np.ndarray, gain: float, margin: float) -> bool:
-    """True if the arm at rest at (q [rad], q̇ [rad/s]) after a brake of gain κ clears the static
-    obstacles of ``sim``'s world and every swaying one over its whole sweep by more than ``margin`` [m]
-    plus the stop's creep (:class:`qpctl.safety.sweep.RestClearance`, :func:`qpctl.safety.sweep.creep`;
-    kept on ``sim``), with each joint's stop within its limits (:func:`qpctl.safety.sweep.stops_within`)."""
-    kept = getattr(sim, "_rest_clearance", None)
-    if kept is None:
-        kept = sim._rest_clearance = (RestClearance(sim.robot, sim.obstacles), lever_arms(sim.robot))  # type: ignore[attr-defined]
-    rest, rho = kept
-    if rho is not None and not stops_within(q, v, gain, sim.robot.q_min, sim.robot.q_max):
-        return False
-    return not rest or rest.clear(q, margin + creep(rho, v, gain))
+    """The rest test (:meth:`qpctl.safety.sweep.RestClearance.verifies`) of a brake of gain κ at rest at
+    (q [rad], q̇ [rad/s]) in ``sim``'s world, its :class:`~qpctl.safety.sweep.RestClearance` kept on
+    ``sim``: each joint's stop within its limits, the static obstacles and every swaying obstacle's whole
+    sweep cleared by ``margin`` [m] plus the stop's creep."""
+    rest = getattr(sim, "_rest_clearance", None)
+    if rest is None:
+        rest = sim._rest_clearance = RestClearance(sim.robot, sim.obstacles)  # type: ignore[attr-defined]
+    return rest.verifies(q, v, gain, margin)
 
 
 def certify(controller: Any, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, dt: float, *,

@@ -8,8 +8,9 @@ Per step at (q, q̇, t) after τ_prev, exactly as :func:`qpctl.safety.oracle.rol
     clearance(q, t);  τ = clip(clip(RNEA(q, q̇, −κq̇), ±τ_max), τ_prev ± τ̇_max Δt)
     (q, q̇) ← RK4 of q̇ = v, v̇ = ABA(q, v, τ) over Δt          (simulation.simulator.rk4_step's stages)
 
-A rollout that comes to rest is verified only if the arm at rest also clears the static obstacles and
-every swaying obstacle's whole sweep by its creep (:mod:`qpctl.safety.sweep`), as the oracle's is.
+A rollout that comes to rest is verified only if the rest passes the rest test as the oracle's does
+(:class:`qpctl.safety.sweep.RestClearance`): each joint's stop within its limits, the static obstacles
+and every swaying obstacle's whole sweep cleared by the stop's creep.
 
 The arithmetic is rk4_step's operations in the same order, so the states equal the simulator's (the
 tests hold them to 1e-12 against the oracle); a robot with continuous or planar joints integrates on
@@ -45,7 +46,7 @@ import pinocchio as pin
 import qpctl.native
 from qpctl.kernels import rollout as K
 from qpctl.safety.oracle import REST_SPEED, REST_TIME, Certificate
-from qpctl.safety.sweep import RestClearance, creep, lever_arms, stops_within
+from qpctl.safety.sweep import RestClearance, lever_arms
 from qpctl.tick import WorldClearance
 
 # qpb_advance's io block (brake_rollout.cpp's IO_* order) and answers
@@ -85,17 +86,7 @@ class BrakeRollout:
         self.obstacle_speed = max((float(np.linalg.norm(o.velocity) + 2 * np.pi * o.frequency * np.linalg.norm(o.amplitude))
                                    for o in world.ws.obstacles), default=0.0)
         self.native: NativeBrake | None = NativeBrake.create(self) if not self.lie else None
-        self.rest = RestClearance(robot, world.ws.obstacles)  # what a rest must clear, by its creep
-
-    def rests_clear(self, q: np.ndarray, v: np.ndarray, gain: float, worst: float, margin: float) -> bool:
-        """A rollout of gain κ at rest at (q [rad], q̇ [rad/s]) with least clearance ``worst`` [m] is
-        verified: the clearance kept above ``margin`` [m] all along, and the arm at rest clear of the static
-        obstacles and of every swaying obstacle's sweep (:class:`qpctl.safety.sweep.RestClearance`) by the
-        margin plus its creep, :func:`qpctl.safety.sweep.creep`, and — on a robot of revolute joints — its
-        joints' stops within their limits (:func:`qpctl.safety.sweep.stops_within`)."""
-        if worst <= margin or (self.rho is not None and not stops_within(q, v, gain, self.q_min, self.q_max)):
-            return False
-        return not self.rest or self.rest.clear(q, margin + creep(self.rho, v, gain))
+        self.rest = RestClearance(robot, world.ws.obstacles)  # the rest test (qpctl.safety.sweep)
 
     def torque(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, gain: float) -> np.ndarray:
         """The brake's torque [N·m] at (q, q̇) after τ_prev into ``self.tau`` (oracle.brake_torque)."""
@@ -173,7 +164,7 @@ class BrakeRollout:
                 return Certificate(False, gain, worst, np.inf, k)
             still = still + dt if code == K.AT_REST else 0.0
             if still >= REST_TIME:
-                return Certificate(self.rests_clear(qq, vv, gain, worst, margin), gain, worst, k * dt, k)
+                return Certificate(worst > margin and self.rest.verifies(qq, vv, gain, margin), gain, worst, k * dt, k)
             self.torque(qq, vv, prev, gain)
             prev[:] = self.tau
             self.step(qq, vv)
@@ -232,5 +223,6 @@ class NativeBrake:
         if answer == FAILED:
             return Certificate(False, gain, worst, np.inf, k)
         if answer == AT_REST_END:
-            return Certificate(self.owner.rests_clear(qq, vv, gain, worst, margin), gain, worst, k * dt, k)
+            return Certificate(worst > margin and self.owner.rest.verifies(qq, vv, gain, margin), gain, worst, k * dt,
+                               k)
         return Certificate(False, gain, worst, np.inf, steps)

@@ -91,33 +91,41 @@ def swaying(o: Obstacle) -> bool:
 
 
 class RestClearance:
-    """What a rest must clear (module docstring): the static obstacles, and the swaying obstacles' whole
-    sweeps, each with its own exact clearance."""
+    """The rest test of a robot in a world (module docstring): each joint's stop within its limits, and
+    the static obstacles and the swaying obstacles' whole sweeps cleared by the stop's creep."""
 
     def __init__(self, robot: Any, obstacles: Sequence[Obstacle]) -> None:
+        self.rho = lever_arms(robot)  # None: no creep bound (joints that are not revolute)
+        self.q_min, self.q_max = robot.q_min, robot.q_max
         static = [o for o in obstacles if not o.moving]
         self.static = WorldClearance(robot, static) if static else None
         self.sweeps = [(WorldClearance(robot, [o]), float(np.linalg.norm(o.amplitude)), 2 * math.pi * o.frequency)
                        for o in obstacles if swaying(o)]
-        self.evaluations = 0  # clearance evaluations made (for the cost's accounting)
 
     def __bool__(self) -> bool:
         return self.static is not None or bool(self.sweeps)
 
-    def _at(self, world: WorldClearance, omega: float, q: np.ndarray, s: float) -> float:
-        self.evaluations += 1
-        return float(world(q, math.asin(s) / omega))
+    def verifies(self, q: np.ndarray, v: np.ndarray, gain: float, margin: float) -> bool:
+        """True if a brake of gain κ [1/s] at rest at (q [rad], q̇ [rad/s]) may end there: on a robot of
+        revolute joints each joint's stop within its limits (:func:`stops_within`), and the arm clear of
+        the static obstacles and the sweeps by ``margin`` [m] plus its creep (:meth:`clear`)."""
+        if self.rho is not None and not stops_within(q, v, gain, self.q_min, self.q_max):
+            return False
+        return not self or self.clear(q, margin + creep(self.rho, v, gain))
 
     def clear(self, q: np.ndarray, margin: float) -> bool:
         """True if the arm at rest at q [rad] clears the static obstacles and every swaying obstacle's
         whole sweep by more than ``margin`` [m] (the sweeps proved by the Lipschitz bound; module
         docstring)."""
-        if self.static is not None:
-            self.evaluations += 1
-            if self.static(q, 0.0) <= margin:
-                return False
+        if self.static is not None and self.static(q, 0.0) <= margin:
+            return False
         for world, amp, omega in self.sweeps:
-            lo, hi = self._at(world, omega, q, -1.0), self._at(world, omega, q, 1.0)
+            world.pose(q)  # the arm is still: its kinematics once, the obstacle at each s
+
+            def at(s: float, world: WorldClearance = world, omega: float = omega) -> float:
+                return world.at(math.asin(s) / omega)
+
+            lo, hi = at(-1.0), at(1.0)
             if min(lo, hi) <= margin:
                 return False
             stack = [(-1.0, lo, 1.0, hi)]
@@ -128,7 +136,7 @@ class RestClearance:
                 if amp * (b - a) <= TOLERANCE:
                     return False
                 m = 0.5 * (a + b)
-                gm = self._at(world, omega, q, m)
+                gm = at(m)
                 if gm <= margin:
                     return False
                 stack += [(a, ga, m, gm), (m, gm, b, gb)]
