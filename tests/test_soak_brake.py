@@ -31,6 +31,7 @@ from qpctl import Scenario
 from qpctl.safety import certify
 from qpctl.safety.backup import GUARD_GAINS
 from qpctl.safety.oracle import REST_TIME
+from qpctl.safety.retreat import Retreat
 from qpctl.simulation import Simulator
 from qpctl.simulation.metrics import compute_metrics, contact_onsets
 
@@ -72,6 +73,7 @@ def guarded_run(raw: dict[str, Any], oracle_every: int = ORACLE_EVERY,
         "collisions_at_rest": m["collisions_at_rest"], "rms_tracking_error": m["rms_tracking_error"],
         "first_contact_t": float(tr.t[onsets[0]]) if onsets.size else None,
         "checked": m.get("backup_checked_ticks", 0), "backup_ticks": m.get("backup_ticks", 0),
+        "retreat_ticks": m.get("backup_retreat_ticks", 0),
         "unverified": m.get("backup_unverified_ticks", 0), "check_us": ctrl.stats["check_us"] if backup else [],
         "unverified_t": [float(t) for t, i in zip(tr.t, tr.infos, strict=False) if i.get("backup_unverified")],
         "dt": dt,
@@ -89,9 +91,16 @@ def guarded_run(raw: dict[str, Any], oracle_every: int = ORACLE_EVERY,
     if oracle_every:
         ks = range(oracle_every, len(tr.t), oracle_every)
         bad = [float(tr.t[k]) for k in ks if not certify(ctrl, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), dt,
-                                                          gains=ORACLE_GAINS).viable]
+                                                          gains=ORACLE_GAINS, retreats=shown(tr.infos[k - 1])).viable]
         row.update(oracle_sampled=len(ks), oracle_uncertified=bad)
     return row
+
+
+def shown(info: dict[str, Any]) -> list[tuple[Retreat, float]]:
+    """The retreat the guard had stored after a tick (``info["backup_retreat"]``), as the oracle's
+    proposal for the state that tick led to: the oracle's own rollout decides (an empty list: none)."""
+    r = info.get("backup_retreat")
+    return [(Retreat(tuple(r[0]), r[1], r[2]), r[3])] if r is not None else []
 
 
 def unexplained_uncertified(row: dict[str, Any]) -> list[float]:
@@ -147,6 +156,8 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "scenes_with_unverified_ticks": [r["name"] for r in rows if r["unverified"]],
         "ticks": ticks, "checked_share": sum(r["checked"] for r in rows) / max(ticks, 1),
         "backup_share": sum(r["backup_ticks"] for r in rows) / max(ticks, 1),
+        "retreat_ticks": sum(r.get("retreat_ticks", 0) for r in rows),
+        "scenes_with_retreats": [r["name"] for r in rows if r.get("retreat_ticks")],
         "check_us_median": float(np.median(us)) if us.size else None,
         "check_us_p99": float(np.percentile(us, 99)) if us.size else None,
         "out_of_steps_ticks": sum(r.get("out_of_steps", 0) for r in rows),

@@ -36,6 +36,8 @@ class ControllerConfig:
     default) — one not verified within them is refused and the stored brake continues;
     backup_tries_on_brake: the gains a check tries while the last tick applied the stored brake (2, the
     default: the stored one and the first other; inf: the whole family).
+    backup_retreats: where no brake verifies from the state itself (a start inside a swaying obstacle's
+    sweep), search a retreat to a rest clear of the sweeps (:mod:`qpctl.safety.retreat`; true, the default).
     """
 
     kind: str = "paper"
@@ -51,6 +53,7 @@ class ControllerConfig:
     backup_check_distance: float = setting(float("inf"), valid="distance_or_inf", unit="m")
     backup_check_steps: float = setting(float("inf"), valid="count_or_inf")
     backup_tries_on_brake: float = setting(2.0, valid="count_or_inf")
+    backup_retreats: bool = True
 
     def __post_init__(self) -> None:
         check_fields(self, "controller")

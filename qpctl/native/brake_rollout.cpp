@@ -36,11 +36,16 @@ using CMap = Eigen::Map<const Eigen::VectorXd>;
 // calls those instantiations (extern templates), not new ones compiled here.
 using CRef = Eigen::Ref<const Eigen::VectorXd>;
 
-// The brake's torque into b.tau (qpctl.safety.rollout.BrakeRollout.torque, kernels.rollout.clip_brake).
+// The brake's torque into b.tau (qpctl.safety.rollout.BrakeRollout.torque, kernels.rollout.clip_brake);
+// while a retreat steers (qpctl.safety.retreat), RNEA at its q̈* = ω²(q* − q) − 2ωq̇ (w2 = ω², w1 = 2ω).
 void brake_torque(Brake& b, const double* q, const double* v, const double* prev, double gain,
-                  const double* tau_max, const double* window) {
+                  const double* tau_max, const double* window, bool steering, const double* target, double w2,
+                  double w1) {
   const int n = b.model.nv;
-  for (int i = 0; i < n; ++i) b.qdd[i] = v[i] * -gain;
+  if (steering)
+    for (int i = 0; i < n; ++i) b.qdd[i] = (target[i] - q[i]) * w2 - w1 * v[i];
+  else
+    for (int i = 0; i < n; ++i) b.qdd[i] = v[i] * -gain;
   b.tau = pinocchio::rnea(b.model, b.data, CRef(CMap(q, b.model.nq)), CRef(CMap(v, n)), CRef(b.qdd));
   const bool rate = std::isfinite(prev[0]);
   for (int i = 0; i < n; ++i) {
@@ -99,7 +104,7 @@ extern "C" {
 // The io block of qpb_advance (doubles): the rollout's state and its parameters.
 enum {
   IO_K, IO_STEPS, IO_STILL, IO_LAST, IO_DRIFT, IO_WORST, IO_LEVEL, IO_STOP_BELOW, IO_GAIN, IO_DT,
-  IO_OBSTACLE_SPEED, IO_REST_SPEED, IO_REST_TIME, IO_EVALUATED, IO_LAZY, IO_SIZE
+  IO_OBSTACLE_SPEED, IO_REST_SPEED, IO_REST_TIME, IO_EVALUATED, IO_LAZY, IO_T0, IO_UNTIL, IO_W2, IO_W1, IO_SIZE
 };
 // qpb_advance's answers.
 enum { NEED_CLEARANCE = 0, AT_REST_END = 1, FAILED = 2, HORIZON = 3 };
@@ -144,9 +149,10 @@ void qpb_rnea(void* h, const double* q, const double* v, const double* a, double
 // place, until it needs the clearance at the current step (NEED_CLEARANCE: the caller evaluates it
 // at q, sets io[LAST], io[DRIFT] = 0, io[WORST] = min(io[WORST], clearance), io[EVALUATED] = 1, and
 // calls again), ends at rest (AT_REST_END), fails (FAILED: below stop_below, past a joint limit, or
-// not finite) or runs out of steps (HORIZON). io[K] is the step reached.
+// not finite) or runs out of steps (HORIZON). io[K] is the step reached. Step k is at the time
+// io[T0] + k·dt; before io[UNTIL] the retreat toward ``target`` steers (io[UNTIL] = −inf: the brake).
 int qpb_advance(void* h, double* q, double* v, double* prev, const double* tau_max, const double* window,
-                const double* q_min, const double* q_max, const double* rho, double* io) {
+                const double* q_min, const double* q_max, const double* rho, const double* target, double* io) {
   Brake& b = *static_cast<Brake*>(h);
   const int n = b.model.nv;
   const long steps = static_cast<long>(io[IO_STEPS]);
@@ -172,12 +178,13 @@ int qpb_advance(void* h, double* q, double* v, double* prev, const double* tau_m
       answer = FAILED;
       break;
     }
-    still = code == AT_REST ? still + dt : 0.0;
+    const bool steering = io[IO_T0] + static_cast<double>(k) * dt < io[IO_UNTIL];
+    still = code == AT_REST && !steering ? still + dt : 0.0;  // a retreat's rest is its brake's
     if (still >= io[IO_REST_TIME]) {
       answer = AT_REST_END;
       break;
     }
-    brake_torque(b, q, v, prev, gain, tau_max, window);
+    brake_torque(b, q, v, prev, gain, tau_max, window, steering, target, io[IO_W2], io[IO_W1]);
     for (int i = 0; i < n; ++i) prev[i] = b.tau[i];
     const double travel = rk4_step(b, q, v, dt, rho);
     if (lazy) drift += travel + move;

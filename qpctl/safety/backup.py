@@ -20,8 +20,13 @@ then, where the world clearance (exact, every pair: :class:`qpctl.tick.WorldClea
    gain): it was verified from this very state one tick ago, and the rollout is the simulator's own
    integration, so under the exact model following it stays verified;
 3. if no brake is stored (the start, or the first tick back within ``check_distance``), a brake is
-   rolled out from (q, q̇, τ_prev) itself; if one is verified its torque is applied and it is stored
-   (``info["backup"]``), else τ is applied unverified (``info["backup_unverified"]``).
+   rolled out from (q, q̇, τ_prev) itself; if none is verified — every stop from here ends where a
+   swaying obstacle's sweep comes back, the start of a scene inside one — a *retreat* is searched
+   (``retreats``, default on: :mod:`qpctl.safety.retreat`, a few targets whose rests clear the sweeps,
+   steered toward and braked at, each rolled out the same way); the first verified is stored and its
+   torque applied (``info["backup"]``: its gain; ``info["backup_retreat"]``: the retreat stored after
+   the tick, on every tick it stays stored), else τ is applied unverified (``info["backup_unverified"]``).
+   A stored retreat is what a proposal's successor is rolled out with first, as a stored gain is.
 
 Beyond ``check_distance`` τ is applied unchecked and the stored brake forgotten. **What is proved**
 (exact model: the built-in simulator's RK4 at the guard's Δt; obstacles static or moving as the scene
@@ -41,6 +46,7 @@ import numpy as np
 
 from qpctl.constraints.constraints import TorqueLimit
 from qpctl.safety.oracle import BRAKE_GAINS
+from qpctl.safety.retreat import Retreat, search
 from qpctl.safety.rollout import BrakeRollout
 from qpctl.tick import WorldClearance
 
@@ -69,7 +75,7 @@ class BackupGuard:
 
     def __init__(self, controller: Any, dt: float, *, check_distance: float = np.inf, margin: float = 0.0,
                  horizon: float = 3.0, gains: tuple[float, ...] = GUARD_GAINS, check_steps: float = np.inf,
-                 tries_on_brake: float = 2) -> None:
+                 tries_on_brake: float = 2, retreats: bool = True) -> None:
         self.controller = controller
         self.dt, self.check_distance, self.margin, self.horizon = float(dt), float(check_distance), float(margin), \
             float(horizon)
@@ -78,11 +84,12 @@ class BackupGuard:
         self.exact = False  # the lazy clearance (True: every step's clearance evaluated; the same verdicts)
         self.tries = np.inf  # gains tried from a proposal's successor (inf: the whole family)
         self.tries_on_brake = float(tries_on_brake)  # the same while the last tick applied the stored brake
+        self.retreats = bool(retreats)  # step 3 searches a retreat where no brake verifies
         self.world = WorldClearance(controller.robot, controller.obstacles)  # obstacles only: no self pairs
         self.brake = BrakeRollout(controller.robot, self.world, self.dt)
         self._limit = next((c for c in getattr(controller, "constraints", []) if isinstance(c, TorqueLimit)), None)
         self.stats: dict[str, Any] = {"checked": 0, "backup": 0, "unverified": 0, "out_of_steps": 0, "check_us": [],
-                                      "check_steps": []}
+                                      "check_steps": [], "retreats_found": 0}
         self._reset_backup()
 
     def __getattr__(self, name: str) -> Any:
@@ -90,6 +97,7 @@ class BackupGuard:
 
     def _reset_backup(self) -> None:
         self._gain: float | None = None
+        self._retreat: Retreat | None = None  # the stored backup is this retreat, braking at _gain
         self._on_brake = False  # the last tick applied the stored brake
         self._tau_prev = np.full(self.controller.robot.nv, np.nan)
 
@@ -105,27 +113,46 @@ class BackupGuard:
         return float(out)
 
     def _first_verified(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float,
-                        tries: float = np.inf, steps: float = np.inf) -> tuple[float | None, int, bool]:
-        """(The gain of the first brake (the stored one first) verified from (q, q̇) after τ_prev at t, or
-        None; the rollout steps spent; whether ``steps`` ran out), trying at most ``tries`` gains (inf:
-        all) in at most ``steps`` rollout steps over all of them (a rollout they cut short is not
-        verified)."""
-        order = ([self._gain] if self._gain is not None else []) + [g for g in self.gains if g != self._gain]
+                        tries: float = np.inf, steps: float = np.inf
+                        ) -> tuple[tuple[float, Retreat | None] | None, int, bool]:
+        """(The first backup (gain, retreat or None) verified from (q, q̇) after τ_prev at t — the stored
+        one first, then the family's brakes —, or None; the rollout steps spent; whether ``steps`` ran
+        out), trying at most ``tries`` (inf: all) in at most ``steps`` rollout steps over all of them (a
+        rollout they cut short is not verified)."""
+        stored = [(self._gain, self._retreat)] if self._gain is not None else []
+        order = stored + [(g, None) for g in self.gains if (g, None) not in stored]
         full = round(self.horizon / self.dt)
         left, spent = steps, 0
-        for g in order[:int(min(tries, len(order)))]:
+        for g, r in order[:int(min(tries, len(order)))]:
             n = full if left >= full else int(left)
             if n < 1:
                 return None, spent, True
             cert = self.brake.run(q, v, tau_prev, t, g, horizon=n * self.dt, margin=self.margin,
-                                  stop_below=self.margin, exact=self.exact)
+                                  stop_below=self.margin, exact=self.exact, retreat=r)
             spent += cert.steps
             if cert.viable:
-                return g, spent, False
+                return (g, r), spent, False
             if n < full and cert.steps >= n:  # the step limit ended this rollout, not the brake
                 return None, spent, True
             left -= max(cert.steps, 1)
         return None, spent, False
+
+    def _retreat_from(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray,
+                      t: float) -> tuple[tuple[float, Retreat] | None, int]:
+        """A retreat verified from (q, q̇) after τ_prev at t (step 3; :func:`qpctl.safety.retreat.search`,
+        braking at the first gain of the family once it stops steering), or None; the steps spent."""
+        spent, gain = 0, self.gains[0]
+
+        def run(r: Retreat) -> Any:
+            nonlocal spent
+            cert = self.brake.run(q, v, tau_prev, t, gain, horizon=self.horizon, margin=self.margin,
+                                  stop_below=self.margin, exact=self.exact, retreat=r)
+            spent += cert.steps
+            return cert
+
+        rest = self.brake.rest
+        found = search(run, self.controller.robot, q, t, self.dt, rest.rho, lambda x: rest.clear(x, self.margin))
+        return ((gain, found[0]) if found is not None else None), spent
 
     def check(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float, info: dict[str, Any]) -> np.ndarray:
         """The check of one tick (module docstring, steps 1–3): the torque to apply [N·m] given the
@@ -134,30 +161,46 @@ class BackupGuard:
         the rollout steps the check spent."""
         q1, v1 = self.brake.successor(q, v, tau)
         tries = min(self.tries, self.tries_on_brake) if self._on_brake else self.tries
-        gain, spent, cut = self._first_verified(q1, v1, tau, t + self.dt, tries, self.check_steps)
+        found, spent, cut = self._first_verified(q1, v1, tau, t + self.dt, tries, self.check_steps)
         self._on_brake = False
         if cut:
             info["backup_out_of_steps"] = True
             self.stats["out_of_steps"] += 1
-        if gain is not None:
+        if found is not None:
             self.stats["check_steps"].append(spent)
-            self._gain = gain
+            self._gain, self._retreat = found
+            self._note_retreat(info)
             return tau
         if self._gain is None:  # nothing stored: is the state itself verified? (step 3, no step limit)
-            self._gain, more, _ = self._first_verified(q, v, self._tau_prev, t)
+            found, more, _ = self._first_verified(q, v, self._tau_prev, t)
             spent += more
+            if found is None and self.retreats:
+                found, more = self._retreat_from(q, v, self._tau_prev, t)
+                spent += more
+                self.stats["retreats_found"] += found is not None
+            if found is not None:
+                self._gain, self._retreat = found
         self.stats["check_steps"].append(spent)
         if self._gain is None:
             self.stats["unverified"] += 1
             info["backup_unverified"] = True
             return tau
-        tau = self.brake.torque(q, v, self._tau_prev, self._gain).copy()  # the stored brake continues
+        # the stored backup continues
+        tau = self.brake.torque(q, v, self._tau_prev, self._gain, self._retreat, t).copy()
         info["backup"] = self._gain
+        self._note_retreat(info)
         self._on_brake = True
         self.stats["backup"] += 1
         if self._limit is not None:  # the rate window of the next tick is about the torque applied
             self._limit.remember(tau, t)
         return tau
+
+    def _note_retreat(self, info: dict[str, Any]) -> None:
+        """``info["backup_retreat"]`` = (target [rad], ω [rad/s], t_s [s], gain [1/s]) while the stored
+        backup is a retreat (what the state the tick leads to lies on: the oracle may be shown it)."""
+        if self._retreat is not None:
+            r = self._retreat
+            info["backup_retreat"] = (list(r.target), r.omega, r.until, self._gain)
 
     def step(self, q: np.ndarray, v: np.ndarray, t: float) -> Any:
         out = self.controller.step(q, v, t)
@@ -171,7 +214,7 @@ class BackupGuard:
         if near:
             tau = self.check(q, v, tau, t, info)
         else:
-            self._gain, self._on_brake = None, False
+            self._gain, self._retreat, self._on_brake = None, None, False
         us = (time.perf_counter() - t0) * 1e6
         if near:
             self.stats["check_us"].append(us)

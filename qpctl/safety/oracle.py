@@ -18,12 +18,14 @@ exhibited); a state no brake of the family certifies is not proved unviable.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import pinocchio as pin
 
+from qpctl.safety.retreat import Retreat
 from qpctl.safety.sweep import RestClearance
 from qpctl.simulation.simulator import Simulator
 
@@ -46,10 +48,12 @@ class Certificate:
 
 
 def brake_torque(robot: Any, data: pin.Data, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, gain: float,
-                 dt: float) -> np.ndarray:
+                 dt: float, retreat: Retreat | None = None, t: float = 0.0) -> np.ndarray:
     """The brake's torque [N·m] at (q, q̇) after τ_prev (module docstring): N − κMq̇ is Pinocchio's
-    RNEA at q̈ = −κq̇, then the torque and rate limits."""
-    tau = pin.rnea(robot.model, data, q, v, -gain * v)
+    RNEA at q̈ = −κq̇, then the torque and rate limits. With a ``retreat`` steering at t [s]
+    (:mod:`qpctl.safety.retreat`), RNEA at its q̈* = ω²(q* − q) − 2ωq̇ instead."""
+    qdd = retreat.accel(q, v, np.empty_like(v)) if retreat is not None and retreat.steering(t) else -gain * v
+    tau = pin.rnea(robot.model, data, q, v, qdd)
     tau = np.minimum(np.maximum(tau, -robot.tau_max), robot.tau_max)
     if np.isfinite(tau_prev[0]):
         w = robot.tau_rate_max * dt
@@ -58,10 +62,12 @@ def brake_torque(robot: Any, data: pin.Data, q: np.ndarray, v: np.ndarray, tau_p
 
 
 def rollout(sim: Simulator, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, *,
-            horizon: float = 3.0, margin: float = 0.0, stop_below: float = -np.inf) -> Certificate:
+            horizon: float = 3.0, margin: float = 0.0, stop_below: float = -np.inf,
+            retreat: Retreat | None = None) -> Certificate:
     """The brake of gain κ from (q [rad], q̇ [rad/s], τ_prev [N·m]) at t [s] in ``sim`` (its robot, dt,
     obstacles); it stops early once the clearance is below ``stop_below`` [m]. Viable: at rest with the
-    clearance above ``margin`` [m] all along and every joint within its limits."""
+    clearance above ``margin`` [m] all along and every joint within its limits. With a ``retreat``, the
+    retreat that brakes at gain κ once it stops steering (:mod:`qpctl.safety.retreat`)."""
     robot, dt = sim.robot, sim.dt
     data = robot.model.createData()
     sim.reset(q, v)
@@ -79,11 +85,12 @@ def rollout(sim: Simulator, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, 
         if np.any(qq < robot.q_min) or np.any(qq > robot.q_max):
             limits_ok = False
             return Certificate(False, gain, worst, np.inf, k)
-        still = still + dt if np.all(np.abs(vv) <= REST_SPEED) else 0.0
+        steering = retreat is not None and retreat.steering(tk)  # a retreat's rest is its brake's
+        still = still + dt if np.all(np.abs(vv) <= REST_SPEED) and not steering else 0.0
         if still >= REST_TIME:
             return Certificate(limits_ok and worst > margin and rest_clear(sim, qq, vv, gain, margin), gain, worst,
                                k * dt, k)
-        tau = brake_torque(robot, data, qq, vv, tau, gain, dt)
+        tau = brake_torque(robot, data, qq, vv, tau, gain, dt, retreat, tk)
         sim.apply(tau)
         sim.step(tk)
         qq, vv = sim.read()
@@ -103,13 +110,17 @@ def rest_clear(sim: Simulator, q: np.ndarray, v: np.ndarray, gain: float, margin
 
 
 def certify(controller: Any, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, dt: float, *,
-            gains: tuple[float, ...] = BRAKE_GAINS, horizon: float = 3.0, margin: float = 0.0) -> Certificate:
+            gains: tuple[float, ...] = BRAKE_GAINS, horizon: float = 3.0, margin: float = 0.0,
+            retreats: Sequence[tuple[Retreat, float]] = ()) -> Certificate:
     """The first brake of the family that the built-in simulator (``controller``'s robot and obstacles,
-    step ``dt`` [s]) verifies from this state, or the best failed one (largest least clearance)."""
+    step ``dt`` [s]) verifies from this state, then the first of the proposed ``retreats`` ((retreat,
+    the gain it brakes with) — from anywhere, e.g. the guard's stored one: the rollout here is the
+    proof), or the best failed one (largest least clearance)."""
     sim = Simulator(controller, dt=dt, duration=dt)
     best: Certificate | None = None
-    for g in gains:
-        c = rollout(sim, q, v, tau_prev, t, g, horizon=horizon, margin=margin, stop_below=margin)
+    tries = [(g, None) for g in gains] + [(g, r) for r, g in retreats]
+    for g, r in tries:
+        c = rollout(sim, q, v, tau_prev, t, g, horizon=horizon, margin=margin, stop_below=margin, retreat=r)
         if c.viable:
             return c
         if best is None or c.min_clearance > best.min_clearance:

@@ -46,12 +46,14 @@ import pinocchio as pin
 import qpctl.native
 from qpctl.kernels import rollout as K
 from qpctl.safety.oracle import REST_SPEED, REST_TIME, Certificate
+from qpctl.safety.retreat import Retreat
 from qpctl.safety.sweep import RestClearance, lever_arms
 from qpctl.tick import WorldClearance
 
 # qpb_advance's io block (brake_rollout.cpp's IO_* order) and answers
 (IO_K, IO_STEPS, IO_STILL, IO_LAST, IO_DRIFT, IO_WORST, IO_LEVEL, IO_STOP_BELOW, IO_GAIN, IO_DT,
- IO_OBSTACLE_SPEED, IO_REST_SPEED, IO_REST_TIME, IO_EVALUATED, IO_LAZY, IO_SIZE) = range(16)
+ IO_OBSTACLE_SPEED, IO_REST_SPEED, IO_REST_TIME, IO_EVALUATED, IO_LAZY, IO_T0, IO_UNTIL, IO_W2, IO_W1,
+ IO_SIZE) = range(20)
 NEED_CLEARANCE, AT_REST_END, FAILED, HORIZON = range(4)
 
 
@@ -88,9 +90,14 @@ class BrakeRollout:
         self.native: NativeBrake | None = NativeBrake.create(self) if not self.lie else None
         self.rest = RestClearance(robot, world.ws.obstacles)  # the rest test (qpctl.safety.sweep)
 
-    def torque(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, gain: float) -> np.ndarray:
-        """The brake's torque [N·m] at (q, q̇) after τ_prev into ``self.tau`` (oracle.brake_torque)."""
-        np.multiply(v, -gain, out=self.qdd)
+    def torque(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, gain: float, retreat: Retreat | None = None,
+               t: float = 0.0) -> np.ndarray:
+        """The brake's torque [N·m] at (q, q̇) after τ_prev into ``self.tau`` (oracle.brake_torque); with a
+        ``retreat`` steering at t [s], its torque (:mod:`qpctl.safety.retreat`)."""
+        if retreat is not None and retreat.steering(t):
+            retreat.accel(q, v, self.qdd)
+        else:
+            np.multiply(v, -gain, out=self.qdd)
         self.tau[:] = pin.rnea(self.model, self.data, q, v, self.qdd)
         K.clip_brake(self.tau, self.tau_max, tau_prev, self.window)
         return self.tau
@@ -139,16 +146,18 @@ class BrakeRollout:
 
     def run(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, *,
             horizon: float = 3.0, margin: float = 0.0, stop_below: float = -np.inf,
-            exact: bool = True) -> Certificate:
+            exact: bool = True, retreat: Retreat | None = None) -> Certificate:
         """The brake of gain κ [1/s] from (q, q̇ [rad/s], τ_prev [N·m]) at t [s]: the
         :class:`~qpctl.safety.oracle.Certificate` :func:`qpctl.safety.oracle.rollout` gives (the
         arguments mean the same; a state that is not finite ends it, not viable). Inputs unchanged.
-        ``exact=False``: the lazy clearance (module docstring; the least clearance a lower bound)."""
+        ``exact=False``: the lazy clearance (module docstring; the least clearance a lower bound).
+        ``retreat``: the retreat that brakes at κ once it stops steering (:mod:`qpctl.safety.retreat`)."""
         dt, world, rho = self.dt, self.world, self.rho
         lazy = not exact and rho is not None
         level = max(margin, stop_below)
         if self.native is not None:
-            return self.native.run(q, v, tau_prev, t, gain, round(horizon / dt), margin, stop_below, level, lazy)
+            return self.native.run(q, v, tau_prev, t, gain, round(horizon / dt), margin, stop_below, level, lazy,
+                                   retreat)
         qq, vv, prev = np.array(q, float), np.array(v, float), np.array(tau_prev, float)
         worst, still, last, drift = np.inf, 0.0, np.inf, np.inf
         steps = round(horizon / dt)
@@ -162,10 +171,12 @@ class BrakeRollout:
                                 self.q_max, REST_SPEED)
             if worst < stop_below or code == K.OUTSIDE:
                 return Certificate(False, gain, worst, np.inf, k)
-            still = still + dt if code == K.AT_REST else 0.0
+            tk = t + k * dt
+            steering = retreat is not None and retreat.steering(tk)  # a retreat's rest is its brake's
+            still = still + dt if code == K.AT_REST and not steering else 0.0
             if still >= REST_TIME:
                 return Certificate(worst > margin and self.rest.verifies(qq, vv, gain, margin), gain, worst, k * dt, k)
-            self.torque(qq, vv, prev, gain)
+            self.torque(qq, vv, prev, gain, retreat, tk)
             prev[:] = self.tau
             self.step(qq, vv)
             if lazy:
@@ -181,7 +192,7 @@ class NativeBrake:
         self.owner, self.lib, self.handle = owner, lib, handle
         self.io = np.zeros(IO_SIZE)
         self._free = weakref.finalize(self, lib.qpb_free, handle)
-        self.q, self.v, self.prev = (np.zeros(owner.robot.nv) for _ in range(3))
+        self.q, self.v, self.prev, self.target = (np.zeros(owner.robot.nv) for _ in range(4))
 
     @classmethod
     def create(cls, owner: BrakeRollout) -> NativeBrake | None:
@@ -199,7 +210,8 @@ class NativeBrake:
         return cls(owner, lib, handle)
 
     def run(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, steps: int,
-            margin: float, stop_below: float, level: float, lazy: bool) -> Certificate:
+            margin: float, stop_below: float, level: float, lazy: bool, retreat: Retreat | None = None
+            ) -> Certificate:
         io, qq, vv, prev = self.io, self.q, self.v, self.prev
         qq[:], vv[:], prev[:] = q, v, tau_prev
         io[:] = 0.0
@@ -207,9 +219,13 @@ class NativeBrake:
         io[IO_LEVEL], io[IO_STOP_BELOW], io[IO_GAIN], io[IO_DT] = level, stop_below, gain, self.owner.dt
         io[IO_OBSTACLE_SPEED], io[IO_REST_SPEED], io[IO_REST_TIME] = self.owner.obstacle_speed, REST_SPEED, REST_TIME
         io[IO_LAZY] = float(lazy)
+        io[IO_T0], io[IO_UNTIL] = t, -np.inf
+        if retreat is not None:
+            self.target[:] = retreat.target
+            io[IO_UNTIL], io[IO_W2], io[IO_W1] = retreat.until, retreat.omega * retreat.omega, 2.0 * retreat.omega
         o = self.owner  # its limits read at each run, as the Python loop reads them
         self._keep = [np.ascontiguousarray(a, float) for a in (o.tau_max, o.window, o.q_min, o.q_max, o._rho)]
-        ptr = [a.ctypes.data for a in (qq, vv, prev, *self._keep, io)]
+        ptr = [a.ctypes.data for a in (qq, vv, prev, *self._keep, self.target, io)]
         advance, world, dt = self.lib.qpb_advance, self.owner.world, self.owner.dt
         while True:
             answer = advance(self.handle, *ptr)

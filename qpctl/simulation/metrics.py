@@ -37,6 +37,7 @@ def backup_metrics(infos: list[dict[str, Any]]) -> dict[str, Any]:
     us = [float(i["backup_check_us"]) for i in infos if "backup_check_us" in i]
     return {"backup_checked_ticks": sum(bool(i["backup_checked"]) for i in infos),
             "backup_ticks": sum("backup" in i for i in infos),
+            "backup_retreat_ticks": sum("backup" in i and "backup_retreat" in i for i in infos),
             "backup_unverified_ticks": sum(bool(i.get("backup_unverified")) for i in infos),
             "backup_check_us_median": float(np.median(us)) if us else 0.0,
             "backup_check_us_p99": float(np.percentile(us, 99)) if us else 0.0,

@@ -1,0 +1,106 @@
+"""The evasive backup (issue 22, items 2 and 4): where no brake verifies — the start, or a stretch, inside
+a swaying obstacle's sweep, where every stop ends in the swing's way — a *retreat* takes the arm to a
+rest that clears every sweep, then brakes.
+
+A retreat toward the target q* [rad] at natural frequency ω [rad/s] until the time t_s [s] is
+
+    q̈* = ω²(q* − q) − 2ω q̇     while t < t_s   (critically damped toward q*),
+    q̈* = −κ q̇                   from t_s on      (the brake of gain κ, :mod:`qpctl.safety.oracle`),
+
+made a torque as the brake's is: RNEA at q̈*, clipped to ±τ_max and the rate window. Nothing about it is
+assumed: a retreat counts only where a rollout on the controller's own model — the guard's
+(:class:`qpctl.safety.rollout.BrakeRollout`) or the oracle's Simulator-based one — brings the arm to
+rest without contact and the rest passes the rest test of its brake (joint limits, static obstacles and
+sweeps cleared by the creep: :class:`qpctl.safety.sweep.RestClearance`). The target and ω are only the
+recipe; the rollout is the proof.
+
+t_s is absolute and set half a step between two ticks (:func:`switch_time`), so that the guard applying
+a stored retreat at its own tick times and a rollout from any state on it take the same law at every
+step whatever the rounding of t.
+
+**The search** (:func:`search`): the targets are the configuration moved by one joint at a time by ±0.3,
+±0.6 and ±1.2 rad (within the limits, 0.05 rad inside), in order of how far they move the links
+(Σᵢρᵢ|Δqᵢ|, :func:`qpctl.safety.sweep.lever_arms`), kept where the arm at rest there clears the
+static obstacles and every sweep by the margin (:meth:`RestClearance.clear`); the first ``tries`` of
+them are rolled out at each ω of :data:`OMEGAS`, switching to the brake after :data:`SETTLE` / ω.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+#: The retreat's natural frequencies tried [rad/s], brisk first.
+OMEGAS = (6.0, 3.0)
+#: How long a retreat steers toward its target before it brakes, in units of 1/ω (a critically damped
+#: approach is within 5 % of its step after 4.7/ω).
+SETTLE = 5.0
+#: The joint steps of the targets searched [rad], and how far inside the joint limits a target lies.
+STEPS = (0.3, 0.6, 1.2)
+INSIDE = 0.05
+
+
+@dataclass(frozen=True)
+class Retreat:
+    """A retreat (module docstring): target q* [rad], natural frequency ω [rad/s], switch time t_s [s]."""
+
+    target: tuple[float, ...]
+    omega: float
+    until: float
+
+    @property
+    def q(self) -> np.ndarray:
+        return np.asarray(self.target, float)
+
+    def steering(self, t: float) -> bool:
+        """True while the retreat steers toward its target (t < t_s), False once it brakes."""
+        return t < self.until
+
+    def accel(self, q: np.ndarray, v: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """q̈* = ω²(q* − q) − 2ωq̇ into ``out`` (the operations in the native loop's order)."""
+        w2, w1 = self.omega * self.omega, 2.0 * self.omega
+        np.subtract(self.q, q, out=out)
+        out *= w2
+        out -= w1 * v
+        return out
+
+
+def switch_time(t: float, dt: float, omega: float) -> float:
+    """t_s for a retreat started at t [s] with ticks every dt [s]: SETTLE/ω later, moved to the middle
+    between two ticks (module docstring)."""
+    return t + (round(SETTLE / omega / dt) + 0.5) * dt
+
+
+def targets(robot: Any, q: np.ndarray, rho: np.ndarray | None, clear: Callable[[np.ndarray], bool]) -> list[np.ndarray]:
+    """The search's targets from q [rad] (module docstring), nearest first, those the rest test ``clear``
+    accepts (the arm at rest there clear of the static obstacles and the sweeps)."""
+    lo, hi = np.asarray(robot.q_min, float) + INSIDE, np.asarray(robot.q_max, float) - INSIDE
+    weight = rho if rho is not None else np.ones(robot.nv)
+    found: list[tuple[float, int, np.ndarray]] = []
+    for i in range(robot.nv):
+        for step in STEPS:
+            for sign in (1.0, -1.0):
+                x = np.array(q, float)
+                x[i] = x[i] + sign * step
+                if not (lo[i] <= x[i] <= hi[i]):
+                    continue
+                found.append((float(weight[i] * step), len(found), x))
+    found.sort(key=lambda f: (f[0], f[1]))
+    return [x for _, _, x in found if clear(x)]
+
+
+def search(run: Callable[[Retreat], Any], robot: Any, q: np.ndarray, t: float, dt: float, rho: np.ndarray | None,
+           clear: Callable[[np.ndarray], bool], tries: int = 3) -> Any | None:
+    """The first retreat from (q, t) that ``run`` (a rollout: Retreat → certificate with ``viable``)
+    verifies, as (retreat, certificate), or None: the first ``tries`` targets of :func:`targets`, each at
+    every ω of :data:`OMEGAS`."""
+    for x in targets(robot, q, rho, clear)[:tries]:
+        for omega in OMEGAS:
+            r = Retreat(tuple(float(a) for a in x), omega, switch_time(t, dt, omega))
+            cert = run(r)
+            if cert.viable:
+                return r, cert
+    return None

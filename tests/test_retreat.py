@@ -1,0 +1,192 @@
+"""The evasive backup (qpctl.safety.retreat, issue 22 items 2 and 4): a start inside a swaying obstacle's
+sweep, where every brake of the family stops the arm in the swing's way, is left by a retreat that the
+guard's rollout and the oracle's verify.
+
+References: the critically damped approach e(t) = e₀(1 + ωt)e^{−ωt} (the retreat's law, the drives
+unlimited); python-fcl's distance from the links to the capsule a swaying sphere sweeps (where the
+retreat's rest lies); the oracle's Simulator-based rollout (independent of the guard's lean one); the
+arm held at its start, which the sphere strikes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from test_native_rollout import lib_or_skip
+
+from qpctl import LawGains, Obstacle, Scenario, WaypointPath, planar_arm
+from qpctl.constraints.constraints import TorqueLimit
+from qpctl.controllers.qp import QPConfig, QPController
+from qpctl.errors import ConfigError
+from qpctl.geometry.distance import DistanceEngine
+from qpctl.safety import BackupGuard, certify, rollout
+from qpctl.safety.backup import GuardedOutput
+from qpctl.safety.retreat import OMEGAS, SETTLE, Retreat, switch_time, targets
+from qpctl.safety.rollout import BrakeRollout
+from qpctl.safety.sweep import RestClearance, lever_arms
+from qpctl.simulation import Simulator
+from qpctl.simulation.metrics import compute_metrics, contact_onsets
+
+DT = 2e-3
+Q = np.array([np.pi, np.pi / 2, 0.0])  # the last link hangs along −y, its tip at (−1, −2)
+
+
+def arm():
+    return planar_arm(tau_max=1500.0).with_limits(tau_rate_max=3000.0)
+
+
+def tip(robot, q):
+    data = robot.model.createData()
+    pin.forwardKinematics(robot.model, data, q)
+    return data.oMi[3].act(robot.capsules[2].p1)
+
+
+def swing(robot, overlap=0.03):
+    """A sphere swinging (0.5 Hz, ±0.3 m along y) up to the tip of the arm at Q, its end overlapping the
+    tip's capsule by ``overlap`` [m] at t = 0.5 s: the start lies inside its sweep."""
+    r = 0.1
+    end = tip(robot, Q)[:2] + np.array([0.0, -(robot.capsules[2].radius + r - overlap)])
+    return Obstacle("sphere", end - [0.0, 0.3], radius=r, amplitude=[0.0, 0.3, 0.0], frequency=0.5)
+
+
+class Hold:
+    """A QP controller whose torque is replaced by gravity's, within the drives' torque and rate limits:
+    a controller that proposes to hold the arm where it is, which the guard alone must keep out of the
+    swing (every other attribute the QP controller's, so the simulator runs it as it runs that)."""
+
+    def __init__(self, robot, obstacles):
+        path = WaypointPath([[-1.0, -2.0], [1.0, -1.5]], duration=2.0)
+        self.inner = QPController(robot, path, obstacles, LawGains(d_influence=0.3, d_safe=0.05), QPConfig())
+        self.limit = next(c for c in self.inner.constraints if isinstance(c, TorqueLimit))
+        self.data = robot.model.createData()
+
+    def __getattr__(self, name):
+        return getattr(self.inner, name)
+
+    def step(self, q, v, t):
+        out = self.inner.step(q, v, t)
+        lo, hi = self.limit.window(t)
+        tau = np.clip(pin.computeGeneralizedGravity(self.robot.model, self.data, q), lo, hi)
+        self.limit.remember(tau, t)  # the guard remembers its brake's torque over this
+        return GuardedOutput(out, tau, dict(out.info), float(out.compute_us))
+
+
+def capsule_clearance(robot, q, o):
+    """python-fcl's distance [m] from the links at q to the capsule a swaying sphere sweeps."""
+    a = float(np.linalg.norm(o.amplitude))
+    swept = Obstacle("capsule", o.position, radius=o.radius, length=2 * a, axis=np.asarray(o.amplitude) / a)
+    data = robot.model.createData()
+    pin.forwardKinematics(robot.model, data, q)
+    seg = np.array([[data.oMi[c.joint_id].act(c.p0), data.oMi[c.joint_id].act(c.p1)] for c in robot.capsules])
+    engine = DistanceEngine([c.radius for c in robot.capsules], [swept], broadphase=False)
+    engine.update(seg, 0.0)
+    return engine.min_distance()
+
+
+def test_the_retreat_steers_as_a_critically_damped_approach():
+    """Drives without limits, no obstacle: from rest at Q toward q* = Q + (0.2, −0.3, 0.4) at ω = 6 rad/s,
+    the rollout at the switch time is where e(t) = e₀(1 + ωt)e^{−ωt} puts it, up to the torque held over
+    each step (the error shrinks with the step: under 1e-4 rad at 0.2 ms, and ≥ 5× below 2 ms's); from
+    the switch on it brakes (at rest within 1 s of it)."""
+    robot = planar_arm(tau_max=1e9)
+    ctrl = QPController(robot, WaypointPath([[-1.0, -2.0], [1.0, -1.5]], duration=2.0), [],
+                        LawGains(d_influence=0.3, d_safe=0.05), QPConfig())
+    e0, omega = np.array([0.2, -0.3, 0.4]), 6.0
+    err = {}
+    for dt in (DT, DT / 10):
+        r = Retreat(tuple(Q + e0), omega, switch_time(0.0, dt, omega))
+        assert (r.until / dt) % 1 == pytest.approx(0.5)  # between two ticks
+        n = round(SETTLE / omega / dt)  # the last step that steers
+        assert r.steering(n * dt) and not r.steering((n + 1) * dt)
+        lean = BrakeRollout(robot, Simulator(ctrl, dt=dt, duration=dt).world, dt)
+        q, v, tau = Q.copy(), np.zeros(3), np.full(3, np.nan)
+        for k in range(n + 1):
+            tau = lean.torque(q, v, tau, 25.0, r, k * dt).copy()
+            lean.step(q, v)
+        t = (n + 1) * dt
+        err[dt] = float(np.max(np.abs(q - (Q + e0 - e0 * (1 + omega * t) * np.exp(-omega * t)))))
+    assert err[DT / 10] < 1e-4 and err[DT / 10] < err[DT] / 5, err
+    r = Retreat(tuple(Q + e0), omega, switch_time(0.0, DT, omega))
+    cert = rollout(Simulator(ctrl, dt=DT, duration=DT), Q, np.zeros(3), np.full(3, np.nan), 0.0, 25.0, retreat=r)
+    assert cert.viable and r.until < cert.t_rest < r.until + 1.0
+
+
+def test_targets_are_the_nearest_rests_clear_of_the_sweeps():
+    """The search's targets: one joint moved, nearest first by Σρ|Δq|, each one python-fcl puts clear of
+    the sphere's swept capsule; the start itself is not clear."""
+    robot = arm()
+    o = swing(robot)
+    rest = RestClearance(robot, [o])
+    rho = lever_arms(robot)
+    assert capsule_clearance(robot, Q, o) < 0 and not rest.clear(Q, 0.0)
+    found = targets(robot, Q, rho, lambda x: rest.clear(x, 0.0))
+    assert len(found) >= 3
+    moved = [float(rho @ np.abs(x - Q)) for x in found]
+    assert np.all(np.diff(moved) >= -1e-12), moved
+    for x in found:
+        assert np.count_nonzero(x - Q) == 1 and capsule_clearance(robot, x, o) > 0
+
+
+@pytest.mark.parametrize("retreats", [True, False])
+def test_a_start_inside_a_sweep_is_left_by_a_verified_retreat(retreats):
+    """The arm at rest at Q, the sphere's swing reaching it at 0.36 s (held there, it is struck): no
+    brake of the family is certified from the start (the oracle), so the guard searches a retreat; the
+    one it stores is certified by the oracle's own rollout, every tick is verified, and the arm held by
+    a controller that proposes to stay is never struck. Without retreats (``retreats=False``) the same
+    run's ticks are unverified and the sphere strikes the held arm."""
+    robot = arm()
+    o = swing(robot)
+    hold = Hold(robot, [o])
+    held = Simulator(hold, dt=DT, duration=2.0).run(Q)
+    assert held.clearance.min() < 0 and 0.3 < held.t[contact_onsets(held.clearance)[0]] < 0.45
+    gravity = hold.step(Q, np.zeros(3), 0.0).tau
+    assert not certify(hold, Q, np.zeros(3), np.full(3, np.nan), 0.0, DT).viable
+    guard = BackupGuard(hold, DT, retreats=retreats)
+    guard.warmup()
+    tr = Simulator(guard, dt=DT, duration=2.0).run(Q)
+    m = compute_metrics(tr)
+    if not retreats:
+        assert m["backup_unverified_ticks"] > 0 and m["collided"]
+        return
+    assert m["backup_unverified_ticks"] == 0 and not m["collided"] and guard.stats["retreats_found"] >= 1
+    first = tr.infos[0]["backup_retreat"]
+    r = Retreat(tuple(first[0]), first[1], first[2])
+    assert r.omega in OMEGAS and capsule_clearance(robot, r.q, o) > 0
+    assert certify(hold, Q, np.zeros(3), gravity * np.nan, 0.0, DT, retreats=[(r, first[3])]).viable
+    # every 10th visited state certified by the oracle, shown the retreat the guard held (if any)
+    for k in range(10, len(tr.t), 10):
+        shown = tr.infos[k - 1].get("backup_retreat")
+        hint = [(Retreat(tuple(shown[0]), shown[1], shown[2]), shown[3])] if shown else []
+        assert certify(hold, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), DT, retreats=hint).viable, tr.t[k]
+
+
+def test_native_and_python_loops_agree_on_a_retreat():
+    """The same retreats rolled out by the native loop and the Python loop: the same certificates —
+    four targets of the search, and the start itself (the arm still while it steers: its rest comes only
+    once it brakes, in both)."""
+    robot = arm()
+    o = swing(robot)
+    hold = Hold(robot, [o])
+    sim = Simulator(hold, dt=DT, duration=DT)
+    lib_or_skip()
+    fast, slow = BrakeRollout(robot, sim.world, DT), BrakeRollout(robot, sim.world, DT)
+    assert fast.native is not None
+    slow.native = None
+    for x in [Q, *targets(robot, Q, lever_arms(robot), lambda x: True)[:4]]:
+        for omega in OMEGAS:
+            r = Retreat(tuple(x), omega, switch_time(0.1, DT, omega))
+            for exact in (True, False):
+                a = fast.run(Q, np.zeros(3), np.full(3, np.nan), 0.1, 25.0, retreat=r, exact=exact, stop_below=0.0)
+                b = slow.run(Q, np.zeros(3), np.full(3, np.nan), 0.1, 25.0, retreat=r, exact=exact, stop_below=0.0)
+                assert a == b
+                if x is Q:
+                    assert a.t_rest > r.until - 0.1  # at rest only after the switch
+
+
+def test_backup_retreats_is_a_scenario_key():
+    on = ["controller.backup=true"]
+    assert Scenario.load("paper", overrides=on).build_controller().retreats
+    assert not Scenario.load("paper", overrides=[*on, "controller.backup_retreats=false"]).build_controller().retreats
+    with pytest.raises(ConfigError) as exc:
+        Scenario.load("paper", overrides=[*on, "controller.backup_retreats=3"])
+    assert exc.value.key == "controller.backup_retreats"
