@@ -166,3 +166,56 @@ def test_a_rest_whose_creep_crosses_a_joint_limit_is_not_verified():
         assert cert.viable == viable and np.isfinite(cert.t_rest)
         lean = BrakeRollout(ctrl.robot, sim.world, DT)
         assert lean.run(Q, v, gravity, 0.0, 25.0, exact=False).viable == viable
+
+
+def inside(data, c, centre, r):
+    """True if the ball (centre, r) lies inside capsule c posed by ``data``'s kinematics."""
+    a, b = data.oMi[c.joint_id].act(c.p0), data.oMi[c.joint_id].act(c.p1)
+    s = np.clip((centre - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1)
+    return np.linalg.norm(centre - (a + s * (b - a))) + r <= c.radius + 1e-12
+
+
+@pytest.mark.parametrize("which", ["planar", "panda"])
+def test_the_fixed_part_lies_inside_the_arm_in_every_configuration(which, rng):
+    """fixed_part's balls and base capsules are inside the posed capsules of their links at 200 random
+    configurations (point–segment distance + the ball's radius ≤ the capsule's radius); the planar arm's
+    is the ball of its first capsule's radius about the base, the Panda's one about its first axis."""
+    from qpctl.robot.model import panda
+    from qpctl.safety.sweep import fixed_part
+
+    robot = planar_arm() if which == "planar" else panda()
+    fixed = fixed_part(robot)
+    assert fixed and all(r > 0 for _, _, r in fixed)
+    data = robot.model.createData()
+    first = [c for c in robot.capsules if c.joint_id in (0, 1)]
+    lo = np.where(np.isfinite(robot.q_min), robot.q_min, -np.pi)
+    hi = np.where(np.isfinite(robot.q_max), robot.q_max, np.pi)
+    for _ in range(200):
+        q = rng.uniform(lo, hi)
+        pin.forwardKinematics(robot.model, data, q)
+        for p0, p1, r in fixed:
+            assert np.allclose(p0, p1)  # balls: no base capsules on these robots
+
+            assert any(inside(data, c, p0, r) for c in first)
+    if which == "planar":
+        assert len(fixed) == 1 and np.allclose(fixed[0][0], 0) and fixed[0][2] == pytest.approx(robot.capsules[0].radius)
+
+
+def test_a_sphere_swinging_through_the_base_strikes_the_fixed_part_when_its_surface_reaches_it():
+    """A sphere swaying along x through the planar arm's base: fixed_struck gives the first tick at which
+    its centre, x(t) = x₀ + A sin(2πft), is within r + 0.05 m of the base (the analytic time); a sphere
+    whose swing stops 2 cm short never strikes it, nor does a static one."""
+    from test_soak_brake import fixed_struck
+
+    r, f, x0 = 0.1, 0.5, 0.4
+    for short, expect in ((-0.05, True), (0.02, False)):
+        reach = r + 0.05 + short  # the swing's nearest centre to the base
+        sway = Obstacle("sphere", [x0, 0.0], radius=r, amplitude=[-(x0 - reach), 0.0, 0.0], frequency=f)
+        got = fixed_struck(controller([sway]), DT, 2.0)
+        if not expect:
+            assert got is None
+            continue
+        t = np.arange(0, 2.0 + DT / 2, DT)
+        centre = x0 - (x0 - reach) * np.sin(2 * np.pi * f * t)
+        assert got == pytest.approx(t[np.argmax(centre < r + 0.05)], abs=1e-12)
+    assert fixed_struck(controller([Obstacle("sphere", [0.16, 0.0], radius=r)]), DT, 2.0) is None

@@ -37,6 +37,7 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import pinocchio as pin
 
 from qpctl.geometry.obstacles import Obstacle
 from qpctl.tick import WorldClearance
@@ -141,3 +142,38 @@ class RestClearance:
                     return False
                 stack += [(a, ga, m, gm), (m, gm, b, gb)]
         return True
+
+
+def fixed_part(robot: Any) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """Part of the space the arm occupies in *every* configuration, as world-frame capsules (p0, p1 [m],
+    radius [m]): the capsules on the fixed base, and for each capsule the first joint (revolute, on the
+    base) moves, the ball that stays inside it whatever the joint's angle — centred on the joint's
+    axis at the foot of the capsule's segment point nearest the axis, of radius r − that distance. An
+    obstacle that reaches it strikes the arm whatever any controller does (issue 22 item 4: a contact
+    certified unavoidable by any control)."""
+    model = robot.model
+    data = model.createData()
+    q = pin.neutral(model)
+    pin.computeJointJacobians(model, data, q)
+    out: list[tuple[np.ndarray, np.ndarray, float]] = []
+    for c in robot.capsules:
+        if c.joint_id == 0:
+            out.append((np.asarray(c.p0, float), np.asarray(c.p1, float), float(c.radius)))
+    if model.njoints < 2 or model.parents[1] != 0 or model.joints[1].shortname() not in REVOLUTE:
+        return out
+    axis = pin.getJointJacobian(model, data, 1, pin.LOCAL)[3:, model.joints[1].idx_v]
+    axis = axis / np.linalg.norm(axis)
+    frame = data.oMi[1]
+    for c in robot.capsules:
+        if c.joint_id != 1:
+            continue
+        p0, p1 = np.asarray(c.p0, float), np.asarray(c.p1, float)
+        off0, off1 = p0 - (p0 @ axis) * axis, p1 - (p1 @ axis) * axis  # the parts across the axis
+        d = off1 - off0
+        s = float(np.clip(-(off0 @ d) / (d @ d), 0.0, 1.0)) if d @ d > 0 else 0.0
+        point = p0 + s * (p1 - p0)
+        across = float(np.linalg.norm(off0 + s * d))
+        if across < c.radius:
+            foot = frame.act((point @ axis) * axis)
+            out.append((foot, foot, float(c.radius) - across))
+    return out
