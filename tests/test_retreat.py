@@ -21,7 +21,7 @@ from qpctl.errors import ConfigError
 from qpctl.geometry.distance import DistanceEngine
 from qpctl.safety import BackupGuard, certify, rollout
 from qpctl.safety.backup import GuardedOutput
-from qpctl.safety.retreat import OMEGAS, SETTLE, Retreat, switch_time, targets
+from qpctl.safety.retreat import OMEGAS, RETRY_TICKS, SETTLE, Retreat, switch_time, targets
 from qpctl.safety.rollout import BrakeRollout
 from qpctl.safety.sweep import RestClearance, lever_arms
 from qpctl.simulation import Simulator
@@ -112,8 +112,8 @@ def test_the_retreat_steers_as_a_critically_damped_approach():
 
 
 def test_targets_are_the_nearest_rests_clear_of_the_sweeps():
-    """The search's targets: one joint moved, nearest first by Σρ|Δq|, each one python-fcl puts clear of
-    the sphere's swept capsule; the start itself is not clear."""
+    """The search's targets: one or two joints moved, nearest first by Σρ|Δq|, each one python-fcl puts
+    clear of the sphere's swept capsule; the start itself is not clear."""
     robot = arm()
     o = swing(robot)
     rest = RestClearance(robot, [o])
@@ -123,8 +123,9 @@ def test_targets_are_the_nearest_rests_clear_of_the_sweeps():
     assert len(found) >= 3
     moved = [float(rho @ np.abs(x - Q)) for x in found]
     assert np.all(np.diff(moved) >= -1e-12), moved
+    assert {np.count_nonzero(x - Q) for x in found} == {1, 2}
     for x in found:
-        assert np.count_nonzero(x - Q) == 1 and capsule_clearance(robot, x, o) > 0
+        assert capsule_clearance(robot, x, o) > 0
 
 
 @pytest.mark.parametrize("retreats", [True, False])
@@ -158,6 +159,22 @@ def test_a_start_inside_a_sweep_is_left_by_a_verified_retreat(retreats):
         shown = tr.infos[k - 1].get("backup_retreat")
         hint = [(Retreat(tuple(shown[0]), shown[1], shown[2]), shown[3])] if shown else []
         assert certify(hold, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), DT, retreats=hint).viable, tr.t[k]
+
+
+def test_a_hopeless_start_is_searched_every_tenth_tick():
+    """A sphere swaying across the planar arm's base (the part every configuration fills): no rest
+    clears its sweep, so no retreat is found; over 0.2 s the guard searches on ticks 0, 10, 20, …
+    (RETRY_TICKS apart) and counts every tick unverified."""
+    robot = arm()
+    o = Obstacle("sphere", [0.0, 0.6], radius=0.1, amplitude=[0.0, 0.55, 0.0], frequency=0.1)
+    hold = Hold(robot, [o])
+    guard = BackupGuard(hold, DT)
+    guard.warmup()
+    tr = Simulator(guard, dt=DT, duration=0.2).run(Q)
+    m = compute_metrics(tr)
+    n = m["ticks"]
+    assert n >= 100 and m["backup_unverified_ticks"] == n
+    assert guard.stats["retreat_searches"] == -(-n // RETRY_TICKS) and guard.stats["retreats_found"] == 0
 
 
 def test_native_and_python_loops_agree_on_a_retreat():

@@ -23,7 +23,8 @@ then, where the world clearance (exact, every pair: :class:`qpctl.tick.WorldClea
    rolled out from (q, q̇, τ_prev) itself; if none is verified — every stop from here ends where a
    swaying obstacle's sweep comes back, the start of a scene inside one — a *retreat* is searched
    (``retreats``, default on: :mod:`qpctl.safety.retreat`, a few targets whose rests clear the sweeps,
-   steered toward and braked at, each rolled out the same way); the first verified is stored and its
+   steered toward and braked at, each rolled out the same way; after a search that found nothing, the
+   next only ``RETRY_TICKS`` ticks later); the first verified is stored and its
    torque applied (``info["backup"]``: its gain; ``info["backup_retreat"]``: the retreat stored after
    the tick, on every tick it stays stored), else τ is applied unverified (``info["backup_unverified"]``).
    A stored retreat is what a proposal's successor is rolled out with first, as a stored gain is.
@@ -46,7 +47,7 @@ import numpy as np
 
 from qpctl.constraints.constraints import TorqueLimit
 from qpctl.safety.oracle import BRAKE_GAINS
-from qpctl.safety.retreat import Retreat, search
+from qpctl.safety.retreat import RETRY_TICKS, Retreat, search
 from qpctl.safety.rollout import BrakeRollout
 from qpctl.tick import WorldClearance
 
@@ -89,7 +90,8 @@ class BackupGuard:
         self.brake = BrakeRollout(controller.robot, self.world, self.dt)
         self._limit = next((c for c in getattr(controller, "constraints", []) if isinstance(c, TorqueLimit)), None)
         self.stats: dict[str, Any] = {"checked": 0, "backup": 0, "unverified": 0, "out_of_steps": 0, "check_us": [],
-                                      "check_steps": [], "retreats_found": 0}
+                                      "check_steps": [], "retreat_searches": 0,
+                                      "retreats_found": 0}
         self._reset_backup()
 
     def __getattr__(self, name: str) -> Any:
@@ -98,6 +100,7 @@ class BackupGuard:
     def _reset_backup(self) -> None:
         self._gain: float | None = None
         self._retreat: Retreat | None = None  # the stored backup is this retreat, braking at _gain
+        self._search_wait = 0  # ticks until a failed retreat search may be repeated
         self._on_brake = False  # the last tick applied the stored brake
         self._tau_prev = np.full(self.controller.robot.nv, np.nan)
 
@@ -174,10 +177,13 @@ class BackupGuard:
         if self._gain is None:  # nothing stored: is the state itself verified? (step 3, no step limit)
             found, more, _ = self._first_verified(q, v, self._tau_prev, t)
             spent += more
-            if found is None and self.retreats:
+            if found is None and self.retreats and self._search_wait <= 0:
                 found, more = self._retreat_from(q, v, self._tau_prev, t)
                 spent += more
+                self.stats["retreat_searches"] += 1
                 self.stats["retreats_found"] += found is not None
+                self._search_wait = RETRY_TICKS if found is None else 0
+            self._search_wait -= 1
             if found is not None:
                 self._gain, self._retreat = found
         self.stats["check_steps"].append(spent)

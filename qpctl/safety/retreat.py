@@ -18,11 +18,13 @@ t_s is absolute and set half a step between two ticks (:func:`switch_time`), so 
 a stored retreat at its own tick times and a rollout from any state on it take the same law at every
 step whatever the rounding of t.
 
-**The search** (:func:`search`): the targets are the configuration moved by one joint at a time by ±0.3,
-±0.6 and ±1.2 rad (within the limits, 0.05 rad inside), in order of how far they move the links
-(Σᵢρᵢ|Δqᵢ|, :func:`qpctl.safety.sweep.lever_arms`), kept where the arm at rest there clears the
-static obstacles and every sweep by the margin (:meth:`RestClearance.clear`); the first ``tries`` of
-them are rolled out at each ω of :data:`OMEGAS`, switching to the brake after :data:`SETTLE` / ω.
+**The search** (:func:`search`): the targets are the configuration moved by one joint by ±0.3, ±0.6 or
+±1.2 rad, or by two joints by ±0.3 or ±0.6 rad each (within the limits, 0.05 rad inside), in order of
+how far they move the links (Σᵢρᵢ|Δqᵢ|, :func:`qpctl.safety.sweep.lever_arms`), kept where the arm at
+rest there clears the static obstacles and every sweep by the margin (:meth:`RestClearance.clear`);
+the first :data:`TRIES` of them are rolled out at each ω of :data:`OMEGAS`, switching to the brake
+after :data:`SETTLE` / ω. A rollout that meets an obstacle ends there, so a failed search is cheap
+next to a verified stop; the guard repeats a failed search only every :data:`RETRY_TICKS` ticks.
 """
 
 from __future__ import annotations
@@ -38,9 +40,15 @@ OMEGAS = (6.0, 3.0)
 #: How long a retreat steers toward its target before it brakes, in units of 1/ω (a critically damped
 #: approach is within 5 % of its step after 4.7/ω).
 SETTLE = 5.0
-#: The joint steps of the targets searched [rad], and how far inside the joint limits a target lies.
+#: The joint steps of the targets searched [rad]: one joint, and two together; how far inside the joint
+#: limits a target lies [rad]; how many targets whose rests are clear are rolled out (each at every ω).
 STEPS = (0.3, 0.6, 1.2)
+PAIR_STEPS = (0.3, 0.6)
 INSIDE = 0.05
+TRIES = 24
+#: After a search that found nothing, the guard searches again only this many ticks later (the ticks
+#: between stay unverified, as they would be anyway: a bound on what a hopeless start costs a tick).
+RETRY_TICKS = 10
 
 
 @dataclass(frozen=True)
@@ -74,30 +82,45 @@ def switch_time(t: float, dt: float, omega: float) -> float:
     return t + (round(SETTLE / omega / dt) + 0.5) * dt
 
 
-def targets(robot: Any, q: np.ndarray, rho: np.ndarray | None, clear: Callable[[np.ndarray], bool]) -> list[np.ndarray]:
-    """The search's targets from q [rad] (module docstring), nearest first, those the rest test ``clear``
-    accepts (the arm at rest there clear of the static obstacles and the sweeps)."""
+def candidates(robot: Any, q: np.ndarray, rho: np.ndarray | None) -> list[np.ndarray]:
+    """The search's targets from q [rad] before the rest test (module docstring), nearest first: each
+    joint moved by ±:data:`STEPS`, each pair of joints by ±:data:`PAIR_STEPS` each, within the limits
+    (:data:`INSIDE` inside them), ordered by Σᵢρᵢ|Δqᵢ| (ρ: the lever arms; 1 where None)."""
     lo, hi = np.asarray(robot.q_min, float) + INSIDE, np.asarray(robot.q_max, float) - INSIDE
     weight = rho if rho is not None else np.ones(robot.nv)
+    moves: list[dict[int, float]] = [{i: sign * step} for i in range(robot.nv) for step in STEPS for sign in (1.0, -1.0)]
+    moves += [{i: si * a, j: sj * b} for i in range(robot.nv) for j in range(i + 1, robot.nv)
+              for a in PAIR_STEPS for b in PAIR_STEPS for si in (1.0, -1.0) for sj in (1.0, -1.0)]
     found: list[tuple[float, int, np.ndarray]] = []
-    for i in range(robot.nv):
-        for step in STEPS:
-            for sign in (1.0, -1.0):
-                x = np.array(q, float)
-                x[i] = x[i] + sign * step
-                if not (lo[i] <= x[i] <= hi[i]):
-                    continue
-                found.append((float(weight[i] * step), len(found), x))
+    for move in moves:
+        x = np.array(q, float)
+        for i, d in move.items():
+            x[i] += d
+        if all(lo[i] <= x[i] <= hi[i] for i in move):
+            found.append((float(sum(weight[i] * abs(d) for i, d in move.items())), len(found), x))
     found.sort(key=lambda f: (f[0], f[1]))
-    return [x for _, _, x in found if clear(x)]
+    return [x for _, _, x in found]
+
+
+def targets(robot: Any, q: np.ndarray, rho: np.ndarray | None, clear: Callable[[np.ndarray], bool],
+            count: float = np.inf) -> list[np.ndarray]:
+    """The first ``count`` of :func:`candidates` that the rest test ``clear`` accepts (the arm at rest
+    there clear of the static obstacles and the sweeps), nearest first."""
+    out: list[np.ndarray] = []
+    for x in candidates(robot, q, rho):
+        if len(out) >= count:
+            break
+        if clear(x):
+            out.append(x)
+    return out
 
 
 def search(run: Callable[[Retreat], Any], robot: Any, q: np.ndarray, t: float, dt: float, rho: np.ndarray | None,
-           clear: Callable[[np.ndarray], bool], tries: int = 3) -> Any | None:
+           clear: Callable[[np.ndarray], bool], tries: int = TRIES) -> Any | None:
     """The first retreat from (q, t) that ``run`` (a rollout: Retreat → certificate with ``viable``)
     verifies, as (retreat, certificate), or None: the first ``tries`` targets of :func:`targets`, each at
     every ω of :data:`OMEGAS`."""
-    for x in targets(robot, q, rho, clear)[:tries]:
+    for x in targets(robot, q, rho, clear, tries):
         for omega in OMEGAS:
             r = Retreat(tuple(float(a) for a in x), omega, switch_time(t, dt, omega))
             cert = run(r)
