@@ -71,6 +71,16 @@ class Hold:
         return GuardedOutput(out, tau, dict(out.info), float(out.compute_us))
 
 
+def capsule_distance(robot, q, o, t):
+    """python-fcl's distance [m] from the links at q to obstacle o at time t [s]."""
+    data = robot.model.createData()
+    pin.forwardKinematics(robot.model, data, q)
+    seg = np.array([[data.oMi[c.joint_id].act(c.p0), data.oMi[c.joint_id].act(c.p1)] for c in robot.capsules])
+    engine = DistanceEngine([c.radius for c in robot.capsules], [o], broadphase=False)
+    engine.update(seg, t)
+    return engine.min_distance()
+
+
 def capsule_clearance(robot, q, o):
     """python-fcl's distance [m] from the links at q to the capsule a swaying sphere sweeps."""
     a = float(np.linalg.norm(o.amplitude))
@@ -200,10 +210,69 @@ def test_native_and_python_loops_agree_on_a_retreat():
                     assert a.t_rest > r.until - 0.1  # at rest only after the switch
 
 
-def test_backup_retreats_is_a_scenario_key():
+def test_backup_retreats_and_hold_are_scenario_keys():
     on = ["controller.backup=true"]
     assert Scenario.load("paper", overrides=on).build_controller().retreats
     assert not Scenario.load("paper", overrides=[*on, "controller.backup_retreats=false"]).build_controller().retreats
     with pytest.raises(ConfigError) as exc:
         Scenario.load("paper", overrides=[*on, "controller.backup_retreats=3"])
     assert exc.value.key == "controller.backup_retreats"
+    assert Scenario.load("paper", overrides=on).build_controller().hold == 0.0
+    assert Scenario.load("paper", overrides=[*on, "controller.backup_hold=2.5"]).build_controller().hold == 2.5
+    with pytest.raises(ConfigError) as exc:
+        Scenario.load("paper", overrides=[*on, "controller.backup_hold=-1"])
+    assert exc.value.key == "controller.backup_hold"
+
+
+def closing_sphere(robot, speed=0.2, gap=0.5):
+    """A sphere beside the tip of the arm at Q, ``gap`` [m] from its capsule across the link, drifting
+    straight at it at ``speed`` [m/s] (along the line of nearest points: the clearance is gap − speed·t)."""
+    cap = robot.capsules[2]
+    centre = tip(robot, Q)[:2] + [-(cap.radius + 0.1 + gap), 0.0]
+    return Obstacle("sphere", centre.tolist(), radius=0.1, velocity=[speed, 0.0])
+
+
+def test_a_rest_must_clear_a_drifting_obstacle_for_its_hold():
+    """The rest test with hold H against a sphere closing at 0.2 m/s from 0.5 m (it arrives at 2.5 s): the
+    arm resting from t is clear while t + H ends 5 mm or more before the arrival and not once it ends
+    after it (the clearance gap − 0.2·t by python-fcl); with H = 0 the drifting sphere is not tested."""
+    robot = arm()
+    o = closing_sphere(robot)
+    assert capsule_distance(robot, Q, o, 0.0) == pytest.approx(0.5, abs=1e-6)
+    assert capsule_distance(robot, Q, o, 2.4) == pytest.approx(0.02, abs=1e-6)
+    for hold in (0.5, 1.5):
+        rest = RestClearance(robot, [o], hold)
+        for t in np.arange(0.0, 2.5, 0.05):
+            end = 0.5 - 0.2 * (t + hold)
+            if end >= 5e-3:
+                assert rest.clear(Q, 0.0, t), (hold, t)
+            elif end < 0:
+                assert not rest.clear(Q, 0.0, t), (hold, t)
+    assert RestClearance(robot, [o], 0.0).clear(Q, 0.0, 2.4) and not RestClearance(robot, [o], 0.0)
+
+
+@pytest.mark.parametrize("hold", [0.0, 2.0])
+def test_a_drifting_obstacle_is_left_when_the_rest_must_clear_it_for_a_hold(hold):
+    """The sphere closing on the tip of the arm held by a controller that proposes to stay: without a
+    hold the guard lets it rest and the sphere strikes the arm at rest (2.5 s); with a 2 s hold, re-verified
+    every tick the arm rests, the rest stops being verified as the sphere comes within 2 s, a retreat takes
+    the arm out of its way, nothing touches and every 10th state is certified by the oracle (its hold one
+    tick shorter)."""
+    robot = arm()
+    o = closing_sphere(robot)
+    hold_ctrl = Hold(robot, [o])
+    guard = BackupGuard(hold_ctrl, DT, hold=hold)
+    guard.warmup()
+    tr = Simulator(guard, dt=DT, duration=3.0).run(Q)
+    m = compute_metrics(tr)
+    assert m["backup_unverified_ticks"] == 0
+    if hold == 0.0:
+        assert m["collided"] and m["collisions_at_rest"] == 1
+        return
+    assert not m["collided"] and m["backup_retreat_ticks"] > 0
+    assert any(i.get("backup_rest_refuted") for i in tr.infos)
+    for k in range(10, len(tr.t), 10):
+        shown = tr.infos[k - 1].get("backup_retreat")
+        hint = [(Retreat(tuple(shown[0]), shown[1], shown[2]), shown[3])] if shown else []
+        assert certify(hold_ctrl, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), DT, retreats=hint,
+                       hold=hold - DT).viable, tr.t[k]

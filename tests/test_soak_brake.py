@@ -76,7 +76,7 @@ def guarded_run(raw: dict[str, Any], oracle_every: int = ORACLE_EVERY,
         "retreat_ticks": m.get("backup_retreat_ticks", 0),
         "unverified": m.get("backup_unverified_ticks", 0), "check_us": ctrl.stats["check_us"] if backup else [],
         "unverified_t": [float(t) for t, i in zip(tr.t, tr.infos, strict=False) if i.get("backup_unverified")],
-        "dt": dt,
+        "dt": dt, "hold": float(getattr(ctrl, "hold", 0.0)) if backup else 0.0,
         "out_of_steps": m.get("backup_out_of_steps_ticks", 0),
         "tick_us": [float(i.get("backup_check_us", 0.0)) for i in tr.infos] if backup else [],
         "torque_over_limit": bool(np.any(np.abs(tr.tau) > robot.tau_max + 1e-9)),
@@ -93,9 +93,14 @@ def guarded_run(raw: dict[str, Any], oracle_every: int = ORACLE_EVERY,
         "fixed_struck_t": fixed_struck(ctrl, dt, float(raw["sim"]["duration"])),
     }
     if oracle_every:
+        # the oracle's rest test is the guard's, its hold one tick shorter: at rest the guard re-verifies as the
+        # window slides, and a drifting obstacle enters it at the window's end, where the rounding of a rest
+        # time (t + k·dt from two ticks) must not decide
+        hold = max(float(getattr(ctrl, "hold", 0.0)) - dt, 0.0)
         ks = range(oracle_every, len(tr.t), oracle_every)
         bad = [float(tr.t[k]) for k in ks if not certify(ctrl, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), dt,
-                                                          gains=ORACLE_GAINS, retreats=shown(tr.infos[k - 1])).viable]
+                                                          gains=ORACLE_GAINS, retreats=shown(tr.infos[k - 1]),
+                                                          hold=hold).viable]
         row.update(oracle_sampled=len(ks), oracle_uncertified=bad)
     return row
 
@@ -119,6 +124,8 @@ def unexplained_uncertified(row: dict[str, Any]) -> list[float]:
     after ``first_contact_t − REST_TIME``."""
     dt, hit = row["dt"], row.get("first_contact_t")
     led = {round(u / dt) + 1 for u in row["unverified_t"]}  # the states' indices
+    if row.get("hold"):  # at rest the window over the drifting obstacles slides: a state is claimed by its own tick
+        led |= {round(u / dt) for u in row["unverified_t"]}
     return [t for t in row.get("oracle_uncertified") or []
             if round(t / dt) not in led and (hit is None or t < hit - REST_TIME - 1e-9)]
 

@@ -37,7 +37,9 @@ class ControllerConfig:
     backup_tries_on_brake: the gains a check tries while the last tick applied the stored brake (2, the
     default: the stored one and the first other; inf: the whole family).
     backup_retreats: where no brake verifies from the state itself (a start inside a swaying obstacle's
-    sweep), search a retreat to a rest clear of the sweeps (:mod:`qpctl.safety.retreat`; true, the default).
+    sweep), search a retreat to a rest clear of the sweeps (:mod:`qpctl.safety.retreat`; true, the default);
+    backup_hold [s]: how long after its rest a brake's stop must stay clear of the drifting obstacles
+    (their scene-given motion), re-verified every tick the arm rests (0, the default: not tested).
     """
 
     kind: str = "paper"
@@ -54,6 +56,7 @@ class ControllerConfig:
     backup_check_steps: float = setting(float("inf"), valid="count_or_inf")
     backup_tries_on_brake: float = setting(2.0, valid="count_or_inf")
     backup_retreats: bool = True
+    backup_hold: float = setting(0.0, valid="nonnegative", unit="s")
 
     def __post_init__(self) -> None:
         check_fields(self, "controller")

@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 
 from qpctl.constraints.constraints import TorqueLimit
-from qpctl.safety.oracle import BRAKE_GAINS
+from qpctl.safety.oracle import BRAKE_GAINS, REST_SPEED
 from qpctl.safety.retreat import RETRY_TICKS, Retreat, search
 from qpctl.safety.rollout import BrakeRollout
 from qpctl.tick import WorldClearance
@@ -76,7 +76,7 @@ class BackupGuard:
 
     def __init__(self, controller: Any, dt: float, *, check_distance: float = np.inf, margin: float = 0.0,
                  horizon: float = 3.0, gains: tuple[float, ...] = GUARD_GAINS, check_steps: float = np.inf,
-                 tries_on_brake: float = 2, retreats: bool = True) -> None:
+                 tries_on_brake: float = 2, retreats: bool = True, hold: float = 0.0) -> None:
         self.controller = controller
         self.dt, self.check_distance, self.margin, self.horizon = float(dt), float(check_distance), float(margin), \
             float(horizon)
@@ -87,7 +87,8 @@ class BackupGuard:
         self.tries_on_brake = float(tries_on_brake)  # the same while the last tick applied the stored brake
         self.retreats = bool(retreats)  # step 3 searches a retreat where no brake verifies
         self.world = WorldClearance(controller.robot, controller.obstacles)  # obstacles only: no self pairs
-        self.brake = BrakeRollout(controller.robot, self.world, self.dt)
+        self.hold = float(hold)  # [s] a rest must stay clear of the drifting obstacles this long (0: not tested)
+        self.brake = BrakeRollout(controller.robot, self.world, self.dt, self.hold)
         self._limit = next((c for c in getattr(controller, "constraints", []) if isinstance(c, TorqueLimit)), None)
         self.stats: dict[str, Any] = {"checked": 0, "backup": 0, "unverified": 0, "out_of_steps": 0, "check_us": [],
                                       "check_steps": [], "retreat_searches": 0,
@@ -154,7 +155,7 @@ class BackupGuard:
             return cert
 
         rest = self.brake.rest
-        found = search(run, self.controller.robot, q, t, self.dt, rest.rho, lambda x: rest.clear(x, self.margin))
+        found = search(run, self.controller.robot, q, t, self.dt, rest.rho, lambda x: rest.clear(x, self.margin, t))
         return ((gain, found[0]) if found is not None else None), spent
 
     def check(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float, info: dict[str, Any]) -> np.ndarray:
@@ -174,6 +175,15 @@ class BackupGuard:
             self._gain, self._retreat = found
             self._note_retreat(info)
             return tau
+        if self._gain is not None and self.brake.rest.drifts and np.all(np.abs(v) <= REST_SPEED):
+            # at rest the stored stop's rest moves on with the time, and so does the window over which it must
+            # clear the drifting obstacles (hold): re-verified from this very state, else forgotten (step 3)
+            cert = self.brake.run(q, v, self._tau_prev, t, self._gain, horizon=self.horizon, margin=self.margin,
+                                  stop_below=self.margin, exact=self.exact, retreat=self._retreat)
+            spent += cert.steps
+            if not cert.viable:
+                self._gain, self._retreat = None, None
+                info["backup_rest_refuted"] = True
         if self._gain is None:  # nothing stored: is the state itself verified? (step 3, no step limit)
             found, more, _ = self._first_verified(q, v, self._tau_prev, t)
             spent += more

@@ -63,11 +63,12 @@ def brake_torque(robot: Any, data: pin.Data, q: np.ndarray, v: np.ndarray, tau_p
 
 def rollout(sim: Simulator, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, *,
             horizon: float = 3.0, margin: float = 0.0, stop_below: float = -np.inf,
-            retreat: Retreat | None = None) -> Certificate:
+            retreat: Retreat | None = None, hold: float = 0.0) -> Certificate:
     """The brake of gain κ from (q [rad], q̇ [rad/s], τ_prev [N·m]) at t [s] in ``sim`` (its robot, dt,
     obstacles); it stops early once the clearance is below ``stop_below`` [m]. Viable: at rest with the
     clearance above ``margin`` [m] all along and every joint within its limits. With a ``retreat``, the
-    retreat that brakes at gain κ once it stops steering (:mod:`qpctl.safety.retreat`)."""
+    retreat that brakes at gain κ once it stops steering (:mod:`qpctl.safety.retreat`). ``hold`` [s]: how
+    long after the rest the drifting obstacles must stay clear of it (0: not tested)."""
     robot, dt = sim.robot, sim.dt
     data = robot.model.createData()
     sim.reset(q, v)
@@ -88,8 +89,8 @@ def rollout(sim: Simulator, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, 
         steering = retreat is not None and retreat.steering(tk)  # a retreat's rest is its brake's
         still = still + dt if np.all(np.abs(vv) <= REST_SPEED) and not steering else 0.0
         if still >= REST_TIME:
-            return Certificate(limits_ok and worst > margin and rest_clear(sim, qq, vv, gain, margin), gain, worst,
-                               k * dt, k)
+            return Certificate(limits_ok and worst > margin and rest_clear(sim, qq, vv, gain, margin, tk, hold), gain,
+                               worst, k * dt, k)
         tau = brake_torque(robot, data, qq, vv, tau, gain, dt, retreat, tk)
         sim.apply(tau)
         sim.step(tk)
@@ -98,20 +99,22 @@ def rollout(sim: Simulator, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, 
     return Certificate(False, gain, worst, np.inf, steps)
 
 
-def rest_clear(sim: Simulator, q: np.ndarray, v: np.ndarray, gain: float, margin: float) -> bool:
+def rest_clear(sim: Simulator, q: np.ndarray, v: np.ndarray, gain: float, margin: float, t: float = 0.0,
+               hold: float = 0.0) -> bool:
     """The rest test (:meth:`qpctl.safety.sweep.RestClearance.verifies`) of a brake of gain κ at rest at
     (q [rad], q̇ [rad/s]) in ``sim``'s world, its :class:`~qpctl.safety.sweep.RestClearance` kept on
     ``sim``: each joint's stop within its limits, the static obstacles and every swaying obstacle's whole
-    sweep cleared by ``margin`` [m] plus the stop's creep."""
+    sweep cleared by ``margin`` [m] plus the stop's creep (and the drifting obstacles over ``hold`` [s]
+    after t [s])."""
     rest = getattr(sim, "_rest_clearance", None)
-    if rest is None:
-        rest = sim._rest_clearance = RestClearance(sim.robot, sim.obstacles)  # type: ignore[attr-defined]
-    return rest.verifies(q, v, gain, margin)
+    if rest is None or rest.hold != hold:
+        rest = sim._rest_clearance = RestClearance(sim.robot, sim.obstacles, hold)  # type: ignore[attr-defined]
+    return rest.verifies(q, v, gain, margin, t)
 
 
 def certify(controller: Any, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, dt: float, *,
             gains: tuple[float, ...] = BRAKE_GAINS, horizon: float = 3.0, margin: float = 0.0,
-            retreats: Sequence[tuple[Retreat, float]] = ()) -> Certificate:
+            retreats: Sequence[tuple[Retreat, float]] = (), hold: float = 0.0) -> Certificate:
     """The first brake of the family that the built-in simulator (``controller``'s robot and obstacles,
     step ``dt`` [s]) verifies from this state, then the first of the proposed ``retreats`` ((retreat,
     the gain it brakes with) — from anywhere, e.g. the guard's stored one: the rollout here is the
@@ -120,7 +123,8 @@ def certify(controller: Any, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray,
     best: Certificate | None = None
     tries = [(g, None) for g in gains] + [(g, r) for r, g in retreats]
     for g, r in tries:
-        c = rollout(sim, q, v, tau_prev, t, g, horizon=horizon, margin=margin, stop_below=margin, retreat=r)
+        c = rollout(sim, q, v, tau_prev, t, g, horizon=horizon, margin=margin, stop_below=margin, retreat=r,
+                    hold=hold)
         if c.viable:
             return c
         if best is None or c.min_clearance > best.min_clearance:

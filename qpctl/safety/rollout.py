@@ -64,9 +64,11 @@ class BrakeRollout:
         robot: the controller's :class:`~qpctl.robot.RobotModel` (its model, limits, capsules).
         world: the exact world clearance (a simulator's ``world``; its obstacles move with t).
         dt: the step [s] (the run's: the guarantee is about the simulator's own integration).
+        hold: [s] how long after its rest a stop must stay clear of the drifting obstacles
+            (:class:`~qpctl.safety.sweep.RestClearance`; 0: not tested).
     """
 
-    def __init__(self, robot: Any, world: WorldClearance, dt: float) -> None:
+    def __init__(self, robot: Any, world: WorldClearance, dt: float, hold: float = 0.0) -> None:
         self.robot, self.world, self.dt = robot, world, float(dt)
         model = robot.model
         self.model, self.data = model, model.createData()
@@ -88,7 +90,7 @@ class BrakeRollout:
         self.obstacle_speed = max((float(np.linalg.norm(o.velocity) + 2 * np.pi * o.frequency * np.linalg.norm(o.amplitude))
                                    for o in world.ws.obstacles), default=0.0)
         self.native: NativeBrake | None = NativeBrake.create(self) if not self.lie else None
-        self.rest = RestClearance(robot, world.ws.obstacles)  # the rest test (qpctl.safety.sweep)
+        self.rest = RestClearance(robot, world.ws.obstacles, hold)  # the rest test (qpctl.safety.sweep)
 
     def torque(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, gain: float, retreat: Retreat | None = None,
                t: float = 0.0) -> np.ndarray:
@@ -175,7 +177,8 @@ class BrakeRollout:
             steering = retreat is not None and retreat.steering(tk)  # a retreat's rest is its brake's
             still = still + dt if code == K.AT_REST and not steering else 0.0
             if still >= REST_TIME:
-                return Certificate(worst > margin and self.rest.verifies(qq, vv, gain, margin), gain, worst, k * dt, k)
+                return Certificate(worst > margin and self.rest.verifies(qq, vv, gain, margin, t + k * dt), gain, worst,
+                                   k * dt, k)
             self.torque(qq, vv, prev, gain, retreat, tk)
             prev[:] = self.tau
             self.step(qq, vv)
@@ -239,6 +242,6 @@ class NativeBrake:
         if answer == FAILED:
             return Certificate(False, gain, worst, np.inf, k)
         if answer == AT_REST_END:
-            return Certificate(worst > margin and self.owner.rest.verifies(qq, vv, gain, margin), gain, worst, k * dt,
-                               k)
+            return Certificate(worst > margin and self.owner.rest.verifies(qq, vv, gain, margin, t + k * dt), gain,
+                               worst, k * dt, k)
         return Certificate(False, gain, worst, np.inf, steps)

@@ -33,7 +33,7 @@ its limits; soak-panda-600 of the fresh set crept past one after its rest).
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -91,33 +91,62 @@ def swaying(o: Obstacle) -> bool:
     return bool(np.any(o.amplitude) and o.frequency > 0 and not np.any(o.velocity))
 
 
+def above(at: Callable[[float], float], a: float, b: float, lipschitz: float, margin: float) -> bool:
+    """True if g = ``at`` stays above ``margin`` over [a, b], proved with g's Lipschitz constant L (module
+    docstring): g ≥ (g(a) + g(b))/2 − L(b − a)/2 on an interval; intervals above are done, the others
+    halved; a sample at or below refutes, and so does an interval whose bound is still below once
+    L(b − a) ≤ :data:`TOLERANCE`."""
+    lo, hi = at(a), at(b)
+    if min(lo, hi) <= margin:
+        return False
+    stack = [(a, lo, b, hi)]
+    while stack:
+        a, ga, b, gb = stack.pop()
+        if 0.5 * (ga + gb) - 0.5 * lipschitz * (b - a) > margin:
+            continue
+        if lipschitz * (b - a) <= TOLERANCE:
+            return False
+        m = 0.5 * (a + b)
+        gm = at(m)
+        if gm <= margin:
+            return False
+        stack += [(a, ga, m, gm), (m, gm, b, gb)]
+    return True
+
+
 class RestClearance:
     """The rest test of a robot in a world (module docstring): each joint's stop within its limits, and
-    the static obstacles and the swaying obstacles' whole sweeps cleared by the stop's creep."""
+    the static obstacles and the swaying obstacles' whole sweeps cleared by the stop's creep; with
+    ``hold`` [s] > 0 the drifting obstacles too, over the ``hold`` seconds after the rest."""
 
-    def __init__(self, robot: Any, obstacles: Sequence[Obstacle]) -> None:
+    def __init__(self, robot: Any, obstacles: Sequence[Obstacle], hold: float = 0.0) -> None:
         self.rho = lever_arms(robot)  # None: no creep bound (joints that are not revolute)
         self.q_min, self.q_max = robot.q_min, robot.q_max
         static = [o for o in obstacles if not o.moving]
         self.static = WorldClearance(robot, static) if static else None
         self.sweeps = [(WorldClearance(robot, [o]), float(np.linalg.norm(o.amplitude)), 2 * math.pi * o.frequency)
                        for o in obstacles if swaying(o)]
+        self.hold = float(hold)
+        self.drifts = [(WorldClearance(robot, [o]), float(np.linalg.norm(o.velocity)
+                                                         + 2 * math.pi * o.frequency * np.linalg.norm(o.amplitude)))
+                       for o in obstacles if o.moving and not swaying(o)] if self.hold > 0 else []
 
     def __bool__(self) -> bool:
-        return self.static is not None or bool(self.sweeps)
+        return self.static is not None or bool(self.sweeps) or bool(self.drifts)
 
-    def verifies(self, q: np.ndarray, v: np.ndarray, gain: float, margin: float) -> bool:
-        """True if a brake of gain κ [1/s] at rest at (q [rad], q̇ [rad/s]) may end there: on a robot of
-        revolute joints each joint's stop within its limits (:func:`stops_within`), and the arm clear of
-        the static obstacles and the sweeps by ``margin`` [m] plus its creep (:meth:`clear`)."""
+    def verifies(self, q: np.ndarray, v: np.ndarray, gain: float, margin: float, t: float = 0.0) -> bool:
+        """True if a brake of gain κ [1/s] at rest at (q [rad], q̇ [rad/s]) at t [s] may end there: on a
+        robot of revolute joints each joint's stop within its limits (:func:`stops_within`), and the arm
+        clear of the static obstacles, the sweeps and (``hold`` > 0) the drifting obstacles' next
+        ``hold`` seconds by ``margin`` [m] plus its creep (:meth:`clear`)."""
         if self.rho is not None and not stops_within(q, v, gain, self.q_min, self.q_max):
             return False
-        return not self or self.clear(q, margin + creep(self.rho, v, gain))
+        return not self or self.clear(q, margin + creep(self.rho, v, gain), t)
 
-    def clear(self, q: np.ndarray, margin: float) -> bool:
-        """True if the arm at rest at q [rad] clears the static obstacles and every swaying obstacle's
-        whole sweep by more than ``margin`` [m] (the sweeps proved by the Lipschitz bound; module
-        docstring)."""
+    def clear(self, q: np.ndarray, margin: float, t: float = 0.0) -> bool:
+        """True if the arm at rest at q [rad] from t [s] on clears the static obstacles, every swaying
+        obstacle's whole sweep and (``hold`` > 0) every drifting obstacle over [t, t + hold] by more than
+        ``margin`` [m] (the moving ones proved by the Lipschitz bound: :func:`above`)."""
         if self.static is not None and self.static(q, 0.0) <= margin:
             return False
         for world, amp, omega in self.sweeps:
@@ -126,21 +155,12 @@ class RestClearance:
             def at(s: float, world: WorldClearance = world, omega: float = omega) -> float:
                 return world.at(math.asin(s) / omega)
 
-            lo, hi = at(-1.0), at(1.0)
-            if min(lo, hi) <= margin:
+            if not above(at, -1.0, 1.0, amp, margin):
                 return False
-            stack = [(-1.0, lo, 1.0, hi)]
-            while stack:
-                a, ga, b, gb = stack.pop()
-                if 0.5 * (ga + gb) - 0.5 * amp * (b - a) > margin:
-                    continue
-                if amp * (b - a) <= TOLERANCE:
-                    return False
-                m = 0.5 * (a + b)
-                gm = at(m)
-                if gm <= margin:
-                    return False
-                stack += [(a, ga, m, gm), (m, gm, b, gb)]
+        for world, speed in self.drifts:  # the clearance changes at most at the obstacle's speed bound
+            world.pose(q)
+            if not above(world.at, t, t + self.hold, speed, margin):
+                return False
         return True
 
 
