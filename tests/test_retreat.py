@@ -276,3 +276,21 @@ def test_a_drifting_obstacle_is_left_when_the_rest_must_clear_it_for_a_hold(hold
         hint = [(Retreat(tuple(shown[0]), shown[1], shown[2]), shown[3])] if shown else []
         assert certify(hold_ctrl, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), DT, retreats=hint,
                        hold=hold - DT).viable, tr.t[k]
+
+
+def test_where_no_retreat_escapes_a_drifting_obstacle_the_arm_keeps_its_stop():
+    """A sphere drifting at the planar arm's base at 0.2 m/s (it reaches the ball every configuration fills
+    at about 3.3 s): with a 2 s hold the resting arm's stop is refuted from about 1.3 s on and no retreat
+    clears the sphere's path, so the guard keeps the arm on its stop — verified as it is without a hold —
+    and says so (``backup_hold_lapsed``) rather than applying the proposal unverified."""
+    robot = arm()
+    o = Obstacle("sphere", [0.0, 0.8], radius=0.1, velocity=[0.0, -0.2])
+    hold_ctrl = Hold(robot, [o])
+    guard = BackupGuard(hold_ctrl, DT, hold=2.0)
+    guard.warmup()
+    tr = Simulator(guard, dt=DT, duration=1.6).run(Q)
+    m = compute_metrics(tr)
+    assert m["backup_unverified_ticks"] == 0 and not m["collided"]
+    lapsed = [t for t, i in zip(tr.t, tr.infos, strict=False) if i.get("backup_hold_lapsed")]
+    assert m["backup_hold_lapsed_ticks"] == len(lapsed) > 0 and 1.0 < lapsed[0] < 1.5
+    assert guard.stats["retreat_searches"] > 0 and guard.stats["retreats_found"] == 0

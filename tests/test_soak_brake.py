@@ -76,6 +76,7 @@ def guarded_run(raw: dict[str, Any], oracle_every: int = ORACLE_EVERY,
         "retreat_ticks": m.get("backup_retreat_ticks", 0),
         "unverified": m.get("backup_unverified_ticks", 0), "check_us": ctrl.stats["check_us"] if backup else [],
         "unverified_t": [float(t) for t, i in zip(tr.t, tr.infos, strict=False) if i.get("backup_unverified")],
+        "lapsed_t": [float(t) for t, i in zip(tr.t, tr.infos, strict=False) if i.get("backup_hold_lapsed")],
         "dt": dt, "hold": float(getattr(ctrl, "hold", 0.0)) if backup else 0.0,
         "out_of_steps": m.get("backup_out_of_steps_ticks", 0),
         "tick_us": [float(i.get("backup_check_us", 0.0)) for i in tr.infos] if backup else [],
@@ -124,8 +125,10 @@ def unexplained_uncertified(row: dict[str, Any]) -> list[float]:
     after ``first_contact_t − REST_TIME``."""
     dt, hit = row["dt"], row.get("first_contact_t")
     led = {round(u / dt) + 1 for u in row["unverified_t"]}  # the states' indices
-    if row.get("hold"):  # at rest the window over the drifting obstacles slides: a state is claimed by its own tick
-        led |= {round(u / dt) for u in row["unverified_t"]}
+    if row.get("hold"):  # at rest the window over the drifting obstacles slides: a state is claimed by its own tick,
+        # and a tick whose stop no longer clears them for the hold (lapsed) claims only what a hold of 0 does
+        lapsed = row.get("lapsed_t", [])
+        led |= {round(u / dt) for u in row["unverified_t"] + lapsed} | {round(u / dt) + 1 for u in lapsed}
     return [t for t in row.get("oracle_uncertified") or []
             if round(t / dt) not in led and (hit is None or t < hit - REST_TIME - 1e-9)]
 

@@ -92,7 +92,7 @@ class BackupGuard:
         self._limit = next((c for c in getattr(controller, "constraints", []) if isinstance(c, TorqueLimit)), None)
         self.stats: dict[str, Any] = {"checked": 0, "backup": 0, "unverified": 0, "out_of_steps": 0, "check_us": [],
                                       "check_steps": [], "retreat_searches": 0,
-                                      "retreats_found": 0}
+                                      "retreats_found": 0, "hold_lapsed": 0}
         self._reset_backup()
 
     def __getattr__(self, name: str) -> Any:
@@ -175,6 +175,7 @@ class BackupGuard:
             self._gain, self._retreat = found
             self._note_retreat(info)
             return tau
+        lapsed: tuple[float, Retreat | None] | None = None
         if self._gain is not None and self.brake.rest.drifts and np.all(np.abs(v) <= REST_SPEED):
             # at rest the stored stop's rest moves on with the time, and so does the window over which it must
             # clear the drifting obstacles (hold): re-verified from this very state, else forgotten (step 3)
@@ -182,6 +183,7 @@ class BackupGuard:
                                   stop_below=self.margin, exact=self.exact, retreat=self._retreat)
             spent += cert.steps
             if not cert.viable:
+                lapsed = self._gain, self._retreat
                 self._gain, self._retreat = None, None
                 info["backup_rest_refuted"] = True
         if self._gain is None:  # nothing stored: is the state itself verified? (step 3, no step limit)
@@ -196,6 +198,10 @@ class BackupGuard:
             self._search_wait -= 1
             if found is not None:
                 self._gain, self._retreat = found
+            elif lapsed is not None:  # no retreat either: the arm stays on its stop, verified as with no hold
+                self._gain, self._retreat = lapsed
+                info["backup_hold_lapsed"] = True
+                self.stats["hold_lapsed"] += 1
         self.stats["check_steps"].append(spent)
         if self._gain is None:
             self.stats["unverified"] += 1

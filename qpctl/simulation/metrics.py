@@ -41,7 +41,8 @@ def backup_metrics(infos: list[dict[str, Any]]) -> dict[str, Any]:
             "backup_unverified_ticks": sum(bool(i.get("backup_unverified")) for i in infos),
             "backup_check_us_median": float(np.median(us)) if us else 0.0,
             "backup_check_us_p99": float(np.percentile(us, 99)) if us else 0.0,
-            "backup_out_of_steps_ticks": sum(bool(i.get("backup_out_of_steps")) for i in infos)}
+            "backup_out_of_steps_ticks": sum(bool(i.get("backup_out_of_steps")) for i in infos),
+            "backup_hold_lapsed_ticks": sum(bool(i.get("backup_hold_lapsed")) for i in infos)}
 
 
 def rms_jerk(t: np.ndarray, v: np.ndarray) -> np.ndarray:
