@@ -217,7 +217,7 @@ def test_backup_retreats_and_hold_are_scenario_keys():
     with pytest.raises(ConfigError) as exc:
         Scenario.load("paper", overrides=[*on, "controller.backup_retreats=3"])
     assert exc.value.key == "controller.backup_retreats"
-    assert Scenario.load("paper", overrides=on).build_controller().hold == 0.0
+    assert Scenario.load("paper", overrides=on).build_controller().hold == 2.0
     assert Scenario.load("paper", overrides=[*on, "controller.backup_hold=2.5"]).build_controller().hold == 2.5
     with pytest.raises(ConfigError) as exc:
         Scenario.load("paper", overrides=[*on, "controller.backup_hold=-1"])

@@ -39,7 +39,7 @@ class ControllerConfig:
     backup_retreats: where no brake verifies from the state itself (a start inside a swaying obstacle's
     sweep), search a retreat to a rest clear of the sweeps (:mod:`qpctl.safety.retreat`; true, the default);
     backup_hold [s]: how long after its rest a brake's stop must stay clear of the drifting obstacles
-    (their scene-given motion), re-verified every tick the arm rests (0, the default: not tested).
+    (their scene-given motion), re-verified every tick the arm rests (2, the default; 0: not tested).
     """
 
     kind: str = "paper"
@@ -56,7 +56,7 @@ class ControllerConfig:
     backup_check_steps: float = setting(float("inf"), valid="count_or_inf")
     backup_tries_on_brake: float = setting(2.0, valid="count_or_inf")
     backup_retreats: bool = True
-    backup_hold: float = setting(0.0, valid="nonnegative", unit="s")
+    backup_hold: float = setting(2.0, valid="nonnegative", unit="s")
 
     def __post_init__(self) -> None:
         check_fields(self, "controller")

@@ -28,6 +28,11 @@ then, where the world clearance (exact, every pair: :class:`qpctl.tick.WorldClea
    torque applied (``info["backup"]``: its gain; ``info["backup_retreat"]``: the retreat stored after
    the tick, on every tick it stays stored), else τ is applied unverified (``info["backup_unverified"]``).
    A stored retreat is what a proposal's successor is rolled out with first, as a stored gain is.
+4. with ``hold`` [s] (default 2) a rest must also clear every drifting obstacle over the ``hold`` seconds
+   after it (:class:`qpctl.safety.sweep.RestClearance`); that window slides with the time, so while the
+   arm rests the stored stop is re-verified from each state, and when it is refuted step 3 runs (a
+   retreat out of the obstacle's way) — or, where nothing verifies, the stop is kept
+   (``info["backup_hold_lapsed"]``: verified as it is with no hold, not for the hold).
 
 Beyond ``check_distance`` τ is applied unchecked and the stored brake forgotten. **What is proved**
 (exact model: the built-in simulator's RK4 at the guard's Δt; obstacles static or moving as the scene
@@ -76,7 +81,7 @@ class BackupGuard:
 
     def __init__(self, controller: Any, dt: float, *, check_distance: float = np.inf, margin: float = 0.0,
                  horizon: float = 3.0, gains: tuple[float, ...] = GUARD_GAINS, check_steps: float = np.inf,
-                 tries_on_brake: float = 2, retreats: bool = True, hold: float = 0.0) -> None:
+                 tries_on_brake: float = 2, retreats: bool = True, hold: float = 2.0) -> None:
         self.controller = controller
         self.dt, self.check_distance, self.margin, self.horizon = float(dt), float(check_distance), float(margin), \
             float(horizon)
