@@ -7,10 +7,13 @@ period, for ever. A brake that brings the arm to rest within reach of that sweep
 obstacle, only postponed it: the oracle's rollout ends 50 ms after rest, and the obstacle comes later
 (four of the five contacts at rest of the soak's 60 scenes before this check). So a rollout that ends at rest
 is verified only if the arm at rest clears every swaying obstacle at every s by more than the margin:
-:class:`RestClearance` decides it. Obstacles that drift (velocity ≠ 0) go on for ever and are followed over
-the rollout only, as before: an arm at rest in a drifting obstacle's path is still struck later.
+:class:`RestClearance` decides it. Obstacles that drift (velocity ≠ 0) go on for ever: with ``hold`` H > 0
+(the guard's ``backup_hold``) the arm at rest from t must clear each over [t, t + H] (the same decision
+over time, the clearance being Lipschitz in t with the obstacle's speed bound |v| + 2πf|A|), else they
+are followed over the rollout only and an arm at rest in a drifting obstacle's path is struck later.
+:func:`fixed_part` is where no rest can be: the part of space every configuration fills.
 
-**The decision** (:meth:`RestClearance.clear`): g(s), the world clearance between the arm at rest at q
+**The decision** (:meth:`RestClearance.clear`, :func:`above`): g(s), the world clearance between the arm at rest at q
 and the obstacle at p₀ + sA (:class:`qpctl.tick.WorldClearance` at the time arcsin(s)/(2πf)), is
 |A|-Lipschitz in s (the clearance is 1-Lipschitz in the obstacle's position). On an interval [a, b]
 with g(a), g(b) known, g ≥ (g(a) + g(b))/2 − |A|(b − a)/2 (the two cones' meeting point); intervals
