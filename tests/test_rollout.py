@@ -153,7 +153,7 @@ def test_lever_arms_bound_every_capsule_points_motion(which, rng):
     """Σρᵢ|dqᵢ| bounds how far any capsule point moves between two configurations (Pinocchio's
     forward kinematics at 200 random pairs, each capsule's ends and midpoint), and is not loose by
     more than 3× on the worst pair of a small step."""
-    from qpctl.safety.rollout import lever_arms
+    from qpctl.safety.sweep import lever_arms
 
     robot = planar_arm() if which == "planar" else panda()
     rho = lever_arms(robot)

@@ -47,7 +47,7 @@ import qpctl.native
 from qpctl.kernels import rollout as K
 from qpctl.safety.oracle import REST_SPEED, REST_TIME, Certificate
 from qpctl.safety.retreat import Retreat
-from qpctl.safety.sweep import RestClearance, lever_arms
+from qpctl.safety.sweep import RestClearance
 from qpctl.tick import WorldClearance
 
 # qpb_advance's io block (brake_rollout.cpp's IO_* order) and answers
@@ -85,12 +85,12 @@ class BrakeRollout:
         self._kq_rows = [self._kq[i] for i in range(4)]  # the stages' velocities, as Pinocchio's arguments
         self.travel = 0.0
         self.fused = not self.lie  # the stages in two kernel calls (False: one call per operation, as before)
-        self.rho = lever_arms(robot)  # None: a joint that is not revolute
+        self.rest = RestClearance(robot, world.ws.obstacles, hold)  # the rest test (qpctl.safety.sweep)
+        self.rho = self.rest.rho  # lever_arms(robot); None: a joint that is not revolute
         self._rho = self.rho if self.rho is not None else np.zeros(n)
         self.obstacle_speed = max((float(np.linalg.norm(o.velocity) + 2 * np.pi * o.frequency * np.linalg.norm(o.amplitude))
                                    for o in world.ws.obstacles), default=0.0)
         self.native: NativeBrake | None = NativeBrake.create(self) if not self.lie else None
-        self.rest = RestClearance(robot, world.ws.obstacles, hold)  # the rest test (qpctl.safety.sweep)
 
     def torque(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, gain: float, retreat: Retreat | None = None,
                t: float = 0.0) -> np.ndarray:
