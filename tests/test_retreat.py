@@ -21,7 +21,7 @@ from qpctl.errors import ConfigError
 from qpctl.geometry.distance import DistanceEngine
 from qpctl.safety import BackupGuard, certify, rollout
 from qpctl.safety.backup import GuardedOutput
-from qpctl.safety.retreat import OMEGAS, RETRY_TICKS, SETTLE, Retreat, switch_time, targets
+from qpctl.safety.retreat import OMEGAS, RETRY_TICKS, SETTLE, Retreat, shown, switch_time, targets
 from qpctl.safety.rollout import BrakeRollout
 from qpctl.safety.sweep import RestClearance, lever_arms
 from qpctl.simulation import Simulator
@@ -160,15 +160,13 @@ def test_a_start_inside_a_sweep_is_left_by_a_verified_retreat(retreats):
         assert m["backup_unverified_ticks"] > 0 and m["collided"]
         return
     assert m["backup_unverified_ticks"] == 0 and not m["collided"] and guard.stats["retreats_found"] >= 1
-    first = tr.infos[0]["backup_retreat"]
-    r = Retreat(tuple(first[0]), first[1], first[2])
+    [(r, gain)] = shown(tr.infos[0])
     assert r.omega in OMEGAS and capsule_clearance(robot, r.q, o) > 0
-    assert certify(hold, Q, np.zeros(3), gravity * np.nan, 0.0, DT, retreats=[(r, first[3])]).viable
+    assert certify(hold, Q, np.zeros(3), gravity * np.nan, 0.0, DT, retreats=[(r, gain)]).viable
     # every 10th visited state certified by the oracle, shown the retreat the guard held (if any)
     for k in range(10, len(tr.t), 10):
-        shown = tr.infos[k - 1].get("backup_retreat")
-        hint = [(Retreat(tuple(shown[0]), shown[1], shown[2]), shown[3])] if shown else []
-        assert certify(hold, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), DT, retreats=hint).viable, tr.t[k]
+        assert certify(hold, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), DT,
+                       retreats=shown(tr.infos[k - 1])).viable, tr.t[k]
 
 
 def test_a_hopeless_start_is_searched_every_tenth_tick():
@@ -272,10 +270,8 @@ def test_a_drifting_obstacle_is_left_when_the_rest_must_clear_it_for_a_hold(hold
     assert not m["collided"] and m["backup_retreat_ticks"] > 0
     assert any(i.get("backup_rest_refuted") for i in tr.infos)
     for k in range(10, len(tr.t), 10):
-        shown = tr.infos[k - 1].get("backup_retreat")
-        hint = [(Retreat(tuple(shown[0]), shown[1], shown[2]), shown[3])] if shown else []
-        assert certify(hold_ctrl, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), DT, retreats=hint,
-                       hold=hold - DT).viable, tr.t[k]
+        assert certify(hold_ctrl, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), DT,
+                       retreats=shown(tr.infos[k - 1]), hold=hold - DT).viable, tr.t[k]
 
 
 def test_where_no_retreat_escapes_a_drifting_obstacle_the_arm_keeps_its_stop():

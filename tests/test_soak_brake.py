@@ -31,7 +31,7 @@ from qpctl import Scenario
 from qpctl.safety import certify
 from qpctl.safety.backup import GUARD_GAINS
 from qpctl.safety.oracle import REST_TIME
-from qpctl.safety.retreat import Retreat
+from qpctl.safety.retreat import shown
 from qpctl.simulation import Simulator
 from qpctl.simulation.metrics import compute_metrics, contact_onsets
 
@@ -104,13 +104,6 @@ def guarded_run(raw: dict[str, Any], oracle_every: int = ORACLE_EVERY,
                                                           hold=hold).viable]
         row.update(oracle_sampled=len(ks), oracle_uncertified=bad)
     return row
-
-
-def shown(info: dict[str, Any]) -> list[tuple[Retreat, float]]:
-    """The retreat the guard had stored after a tick (``info["backup_retreat"]``), as the oracle's
-    proposal for the state that tick led to: the oracle's own rollout decides (an empty list: none)."""
-    r = info.get("backup_retreat")
-    return [(Retreat(tuple(r[0]), r[1], r[2]), r[3])] if r is not None else []
 
 
 def unexplained_uncertified(row: dict[str, Any]) -> list[float]:

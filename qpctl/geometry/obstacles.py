@@ -93,6 +93,11 @@ class Obstacle:
         w = 2 * np.pi * self.frequency
         return self.position + self.velocity * t + self.amplitude * np.sin(w * t)
 
+    @property
+    def speed_bound(self) -> float:
+        """[m/s] a bound on the centre's speed at every time: |v| + 2πf|A|."""
+        return float(np.linalg.norm(self.velocity) + 2 * np.pi * self.frequency * np.linalg.norm(self.amplitude))
+
     def velocity_at(self, t: float) -> np.ndarray:
         """Velocity [m/s] at time t [s] (the obstacle translates; it does not rotate)."""
         w = 2 * np.pi * self.frequency

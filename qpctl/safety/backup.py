@@ -52,7 +52,7 @@ import numpy as np
 
 from qpctl.constraints.constraints import TorqueLimit
 from qpctl.safety.oracle import BRAKE_GAINS, REST_SPEED
-from qpctl.safety.retreat import RETRY_TICKS, Retreat, search
+from qpctl.safety.retreat import RETRY_TICKS, Retreat, noted, search
 from qpctl.safety.rollout import BrakeRollout
 from qpctl.tick import WorldClearance
 
@@ -225,9 +225,8 @@ class BackupGuard:
     def _note_retreat(self, info: dict[str, Any]) -> None:
         """``info["backup_retreat"]`` = (target [rad], ω [rad/s], t_s [s], gain [1/s]) while the stored
         backup is a retreat (what the state the tick leads to lies on: the oracle may be shown it)."""
-        if self._retreat is not None:
-            r = self._retreat
-            info["backup_retreat"] = (list(r.target), r.omega, r.until, self._gain)
+        if self._retreat is not None and self._gain is not None:
+            info["backup_retreat"] = noted(self._retreat, self._gain)
 
     def step(self, q: np.ndarray, v: np.ndarray, t: float) -> Any:
         out = self.controller.step(q, v, t)

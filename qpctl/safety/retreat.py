@@ -76,6 +76,18 @@ class Retreat:
         return out
 
 
+def noted(retreat: Retreat, gain: float) -> tuple[list[float], float, float, float]:
+    """The retreat braking at ``gain`` [1/s] as a tick's ``info["backup_retreat"]``: (target, ω, t_s, gain)."""
+    return list(retreat.target), retreat.omega, retreat.until, gain
+
+
+def shown(info: dict[str, Any]) -> list[tuple[Retreat, float]]:
+    """The retreat a tick's ``info`` notes (:func:`noted`), as the oracle's proposal ``[(retreat, gain)]``
+    for the state the tick led to; [] where the tick held none."""
+    r = info.get("backup_retreat")
+    return [(Retreat(tuple(r[0]), r[1], r[2]), r[3])] if r is not None else []
+
+
 def switch_time(t: float, dt: float, omega: float) -> float:
     """t_s for a retreat started at t [s] with ticks every dt [s]: SETTLE/ω later, moved to the middle
     between two ticks (module docstring)."""

@@ -88,9 +88,16 @@ class BrakeRollout:
         self.rest = RestClearance(robot, world.ws.obstacles, hold)  # the rest test (qpctl.safety.sweep)
         self.rho = self.rest.rho  # lever_arms(robot); None: a joint that is not revolute
         self._rho = self.rho if self.rho is not None else np.zeros(n)
-        self.obstacle_speed = max((float(np.linalg.norm(o.velocity) + 2 * np.pi * o.frequency * np.linalg.norm(o.amplitude))
-                                   for o in world.ws.obstacles), default=0.0)
+        self.obstacle_speed = max((o.speed_bound for o in world.ws.obstacles), default=0.0)
         self.native: NativeBrake | None = NativeBrake.create(self) if not self.lie else None
+
+    def at_rest(self, q: np.ndarray, v: np.ndarray, gain: float, worst: float, margin: float, t: float,
+                k: int) -> Certificate:
+        """The certificate of a rollout from t [s] at rest at step k, (q, q̇), its least clearance ``worst``
+        [m]: verified if the clearance stayed above ``margin`` [m] and the rest passes the rest test at its
+        time t + k·dt (both loops end here)."""
+        ok = worst > margin and self.rest.verifies(q, v, gain, margin, t + k * self.dt)
+        return Certificate(ok, gain, worst, k * self.dt, k)
 
     def torque(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, gain: float, retreat: Retreat | None = None,
                t: float = 0.0) -> np.ndarray:
@@ -177,8 +184,7 @@ class BrakeRollout:
             steering = retreat is not None and retreat.steering(tk)  # a retreat's rest is its brake's
             still = still + dt if code == K.AT_REST and not steering else 0.0
             if still >= REST_TIME:
-                return Certificate(worst > margin and self.rest.verifies(qq, vv, gain, margin, t + k * dt), gain, worst,
-                                   k * dt, k)
+                return self.at_rest(qq, vv, gain, worst, margin, t, k)
             self.torque(qq, vv, prev, gain, retreat, tk)
             prev[:] = self.tau
             self.step(qq, vv)
@@ -242,6 +248,5 @@ class NativeBrake:
         if answer == FAILED:
             return Certificate(False, gain, worst, np.inf, k)
         if answer == AT_REST_END:
-            return Certificate(worst > margin and self.owner.rest.verifies(qq, vv, gain, margin, t + k * dt), gain,
-                               worst, k * dt, k)
+            return self.owner.at_rest(qq, vv, gain, worst, margin, t, k)
         return Certificate(False, gain, worst, np.inf, steps)

@@ -28,8 +28,7 @@ rest is tested against the static obstacles and the sweeps with the margin raise
 brake; an assumption for the simulator's steps, docs/reliability.md) — so that the arm still clears
 them where the stop ends (the rollout watches the clearance only until the rest), and so that a
 rollout started later on the same stop (the oracle's, from a visited state) comes to the same verdict.
-Drifting obstacles are not in the test: where they go after the rest is not the stop's doing. The
-joint limits get the same test in joint space (:func:`stops_within`: each joint's end q + q̇/κ within
+Drifting obstacles are in the test only over the hold (above). The joint limits get the same test in joint space (:func:`stops_within`: each joint's end q + q̇/κ within
 its limits; soak-panda-600 of the fresh set crept past one after its rest).
 """
 
@@ -130,8 +129,7 @@ class RestClearance:
         self.sweeps = [(WorldClearance(robot, [o]), float(np.linalg.norm(o.amplitude)), 2 * math.pi * o.frequency)
                        for o in obstacles if swaying(o)]
         self.hold = float(hold)
-        self.drifts = [(WorldClearance(robot, [o]), float(np.linalg.norm(o.velocity)
-                                                         + 2 * math.pi * o.frequency * np.linalg.norm(o.amplitude)))
+        self.drifts = [(WorldClearance(robot, [o]), o.speed_bound)
                        for o in obstacles if o.moving and not swaying(o)] if self.hold > 0 else []
 
     def __bool__(self) -> bool:
