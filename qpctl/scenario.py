@@ -743,7 +743,7 @@ class Scenario:
         return BackupGuard(ctrl, self.data["sim"]["dt"], check_distance=c["backup_check_distance"],
                            margin=c["backup_margin"], check_steps=c["backup_check_steps"],
                            tries_on_brake=c["backup_tries_on_brake"], retreats=c["backup_retreats"],
-                           hold=c["backup_hold"])
+                           hold=c["backup_hold"], unverified=c["backup_unverified"])
 
     def to_toml(self, **changes: dict[str, Any]) -> str:
         """The validated scenario as a TOML file that :meth:`load` reads back to the same ``data``:

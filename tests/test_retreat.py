@@ -20,6 +20,7 @@ from qpctl.controllers.qp import QPConfig, QPController
 from qpctl.errors import ConfigError
 from qpctl.geometry.distance import DistanceEngine
 from qpctl.safety import BackupGuard, certify, rollout
+from qpctl.safety.oracle import BRAKE_GAINS, REST_SPEED
 from qpctl.safety.backup import GuardedOutput
 from qpctl.safety.retreat import OMEGAS, RETRY_TICKS, SETTLE, Retreat, shown, switch_time, targets
 from qpctl.safety.rollout import BrakeRollout
@@ -290,3 +291,72 @@ def test_where_no_retreat_escapes_a_drifting_obstacle_the_arm_keeps_its_stop():
     lapsed = [t for t, i in zip(tr.t, tr.infos, strict=False) if i.get("backup_hold_lapsed")]
     assert m["backup_hold_lapsed_ticks"] == len(lapsed) > 0 and 1.0 < lapsed[0] < 1.5
     assert guard.stats["retreat_searches"] > 0 and guard.stats["retreats_found"] == 0
+
+
+class Push(Hold):
+    """A controller that proposes to drive the arm toward ``target`` (a critically damped approach at
+    ``stiffness`` [1/s²], within the drives' torque and rate limits): its way runs through the swing."""
+
+    def __init__(self, robot, obstacles, target, stiffness):
+        super().__init__(robot, obstacles)
+        self.target, self.stiffness = np.asarray(target, float), float(stiffness)
+
+    def step(self, q, v, t):
+        out = self.inner.step(q, v, t)
+        lo, hi = self.limit.window(t)
+        a = self.stiffness * (self.target - q) - 2.0 * np.sqrt(self.stiffness) * v
+        tau = np.clip(pin.rnea(self.robot.model, self.data, q, v, a), lo, hi)
+        self.limit.remember(tau, t)
+        return GuardedOutput(out, tau, dict(out.info), float(out.compute_us))
+
+
+@pytest.mark.parametrize("unverified", ["stop", "proposal"])
+def test_where_nothing_verifies_every_contact_begins_at_rest(unverified):
+    """A sphere swaying down onto the planar arm's base (no rest clears its sweep: no tick verifies, no
+    retreat exists) and a controller that drives the first link up into its way. With the guard's
+    default (``unverified = "stop"``) the proposal is applied only while a brake from its successor
+    still comes to rest before a contact; every visited state before the contact is at rest or has
+    such a brake by the oracle's own Simulator-based rollout, and the sphere reaches the arm at rest.
+    Applying the proposal all the same (``"proposal"``, the guard before) the first link runs into the
+    sphere at over 0.5 rad/s, from states no brake stops in time."""
+    robot = arm()
+    o = Obstacle("sphere", [0.0, 0.6], radius=0.1, amplitude=[0.0, -0.55, 0.0], frequency=0.1)
+    ctrl = Push(robot, [o], [np.pi / 2, np.pi / 2, 0.0], stiffness=2.0)
+    guard = BackupGuard(ctrl, DT, unverified=unverified)
+    guard.warmup()
+    tr = Simulator(guard, dt=DT, duration=2.0).run(Q)
+    m = compute_metrics(tr)
+    onsets = contact_onsets(tr.clearance)
+    assert m["backup_unverified_ticks"] == m["ticks"] and guard.stats["retreats_found"] == 0
+    assert onsets.size >= 1
+    sim = Simulator(ctrl, dt=DT, duration=DT)
+
+    def stops(k):  # at rest, or a brake of the family comes to rest before any contact (the oracle's rollout)
+        if np.all(np.abs(tr.v[k]) <= REST_SPEED):
+            return True
+        return any(np.isfinite(c.t_rest) and c.min_clearance > 0.0
+                   for c in (rollout(sim, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), g, stop_below=0.0)
+                             for g in BRAKE_GAINS))
+
+    states = range(5, onsets[0] + 1, 5)
+    if unverified == "proposal":
+        assert m["backup_stop_ticks"] == 0 and m["collisions_at_rest"] == 0
+        assert np.abs(tr.v[onsets[0]]).max() > 0.5
+        assert not all(stops(k) for k in states)
+        return
+    moved = [k for k, i in enumerate(tr.infos) if "backup_stop" not in i]
+    assert m["backup_stop_ticks"] > 0 and len(moved) > 200  # the proposal applied for a while, then the stop
+    assert m["collisions_at_rest"] == onsets.size
+    assert all(stops(k) for k in states)
+
+
+def test_backup_unverified_is_a_scenario_key():
+    on = ["controller.backup=true"]
+    assert Scenario.load("paper", overrides=on).build_controller().unverified == "stop"
+    guard = Scenario.load("paper", overrides=[*on, "controller.backup_unverified=proposal"]).build_controller()
+    assert guard.unverified == "proposal"
+    with pytest.raises(ConfigError) as exc:
+        Scenario.load("paper", overrides=[*on, "controller.backup_unverified=brake"])
+    assert exc.value.key == "controller.backup_unverified"
+    with pytest.raises(ValueError):
+        BackupGuard(guard.controller, DT, unverified="brake")

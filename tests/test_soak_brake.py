@@ -74,7 +74,8 @@ def guarded_run(raw: dict[str, Any], oracle_every: int = ORACLE_EVERY,
         "first_contact_t": float(tr.t[onsets[0]]) if onsets.size else None,
         "checked": m.get("backup_checked_ticks", 0), "backup_ticks": m.get("backup_ticks", 0),
         "retreat_ticks": m.get("backup_retreat_ticks", 0),
-        "unverified": m.get("backup_unverified_ticks", 0), "check_us": ctrl.stats["check_us"] if backup else [],
+        "unverified": m.get("backup_unverified_ticks", 0), "stop_ticks": m.get("backup_stop_ticks", 0),
+        "check_us": ctrl.stats["check_us"] if backup else [],
         "unverified_t": [float(t) for t, i in zip(tr.t, tr.infos, strict=False) if i.get("backup_unverified")],
         "lapsed_t": [float(t) for t, i in zip(tr.t, tr.infos, strict=False) if i.get("backup_hold_lapsed")],
         "dt": dt, "hold": float(getattr(ctrl, "hold", 0.0)) if backup else 0.0,
@@ -183,6 +184,11 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
                                                 and r.get("held_start_contact_t") is not None],
         "unverified_ticks": sum(r["unverified"] for r in rows),
         "scenes_with_unverified_ticks": [r["name"] for r in rows if r["unverified"]],
+        # unverified ticks on which the arm kept its stop instead of the proposal (no brake from the proposal's
+        # successor came to rest before a contact), and the scenes in contact after such ticks: their contacts
+        # begin at rest by construction, and the controller alone might have dodged
+        "stop_ticks": sum(r.get("stop_ticks", 0) for r in rows),
+        "collided_after_unverified_stops": [r["name"] for r in rows if r["collided"] and r.get("stop_ticks")],
         "ticks": ticks, "checked_share": sum(r["checked"] for r in rows) / max(ticks, 1),
         "backup_share": sum(r["backup_ticks"] for r in rows) / max(ticks, 1),
         "retreat_ticks": sum(r.get("retreat_ticks", 0) for r in rows),

@@ -40,6 +40,9 @@ class ControllerConfig:
     sweep), search a retreat to a rest clear of the sweeps (:mod:`qpctl.safety.retreat`; true, the default);
     backup_hold [s]: how long after its rest a brake's stop must stay clear of the drifting obstacles
     (their scene-given motion), re-verified every tick the arm rests (2, the default; 0: not tested).
+    backup_unverified: what a tick with no verified backup applies — "stop" (the default): the proposal
+    only if a rollout from its successor comes to rest before any contact, else the stop the arm is on,
+    so that every contact begins at rest; "proposal": the proposal all the same.
     """
 
     kind: str = "paper"
@@ -57,6 +60,7 @@ class ControllerConfig:
     backup_tries_on_brake: float = setting(2.0, valid="count_or_inf")
     backup_retreats: bool = True
     backup_hold: float = setting(2.0, valid="nonnegative", unit="s")
+    backup_unverified: str = setting("stop", choices=("stop", "proposal"))
 
     def __post_init__(self) -> None:
         check_fields(self, "controller")

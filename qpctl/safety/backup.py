@@ -26,7 +26,13 @@ then, where the world clearance (exact, every pair: :class:`qpctl.tick.WorldClea
    steered toward and braked at, each rolled out the same way; after a search that found nothing, the
    next only ``RETRY_TICKS`` ticks later); the first verified is stored and its
    torque applied (``info["backup"]``: its gain; ``info["backup_retreat"]``: the retreat stored after
-   the tick, on every tick it stays stored), else τ is applied unverified (``info["backup_unverified"]``).
+   the tick, on every tick it stays stored), else the tick is unverified (``info["backup_unverified"]``):
+   τ is applied if one of its successor's rollouts came to rest without contact (failing the rest test
+   only: the stop is struck later, at rest), else the arm keeps *its stop* — the last such rollout's
+   brake (or retreat), from whose trajectory the state has not left (``info["backup_stop"]``: its gain;
+   ``unverified = "proposal"``: τ applied all the same, as before). So where no stop is verified the
+   arm can still always come to rest before a contact: every contact of a run begins at rest (the
+   title of issue 22; speed and separation monitoring's rule for a contact no stop avoids).
    A stored retreat is what a proposal's successor is rolled out with first, as a stored gain is.
 4. with ``hold`` [s] (default 2) a rest must also clear every drifting obstacle over the ``hold`` seconds
    after it (:class:`qpctl.safety.sweep.RestClearance`); that window slides with the time, so while the
@@ -37,7 +43,10 @@ then, where the world clearance (exact, every pair: :class:`qpctl.tick.WorldClea
 Beyond ``check_distance`` τ is applied unchecked and the stored brake forgotten. **What is proved**
 (exact model: the built-in simulator's RK4 at the guard's Δt; obstacles static or moving as the scene
 says): every state from a verified tick on admits a verified brake, so a run without an unverified tick
-has no contact: the states beyond ``check_distance`` are clear by the screen's own test, and at each
+has no contact; and with ``unverified = "stop"`` every state of a run admits a brake (or retreat) that
+comes to rest before any contact — the applied torque is a verified one, a proposal whose successor has
+such a stop, or the stop the state lies on —, so a contact can only begin once a stop has come to rest
+and the obstacle reaches the arm there (the soak's ``collisions_at_rest``): the states beyond ``check_distance`` are clear by the screen's own test, and at each
 return within it step 3 verifies the state before anything else. A screen that is too short can only
 cost an unverified tick, which the run counts (``stats["unverified"]``, the metrics'
 ``backup_unverified_ticks``).
@@ -81,7 +90,8 @@ class BackupGuard:
 
     def __init__(self, controller: Any, dt: float, *, check_distance: float = np.inf, margin: float = 0.0,
                  horizon: float = 3.0, gains: tuple[float, ...] = GUARD_GAINS, check_steps: float = np.inf,
-                 tries_on_brake: float = 2, retreats: bool = True, hold: float = 2.0) -> None:
+                 tries_on_brake: float = 2, retreats: bool = True, hold: float = 2.0,
+                 unverified: str = "stop") -> None:
         self.controller = controller
         self.dt, self.check_distance, self.margin, self.horizon = float(dt), float(check_distance), float(margin), \
             float(horizon)
@@ -93,11 +103,15 @@ class BackupGuard:
         self.retreats = bool(retreats)  # step 3 searches a retreat where no brake verifies
         self.world = WorldClearance(controller.robot, controller.obstacles)  # obstacles only: no self pairs
         self.hold = float(hold)  # [s] a rest must stay clear of the drifting obstacles this long (0: not tested)
+        if unverified not in ("stop", "proposal"):
+            raise ValueError(f"unverified must be 'stop' or 'proposal', not {unverified!r}")
+        self.unverified = unverified  # what an unverified tick applies (module docstring, step 3)
         self.brake = BrakeRollout(controller.robot, self.world, self.dt, self.hold)
         self._limit = next((c for c in getattr(controller, "constraints", []) if isinstance(c, TorqueLimit)), None)
         self.stats: dict[str, Any] = {"checked": 0, "backup": 0, "unverified": 0, "out_of_steps": 0, "check_us": [],
                                       "check_steps": [], "retreat_searches": 0,
-                                      "retreats_found": 0, "hold_lapsed": 0}
+                                      "retreats_found": 0, "hold_lapsed": 0,
+                                      "stops": 0}
         self._reset_backup()
 
     def __getattr__(self, name: str) -> Any:
@@ -107,6 +121,8 @@ class BackupGuard:
         self._gain: float | None = None
         self._retreat: Retreat | None = None  # the stored backup is this retreat, braking at _gain
         self._search_wait = 0  # ticks until a failed retreat search may be repeated
+        self._stop: tuple[float, Retreat | None] | None = None  # a rollout from the state the last torque
+        # leads to that comes to rest without contact (verified or not): the arm's stop where nothing verifies
         self._on_brake = False  # the last tick applied the stored brake
         self._tau_prev = np.full(self.controller.robot.nv, np.nan)
 
@@ -123,28 +139,31 @@ class BackupGuard:
 
     def _first_verified(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float,
                         tries: float = np.inf, steps: float = np.inf
-                        ) -> tuple[tuple[float, Retreat | None] | None, int, bool]:
+                        ) -> tuple[tuple[float, Retreat | None] | None, int, bool, tuple[float, Retreat | None] | None]:
         """(The first backup (gain, retreat or None) verified from (q, q̇) after τ_prev at t — the stored
         one first, then the family's brakes —, or None; the rollout steps spent; whether ``steps`` ran
-        out), trying at most ``tries`` (inf: all) in at most ``steps`` rollout steps over all of them (a
+        out; the first of the rollouts tried that came to rest without contact, verified or not — a stop —,
+        or None), trying at most ``tries`` (inf: all) in at most ``steps`` rollout steps over all of them (a
         rollout they cut short is not verified)."""
         stored = [(self._gain, self._retreat)] if self._gain is not None else []
         order = stored + [(g, None) for g in self.gains if (g, None) not in stored]
         full = round(self.horizon / self.dt)
-        left, spent = steps, 0
+        left, spent, stop = steps, 0, None
         for g, r in order[:int(min(tries, len(order)))]:
             n = full if left >= full else int(left)
             if n < 1:
-                return None, spent, True
+                return None, spent, True, stop
             cert = self.brake.run(q, v, tau_prev, t, g, horizon=n * self.dt, margin=self.margin,
                                   stop_below=self.margin, exact=self.exact, retreat=r)
             spent += cert.steps
             if cert.viable:
-                return (g, r), spent, False
+                return (g, r), spent, False, (g, r)
+            if stop is None and np.isfinite(cert.t_rest) and cert.min_clearance > self.margin:
+                stop = g, r  # at rest without contact, its rest refuted by the rest test
             if n < full and cert.steps >= n:  # the step limit ended this rollout, not the brake
-                return None, spent, True
+                return None, spent, True, stop
             left -= max(cert.steps, 1)
-        return None, spent, False
+        return None, spent, False, stop
 
     def _retreat_from(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray,
                       t: float) -> tuple[tuple[float, Retreat] | None, int]:
@@ -170,7 +189,7 @@ class BackupGuard:
         the rollout steps the check spent."""
         q1, v1 = self.brake.successor(q, v, tau)
         tries = min(self.tries, self.tries_on_brake) if self._on_brake else self.tries
-        found, spent, cut = self._first_verified(q1, v1, tau, t + self.dt, tries, self.check_steps)
+        found, spent, cut, stop = self._first_verified(q1, v1, tau, t + self.dt, tries, self.check_steps)
         self._on_brake = False
         if cut:
             info["backup_out_of_steps"] = True
@@ -178,6 +197,7 @@ class BackupGuard:
         if found is not None:
             self.stats["check_steps"].append(spent)
             self._gain, self._retreat = found
+            self._stop = found
             self._note_retreat(info)
             return tau
         lapsed: tuple[float, Retreat | None] | None = None
@@ -192,8 +212,9 @@ class BackupGuard:
                 self._gain, self._retreat = None, None
                 info["backup_rest_refuted"] = True
         if self._gain is None:  # nothing stored: is the state itself verified? (step 3, no step limit)
-            found, more, _ = self._first_verified(q, v, self._tau_prev, t)
+            found, more, _, here = self._first_verified(q, v, self._tau_prev, t)
             spent += more
+            self._stop = self._stop or here  # (the start: no torque applied before it)
             if found is None and self.retreats and self._search_wait <= 0:
                 found, more = self._retreat_from(q, v, self._tau_prev, t)
                 spent += more
@@ -211,14 +232,28 @@ class BackupGuard:
         if self._gain is None:
             self.stats["unverified"] += 1
             info["backup_unverified"] = True
-            return tau
+            if self.unverified == "proposal" or stop is not None:
+                self._stop = stop
+                return tau
+            # no rollout from the proposal's successor comes to rest before a contact: the arm keeps its stop
+            # (the state lies on it: the last tick's torque is its, or a proposal whose successor it is from)
+            g, r = self._stop if self._stop is not None else (self.gains[0], None)
+            info["backup_stop"] = g
+            self.stats["stops"] += 1
+            return self._apply(self.brake.torque(q, v, self._tau_prev, g, r, t), t)
         # the stored backup continues
-        tau = self.brake.torque(q, v, self._tau_prev, self._gain, self._retreat, t).copy()
         info["backup"] = self._gain
+        self._stop = self._gain, self._retreat
         self._note_retreat(info)
         self._on_brake = True
         self.stats["backup"] += 1
-        if self._limit is not None:  # the rate window of the next tick is about the torque applied
+        return self._apply(self.brake.torque(q, v, self._tau_prev, self._gain, self._retreat, t), t)
+
+    def _apply(self, tau: np.ndarray, t: float) -> np.ndarray:
+        """A copy of the backup's torque ``tau`` [N·m], remembered by the torque limit: the rate window
+        of the next tick is about the torque applied."""
+        tau = tau.copy()
+        if self._limit is not None:
             self._limit.remember(tau, t)
         return tau
 
@@ -240,7 +275,7 @@ class BackupGuard:
         if near:
             tau = self.check(q, v, tau, t, info)
         else:
-            self._gain, self._retreat, self._on_brake = None, None, False
+            self._gain, self._retreat, self._on_brake, self._stop = None, None, False, None
         us = (time.perf_counter() - t0) * 1e6
         if near:
             self.stats["check_us"].append(us)
