@@ -20,6 +20,7 @@ from qpctl.controllers.qp import QPConfig, QPController
 from qpctl.errors import ConfigError
 from qpctl.geometry.distance import DistanceEngine
 from qpctl.safety import BackupGuard, certify, rollout
+from qpctl.safety import oracle
 from qpctl.safety.oracle import BRAKE_GAINS, REST_SPEED
 from qpctl.safety.backup import GuardedOutput
 from qpctl.safety.retreat import OMEGAS, RETRY_TICKS, SETTLE, Retreat, shown, switch_time, targets
@@ -348,6 +349,20 @@ def test_where_nothing_verifies_every_contact_begins_at_rest(unverified):
     assert m["backup_stop_ticks"] > 0 and len(moved) > 200  # the proposal applied for a while, then the stop
     assert m["collisions_at_rest"] == onsets.size
     assert all(stops(k) for k in states)
+
+    # the stop the arm keeps is the one it is on, not a default brake: at the first tick on the stop, with a
+    # remembered stop of another gain, the guard applies that brake's torque (the oracle's own brake_torque)
+    k = next(k for k, i in enumerate(tr.infos) if "backup_stop" in i)
+    data = robot.model.createData()
+    for gain in (60.0, 10.0):
+        guard._gain, guard._stop, guard._search_wait, guard._tau_prev = None, (gain, None), 10**6, tr.tau[k - 1]
+        proposal = ctrl.step(tr.q[k], tr.v[k], float(tr.t[k])).tau
+        info: dict = {}
+        tau = guard.check(tr.q[k], tr.v[k], proposal, float(tr.t[k]), info)
+        assert info["backup_stop"] == gain
+        expected = oracle.brake_torque(robot, data, tr.q[k], tr.v[k], tr.tau[k - 1], gain, DT)
+        np.testing.assert_allclose(tau, expected, rtol=0, atol=1e-9)
+        assert np.abs(tau - proposal).max() > 1.0
 
 
 def test_backup_unverified_is_a_scenario_key():

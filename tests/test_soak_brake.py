@@ -103,7 +103,12 @@ def guarded_run(raw: dict[str, Any], oracle_every: int = ORACLE_EVERY,
         bad = [float(tr.t[k]) for k in ks if not certify(ctrl, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), dt,
                                                           gains=ORACLE_GAINS, retreats=shown(tr.infos[k - 1]),
                                                           hold=hold).viable]
-        row.update(oracle_sampled=len(ks), oracle_uncertified=bad)
+        # the issue's own definition (a brake to rest without contact): the samples the hold alone refutes certified
+        by_index = {round(t / dt): t for t in bad}
+        no_hold = [t for k, t in by_index.items()
+                   if not certify(ctrl, tr.q[k], tr.v[k], tr.tau[k - 1], t, dt, gains=ORACLE_GAINS,
+                                  retreats=shown(tr.infos[k - 1])).viable] if hold > 0 else bad
+        row.update(oracle_sampled=len(ks), oracle_uncertified=bad, oracle_uncertified_without_hold=no_hold)
     return row
 
 
@@ -206,6 +211,9 @@ def summarise(rows: list[dict[str, Any]]) -> dict[str, Any]:
         out.update(oracle_sampled=sampled,
                    oracle_certified=sampled - sum(len(r["oracle_uncertified"]) for r in rows),
                    oracle_uncertified={r["name"]: r["oracle_uncertified"] for r in rows if r["oracle_uncertified"]},
+                   # without the hold (a brake to rest without contact, the swaying obstacles' sweeps cleared)
+                   oracle_certified_without_hold=sampled - sum(len(r.get("oracle_uncertified_without_hold", []))
+                                                               for r in rows),
                    oracle_uncertified_unexplained={r["name"]: early for r in rows
                                                    if (early := unexplained_uncertified(r))})
     return out
@@ -244,6 +252,8 @@ def test_soak_brake():
     assert summary["static_scenes"] >= 10
     assert summary["static_collided"] == 0, [r["name"] for r in rows if r["collided"] and not r["moving"]]
     assert not [r["name"] for r in rows if r["unverified"] and not r["moving"]]
+    # the moving obstacles' contacts: each began with the arm at rest, or where every configuration is reached
+    assert not summary["unexplained_collisions"], summary["unexplained_collisions"]
     # every sampled state certified, except within the oracle's rest window before a contact, or after it
     assert not summary["oracle_uncertified_unexplained"], summary["oracle_uncertified_unexplained"]
     assert summary["torque_over_limit_scenes"] == 0 and summary["rate_over_limit_scenes"] == 0
