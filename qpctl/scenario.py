@@ -743,7 +743,8 @@ class Scenario:
         return BackupGuard(ctrl, self.data["sim"]["dt"], check_distance=c["backup_check_distance"],
                            margin=c["backup_margin"], check_steps=c["backup_check_steps"],
                            tries_on_brake=c["backup_tries_on_brake"], retreats=c["backup_retreats"],
-                           hold=c["backup_hold"], unverified=c["backup_unverified"])
+                           hold=c["backup_hold"], unverified=c["backup_unverified"],
+                           retreat_proposals=c["backup_retreat_proposals"])
 
     def to_toml(self, **changes: dict[str, Any]) -> str:
         """The validated scenario as a TOML file that :meth:`load` reads back to the same ``data``:

@@ -365,6 +365,41 @@ def test_where_nothing_verifies_every_contact_begins_at_rest(unverified):
         assert np.abs(tau - proposal).max() > 1.0
 
 
+@pytest.mark.parametrize("retreat_proposals", [True, False])
+def test_a_proposal_into_a_sweep_is_let_in_with_a_verified_retreat(retreat_proposals):
+    """A controller driving the arm from outside the swinging sphere's sweep to Q, inside it: once its
+    stops end in the sweep the rest test refuses them. With ``retreat_proposals`` the guard
+    searches a retreat from such a successor; the one it finds lets the proposal in (that tick applies the
+    controller's own torque), the oracle's Simulator rollout certifies the successor with it and every
+    10th visited state, no tick is unverified, no contact, and the guard brakes on a tenth of the ticks
+    it brakes on without the search (where it holds the arm out of the sweep's rests)."""
+    robot = arm()
+    o = swing(robot)
+    start = Q + np.array([0.0, 0.0, 0.6])
+    rest = RestClearance(robot, [o])
+    assert rest.clear(start, 0.0) and not rest.clear(Q, 0.0)
+    ctrl = Push(robot, [o], Q, stiffness=4.0)
+    guard = BackupGuard(ctrl, DT, retreat_proposals=retreat_proposals)
+    guard.warmup()
+    tr = Simulator(guard, dt=DT, duration=3.0).run(start)
+    m = compute_metrics(tr)
+    assert m["backup_unverified_ticks"] == 0 and not m["collided"]
+    if not retreat_proposals:
+        assert guard.stats["proposal_searches"] == 0 and m["backup_ticks"] > 200
+        return
+    assert guard.stats["proposal_retreats_found"] >= 1 and m["backup_ticks"] < 60
+    # the first tick whose successor a retreat from the search let in: the controller's torque applied
+    k = next(k for k, i in enumerate(tr.infos) if "backup_retreat" in i and "backup" not in i)
+    [(r, gain)] = shown(tr.infos[k])
+    assert capsule_clearance(robot, r.q, o) > 0
+    successor = (ctrl, tr.q[k + 1], tr.v[k + 1], tr.tau[k], float(tr.t[k + 1]), DT)
+    assert not certify(*successor).viable  # no brake of the family: each stop ends in the sweep
+    assert certify(*successor, gains=(), retreats=[(r, gain)]).viable
+    for j in range(10, len(tr.t), 10):
+        assert certify(ctrl, tr.q[j], tr.v[j], tr.tau[j - 1], float(tr.t[j]), DT,
+                       retreats=shown(tr.infos[j - 1])).viable, tr.t[j]
+
+
 def test_backup_unverified_is_a_scenario_key():
     on = ["controller.backup=true"]
     assert Scenario.load("paper", overrides=on).build_controller().unverified == "stop"
@@ -375,3 +410,6 @@ def test_backup_unverified_is_a_scenario_key():
     assert exc.value.key == "controller.backup_unverified"
     with pytest.raises(ValueError):
         BackupGuard(guard.controller, DT, unverified="brake")
+    assert not guard.retreat_proposals
+    on_too = [*on, "controller.backup_retreat_proposals=true"]
+    assert Scenario.load("paper", overrides=on_too).build_controller().retreat_proposals

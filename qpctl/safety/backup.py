@@ -91,7 +91,7 @@ class BackupGuard:
     def __init__(self, controller: Any, dt: float, *, check_distance: float = np.inf, margin: float = 0.0,
                  horizon: float = 3.0, gains: tuple[float, ...] = GUARD_GAINS, check_steps: float = np.inf,
                  tries_on_brake: float = 2, retreats: bool = True, hold: float = 2.0,
-                 unverified: str = "stop") -> None:
+                 unverified: str = "stop", retreat_proposals: bool = False) -> None:
         self.controller = controller
         self.dt, self.check_distance, self.margin, self.horizon = float(dt), float(check_distance), float(margin), \
             float(horizon)
@@ -106,12 +106,14 @@ class BackupGuard:
         if unverified not in ("stop", "proposal"):
             raise ValueError(f"unverified must be 'stop' or 'proposal', not {unverified!r}")
         self.unverified = unverified  # what an unverified tick applies (module docstring, step 3)
+        # step 1 also searches a retreat from a refused proposal's successor whose stop is refused by the rest test
+        self.retreat_proposals = bool(retreat_proposals) and self.retreats
         self.brake = BrakeRollout(controller.robot, self.world, self.dt, self.hold)
         self._limit = next((c for c in getattr(controller, "constraints", []) if isinstance(c, TorqueLimit)), None)
         self.stats: dict[str, Any] = {"checked": 0, "backup": 0, "unverified": 0, "out_of_steps": 0, "check_us": [],
                                       "check_steps": [], "retreat_searches": 0,
                                       "retreats_found": 0, "hold_lapsed": 0,
-                                      "stops": 0}
+                                      "stops": 0, "proposal_searches": 0, "proposal_retreats_found": 0}
         self._reset_backup()
 
     def __getattr__(self, name: str) -> Any:
@@ -121,6 +123,7 @@ class BackupGuard:
         self._gain: float | None = None
         self._retreat: Retreat | None = None  # the stored backup is this retreat, braking at _gain
         self._search_wait = 0  # ticks until a failed retreat search may be repeated
+        self._proposal_wait = 0  # the same for the searches from a proposal's successor
         self._stop: tuple[float, Retreat | None] | None = None  # a rollout from the state the last torque
         # leads to that comes to rest without contact (verified or not): the arm's stop where nothing verifies
         self._on_brake = False  # the last tick applied the stored brake
@@ -190,6 +193,15 @@ class BackupGuard:
         q1, v1 = self.brake.successor(q, v, tau)
         tries = min(self.tries, self.tries_on_brake) if self._on_brake else self.tries
         found, spent, cut, stop = self._first_verified(q1, v1, tau, t + self.dt, tries, self.check_steps)
+        if found is None and stop is not None and self.retreat_proposals and self._proposal_wait <= 0:
+            # a stop from the successor comes to rest without contact but not clear of the sweeps (or the hold): a
+            # retreat from the successor out of their way lets the proposal in (a dodge through a swing's sweep)
+            found, more = self._retreat_from(q1, v1, tau, t + self.dt)
+            spent += more
+            self._proposal_wait = RETRY_TICKS if found is None else 0
+            self.stats["proposal_searches"] += 1
+            self.stats["proposal_retreats_found"] += found is not None
+        self._proposal_wait -= 1
         self._on_brake = False
         if cut:
             info["backup_out_of_steps"] = True
