@@ -15,7 +15,11 @@ then, where the world clearance (exact, every pair: :class:`qpctl.tick.WorldClea
    untouched: a refuted proposal only means the stored brake continues); while the last tick applied
    the stored brake, only ``tries_on_brake`` gains are tried (default 2: the stored one and the first
    other) — the checks that refute every gain are the long ones (four rollouts, 2,000–4,000 steps on
-   the soak's heavy arm), and they come in runs while the arm brakes;
+   the soak's heavy arm), and they come in runs while the arm brakes; with ``retreat_proposals``
+   (default off) a successor none of whose stops verifies but one of which comes to rest without contact
+   (refused by the rest test: a rest in a swaying obstacle's sweep or a drifting one's way) gets the
+   retreat search of step 3 as well (after a failed one, only ``RETRY_TICKS`` ticks later): a retreat
+   found is stored and τ applied — the QP may dodge through a sweep with its escape verified;
 2. if none does, the stored brake's torque from (q, q̇, τ_prev) is applied (``info["backup"]``: its
    gain): it was verified from this very state one tick ago, and the rollout is the simulator's own
    integration, so under the exact model following it stays verified;
@@ -43,13 +47,13 @@ then, where the world clearance (exact, every pair: :class:`qpctl.tick.WorldClea
 Beyond ``check_distance`` τ is applied unchecked and the stored brake forgotten. **What is proved**
 (exact model: the built-in simulator's RK4 at the guard's Δt; obstacles static or moving as the scene
 says): every state from a verified tick on admits a verified brake, so a run without an unverified tick
-has no contact; and with ``unverified = "stop"`` every state of a run admits a brake (or retreat) that
-comes to rest before any contact — the applied torque is a verified one, a proposal whose successor has
-such a stop, or the stop the state lies on —, so a contact can only begin once a stop has come to rest
-and the obstacle reaches the arm there (the soak's ``collisions_at_rest``): the states beyond ``check_distance`` are clear by the screen's own test, and at each
+has no contact: the states beyond ``check_distance`` are clear by the screen's own test, and at each
 return within it step 3 verifies the state before anything else. A screen that is too short can only
 cost an unverified tick, which the run counts (``stats["unverified"]``, the metrics'
-``backup_unverified_ticks``).
+``backup_unverified_ticks``). With ``unverified = "stop"`` every state of any run (screen at inf) admits
+a brake or retreat that comes to rest before any contact — the torque applied is a verified one, a
+proposal whose successor has such a stop, or the stop the state lies on —, so a contact can only begin
+once a stop has come to rest and an obstacle reaches the arm there (``collisions_at_rest``).
 """
 
 from __future__ import annotations
