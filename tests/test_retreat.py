@@ -154,7 +154,7 @@ def test_a_start_inside_a_sweep_is_left_by_a_verified_retreat(retreats):
     assert held.clearance.min() < 0 and 0.3 < held.t[contact_onsets(held.clearance)[0]] < 0.45
     gravity = hold.step(Q, np.zeros(3), 0.0).tau
     assert not certify(hold, Q, np.zeros(3), np.full(3, np.nan), 0.0, DT).viable
-    guard = BackupGuard(hold, DT, retreats=retreats)
+    guard = BackupGuard(hold, DT, retreats=retreats, retreat_proposals=False)  # step 3's search (the next test: step 1's)
     guard.warmup()
     tr = Simulator(guard, dt=DT, duration=2.0).run(Q)
     m = compute_metrics(tr)
@@ -261,7 +261,8 @@ def test_a_drifting_obstacle_is_left_when_the_rest_must_clear_it_for_a_hold(hold
     robot = arm()
     o = closing_sphere(robot)
     hold_ctrl = Hold(robot, [o])
-    guard = BackupGuard(hold_ctrl, DT, hold=hold)
+    # the re-verification at rest (with step 1's search a retreat from a proposal's successor comes first)
+    guard = BackupGuard(hold_ctrl, DT, hold=hold, retreat_proposals=False)
     guard.warmup()
     tr = Simulator(guard, dt=DT, duration=3.0).run(Q)
     m = compute_metrics(tr)
@@ -410,6 +411,6 @@ def test_backup_unverified_is_a_scenario_key():
     assert exc.value.key == "controller.backup_unverified"
     with pytest.raises(ValueError):
         BackupGuard(guard.controller, DT, unverified="brake")
-    assert not guard.retreat_proposals
-    on_too = [*on, "controller.backup_retreat_proposals=true"]
-    assert Scenario.load("paper", overrides=on_too).build_controller().retreat_proposals
+    assert guard.retreat_proposals
+    off = [*on, "controller.backup_retreat_proposals=false"]
+    assert not Scenario.load("paper", overrides=off).build_controller().retreat_proposals

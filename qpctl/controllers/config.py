@@ -46,7 +46,7 @@ class ControllerConfig:
     backup_retreat_proposals: a proposal refused only because its successor's stops end inside a swaying
     obstacle's sweep (or a drifting one's way) is applied if a retreat from that successor verifies
     (the search of ``backup_retreats``, every ``RETRY_TICKS`` ticks at most after a failed one): the QP
-    may dodge through a swing's sweep with an escape verified (false, the default).
+    may dodge through a swing's sweep with an escape verified (true, the default).
     """
 
     kind: str = "paper"
@@ -65,7 +65,7 @@ class ControllerConfig:
     backup_retreats: bool = True
     backup_hold: float = setting(2.0, valid="nonnegative", unit="s")
     backup_unverified: str = setting("stop", choices=("stop", "proposal"))
-    backup_retreat_proposals: bool = False
+    backup_retreat_proposals: bool = True
 
     def __post_init__(self) -> None:
         check_fields(self, "controller")

@@ -16,7 +16,7 @@ then, where the world clearance (exact, every pair: :class:`qpctl.tick.WorldClea
    the stored brake, only ``tries_on_brake`` gains are tried (default 2: the stored one and the first
    other) — the checks that refute every gain are the long ones (four rollouts, 2,000–4,000 steps on
    the soak's heavy arm), and they come in runs while the arm brakes; with ``retreat_proposals``
-   (default off) a successor none of whose stops verifies but one of which comes to rest without contact
+   (default on) a successor none of whose stops verifies but one of which comes to rest without contact
    (refused by the rest test: a rest in a swaying obstacle's sweep or a drifting one's way) gets the
    retreat search of step 3 as well (after a failed one, only ``RETRY_TICKS`` ticks later): a retreat
    found is stored and τ applied — the QP may dodge through a sweep with its escape verified;
@@ -95,7 +95,7 @@ class BackupGuard:
     def __init__(self, controller: Any, dt: float, *, check_distance: float = np.inf, margin: float = 0.0,
                  horizon: float = 3.0, gains: tuple[float, ...] = GUARD_GAINS, check_steps: float = np.inf,
                  tries_on_brake: float = 2, retreats: bool = True, hold: float = 2.0,
-                 unverified: str = "stop", retreat_proposals: bool = False) -> None:
+                 unverified: str = "stop", retreat_proposals: bool = True) -> None:
         self.controller = controller
         self.dt, self.check_distance, self.margin, self.horizon = float(dt), float(check_distance), float(margin), \
             float(horizon)
