@@ -65,10 +65,14 @@ class Hold:
     def __getattr__(self, name):
         return getattr(self.inner, name)
 
+    def wanted(self, q, v):
+        """The torque [N·m] this controller would apply before the drives' limits: gravity's."""
+        return pin.computeGeneralizedGravity(self.robot.model, self.data, q)
+
     def step(self, q, v, t):
         out = self.inner.step(q, v, t)
         lo, hi = self.limit.window(t)
-        tau = np.clip(pin.computeGeneralizedGravity(self.robot.model, self.data, q), lo, hi)
+        tau = np.clip(self.wanted(q, v), lo, hi)
         self.limit.remember(tau, t)  # the guard remembers its brake's torque over this
         return GuardedOutput(out, tau, dict(out.info), float(out.compute_us))
 
@@ -303,13 +307,9 @@ class Push(Hold):
         super().__init__(robot, obstacles)
         self.target, self.stiffness = np.asarray(target, float), float(stiffness)
 
-    def step(self, q, v, t):
-        out = self.inner.step(q, v, t)
-        lo, hi = self.limit.window(t)
+    def wanted(self, q, v):
         a = self.stiffness * (self.target - q) - 2.0 * np.sqrt(self.stiffness) * v
-        tau = np.clip(pin.rnea(self.robot.model, self.data, q, v, a), lo, hi)
-        self.limit.remember(tau, t)
-        return GuardedOutput(out, tau, dict(out.info), float(out.compute_us))
+        return pin.rnea(self.robot.model, self.data, q, v, a)
 
 
 @pytest.mark.parametrize("unverified", ["stop", "proposal"])
@@ -356,7 +356,8 @@ def test_where_nothing_verifies_every_contact_begins_at_rest(unverified):
     k = next(k for k, i in enumerate(tr.infos) if "backup_stop" in i)
     data = robot.model.createData()
     for gain in (60.0, 10.0):
-        guard._gain, guard._stop, guard._search_wait, guard._tau_prev = None, (gain, None), 10**6, tr.tau[k - 1]
+        guard._gain, guard._stop, guard._tau_prev = None, (gain, None), tr.tau[k - 1]
+        guard._wait = {"state": 10**6, "proposal": 10**6}  # no retreat search
         proposal = ctrl.step(tr.q[k], tr.v[k], float(tr.t[k])).tau
         info: dict = {}
         tau = guard.check(tr.q[k], tr.v[k], proposal, float(tr.t[k]), info)

@@ -100,15 +100,16 @@ def guarded_run(raw: dict[str, Any], oracle_every: int = ORACLE_EVERY,
         # time (t + k·dt from two ticks) must not decide
         hold = max(float(getattr(ctrl, "hold", 0.0)) - dt, 0.0)
         ks = range(oracle_every, len(tr.t), oracle_every)
-        bad = [float(tr.t[k]) for k in ks if not certify(ctrl, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), dt,
-                                                          gains=ORACLE_GAINS, retreats=shown(tr.infos[k - 1]),
-                                                          hold=hold).viable]
+
+        def certified(k: int, hold: float) -> bool:  # visited state k, shown the retreat its tick held
+            return certify(ctrl, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), dt, gains=ORACLE_GAINS,
+                           retreats=shown(tr.infos[k - 1]), hold=hold).viable
+
+        refused = [k for k in ks if not certified(k, hold)]
         # the issue's own definition (a brake to rest without contact): the samples the hold alone refutes certified
-        by_index = {round(t / dt): t for t in bad}
-        no_hold = [t for k, t in by_index.items()
-                   if not certify(ctrl, tr.q[k], tr.v[k], tr.tau[k - 1], t, dt, gains=ORACLE_GAINS,
-                                  retreats=shown(tr.infos[k - 1])).viable] if hold > 0 else bad
-        row.update(oracle_sampled=len(ks), oracle_uncertified=bad, oracle_uncertified_without_hold=no_hold)
+        without_hold = [k for k in refused if not certified(k, 0.0)] if hold > 0 else refused
+        row.update(oracle_sampled=len(ks), oracle_uncertified=[float(tr.t[k]) for k in refused],
+                   oracle_uncertified_without_hold=[float(tr.t[k]) for k in without_hold])
     return row
 
 

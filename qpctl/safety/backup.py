@@ -126,10 +126,10 @@ class BackupGuard:
     def _reset_backup(self) -> None:
         self._gain: float | None = None
         self._retreat: Retreat | None = None  # the stored backup is this retreat, braking at _gain
-        self._search_wait = 0  # ticks until a failed retreat search may be repeated
-        self._proposal_wait = 0  # the same for the searches from a proposal's successor
-        self._stop: tuple[float, Retreat | None] | None = None  # a rollout from the state the last torque
-        # leads to that comes to rest without contact (verified or not): the arm's stop where nothing verifies
+        self._wait = {"state": 0, "proposal": 0}  # ticks until a failed retreat search of each kind may be repeated
+        # while nothing is stored (once a backup is, it stays stored): a rollout from the state the last torque
+        # leads to that comes to rest without contact, verified or not — the arm's stop where nothing verifies
+        self._stop: tuple[float, Retreat | None] | None = None
         self._on_brake = False  # the last tick applied the stored brake
         self._tau_prev = np.full(self.controller.robot.nv, np.nan)
 
@@ -189,6 +189,25 @@ class BackupGuard:
         found = search(run, self.controller.robot, q, t, self.dt, rest.rho, lambda x: rest.clear(x, self.margin, t))
         return ((gain, found[0]) if found is not None else None), spent
 
+    #: the stats each kind of search counts in: (searches, retreats found)
+    SEARCH_STATS = {"state": ("retreat_searches", "retreats_found"),
+                    "proposal": ("proposal_searches", "proposal_retreats_found")}
+
+    def _throttled_retreat(self, kind: str, wanted: bool, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray,
+                           t: float) -> tuple[tuple[float, Retreat] | None, int]:
+        """:meth:`_retreat_from` if ``wanted`` and no search of this ``kind`` ("state": step 3, "proposal":
+        from a proposal's successor) found nothing within the last ``RETRY_TICKS`` calls; every call counts
+        one tick of the wait. (The retreat or None, the steps spent.)"""
+        found, spent = None, 0
+        if wanted and self._wait[kind] <= 0:
+            found, spent = self._retreat_from(q, v, tau_prev, t)
+            self._wait[kind] = RETRY_TICKS if found is None else 0
+            searches, hits = self.SEARCH_STATS[kind]
+            self.stats[searches] += 1
+            self.stats[hits] += found is not None
+        self._wait[kind] -= 1
+        return found, spent
+
     def check(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float, info: dict[str, Any]) -> np.ndarray:
         """The check of one tick (module docstring, steps 1–3): the torque to apply [N·m] given the
         proposal ``tau`` at (q, q̇, t), the stored gain and the torque applied last; ``info`` gets
@@ -197,15 +216,11 @@ class BackupGuard:
         q1, v1 = self.brake.successor(q, v, tau)
         tries = min(self.tries, self.tries_on_brake) if self._on_brake else self.tries
         found, spent, cut, stop = self._first_verified(q1, v1, tau, t + self.dt, tries, self.check_steps)
-        if found is None and stop is not None and self.retreat_proposals and self._proposal_wait <= 0:
-            # a stop from the successor comes to rest without contact but not clear of the sweeps (or the hold): a
-            # retreat from the successor out of their way lets the proposal in (a dodge through a swing's sweep)
-            found, more = self._retreat_from(q1, v1, tau, t + self.dt)
-            spent += more
-            self._proposal_wait = RETRY_TICKS if found is None else 0
-            self.stats["proposal_searches"] += 1
-            self.stats["proposal_retreats_found"] += found is not None
-        self._proposal_wait -= 1
+        # a stop from the successor comes to rest without contact but not clear of the sweeps (or the hold): a
+        # retreat from the successor out of their way lets the proposal in (a dodge through a swing's sweep)
+        escape, more = self._throttled_retreat("proposal", found is None and stop is not None and self.retreat_proposals,
+                                               q1, v1, tau, t + self.dt)
+        found, spent = found or escape, spent + more
         self._on_brake = False
         if cut:
             info["backup_out_of_steps"] = True
@@ -213,7 +228,6 @@ class BackupGuard:
         if found is not None:
             self.stats["check_steps"].append(spent)
             self._gain, self._retreat = found
-            self._stop = found
             self._note_retreat(info)
             return tau
         lapsed: tuple[float, Retreat | None] | None = None
@@ -231,13 +245,8 @@ class BackupGuard:
             found, more, _, here = self._first_verified(q, v, self._tau_prev, t)
             spent += more
             self._stop = self._stop or here  # (the start: no torque applied before it)
-            if found is None and self.retreats and self._search_wait <= 0:
-                found, more = self._retreat_from(q, v, self._tau_prev, t)
-                spent += more
-                self.stats["retreat_searches"] += 1
-                self.stats["retreats_found"] += found is not None
-                self._search_wait = RETRY_TICKS if found is None else 0
-            self._search_wait -= 1
+            escape, more = self._throttled_retreat("state", found is None and self.retreats, q, v, self._tau_prev, t)
+            found, spent = found or escape, spent + more
             if found is not None:
                 self._gain, self._retreat = found
             elif lapsed is not None:  # no retreat either: the arm stays on its stop, verified as with no hold
@@ -259,7 +268,6 @@ class BackupGuard:
             return self._apply(self.brake.torque(q, v, self._tau_prev, g, r, t), t)
         # the stored backup continues
         info["backup"] = self._gain
-        self._stop = self._gain, self._retreat
         self._note_retreat(info)
         self._on_brake = True
         self.stats["backup"] += 1
