@@ -744,7 +744,7 @@ class Scenario:
                            margin=c["backup_margin"], check_steps=c["backup_check_steps"],
                            tries_on_brake=c["backup_tries_on_brake"], retreats=c["backup_retreats"],
                            hold=c["backup_hold"], unverified=c["backup_unverified"],
-                           retreat_proposals=c["backup_retreat_proposals"])
+                           retreat_proposals=c["backup_retreat_proposals"], settle=c["backup_settle"])
 
     def to_toml(self, **changes: dict[str, Any]) -> str:
         """The validated scenario as a TOML file that :meth:`load` reads back to the same ``data``:

@@ -98,12 +98,22 @@ CASES = {
 }
 
 
+def settles_recorded(rollout, monkeypatch):
+    """The settled states ``rollout`` tests for a rest — (step time, the test's answer) — recorded."""
+    tests: list[tuple[float, bool]] = []
+    test = rollout.settled_rest
+    monkeypatch.setattr(rollout, "settled_rest", lambda *a: tests.append((a[5], test(*a))) or tests[-1][1])
+    return tests
+
+
 @pytest.mark.parametrize("case", list(CASES))
 @pytest.mark.parametrize("gain", [4.0, 25.0, 60.0])
 @pytest.mark.parametrize("exact", [True, False])
-def test_native_certificates_equal_the_python_loops(case, gain, exact, monkeypatch):
-    """Each case × gain × exact/lazy, stop_below 0 and −∞, margin 0 and 0.05 m: the certificate
-    (verdict, steps, time to rest, least clearance) and the clearance's evaluation times are equal."""
+@pytest.mark.parametrize("settle", [False, True])
+def test_native_certificates_equal_the_python_loops(case, gain, exact, settle, monkeypatch):
+    """Each case × gain × exact/lazy × settled or not, stop_below 0 and −∞, margin 0 and 0.05 m: the
+    certificate (verdict, steps, time to rest, least clearance), the clearance's evaluation times and
+    the settled states tested for a rest (and the answers) are equal."""
     lib_or_skip()
     ctrl, q, v = CASES[case]()
     fast, slow = both(ctrl)
@@ -111,12 +121,39 @@ def test_native_certificates_equal_the_python_loops(case, gain, exact, monkeypat
     tau_prev = cases.gravity(ctrl.robot, q)
     for stop, margin in ((0.0, 0.0), (-np.inf, 0.0), (0.0, 0.05)):
         tf, ts = recorded(fast, monkeypatch), recorded(slow, monkeypatch)
-        a = fast.run(q, v, tau_prev, 0.3, gain, stop_below=stop, margin=margin, exact=exact)
-        b = slow.run(q, v, tau_prev, 0.3, gain, stop_below=stop, margin=margin, exact=exact)
+        sf, ss = settles_recorded(fast, monkeypatch), settles_recorded(slow, monkeypatch)
+        a = fast.run(q, v, tau_prev, 0.3, gain, stop_below=stop, margin=margin, exact=exact, settle=settle)
+        b = slow.run(q, v, tau_prev, 0.3, gain, stop_below=stop, margin=margin, exact=exact, settle=settle)
         assert a == b
         assert tf == ts and len(tf) >= 1
+        assert sf == ss and (settle or not sf)
         monkeypatch.undo()
     assert fast.native is not None  # still the native loop after the patches
+
+
+def test_the_cases_reach_every_settle_answer(monkeypatch):
+    """Across the cases, gains and margins the settle is tried, accepted (the certificate viable, ended
+    there), and refused with the rollout going on past it (the answers the equality above compares)."""
+    lib_or_skip()
+    answers = set()
+    for make in CASES.values():
+        ctrl, q, v = make()
+        fast, _ = both(ctrl)
+        tau_prev = cases.gravity(ctrl.robot, q)
+        for gain in (4.0, 25.0, 60.0):
+            for margin in (0.0, 0.05):
+                tests = settles_recorded(fast, monkeypatch)
+                c = fast.run(q, v, tau_prev, 0.3, gain, stop_below=0.0, margin=margin, settle=True)
+                monkeypatch.undo()
+                end = 0.3 + c.steps * cases.DT
+                for t, accepted in tests:
+                    if accepted:
+                        assert c.viable and t == pytest.approx(end, abs=1e-9)
+                        answers.add("accepted")
+                    else:
+                        assert end > t
+                        answers.add("refused, went on")
+    assert {"accepted", "refused, went on"} <= answers
 
 
 def test_the_cases_reach_every_ending():
@@ -210,3 +247,17 @@ def test_a_failed_build_names_its_reason_and_leaves_nothing(tmp_path, monkeypatc
     monkeypatch.setattr(native, "library", lambda: None)
     ctrl, _, _ = cases.planar_case()
     assert BrakeRollout(ctrl.robot, Simulator(ctrl, dt=cases.DT, duration=cases.DT).world, cases.DT).native is None
+
+
+@pytest.mark.parametrize("case", ["planar", "panda"])
+def test_the_native_successor_equals_the_python_step(case, rng):
+    """A proposal held over one step (the guard's successor): qpb_step's state equals the Python loop's
+    RK4 step bit for bit, 50 random torques."""
+    lib_or_skip()
+    ctrl, q, v = CASES[case]()
+    fast, slow = both(ctrl)
+    for _ in range(50):
+        tau = rng.normal(0, 30, ctrl.robot.nv)
+        a, b = fast.successor(q, v, tau), slow.successor(q, v, tau)
+        assert np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+        assert not np.array_equal(a[0], q)

@@ -47,6 +47,10 @@ class ControllerConfig:
     obstacle's sweep (or a drifting one's way) is applied if a retreat from that successor verifies
     (the search of ``backup_retreats``, every ``RETRY_TICKS`` ticks at most after a failed one): the QP
     may dodge through a swing's sweep with an escape verified (true, the default).
+    backup_settle: a brake's rollout ends where the brake has settled into its exponential decay (torque
+    and rate within 80 % of the limits along it) and its rest, bounded by 1.25 × its creep, passes the
+    rest test — instead of rolling on to rest (:mod:`qpctl.safety.rollout`, "Settled"; true, the default;
+    false: every rollout to rest, 6–30× more steps).
     """
 
     kind: str = "paper"
@@ -66,6 +70,7 @@ class ControllerConfig:
     backup_hold: float = setting(2.0, valid="nonnegative", unit="s")
     backup_unverified: str = setting("stop", choices=("stop", "proposal"))
     backup_retreat_proposals: bool = True
+    backup_settle: bool = True
 
     def __post_init__(self) -> None:
         check_fields(self, "controller")

@@ -93,3 +93,35 @@ def finish(q, v, kq, ka, c, dq, dv, rho):  # type: ignore[no-untyped-def]
     for j in range(v.shape[0]):
         v[j] += dv[j]
     return travel(dq, rho)
+
+
+@njit(cache=True)
+def settled(tau, nxt, tau_max, window, gain, dt, beta):  # type: ignore[no-untyped-def]
+    """True if the brake's unclipped torque τ [N·m] is in its decay's linear regime: with ``nxt`` the
+    torque one step ahead along q̇e^{−κt}, each joint's change d = |nxt − τ| within ``beta`` of its rate
+    ``window`` [N·m a step] and |τ| + d/(κΔt) — the whole change if the rate decays with the speed —
+    within ``beta`` of τ_max (brake_rollout.cpp's ``settled``, the same operations)."""
+    for i in range(tau.shape[0]):
+        d = abs(nxt[i] - tau[i])
+        if not (d <= beta * window[i]) or not (abs(tau[i]) + d / (gain * dt) <= beta * tau_max[i]):
+            return False
+    return True
+
+
+@njit(cache=True)
+def stops_within(q, v, gain, q_min, q_max):  # type: ignore[no-untyped-def]
+    """True if every joint's stop end q + q̇/κ lies within [q_min, q_max] (:func:`qpctl.safety.sweep.stops_within`)."""
+    for i in range(q.shape[0]):
+        end = q[i] + v[i] / gain
+        if not (end >= q_min[i] and end <= q_max[i]):
+            return False
+    return True
+
+
+@njit(cache=True)
+def max_abs(v):  # type: ignore[no-untyped-def]
+    """max |vᵢ|."""
+    m = 0.0
+    for i in range(v.shape[0]):
+        m = max(m, abs(v[i]))
+    return m

@@ -24,10 +24,11 @@ namespace {
 struct Brake {
   pinocchio::Model model;
   pinocchio::Data data;
-  Eigen::VectorXd qdd, tau, qs, dq, dv;
+  Eigen::VectorXd qdd, tau, raw, qs, dq, dv, ahead, vahead, aahead;
   Eigen::MatrixXd kq, ka;  // (n, 4): the stages' velocities and accelerations, one column each
   explicit Brake(const pinocchio::Model& m)
-      : model(m), data(m), qdd(m.nv), tau(m.nv), qs(m.nq), dq(m.nv), dv(m.nv), kq(m.nv, 4), ka(m.nv, 4) {}
+      : model(m), data(m), qdd(m.nv), tau(m.nv), raw(m.nv), qs(m.nq), dq(m.nv), dv(m.nv), ahead(m.nq),
+        vahead(m.nv), aahead(m.nv), kq(m.nv, 4), ka(m.nv, 4) {}
 };
 
 using Map = Eigen::Map<Eigen::VectorXd>;
@@ -47,6 +48,7 @@ void brake_torque(Brake& b, const double* q, const double* v, const double* prev
   else
     for (int i = 0; i < n; ++i) b.qdd[i] = v[i] * -gain;
   b.tau = pinocchio::rnea(b.model, b.data, CRef(CMap(q, b.model.nq)), CRef(CMap(v, n)), CRef(b.qdd));
+  b.raw = b.tau;
   const bool rate = std::isfinite(prev[0]);
   for (int i = 0; i < n; ++i) {
     double x = std::min(std::max(b.tau[i], -tau_max[i]), tau_max[i]);
@@ -81,6 +83,28 @@ double rk4_step(Brake& b, double* q, double* v, double dt, const double* rho) {
   return travel;
 }
 
+// The brake settled into its decay (qpctl.safety.rollout, "Settled"; kernels.rollout.settled): b.tau
+// is b.raw (neither limit clipped it), and along q̇e^{−κt} the torque's change over the next step,
+// d = |RNEA(q + Δt·q̇, e·q̇, −κe·q̇) − τ| (e = e^{−κΔt}), stays within beta of the rate window and
+// |τ| + d/(κΔt) — the torque's whole change if its rate decays with the speed — within beta of τ_max.
+bool settled(Brake& b, const double* q, const double* v, double gain, double dt, double decay, double beta,
+             const double* tau_max, const double* window) {
+  const int n = b.model.nv;
+  for (int i = 0; i < n; ++i)
+    if (b.tau[i] != b.raw[i]) return false;
+  for (int i = 0; i < n; ++i) {
+    b.ahead[i] = q[i] + dt * v[i];
+    b.vahead[i] = v[i] * decay;
+    b.aahead[i] = b.vahead[i] * -gain;
+  }
+  const Eigen::VectorXd& next = pinocchio::rnea(b.model, b.data, CRef(b.ahead), CRef(b.vahead), CRef(b.aahead));
+  for (int i = 0; i < n; ++i) {
+    const double d = std::abs(next[i] - b.tau[i]);
+    if (!(d <= beta * window[i]) || !(std::abs(b.tau[i]) + d / (gain * dt) <= beta * tau_max[i])) return false;
+  }
+  return true;
+}
+
 enum { MOVING = 0, AT_REST = 1, OUTSIDE = 2 };
 
 int state_code(const double* q, const double* v, int n, const double* q_min, const double* q_max,
@@ -104,10 +128,11 @@ extern "C" {
 // The io block of qpb_advance (doubles): the rollout's state and its parameters.
 enum {
   IO_K, IO_STEPS, IO_STILL, IO_LAST, IO_DRIFT, IO_WORST, IO_LEVEL, IO_STOP_BELOW, IO_GAIN, IO_DT,
-  IO_OBSTACLE_SPEED, IO_REST_SPEED, IO_REST_TIME, IO_EVALUATED, IO_LAZY, IO_T0, IO_UNTIL, IO_W2, IO_W1, IO_SIZE
+  IO_OBSTACLE_SPEED, IO_REST_SPEED, IO_REST_TIME, IO_EVALUATED, IO_LAZY, IO_T0, IO_UNTIL, IO_W2, IO_W1,
+  IO_SETTLE, IO_SETTLE_BELOW, IO_DECAY, IO_BETA, IO_GAMMA, IO_CREEP, IO_PENDING, IO_SIZE
 };
 // qpb_advance's answers.
-enum { NEED_CLEARANCE = 0, AT_REST_END = 1, FAILED = 2, HORIZON = 3 };
+enum { NEED_CLEARANCE = 0, AT_REST_END = 1, FAILED = 2, HORIZON = 3, SETTLED = 4 };
 
 int qpb_io_size() { return IO_SIZE; }
 
@@ -145,12 +170,24 @@ void qpb_rnea(void* h, const double* q, const double* v, const double* a, double
   Map(out, n) = pinocchio::rnea(b.model, b.data, CRef(CMap(q, n)), CRef(CMap(v, n)), CRef(CMap(a, n)));
 }
 
+// One RK4 step of the held torque ``tau`` over dt from (q, v), in place (BrakeRollout.successor: the
+// step the simulator takes with a proposal); returns Σᵢ ρᵢ|Δqᵢ|.
+double qpb_step(void* h, double* q, double* v, const double* tau, double dt, const double* rho) {
+  Brake& b = *static_cast<Brake*>(h);
+  for (int i = 0; i < b.model.nv; ++i) b.tau[i] = tau[i];
+  return rk4_step(b, q, v, dt, rho);
+}
+
 // The rollout's loop (qpctl.safety.rollout.BrakeRollout.run) from step io[K] on, (q, v, prev) in
 // place, until it needs the clearance at the current step (NEED_CLEARANCE: the caller evaluates it
 // at q, sets io[LAST], io[DRIFT] = 0, io[WORST] = min(io[WORST], clearance), io[EVALUATED] = 1, and
 // calls again), ends at rest (AT_REST_END), fails (FAILED: below stop_below, past a joint limit, or
 // not finite) or runs out of steps (HORIZON). io[K] is the step reached. Step k is at the time
 // io[T0] + k·dt; before io[UNTIL] the retreat toward ``target`` steers (io[UNTIL] = −inf: the brake).
+// With io[SETTLE] ≠ 0, a step whose brake has settled (settled()) with its creep, io[GAMMA]·Σᵢρᵢ|q̇ᵢ|/κ,
+// below io[SETTLE_BELOW] returns SETTLED before the step is taken (io[CREEP]: that creep; io[PENDING] = 1:
+// the step's checks done and its torque in the handle); the caller tests the rest and, if it refuses,
+// lowers io[SETTLE_BELOW] and calls again, which takes the pending step.
 int qpb_advance(void* h, double* q, double* v, double* prev, const double* tau_max, const double* window,
                 const double* q_min, const double* q_max, const double* rho, const double* target, double* io) {
   Brake& b = *static_cast<Brake*>(h);
@@ -163,28 +200,47 @@ int qpb_advance(void* h, double* q, double* v, double* prev, const double* tau_m
   bool evaluated = io[IO_EVALUATED] != 0.0;
   long k = static_cast<long>(io[IO_K]);
   int answer = HORIZON;
+  const bool settle = io[IO_SETTLE] != 0.0;
+  bool pending = io[IO_PENDING] != 0.0;
+  io[IO_PENDING] = 0.0;
   for (; k < steps; ++k) {
-    if (!evaluated) {
-      if (lazy && last - drift > level) {
-        worst = std::min(worst, last - drift);
-      } else {
-        answer = NEED_CLEARANCE;
+    if (pending) {
+      pending = false;  // this step's checks and torque were done before SETTLED returned
+    } else {
+      if (!evaluated) {
+        if (lazy && last - drift > level) {
+          worst = std::min(worst, last - drift);
+        } else {
+          answer = NEED_CLEARANCE;
+          break;
+        }
+      }
+      evaluated = false;
+      const int code = state_code(q, v, n, q_min, q_max, io[IO_REST_SPEED]);
+      if (worst < stop_below || code == OUTSIDE) {
+        answer = FAILED;
         break;
       }
+      const bool steering = io[IO_T0] + static_cast<double>(k) * dt < io[IO_UNTIL];
+      still = code == AT_REST && !steering ? still + dt : 0.0;  // a retreat's rest is its brake's
+      if (still >= io[IO_REST_TIME]) {
+        answer = AT_REST_END;
+        break;
+      }
+      brake_torque(b, q, v, prev, gain, tau_max, window, steering, target, io[IO_W2], io[IO_W1]);
+      if (settle && !steering) {
+        double creep = 0.0;
+        for (int i = 0; i < n; ++i) creep += rho[i] * std::abs(v[i]);
+        creep = creep * io[IO_GAMMA] / gain;
+        if (creep < io[IO_SETTLE_BELOW] &&
+            settled(b, q, v, gain, dt, io[IO_DECAY], io[IO_BETA], tau_max, window)) {
+          io[IO_CREEP] = creep;
+          io[IO_PENDING] = 1.0;
+          answer = SETTLED;
+          break;
+        }
+      }
     }
-    evaluated = false;
-    const int code = state_code(q, v, n, q_min, q_max, io[IO_REST_SPEED]);
-    if (worst < stop_below || code == OUTSIDE) {
-      answer = FAILED;
-      break;
-    }
-    const bool steering = io[IO_T0] + static_cast<double>(k) * dt < io[IO_UNTIL];
-    still = code == AT_REST && !steering ? still + dt : 0.0;  // a retreat's rest is its brake's
-    if (still >= io[IO_REST_TIME]) {
-      answer = AT_REST_END;
-      break;
-    }
-    brake_torque(b, q, v, prev, gain, tau_max, window, steering, target, io[IO_W2], io[IO_W1]);
     for (int i = 0; i < n; ++i) prev[i] = b.tau[i];
     const double travel = rk4_step(b, q, v, dt, rho);
     if (lazy) drift += travel + move;

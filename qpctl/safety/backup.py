@@ -95,7 +95,7 @@ class BackupGuard:
     def __init__(self, controller: Any, dt: float, *, check_distance: float = np.inf, margin: float = 0.0,
                  horizon: float = 3.0, gains: tuple[float, ...] = GUARD_GAINS, check_steps: float = np.inf,
                  tries_on_brake: float = 2, retreats: bool = True, hold: float = 2.0,
-                 unverified: str = "stop", retreat_proposals: bool = True) -> None:
+                 unverified: str = "stop", retreat_proposals: bool = True, settle: bool = True) -> None:
         self.controller = controller
         self.dt, self.check_distance, self.margin, self.horizon = float(dt), float(check_distance), float(margin), \
             float(horizon)
@@ -113,6 +113,7 @@ class BackupGuard:
         # step 1 also searches a retreat from a refused proposal's successor whose stop is refused by the rest test
         self.retreat_proposals = bool(retreat_proposals) and self.retreats
         self.brake = BrakeRollout(controller.robot, self.world, self.dt, self.hold)
+        self.settle = bool(settle)  # a rollout ends where its brake settles (qpctl.safety.rollout, "Settled")
         self._limit = next((c for c in getattr(controller, "constraints", []) if isinstance(c, TorqueLimit)), None)
         self.stats: dict[str, Any] = {"checked": 0, "backup": 0, "unverified": 0, "out_of_steps": 0, "check_us": [],
                                       "check_steps": [], "retreat_searches": 0,
@@ -161,7 +162,7 @@ class BackupGuard:
             if n < 1:
                 return None, spent, True, stop
             cert = self.brake.run(q, v, tau_prev, t, g, horizon=n * self.dt, margin=self.margin,
-                                  stop_below=self.margin, exact=self.exact, retreat=r)
+                                  stop_below=self.margin, exact=self.exact, retreat=r, settle=self.settle)
             spent += cert.steps
             if cert.viable:
                 return (g, r), spent, False, (g, r)
@@ -181,7 +182,7 @@ class BackupGuard:
         def run(r: Retreat) -> Any:
             nonlocal spent
             cert = self.brake.run(q, v, tau_prev, t, gain, horizon=self.horizon, margin=self.margin,
-                                  stop_below=self.margin, exact=self.exact, retreat=r)
+                                  stop_below=self.margin, exact=self.exact, retreat=r, settle=self.settle)
             spent += cert.steps
             return cert
 
@@ -235,7 +236,8 @@ class BackupGuard:
             # at rest the stored stop's rest moves on with the time, and so does the window over which it must
             # clear the drifting obstacles (hold): re-verified from this very state, else forgotten (step 3)
             cert = self.brake.run(q, v, self._tau_prev, t, self._gain, horizon=self.horizon, margin=self.margin,
-                                  stop_below=self.margin, exact=self.exact, retreat=self._retreat)
+                                  stop_below=self.margin, exact=self.exact, retreat=self._retreat,
+                                  settle=self.settle)
             spent += cert.steps
             if not cert.viable:
                 lapsed = self._gain, self._retreat

@@ -37,6 +37,7 @@ vector space (continuous, planar joints) keep the Python loop.
 
 from __future__ import annotations
 
+import math
 import weakref
 from typing import Any
 
@@ -47,14 +48,19 @@ import qpctl.native
 from qpctl.kernels import rollout as K
 from qpctl.safety.oracle import REST_SPEED, REST_TIME, Certificate
 from qpctl.safety.retreat import Retreat
-from qpctl.safety.sweep import RestClearance
+from qpctl.safety.sweep import RestClearance, swaying
 from qpctl.tick import WorldClearance
 
 # qpb_advance's io block (brake_rollout.cpp's IO_* order) and answers
 (IO_K, IO_STEPS, IO_STILL, IO_LAST, IO_DRIFT, IO_WORST, IO_LEVEL, IO_STOP_BELOW, IO_GAIN, IO_DT,
  IO_OBSTACLE_SPEED, IO_REST_SPEED, IO_REST_TIME, IO_EVALUATED, IO_LAZY, IO_T0, IO_UNTIL, IO_W2, IO_W1,
- IO_SIZE) = range(20)
-NEED_CLEARANCE, AT_REST_END, FAILED, HORIZON = range(4)
+ IO_SETTLE, IO_SETTLE_BELOW, IO_DECAY, IO_BETA, IO_GAMMA, IO_CREEP, IO_PENDING, IO_SIZE) = range(27)
+NEED_CLEARANCE, AT_REST_END, FAILED, HORIZON, SETTLED = range(5)
+
+#: A settled brake's torque and rate stay within this share of their limits (module docstring, "Settled").
+SETTLE_BETA = 0.8
+#: The settled stop's creep bound is Σᵢρᵢ|q̇ᵢ|/κ times this (module docstring, "Settled").
+SETTLE_GAMMA = 1.25
 
 
 class BrakeRollout:
@@ -78,7 +84,7 @@ class BrakeRollout:
         self.window = np.asarray(rate, float) * self.dt
         self.q_min, self.q_max = np.asarray(robot.q_min, float), np.asarray(robot.q_max, float)
         self.lie = bool(robot.lie)
-        self.tau, self.qdd = np.zeros(n), np.zeros(n)
+        self.tau, self.raw, self.qdd = np.zeros(n), np.zeros(n), np.zeros(n)  # raw: τ before the limits
         self._kq, self._ka = np.zeros((4, n)), np.zeros((4, n))  # the stages' k·q (velocities), k·v
         self._qs, self._vs, self._dq, self._dv = np.zeros(model.nq), np.zeros(n), np.zeros(n), np.zeros(n)
         self._angles = np.zeros(n)
@@ -89,6 +95,10 @@ class BrakeRollout:
         self.rho = self.rest.rho  # lever_arms(robot); None: a joint that is not revolute
         self._rho = self.rho if self.rho is not None else np.zeros(n)
         self.obstacle_speed = max((o.speed_bound for o in world.ws.obstacles), default=0.0)
+        # a rollout may end where the brake settles (module docstring): its creep needs the lever arms, and a
+        # drifting obstacle is in the rest test only over a hold (without one the rollout must follow it)
+        drifting = any(o.moving and not swaying(o) for o in world.ws.obstacles)
+        self.settles = self.rho is not None and (hold > 0 or not drifting)
         self.native: NativeBrake | None = NativeBrake.create(self) if not self.lie else None
 
     def at_rest(self, q: np.ndarray, v: np.ndarray, gain: float, worst: float, margin: float, t: float,
@@ -108,8 +118,30 @@ class BrakeRollout:
         else:
             np.multiply(v, -gain, out=self.qdd)
         self.tau[:] = pin.rnea(self.model, self.data, q, v, self.qdd)
+        self.raw[:] = self.tau
         K.clip_brake(self.tau, self.tau_max, tau_prev, self.window)
         return self.tau
+
+    def settled(self, q: np.ndarray, v: np.ndarray, gain: float, decay: float) -> bool:
+        """True if the brake's torque at (q, q̇) — ``self.tau``, just computed by :meth:`torque` — settled
+        into its decay (module docstring, "Settled"); ``decay`` = e^{−κΔt}."""
+        if not np.array_equal(self.tau, self.raw):
+            return False
+        ahead = v * decay
+        nxt = pin.rnea(self.model, self.data, q + self.dt * v, ahead, ahead * -gain)
+        return bool(K.settled(self.tau, nxt, self.tau_max, self.window, gain, self.dt, SETTLE_BETA))
+
+    def settled_rest(self, q: np.ndarray, v: np.ndarray, gain: float, worst: float, margin: float,
+                     t: float, left: float) -> bool:
+        """True if a settled brake at (q, q̇) at t [s], its least clearance so far ``worst`` [m], may end
+        its rollout here: the decay comes to rest (every |q̇ᵢ| ≤ REST_SPEED for REST_TIME) within the
+        ``left`` [s] of the horizon — as the full rollout must —, and the rest test passes with the creep
+        bound raised by :data:`SETTLE_GAMMA`, the drifting obstacles tested from now until the hold after
+        that rest (the full rollout's window: its rest comes later)."""
+        speed = K.max_abs(v)
+        to_rest = (math.log(speed / REST_SPEED) / gain if speed > REST_SPEED else 0.0) + REST_TIME
+        return (worst > margin and to_rest <= left
+                and self.rest.verifies(q, SETTLE_GAMMA * v, gain, margin, t, t + to_rest + self.rest.hold))
 
     def _stage(self, q: np.ndarray, v: np.ndarray, h: float, i: int) -> None:
         """Stage i + 1 from stage i: its velocity kq[i+1] = v + h·ka[i], its acceleration ABA(q ⊕ h·kq[i], ·)."""
@@ -147,7 +179,10 @@ class BrakeRollout:
         v += self._dv
 
     def successor(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(q₁, q̇₁): ``tau`` [N·m] held over one step from (q, q̇), as the simulator steps it (new arrays)."""
+        """(q₁, q̇₁): ``tau`` [N·m] held over one step from (q, q̇), as the simulator steps it (new arrays;
+        the native step where there is one, the same operations)."""
+        if self.native is not None:
+            return self.native.successor(q, v, tau)
         qq, vv = np.array(q, float), np.array(v, float)
         self.tau[:] = tau
         self.step(qq, vv)
@@ -155,20 +190,24 @@ class BrakeRollout:
 
     def run(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, *,
             horizon: float = 3.0, margin: float = 0.0, stop_below: float = -np.inf,
-            exact: bool = True, retreat: Retreat | None = None) -> Certificate:
+            exact: bool = True, retreat: Retreat | None = None, settle: bool = False) -> Certificate:
         """The brake of gain κ [1/s] from (q, q̇ [rad/s], τ_prev [N·m]) at t [s]: the
         :class:`~qpctl.safety.oracle.Certificate` :func:`qpctl.safety.oracle.rollout` gives (the
         arguments mean the same; a state that is not finite ends it, not viable). Inputs unchanged.
         ``exact=False``: the lazy clearance (module docstring; the least clearance a lower bound).
-        ``retreat``: the retreat that brakes at κ once it stops steering (:mod:`qpctl.safety.retreat`)."""
+        ``retreat``: the retreat that brakes at κ once it stops steering (:mod:`qpctl.safety.retreat`).
+        ``settle``: the rollout may end where the brake has settled (module docstring, "Settled"; the
+        certificate's time and steps are then the settle's)."""
         dt, world, rho = self.dt, self.world, self.rho
         lazy = not exact and rho is not None
         level = max(margin, stop_below)
+        settle = settle and self.settles
         if self.native is not None:
             return self.native.run(q, v, tau_prev, t, gain, round(horizon / dt), margin, stop_below, level, lazy,
-                                   retreat)
+                                   retreat, settle)
         qq, vv, prev = np.array(q, float), np.array(v, float), np.array(tau_prev, float)
         worst, still, last, drift = np.inf, 0.0, np.inf, np.inf
+        decay, below = math.exp(-gain * dt), np.inf  # below: a settle's creep must be under it (halved on a refusal)
         steps = round(horizon / dt)
         for k in range(steps):
             if lazy and last - drift > level:
@@ -186,6 +225,12 @@ class BrakeRollout:
             if still >= REST_TIME:
                 return self.at_rest(qq, vv, gain, worst, margin, t, k)
             self.torque(qq, vv, prev, gain, retreat, tk)
+            if settle and not steering:
+                creep = K.travel(vv, rho) * SETTLE_GAMMA / gain
+                if creep < below and self.settled(qq, vv, gain, decay):
+                    if self.settled_rest(qq, vv, gain, worst, margin, tk, (steps - k) * dt):
+                        return Certificate(True, gain, worst, k * dt, k)
+                    below = 0.5 * creep
             prev[:] = self.tau
             self.step(qq, vv)
             if lazy:
@@ -201,7 +246,11 @@ class NativeBrake:
         self.owner, self.lib, self.handle = owner, lib, handle
         self.io = np.zeros(IO_SIZE)
         self._free = weakref.finalize(self, lib.qpb_free, handle)
-        self.q, self.v, self.prev, self.target = (np.zeros(owner.robot.nv) for _ in range(4))
+        n = owner.robot.nv
+        self.q, self.v, self.prev, self.target = (np.zeros(n) for _ in range(4))
+        self.limits = [np.zeros(n) for _ in range(5)]  # τ_max, the rate window, q_min, q_max, ρ: copied each run
+        # the arrays' addresses once (numpy's ``.ctypes.data`` costs ~1 µs an array)
+        self.ptr = [a.ctypes.data for a in (self.q, self.v, self.prev, *self.limits, self.target, self.io)]
 
     @classmethod
     def create(cls, owner: BrakeRollout) -> NativeBrake | None:
@@ -218,9 +267,16 @@ class NativeBrake:
             raise qpctl.native.NativeBuildError("the native rollout's layout is not this module's")
         return cls(owner, lib, handle)
 
+    def successor(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`BrakeRollout.successor` in C++ (qpb_step: the rollout's own RK4 step)."""
+        self.q[:], self.v[:], self.prev[:], self.limits[4][:] = q, v, tau, self.owner._rho
+        ptr = self.ptr
+        self.lib.qpb_step(self.handle, ptr[0], ptr[1], ptr[2], self.owner.dt, ptr[7])
+        return self.q.copy(), self.v.copy()
+
     def run(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, steps: int,
-            margin: float, stop_below: float, level: float, lazy: bool, retreat: Retreat | None = None
-            ) -> Certificate:
+            margin: float, stop_below: float, level: float, lazy: bool, retreat: Retreat | None = None,
+            settle: bool = False) -> Certificate:
         io, qq, vv, prev = self.io, self.q, self.v, self.prev
         qq[:], vv[:], prev[:] = q, v, tau_prev
         io[:] = 0.0
@@ -229,16 +285,24 @@ class NativeBrake:
         io[IO_OBSTACLE_SPEED], io[IO_REST_SPEED], io[IO_REST_TIME] = self.owner.obstacle_speed, REST_SPEED, REST_TIME
         io[IO_LAZY] = float(lazy)
         io[IO_T0], io[IO_UNTIL] = t, -np.inf
+        io[IO_SETTLE], io[IO_SETTLE_BELOW], io[IO_DECAY] = float(settle), np.inf, math.exp(-gain * self.owner.dt)
+        io[IO_BETA], io[IO_GAMMA] = SETTLE_BETA, SETTLE_GAMMA
         if retreat is not None:
             self.target[:] = retreat.target
             io[IO_UNTIL], io[IO_W2], io[IO_W1] = retreat.until, retreat.omega * retreat.omega, 2.0 * retreat.omega
         o = self.owner  # its limits read at each run, as the Python loop reads them
-        self._keep = [np.ascontiguousarray(a, float) for a in (o.tau_max, o.window, o.q_min, o.q_max, o._rho)]
-        ptr = [a.ctypes.data for a in (qq, vv, prev, *self._keep, self.target, io)]
+        for dst, src in zip(self.limits, (o.tau_max, o.window, o.q_min, o.q_max, o._rho), strict=True):
+            dst[:] = src
+        ptr = self.ptr
         advance, world, dt = self.lib.qpb_advance, self.owner.world, self.owner.dt
         while True:
             answer = advance(self.handle, *ptr)
             k = int(io[IO_K])
+            if answer == SETTLED:
+                if self.owner.settled_rest(qq, vv, gain, float(io[IO_WORST]), margin, t + k * dt, (steps - k) * dt):
+                    return Certificate(True, gain, float(io[IO_WORST]), k * dt, k)
+                io[IO_SETTLE_BELOW] = 0.5 * io[IO_CREEP]
+                continue
             if answer != NEED_CLEARANCE:
                 break
             last = world(qq, t + k * dt)

@@ -42,6 +42,7 @@ import numpy as np
 import pinocchio as pin
 
 from qpctl.geometry.obstacles import Obstacle
+from qpctl.kernels import rollout as K
 from qpctl.tick import WorldClearance
 
 REVOLUTE = ("JointModelRX", "JointModelRY", "JointModelRZ", "JointModelRevoluteUnaligned")
@@ -80,8 +81,7 @@ def creep(rho: np.ndarray | None, v: np.ndarray, gain: float) -> float:
 def stops_within(q: np.ndarray, v: np.ndarray, gain: float, q_min: np.ndarray, q_max: np.ndarray) -> bool:
     """True if the stop's end, q + q̇/κ (where each joint comes to rest if the brake of gain κ [1/s] goes
     on decaying as q̇e^{−κt}), lies within the joint limits [rad]: the joint-space form of :func:`creep`."""
-    end = q + v / gain
-    return bool(np.all(end >= q_min) and np.all(end <= q_max))
+    return bool(K.stops_within(np.asarray(q, float), np.asarray(v, float), float(gain), q_min, q_max))
 
 
 #: The narrowest interval of the sweep [m of the obstacle's travel] the decision halves before refusing.
@@ -135,19 +135,21 @@ class RestClearance:
     def __bool__(self) -> bool:
         return self.static is not None or bool(self.sweeps) or bool(self.drifts)
 
-    def verifies(self, q: np.ndarray, v: np.ndarray, gain: float, margin: float, t: float = 0.0) -> bool:
+    def verifies(self, q: np.ndarray, v: np.ndarray, gain: float, margin: float, t: float = 0.0,
+                 until: float | None = None) -> bool:
         """True if a brake of gain κ [1/s] at rest at (q [rad], q̇ [rad/s]) at t [s] may end there: on a
         robot of revolute joints each joint's stop within its limits (:func:`stops_within`), and the arm
         clear of the static obstacles, the sweeps and (``hold`` > 0) the drifting obstacles' next
-        ``hold`` seconds by ``margin`` [m] plus its creep (:meth:`clear`)."""
+        ``hold`` seconds (or until ``until`` [s]) by ``margin`` [m] plus its creep (:meth:`clear`)."""
         if self.rho is not None and not stops_within(q, v, gain, self.q_min, self.q_max):
             return False
-        return not self or self.clear(q, margin + creep(self.rho, v, gain), t)
+        return not self or self.clear(q, margin + creep(self.rho, v, gain), t, until)
 
-    def clear(self, q: np.ndarray, margin: float, t: float = 0.0) -> bool:
+    def clear(self, q: np.ndarray, margin: float, t: float = 0.0, until: float | None = None) -> bool:
         """True if the arm at rest at q [rad] from t [s] on clears the static obstacles, every swaying
-        obstacle's whole sweep and (``hold`` > 0) every drifting obstacle over [t, t + hold] by more than
-        ``margin`` [m] (the moving ones proved by the Lipschitz bound: :func:`above`)."""
+        obstacle's whole sweep and (``hold`` > 0) every drifting obstacle over [t, t + hold] (or [t,
+        ``until``]) by more than ``margin`` [m] (the moving ones proved by the Lipschitz bound: :func:`above`)."""
+        end = t + self.hold if until is None else until
         if self.static is not None and self.static(q, 0.0) <= margin:
             return False
         for world, amp, omega in self.sweeps:
@@ -160,7 +162,7 @@ class RestClearance:
                 return False
         for world, speed in self.drifts:  # the clearance changes at most at the obstacle's speed bound
             world.pose(q)
-            if not above(world.at, t, t + self.hold, speed, margin):
+            if not above(world.at, t, end, speed, margin):
                 return False
         return True
 
