@@ -402,6 +402,28 @@ def test_a_proposal_into_a_sweep_is_let_in_with_a_verified_retreat(retreat_propo
                        retreats=shown(tr.infos[j - 1])).viable, tr.t[j]
 
 
+def test_the_search_from_a_proposals_successor_keeps_to_the_checks_steps():
+    """``check_steps`` bounds the retreat search from a proposal's successor too: from the successor the
+    search let in above (S steps spent finding its retreat), a budget of S + 1 finds the same retreat in S
+    steps (the verdict is taken at the step after the last one integrated, as a proposal's rollouts'),
+    S − 1 finds none and spends at most S − 1, and so does a budget of a tenth."""
+    robot = arm()
+    o = swing(robot)
+    ctrl = Push(robot, [o], Q, stiffness=4.0)
+    guard = BackupGuard(ctrl, DT)
+    guard.warmup()
+    tr = Simulator(guard, dt=DT, duration=3.0).run(Q + np.array([0.0, 0.0, 0.6]))
+    k = next(k for k, i in enumerate(tr.infos) if "backup_retreat" in i and "backup" not in i)
+    successor = (tr.q[k + 1], tr.v[k + 1], tr.tau[k], float(tr.t[k + 1]))
+    found, spent = guard._retreat_from(*successor)
+    assert found is not None and spent > 10
+    again, cost = guard._retreat_from(*successor, steps=spent + 1)
+    assert again == found and cost == spent
+    for budget in (spent - 1, spent // 10):
+        none, cost = guard._retreat_from(*successor, steps=budget)
+        assert none is None and cost <= budget
+
+
 def test_backup_unverified_is_a_scenario_key():
     on = ["controller.backup=true"]
     assert Scenario.load("paper", overrides=on).build_controller().unverified == "stop"
@@ -415,3 +437,8 @@ def test_backup_unverified_is_a_scenario_key():
     assert guard.retreat_proposals
     off = [*on, "controller.backup_retreat_proposals=false"]
     assert not Scenario.load("paper", overrides=off).build_controller().retreat_proposals
+    assert guard.settle and not Scenario.load("paper", overrides=[*on, "controller.backup_settle=false"]
+                                              ).build_controller().settle
+    with pytest.raises(ConfigError) as exc:
+        Scenario.load("paper", overrides=[*on, "controller.backup_settle=3"])
+    assert exc.value.key == "controller.backup_settle"

@@ -250,6 +250,7 @@ def closing_tip() -> tuple[Any, ...]:
     sim.step(0.0)
     q1, v1 = (x.copy() for x in sim.read())
     soft, firm = (rollout(sim, q1, v1, hold, DT, g, stop_below=0.0) for g in (4.0, 25.0))
+    guard.settle = False  # rollouts to rest, as the oracle's: the step counts below are theirs
     return robot, q, v, data, hold, guard, soft, firm
 
 
@@ -333,6 +334,23 @@ def test_backup_guard_spends_at_most_its_check_steps_on_a_proposal():
             assert np.array_equal(out.tau, brake_torque(robot, data, q, v, hold, 4.0, DT))
             assert spent == (n4 + n25 if steps > n4 else steps)
     assert guard.stats["out_of_steps"] == 2 and guard.stats["unverified"] == 0
+
+
+def test_settled_rollouts_spend_fewer_steps_and_pass_their_budget_on():
+    """With ``settle`` (the default) the same check applies the proposal and stores 25 in fewer steps
+    than the rollouts to rest (n₄ + n₂₅ on the Simulator-based rollout), and a step budget of exactly
+    what it spent still applies it: a settled stop's rest may lie beyond the budget's horizon (the rest
+    is bounded within the guard's horizon, not the budget's)."""
+    robot, q, v, data, hold, guard, soft, firm = closing_tip()
+    guard.settle = True
+    guard._gain, guard._tau_prev, guard._on_brake = 4.0, hold.copy(), False
+    out = guard.step(q, v, 0.0)
+    spent = guard.stats["check_steps"][-1]
+    assert guard._gain == 25.0 and np.array_equal(out.tau, hold)
+    assert spent < soft.steps + firm.steps
+    guard._gain, guard._tau_prev, guard.check_steps = 4.0, hold.copy(), spent + 1
+    out = guard.step(q, v, 0.0)
+    assert guard._gain == 25.0 and "backup_out_of_steps" not in out.info and guard.stats["check_steps"][-1] == spent
 
 
 @pytest.mark.parametrize("value", ["0", "2.5", "-1", "nan"])

@@ -69,9 +69,14 @@ def full_stop(sim, q, v, tau_prev, t, gain):
     return np.array(qs), np.array(vs), np.array(clipped), np.array(clear)
 
 
-@pytest.mark.parametrize("make,samples", [(heavy_planar, 80), (franka, 25)], ids=["planar", "panda"])
-def test_a_settled_rollout_is_a_stop_the_simulator_verifies(make, samples):
-    rng = np.random.default_rng(22)
+@pytest.mark.parametrize("make,samples,seed,gains", [
+    (heavy_planar, 80, 22, (10.0, 25.0)), (franka, 25, 22, (10.0, 25.0)),
+    pytest.param(heavy_planar, 400, 7, (4.0, 10.0, 25.0, 60.0), marks=pytest.mark.slow),
+    pytest.param(franka, 100, 7, (4.0, 10.0, 25.0, 60.0), marks=pytest.mark.slow)],
+    ids=["planar", "panda", "planar-400", "panda-100"])
+def test_a_settled_rollout_is_a_stop_the_simulator_verifies(make, samples, seed, gains):
+    """``samples`` random states (with make soak: 400 planar and 100 Panda states, the whole family)."""
+    rng = np.random.default_rng(seed)
     settled, early, worst_ratio = 0, 0, 0.0
     for _ in range(samples):
         ctrl, q, v, dt = make(rng)
@@ -81,7 +86,7 @@ def test_a_settled_rollout_is_a_stop_the_simulator_verifies(make, samples):
         tau_prev = pin.computeGeneralizedGravity(ctrl.robot.model, ctrl.robot.model.createData(), q)
         tau_prev = tau_prev + rng.normal(0, 20, q.size)
         brake = BrakeRollout(ctrl.robot, sim.world, dt)
-        for gain in (10.0, 25.0):
+        for gain in gains:
             cert = brake.run(q, v, tau_prev, 0.0, gain, margin=0.0, stop_below=0.0, exact=False, settle=True)
             full = brake.run(q, v, tau_prev, 0.0, gain, margin=0.0, stop_below=0.0, exact=False, settle=False)
             if not cert.viable:
