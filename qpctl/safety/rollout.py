@@ -40,9 +40,9 @@ horizon and the rest test passes at the current configuration with the creep rai
 else it goes on, and the next settled step is tested only once its creep is half the refused one's.
 This is an assumption about the simulator's steps, as the creep at rest already was (the continuous,
 unclipped decay is exact; the RK4 steps with the torque held are not), and it is **measured, not
-proved**: ``tests/test_settle.py`` rolls 1,167 settled stops (random states of the soak's heavy planar
-arm and the Panda, four gains) on to rest in the simulator — none clipped again, each verified by the
-oracle, the tail at most 0.997 of Σᵢρᵢ|q̇ᵢ|/κ (γ leaves 25 %). The soak's oracle certifies the guard's
+proved**: ``tests/test_settle.py`` rolls settled stops on to rest in the simulator (with ``make soak``
+1,167 of them from random states of the soak's heavy planar arm and the Panda, four gains) — none
+clipped again, each verified by the oracle, the tail at most 0.997 of Σᵢρᵢ|q̇ᵢ|/κ (γ leaves 25 %). The soak's oracle certifies the guard's
 states with full rollouts, so a settle that vouched for a bad stop would show there.
 
 **Native loop** (``native``, the default where :mod:`qpctl.native` builds): the loop of :meth:`run`
