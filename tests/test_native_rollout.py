@@ -136,24 +136,30 @@ def test_the_cases_reach_every_settle_answer(monkeypatch):
     there), and refused with the rollout going on past it (the answers the equality above compares)."""
     lib_or_skip()
     answers = set()
+    for fast, q, v, tau_prev, gain in case_rollouts((4.0, 25.0, 60.0)):
+        for margin in (0.0, 0.05):
+            tests = settles_recorded(fast, monkeypatch)
+            c = fast.run(q, v, tau_prev, 0.3, gain, stop_below=0.0, margin=margin, settle=True)
+            monkeypatch.undo()
+            end = 0.3 + c.steps * cases.DT
+            for t, accepted in tests:
+                if accepted:
+                    assert c.viable and t == pytest.approx(end, abs=1e-9)
+                    answers.add("accepted")
+                else:
+                    assert end > t
+                    answers.add("refused, went on")
+    assert {"accepted", "refused, went on"} <= answers
+
+
+def case_rollouts(gains):
+    """(the native rollout, q, q̇, τ_prev, gain) for every case × gain."""
     for make in CASES.values():
         ctrl, q, v = make()
         fast, _ = both(ctrl)
         tau_prev = cases.gravity(ctrl.robot, q)
-        for gain in (4.0, 25.0, 60.0):
-            for margin in (0.0, 0.05):
-                tests = settles_recorded(fast, monkeypatch)
-                c = fast.run(q, v, tau_prev, 0.3, gain, stop_below=0.0, margin=margin, settle=True)
-                monkeypatch.undo()
-                end = 0.3 + c.steps * cases.DT
-                for t, accepted in tests:
-                    if accepted:
-                        assert c.viable and t == pytest.approx(end, abs=1e-9)
-                        answers.add("accepted")
-                    else:
-                        assert end > t
-                        answers.add("refused, went on")
-    assert {"accepted", "refused, went on"} <= answers
+        for gain in gains:
+            yield fast, q, v, tau_prev, gain
 
 
 def test_the_cases_reach_every_ending():
@@ -161,15 +167,11 @@ def test_the_cases_reach_every_ending():
     (so the equality covers each of qpb_advance's answers)."""
     lib_or_skip()
     ends = set()
-    for make in CASES.values():
-        ctrl, q, v = make()
-        fast, _ = both(ctrl)
-        tau_prev = cases.gravity(ctrl.robot, q)
-        for gain in (4.0, 25.0):
-            c = fast.run(q, v, tau_prev, 0.3, gain, stop_below=0.0)
-            ends.add("rest" if c.viable else "contact" if c.min_clearance < 0 else "other")
-            h = fast.run(q, v, tau_prev, 0.3, gain, horizon=0.01)
-            ends.add("horizon" if (not h.viable and h.steps == 5) else "?")
+    for fast, q, v, tau_prev, gain in case_rollouts((4.0, 25.0)):
+        c = fast.run(q, v, tau_prev, 0.3, gain, stop_below=0.0)
+        ends.add("rest" if c.viable else "contact" if c.min_clearance < 0 else "other")
+        h = fast.run(q, v, tau_prev, 0.3, gain, horizon=0.01)
+        ends.add("horizon" if (not h.viable and h.steps == 5) else "?")
     assert {"rest", "contact", "horizon"} <= ends
 
 
