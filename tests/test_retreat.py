@@ -19,10 +19,9 @@ from qpctl.constraints.constraints import TorqueLimit
 from qpctl.controllers.qp import QPConfig, QPController
 from qpctl.errors import ConfigError
 from qpctl.geometry.distance import DistanceEngine
-from qpctl.safety import BackupGuard, certify, rollout
-from qpctl.safety import oracle
-from qpctl.safety.oracle import BRAKE_GAINS, REST_SPEED
+from qpctl.safety import BackupGuard, certify, oracle, rollout
 from qpctl.safety.backup import GuardedOutput
+from qpctl.safety.oracle import BRAKE_GAINS, REST_SPEED
 from qpctl.safety.retreat import OMEGAS, RETRY_TICKS, SETTLE, Retreat, shown, switch_time, targets
 from qpctl.safety.rollout import BrakeRollout
 from qpctl.safety.sweep import RestClearance, lever_arms

@@ -341,7 +341,7 @@ def test_settled_rollouts_spend_fewer_steps_and_pass_their_budget_on():
     than the rollouts to rest (n₄ + n₂₅ on the Simulator-based rollout), and a step budget of exactly
     what it spent still applies it: a settled stop's rest may lie beyond the budget's horizon (the rest
     is bounded within the guard's horizon, not the budget's)."""
-    robot, q, v, data, hold, guard, soft, firm = closing_tip()
+    _, q, v, _, hold, guard, soft, firm = closing_tip()
     guard.settle = True
     guard._gain, guard._tau_prev, guard._on_brake = 4.0, hold.copy(), False
     out = guard.step(q, v, 0.0)

@@ -62,7 +62,7 @@ once a stop has come to rest and an obstacle reaches the arm there (``collisions
 from __future__ import annotations
 
 import time
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -201,8 +201,9 @@ class BackupGuard:
         return ((gain, found[0]) if found is not None else None), spent
 
     #: the stats each kind of search counts in: (searches, retreats found)
-    SEARCH_STATS = {"state": ("retreat_searches", "retreats_found"),
-                    "proposal": ("proposal_searches", "proposal_retreats_found")}
+    SEARCH_STATS: ClassVar[dict[str, tuple[str, str]]] = {"state": ("retreat_searches", "retreats_found"),
+                                                          "proposal": ("proposal_searches",
+                                                                       "proposal_retreats_found")}
 
     def _throttled_retreat(self, kind: str, wanted: bool, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray,
                            t: float, steps: float = np.inf) -> tuple[tuple[float, Retreat] | None, int]:
