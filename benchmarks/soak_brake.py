@@ -165,6 +165,38 @@ def check_cost(scenes: int, every: int = 3, passes: int = 1) -> dict[str, Any]:
                    "outcomes_differing_from_exact": differ[m]} for m in modes}}
 
 
+def panda_khz(raws: list[dict[str, Any]]) -> dict[str, Any]:
+    """The set's Panda scenes at 1 kHz (``--panda-1khz``): each scene's ``sim.dt`` set to 1 ms, behind the
+    guard, no oracle, one process (the timings are the point): every checked tick's check [µs wall] —
+    median, p99, p99.9, max over all ticks — next to the QP's tick, and the interventions, unverified
+    ticks and collisions."""
+    rows: list[dict[str, Any]] = []
+    for raw in raws:
+        if raw["robot"]["kind"] != "panda":
+            continue
+        raw = {**raw, "sim": {**raw["sim"], "dt": 1e-3}}
+        row = brake.guarded_run(raw, 0)
+        rows.append(row)
+        print(raw["name"], {k: row[k] for k in ("collided", "backup_ticks", "unverified", "min_clearance")},
+              "check median %.0f µs, p99 %.0f µs" % (np.median(row["tick_us"]), np.percentile(row["tick_us"], 99)),
+              flush=True)
+    us = np.concatenate([r["tick_us"] for r in rows])
+    return {"scenes": [r["name"] for r in rows], "ticks": int(us.size),
+            "check_us_median": float(np.median(us)), "check_us_p99": float(np.percentile(us, 99)),
+            "check_us_p999": float(np.percentile(us, 99.9)), "check_us_max": float(us.max()),
+            "ticks_over_1ms": int(np.sum(us > 1000.0)),
+            "backup_ticks": int(sum(r["backup_ticks"] for r in rows)),
+            "unverified_ticks": int(sum(r["unverified"] for r in rows)),
+            "collided": [r["name"] for r in rows if r["collided"]],
+            "median_rms_tracking_error": float(np.median([r["rms_tracking_error"] for r in rows])),
+            "per_scene": [{"name": r["name"], "moving": r["moving"], "ticks": r["ticks"],
+                           "check_us_median": float(np.median(r["tick_us"])),
+                           "check_us_p99": float(np.percentile(r["tick_us"], 99)),
+                           "ticks_over_1ms": int(np.sum(np.asarray(r["tick_us"]) > 1000.0)),
+                           "backup_ticks": r["backup_ticks"], "retreat_ticks": r["retreat_ticks"],
+                           "unverified": r["unverified"]} for r in rows]}
+
+
 def faults_run(raw: dict[str, Any], backup: bool) -> dict[str, Any]:
     """One faults-soak scene (its ``[faults]`` table: the simulator applies them, the controller runs
     on its perceived map and measured state) with or without the guard; tick budgets off (:func:`unbudgeted`:
@@ -260,6 +292,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a controller key for every scene, e.g. backup_check_steps=400 (the output file gets "
                          "the settings in its name)")
+    ap.add_argument("--panda-1khz", action="store_true",
+                    help="the set's Panda scenes among its first --scenes at dt = 1 ms, one process, no oracle: the "
+                         "check's cost a tick at 1 kHz (summary_brake_panda_1khz_<set>.json)")
     ap.add_argument("--faults", action="store_true",
                     help="the faults soak's first --scenes scenes without and with the guard (summary_brake_faults.json)")
     args = ap.parse_args(argv)
@@ -274,6 +309,11 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(out, indent=1))
         return 0
     scenes = list((fresh_scenes if args.scene_set == "fresh" else soak_scenes)(args.scenes))
+    if args.panda_1khz:
+        out = panda_khz([unbudgeted(raw) if args.no_budget else raw for raw in scenes])
+        (args.out / f"summary_brake_panda_1khz_{args.scene_set}.json").write_text(json.dumps(out, indent=1) + "\n")
+        print(json.dumps(out, indent=1))
+        return 0
     if args.no_budget:
         scenes = [unbudgeted(raw) for raw in scenes]
     settings = {k.strip(): json.loads(v) for k, v in (kv.split("=", 1) for kv in args.set)}
