@@ -309,15 +309,16 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(out, indent=1))
         return 0
     scenes = list((fresh_scenes if args.scene_set == "fresh" else soak_scenes)(args.scenes))
-    if args.panda_1khz:
-        out = panda_khz([unbudgeted(raw) if args.no_budget else raw for raw in scenes])
-        (args.out / f"summary_brake_panda_1khz_{args.scene_set}.json").write_text(json.dumps(out, indent=1) + "\n")
-        print(json.dumps(out, indent=1))
-        return 0
     if args.no_budget:
         scenes = [unbudgeted(raw) for raw in scenes]
     settings = {k.strip(): json.loads(v) for k, v in (kv.split("=", 1) for kv in args.set)}
     scenes = [{**raw, "controller": {**raw["controller"], **settings}} for raw in scenes]
+    tag = "".join(f"_{k}={v}" for k, v in settings.items())
+    if args.panda_1khz:
+        out = panda_khz(scenes)
+        (args.out / f"summary_brake_panda_1khz_{args.scene_set}{tag}.json").write_text(json.dumps(out, indent=1) + "\n")
+        print(json.dumps({k: v for k, v in out.items() if k != "per_scene"}, indent=1))
+        return 0
     if args.compare:
         jobs = [(raw, 0, b) for raw in scenes for b in (True, False)]
         path = args.out / f"summary_brake_compare_{args.scene_set}.json"
@@ -325,7 +326,7 @@ def main(argv: list[str] | None = None) -> int:
         jobs = [(raw, args.oracle_every, True) for raw in scenes]
         path = args.out / ("summary_brake.json" if args.scene_set == "fresh" else "summary_brake_soakset.json")
     if settings:
-        path = path.with_name(path.stem + "".join(f"_{k}={v}" for k, v in settings.items()) + ".json")
+        path = path.with_name(path.stem + tag + ".json")
     rows: list[dict[str, Any]] = []
     bare: list[dict[str, Any]] = []
     errors: list[dict[str, Any]] = []
