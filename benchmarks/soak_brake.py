@@ -178,7 +178,7 @@ def panda_khz(raws: list[dict[str, Any]]) -> dict[str, Any]:
         row = brake.guarded_run(raw, 0)
         rows.append(row)
         print(raw["name"], {k: row[k] for k in ("collided", "backup_ticks", "unverified", "min_clearance")},
-              "check median %.0f µs, p99 %.0f µs" % (np.median(row["tick_us"]), np.percentile(row["tick_us"], 99)),
+              f"check median {np.median(row['tick_us']):.0f} µs, p99 {np.percentile(row['tick_us'], 99):.0f} µs",
               flush=True)
     us = np.concatenate([r["tick_us"] for r in rows])
     return {"scenes": [r["name"] for r in rows], "ticks": int(us.size),

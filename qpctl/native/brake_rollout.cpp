@@ -83,15 +83,13 @@ double rk4_step(Brake& b, double* q, double* v, double dt, const double* rho) {
   return travel;
 }
 
-// The brake settled into its decay (qpctl.safety.rollout, "Settled"; kernels.rollout.settled): b.tau
-// is b.raw (neither limit clipped it), and along q̇e^{−κt} the torque's change over the next step,
-// d = |RNEA(q + Δt·q̇, e·q̇, −κe·q̇) − τ| (e = e^{−κΔt}), stays within beta of the rate window and
+// The brake settled into its decay (qpctl.safety.rollout, "Settled"; kernels.rollout.settled), its
+// torque b.tau unclipped (the caller tests it: unclipped()): along q̇e^{−κt} the torque's change over
+// the next step, d = |RNEA(q + Δt·q̇, e·q̇, −κe·q̇) − τ| (e = e^{−κΔt}), stays within beta of the rate window and
 // |τ| + d/(κΔt) — the torque's whole change if its rate decays with the speed — within beta of τ_max.
 bool settled(Brake& b, const double* q, const double* v, double gain, double dt, double decay, double beta,
              const double* tau_max, const double* window) {
   const int n = b.model.nv;
-  for (int i = 0; i < n; ++i)
-    if (b.tau[i] != b.raw[i]) return false;
   for (int i = 0; i < n; ++i) {
     b.ahead[i] = q[i] + dt * v[i];
     b.vahead[i] = v[i] * decay;
@@ -102,6 +100,13 @@ bool settled(Brake& b, const double* q, const double* v, double gain, double dt,
     const double d = std::abs(next[i] - b.tau[i]);
     if (!(d <= beta * window[i]) || !(std::abs(b.tau[i]) + d / (gain * dt) <= beta * tau_max[i])) return false;
   }
+  return true;
+}
+
+// True if neither limit clipped the brake's torque (b.tau is b.raw).
+bool unclipped(const Brake& b) {
+  for (int i = 0; i < b.model.nv; ++i)
+    if (b.tau[i] != b.raw[i]) return false;
   return true;
 }
 
@@ -228,7 +233,7 @@ int qpb_advance(void* h, double* q, double* v, double* prev, const double* tau_m
         break;
       }
       brake_torque(b, q, v, prev, gain, tau_max, window, steering, target, io[IO_W2], io[IO_W1]);
-      if (settle && !steering) {
+      if (settle && !steering && unclipped(b)) {
         double creep = 0.0;
         for (int i = 0; i < n; ++i) creep += rho[i] * std::abs(v[i]);
         creep = creep * io[IO_GAMMA] / gain;

@@ -148,6 +148,15 @@ class BackupGuard:
         self._reset_backup()
         return float(out)
 
+    def _roll(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float,
+              retreat: Retreat | None, steps: int | None = None) -> Any:
+        """The guard's rollout of the brake of gain κ (or ``retreat``) from (q, q̇) after τ_prev at t: ended
+        below ``margin``, kept above it, settled where ``settle``, in at most ``steps`` steps (default: the
+        horizon's) — the rest of a settled stop still due within the horizon, not the steps."""
+        horizon = self.horizon if steps is None else steps * self.dt
+        return self.brake.run(q, v, tau_prev, t, gain, horizon=horizon, margin=self.margin, stop_below=self.margin,
+                              exact=self.exact, retreat=retreat, settle=self.settle, rest_within=self.horizon)
+
     def _first_verified(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float,
                         tries: float = np.inf, steps: float = np.inf
                         ) -> tuple[tuple[float, Retreat | None] | None, int, bool, tuple[float, Retreat | None] | None]:
@@ -164,9 +173,7 @@ class BackupGuard:
             n = full if left >= full else int(left)
             if n < 1:
                 return None, spent, True, stop
-            cert = self.brake.run(q, v, tau_prev, t, g, horizon=n * self.dt, margin=self.margin,
-                                  stop_below=self.margin, exact=self.exact, retreat=r, settle=self.settle,
-                                  rest_within=self.horizon)
+            cert = self._roll(q, v, tau_prev, t, g, r, n)
             spent += cert.steps
             if cert.viable:
                 return (g, r), spent, False, (g, r)
@@ -190,9 +197,7 @@ class BackupGuard:
             n = int(min(full, steps - spent))
             if n < 1:
                 return Certificate(False, gain, -np.inf, np.inf, 0)  # out of steps: refused unrun
-            cert = self.brake.run(q, v, tau_prev, t, gain, horizon=n * self.dt, margin=self.margin,
-                                  stop_below=self.margin, exact=self.exact, retreat=r, settle=self.settle,
-                                  rest_within=self.horizon)
+            cert = self._roll(q, v, tau_prev, t, gain, r, n)
             spent += max(cert.steps, 1)
             return cert  # (one cut short by the steps left is not verified: its horizon ended it)
 
@@ -246,9 +251,7 @@ class BackupGuard:
         if self._gain is not None and self.brake.rest.drifts and np.all(np.abs(v) <= REST_SPEED):
             # at rest the stored stop's rest moves on with the time, and so does the window over which it must
             # clear the drifting obstacles (hold): re-verified from this very state, else forgotten (step 3)
-            cert = self.brake.run(q, v, self._tau_prev, t, self._gain, horizon=self.horizon, margin=self.margin,
-                                  stop_below=self.margin, exact=self.exact, retreat=self._retreat,
-                                  settle=self.settle, rest_within=self.horizon)
+            cert = self._roll(q, v, self._tau_prev, t, self._gain, self._retreat)
             spent += cert.steps
             if not cert.viable:
                 lapsed = self._gain, self._retreat

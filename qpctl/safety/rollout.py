@@ -142,10 +142,8 @@ class BrakeRollout:
         return self.tau
 
     def settled(self, q: np.ndarray, v: np.ndarray, gain: float, decay: float) -> bool:
-        """True if the brake's torque at (q, q̇) — ``self.tau``, just computed by :meth:`torque` — settled
-        into its decay (module docstring, "Settled"); ``decay`` = e^{−κΔt}."""
-        if not np.array_equal(self.tau, self.raw):
-            return False
+        """True if the brake's torque at (q, q̇) — ``self.tau``, just computed by :meth:`torque`, and not
+        clipped — settled into its decay (module docstring, "Settled"); ``decay`` = e^{−κΔt}."""
         ahead = v * decay
         nxt = pin.rnea(self.model, self.data, q + self.dt * v, ahead, ahead * -gain)
         return bool(K.settled(self.tau, nxt, self.tau_max, self.window, gain, self.dt, SETTLE_BETA))
@@ -224,12 +222,12 @@ class BrakeRollout:
         lazy = not exact and rho is not None
         level = max(margin, stop_below)
         settle = settle and self.settles
+        rest_within = horizon if rest_within is None else rest_within
         if self.native is not None:
             return self.native.run(q, v, tau_prev, t, gain, round(horizon / dt), margin, stop_below, level, lazy,
-                                   retreat, settle, rest_within if rest_within is not None else horizon)
+                                   retreat, settle, rest_within)
         qq, vv, prev = np.array(q, float), np.array(v, float), np.array(tau_prev, float)
         worst, still, last, drift = np.inf, 0.0, np.inf, np.inf
-        rest_within = horizon if rest_within is None else rest_within
         decay, below = math.exp(-gain * dt), np.inf  # below: a settle's creep must be under it (halved on a refusal)
         steps = round(horizon / dt)
         for k in range(steps):
@@ -248,7 +246,7 @@ class BrakeRollout:
             if still >= REST_TIME:
                 return self.at_rest(qq, vv, gain, worst, margin, t, k)
             self.torque(qq, vv, prev, gain, retreat, tk)
-            if settle and not steering:
+            if settle and not steering and np.array_equal(self.tau, self.raw):  # unclipped
                 creep = K.travel(vv, rho) * SETTLE_GAMMA / gain
                 if creep < below and self.settled(qq, vv, gain, decay):
                     if self.settled_rest(qq, vv, gain, worst, margin, tk, rest_within - k * dt):
