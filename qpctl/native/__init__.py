@@ -129,6 +129,7 @@ def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
            "qpb_aba": (None, [p, p, p, p, p]), "qpb_rnea": (None, [p, p, p, p, p]),
            "qpb_advance": (i, [p] * 11),
            "qpb_step": (ctypes.c_double, [p, p, p, p, ctypes.c_double, p]),
+           "qpb_walk_size": (i, []), "qpb_walk_plan": (i, [p] * 11), "qpb_walk_clear": (i, [p] * 11),
            "qpr_new": (p, [ctypes.c_char_p, L]), "qpr_free": (None, [p]), "qpr_error": (ctypes.c_char_p, []),
            "qpr_addresses": (None, [p, p]), "qpr_pass": (i, [p] * 4)}
     for name, (res, args) in sig.items():

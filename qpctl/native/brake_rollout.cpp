@@ -26,9 +26,11 @@ struct Brake {
   pinocchio::Data data;
   Eigen::VectorXd qdd, tau, raw, qs, dq, dv, ahead, vahead, aahead;
   Eigen::MatrixXd kq, ka;  // (n, 4): the stages' velocities and accelerations, one column each
+  // a settled retreat's walk (qpb_walk_plan, qpb_walk_clear): its acceleration, its previous configuration
+  Eigen::VectorXd wqdd, wprev;
   explicit Brake(const pinocchio::Model& m)
       : model(m), data(m), qdd(m.nv), tau(m.nv), raw(m.nv), qs(m.nq), dq(m.nv), dv(m.nv), ahead(m.nq),
-        vahead(m.nv), aahead(m.nv), kq(m.nv, 4), ka(m.nv, 4) {}
+        vahead(m.nv), aahead(m.nv), kq(m.nv, 4), ka(m.nv, 4), wqdd(m.nv), wprev(m.nv) {}
 };
 
 using Map = Eigen::Map<Eigen::VectorXd>;
@@ -110,6 +112,20 @@ bool unclipped(const Brake& b) {
   return true;
 }
 
+// A settled retreat's steering in closed form (qpctl/safety/walk.py): with e₀ = q₀ − q* and
+// c = q̇₀ + ω·e₀, the unclipped steering q̈ = ω²(q* − q) − 2ωq̇ gives q = q* + (e₀ + c·s)e^{−ωs} and
+// q̇ = (q̇₀ − ω·c·s)e^{−ωs}, s after the walk's start (kernels.walk.steer_state, the same operations).
+void steer_state(const double* q0, const double* v0, const double* target, double w, double s, int n, double* q,
+                 double* v) {
+  const double x = std::exp(-w * s);
+  for (int i = 0; i < n; ++i) {
+    const double e0 = q0[i] - target[i];
+    const double c = v0[i] + w * e0;
+    q[i] = target[i] + (e0 + c * s) * x;
+    v[i] = (v0[i] - w * c * s) * x;
+  }
+}
+
 enum { MOVING = 0, AT_REST = 1, OUTSIDE = 2 };
 
 int state_code(const double* q, const double* v, int n, const double* q_min, const double* q_max,
@@ -134,12 +150,21 @@ extern "C" {
 enum {
   IO_K, IO_STEPS, IO_STILL, IO_LAST, IO_DRIFT, IO_WORST, IO_LEVEL, IO_STOP_BELOW, IO_GAIN, IO_DT,
   IO_OBSTACLE_SPEED, IO_REST_SPEED, IO_REST_TIME, IO_EVALUATED, IO_LAZY, IO_T0, IO_UNTIL, IO_W2, IO_W1,
-  IO_SETTLE, IO_SETTLE_BELOW, IO_DECAY, IO_BETA, IO_GAMMA, IO_CREEP, IO_PENDING, IO_SIZE
+  IO_SETTLE, IO_SETTLE_BELOW, IO_DECAY, IO_BETA, IO_GAMMA, IO_CREEP, IO_PENDING, IO_WALK_AFTER, IO_STRAY, IO_SIZE
 };
 // qpb_advance's answers.
-enum { NEED_CLEARANCE = 0, AT_REST_END = 1, FAILED = 2, HORIZON = 3, SETTLED = 4 };
+enum { NEED_CLEARANCE = 0, AT_REST_END = 1, FAILED = 2, HORIZON = 3, SETTLED = 4, WALK = 5 };
+
+// The walk's io block (qpb_walk_plan, qpb_walk_clear; qpctl/safety/walk.py's W_* order) and qpb_walk_clear's answers.
+enum {
+  W_K, W_T0, W_DT, W_UNTIL, W_OMEGA, W_GAIN, W_BETA, W_EVERY, W_STRAY, W_STEPS, W_NSW, W_DEV, W_RETRY, W_J,
+  W_LAST, W_DRIFT, W_WORST, W_EVALUATED, W_LEVEL, W_LAZY, W_MOVE, W_PROG, W_SIZE
+};
+enum { WALKED = 1, REFUSED = 2 };
 
 int qpb_io_size() { return IO_SIZE; }
+
+int qpb_walk_size() { return W_SIZE; }
 
 const char* qpb_error() { return last_error.c_str(); }
 
@@ -192,7 +217,10 @@ double qpb_step(void* h, double* q, double* v, const double* tau, double dt, con
 // With io[SETTLE] ≠ 0, a step whose brake has settled (settled()) with its creep, io[GAMMA]·Σᵢρᵢ|q̇ᵢ|/κ,
 // below io[SETTLE_BELOW] returns SETTLED before the step is taken (io[CREEP]: that creep; io[PENDING] = 1:
 // the step's checks done and its torque in the handle); the caller tests the rest and, if it refuses,
-// lowers io[SETTLE_BELOW] and calls again, which takes the pending step.
+// lowers io[SETTLE_BELOW] and calls again, which takes the pending step. With io[SETTLE] ≠ 0, a retreat's
+// steering step from io[WALK_AFTER] on whose torque was not clipped returns WALK the same way (pending):
+// the caller tries the walk (qpb_walk_plan, qpb_walk_clear) and, if it is refused, sets io[WALK_AFTER]
+// to the step it may be tried again from and calls again.
 int qpb_advance(void* h, double* q, double* v, double* prev, const double* tau_max, const double* window,
                 const double* q_min, const double* q_max, const double* rho, const double* target, double* io) {
   Brake& b = *static_cast<Brake*>(h);
@@ -202,6 +230,7 @@ int qpb_advance(void* h, double* q, double* v, double* prev, const double* tau_m
   const double move = io[IO_OBSTACLE_SPEED] * dt;
   const bool lazy = io[IO_LAZY] != 0.0;
   double still = io[IO_STILL], last = io[IO_LAST], drift = io[IO_DRIFT], worst = io[IO_WORST];
+  const double stray = io[IO_STRAY];  // after a walk: its allowance, off every clearance (0 otherwise)
   bool evaluated = io[IO_EVALUATED] != 0.0;
   long k = static_cast<long>(io[IO_K]);
   int answer = HORIZON;
@@ -213,8 +242,8 @@ int qpb_advance(void* h, double* q, double* v, double* prev, const double* tau_m
       pending = false;  // this step's checks and torque were done before SETTLED returned
     } else {
       if (!evaluated) {
-        if (lazy && last - drift > level) {
-          worst = std::min(worst, last - drift);
+        if (lazy && last - drift - stray > level) {
+          worst = std::min(worst, last - drift - stray);
         } else {
           answer = NEED_CLEARANCE;
           break;
@@ -233,6 +262,11 @@ int qpb_advance(void* h, double* q, double* v, double* prev, const double* tau_m
         break;
       }
       brake_torque(b, q, v, prev, gain, tau_max, window, steering, target, io[IO_W2], io[IO_W1]);
+      if (settle && steering && static_cast<double>(k) >= io[IO_WALK_AFTER] && unclipped(b)) {
+        io[IO_PENDING] = 1.0;  // a settled retreat's walk may end the rollout here (qpb_walk_plan)
+        answer = WALK;
+        break;
+      }
       if (settle && !steering && unclipped(b)) {
         double creep = 0.0;
         for (int i = 0; i < n; ++i) creep += rho[i] * std::abs(v[i]);
@@ -256,6 +290,135 @@ int qpb_advance(void* h, double* q, double* v, double* prev, const double* tau_m
   io[IO_DRIFT] = drift;
   io[IO_WORST] = worst;
   io[IO_EVALUATED] = evaluated ? 1.0 : 0.0;
+  return answer;
+}
+
+// A settled retreat's walk, its plan (qpctl/safety/walk.py, "The walk"): from the pending steering step
+// wio[K] at (q0, v0) — its torque, unclipped, the handle's b.tau —, the steering in closed form
+// (steer_state) is sampled at steps 1, every, 2·every, … and the last steering step nsw − 1 (nsw: the
+// first step where t ≥ until, within the horizon wio[STEPS]): each sample's torque
+// RNEA(q, q̇, ω²(q* − q) − 2ωq̇) within beta of τ_max and its change from the sample before within beta of
+// the rate window times the steps between. Returns 1 (wio[NSW]; the last sample's torque into tau_out; T and
+// wio[PROG] zeroed for qpb_walk_clear) or 0 (refused; wio[RETRY]: the step from which a walk may be tried
+// again — the failed sample's, at least every steps on —, inf: not in this rollout).
+int qpb_walk_plan(void* h, const double* q0, const double* v0, const double* target, const double* tau_max,
+                  const double* window, double* T, double* wq, double* wv, double* tau_out, double* wio) {
+  Brake& b = *static_cast<Brake*>(h);
+  const int n = b.model.nv;
+  const long k = static_cast<long>(wio[W_K]), steps = static_cast<long>(wio[W_STEPS]);
+  const long every = static_cast<long>(wio[W_EVERY]);
+  const double t0 = wio[W_T0], dt = wio[W_DT], until = wio[W_UNTIL], w = wio[W_OMEGA];
+  const double beta = wio[W_BETA], w2 = w * w, w1 = 2.0 * w;
+  long nsw = 1;
+  while (t0 + static_cast<double>(k + nsw) * dt < until) ++nsw;
+  wio[W_NSW] = static_cast<double>(nsw);
+  if (k + nsw >= steps) {
+    wio[W_RETRY] = INFINITY;
+    return 0;
+  }
+  Map before(tau_out, n);
+  before = b.tau;
+  long jprev = 0;
+  for (long j = 1; j < nsw;) {
+    steer_state(q0, v0, target, w, static_cast<double>(j) * dt, n, wq, wv);
+    for (int i = 0; i < n; ++i) b.wqdd[i] = (target[i] - wq[i]) * w2 - w1 * wv[i];
+    const Eigen::VectorXd& tau = pinocchio::rnea(b.model, b.data, CRef(CMap(wq, n)), CRef(CMap(wv, n)), CRef(b.wqdd));
+    const double span = beta * static_cast<double>(j - jprev);
+    for (int i = 0; i < n; ++i) {
+      if (!(std::abs(tau[i]) <= beta * tau_max[i]) || !(std::abs(tau[i] - before[i]) <= span * window[i])) {
+        wio[W_RETRY] = static_cast<double>(k + std::max(j, every));
+        return 0;
+      }
+    }
+    before = tau;
+    jprev = j;
+    if (j == nsw - 1) break;
+    j = std::min(j < every ? every : j + every, nsw - 1);
+  }
+  for (int i = 0; i < n; ++i) {
+    T[i] = 0.0;
+    b.wprev[i] = q0[i];
+  }
+  wio[W_PROG] = 0.0;
+  return 1;
+}
+
+// The walk's clearance (qpctl/safety/walk.py, "The walk"), from step wio[J] + 1 of a planned walk (wio[J]
+// = 0 at the start, the exact loop's lazy bound in wio[LAST], wio[DRIFT], wio[WORST]): at each step j the
+// closed-form state into (wq, wv), each joint's travel so far into T, Σᵢρᵢ|Δqᵢ| into wio[PROG] and the lazy
+// bound as the rollout keeps it; at j < nsw, that bound lowered by the stray δ = stray·wio[PROG]:
+// NEED_CLEARANCE where it no longer covers the level (the caller evaluates the clearance at wq at
+// t0 + (k + j)·dt, sets wio[LAST], wio[DRIFT] = 0, wio[EVALUATED] = 1 and calls again), REFUSED where the
+// clearance less δ is not above wio[LEVEL] or a joint is within stray·Tᵢ of a limit (wio[RETRY]: the step
+// halfway there, at least every steps on); at j = nsw, WALKED
+// (wq, wv: the switch's state, its step's travel in wio[DRIFT]; Tᵢ += |q̇ᵢ|/κ and wio[DEV] = stray·ΣᵢρᵢTᵢ:
+// the stray the rollout goes on with; wio[WORST]: the least clearance less the strays).
+int qpb_walk_clear(void* h, const double* q0, const double* v0, const double* target, const double* q_min,
+                   const double* q_max, const double* rho, double* T, double* wq, double* wv, double* wio) {
+  Brake& b = *static_cast<Brake*>(h);
+  const int n = b.model.nv;
+  const long nsw = static_cast<long>(wio[W_NSW]);
+  const double dt = wio[W_DT], w = wio[W_OMEGA], level = wio[W_LEVEL], move = wio[W_MOVE];
+  const double stray = wio[W_STRAY];
+  const bool lazy = wio[W_LAZY] != 0.0;
+  double last = wio[W_LAST], drift = wio[W_DRIFT], worst = wio[W_WORST], prog = wio[W_PROG];
+  bool evaluated = wio[W_EVALUATED] != 0.0;
+  long j = static_cast<long>(wio[W_J]) + (evaluated ? 0 : 1);
+  int answer = REFUSED;
+  for (; j <= nsw; ++j) {
+    double bound = last;
+    if (!evaluated) {
+      steer_state(q0, v0, target, w, static_cast<double>(j) * dt, n, wq, wv);
+      double travel = 0.0;
+      for (int i = 0; i < n; ++i) {
+        const double d = std::abs(wq[i] - b.wprev[i]);
+        T[i] += d;
+        travel += rho[i] * d;
+        b.wprev[i] = wq[i];
+      }
+      prog += travel;
+      drift += travel + move;
+      if (j == nsw) {
+        double dev = 0.0;
+        for (int i = 0; i < n; ++i) {
+          T[i] += std::abs(wv[i]) / wio[W_GAIN];
+          dev += rho[i] * T[i];
+        }
+        wio[W_DEV] = stray * dev;
+        answer = WALKED;
+        break;
+      }
+      if (!(lazy && last - drift - stray * prog > level)) {
+        answer = NEED_CLEARANCE;
+        break;
+      }
+      bound = last - drift;
+    }
+    evaluated = false;
+    const double dev = stray * prog;
+    if (!(bound - dev > level)) {
+      answer = REFUSED;
+      break;
+    }
+    worst = std::min(worst, bound - dev);
+    bool inside = true;
+    for (int i = 0; i < n; ++i) {
+      const double d = stray * T[i];
+      inside = inside && wq[i] - d >= q_min[i] && wq[i] + d <= q_max[i];
+    }
+    if (!inside) {
+      answer = REFUSED;
+      break;
+    }
+  }
+  wio[W_J] = static_cast<double>(j);
+  wio[W_LAST] = last;
+  wio[W_DRIFT] = drift;
+  wio[W_WORST] = worst;
+  wio[W_PROG] = prog;
+  wio[W_EVALUATED] = evaluated ? 1.0 : 0.0;
+  // a refused walk may be tried again halfway to where it was refused (the stray grows from a walk's start)
+  if (answer == REFUSED) wio[W_RETRY] = wio[W_K] + std::max(std::floor(0.5 * static_cast<double>(j)), wio[W_EVERY]);
   return answer;
 }
 

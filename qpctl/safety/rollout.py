@@ -68,13 +68,15 @@ from qpctl.kernels import rollout as K
 from qpctl.safety.oracle import REST_SPEED, REST_TIME, Certificate
 from qpctl.safety.retreat import Retreat
 from qpctl.safety.sweep import RestClearance, swaying
+from qpctl.safety.walk import Walk
 from qpctl.tick import WorldClearance
 
 # qpb_advance's io block (brake_rollout.cpp's IO_* order) and answers
 (IO_K, IO_STEPS, IO_STILL, IO_LAST, IO_DRIFT, IO_WORST, IO_LEVEL, IO_STOP_BELOW, IO_GAIN, IO_DT,
  IO_OBSTACLE_SPEED, IO_REST_SPEED, IO_REST_TIME, IO_EVALUATED, IO_LAZY, IO_T0, IO_UNTIL, IO_W2, IO_W1,
- IO_SETTLE, IO_SETTLE_BELOW, IO_DECAY, IO_BETA, IO_GAMMA, IO_CREEP, IO_PENDING, IO_SIZE) = range(27)
-NEED_CLEARANCE, AT_REST_END, FAILED, HORIZON, SETTLED = range(5)
+ IO_SETTLE, IO_SETTLE_BELOW, IO_DECAY, IO_BETA, IO_GAMMA, IO_CREEP, IO_PENDING, IO_WALK_AFTER, IO_STRAY,
+ IO_SIZE) = range(29)
+NEED_CLEARANCE, AT_REST_END, FAILED, HORIZON, SETTLED, WALK = range(6)
 
 #: A settled brake's torque and rate stay within this share of their limits (module docstring, "Settled").
 SETTLE_BETA = 0.8
@@ -92,6 +94,9 @@ class BrakeRollout:
         hold: [s] how long after its rest a stop must stay clear of the drifting obstacles
             (:class:`~qpctl.safety.sweep.RestClearance`; 0: not tested).
     """
+
+    #: the settle's shares (module docstring, "Settled"), read by the walk (:mod:`qpctl.safety.walk`)
+    beta, gamma = SETTLE_BETA, SETTLE_GAMMA
 
     def __init__(self, robot: Any, world: WorldClearance, dt: float, hold: float = 0.0) -> None:
         self.robot, self.world, self.dt = robot, world, float(dt)
@@ -119,13 +124,14 @@ class BrakeRollout:
         drifting = any(o.moving and not swaying(o) for o in world.ws.obstacles)
         self.settles = self.rho is not None and (hold > 0 or not drifting)
         self.native: NativeBrake | None = NativeBrake.create(self) if not self.lie else None
+        self.walk = Walk(self)  # a settled retreat's steering walked (qpctl.safety.walk)
 
     def at_rest(self, q: np.ndarray, v: np.ndarray, gain: float, worst: float, margin: float, t: float,
-                k: int) -> Certificate:
+                k: int, stray: float = 0.0) -> Certificate:
         """The certificate of a rollout from t [s] at rest at step k, (q, q̇), its least clearance ``worst``
         [m]: verified if the clearance stayed above ``margin`` [m] and the rest passes the rest test at its
-        time t + k·dt (both loops end here)."""
-        ok = worst > margin and self.rest.verifies(q, v, gain, margin, t + k * self.dt)
+        time t + k·dt by ``margin`` + ``stray`` (a walk's allowance) (both loops end here)."""
+        ok = worst > margin and self.rest.verifies(q, v, gain, margin + stray, t + k * self.dt)
         return Certificate(ok, gain, worst, k * self.dt, k)
 
     def torque(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, gain: float, retreat: Retreat | None = None,
@@ -149,16 +155,17 @@ class BrakeRollout:
         return bool(K.settled(self.tau, nxt, self.tau_max, self.window, gain, self.dt, SETTLE_BETA))
 
     def settled_rest(self, q: np.ndarray, v: np.ndarray, gain: float, worst: float, margin: float,
-                     t: float, left: float) -> bool:
+                     t: float, left: float, stray: float = 0.0) -> bool:
         """True if a settled brake at (q, q̇) at t [s], its least clearance so far ``worst`` [m], may end
         its rollout here: the decay comes to rest (every |q̇ᵢ| ≤ REST_SPEED for REST_TIME) within the
         ``left`` [s] of the horizon — as the full rollout must —, and the rest test passes with the creep
         bound raised by :data:`SETTLE_GAMMA`, the drifting obstacles tested from now until the hold after
-        that rest (the full rollout's window: its rest comes later)."""
+        that rest (the full rollout's window: its rest comes later) — by ``margin`` + ``stray`` [m] (a
+        walk's allowance: :mod:`qpctl.safety.walk`)."""
         speed = K.max_abs(v)
         to_rest = (math.log(speed / REST_SPEED) / gain if speed > REST_SPEED else 0.0) + REST_TIME
         return (worst > margin and to_rest <= left
-                and self.rest.verifies(q, SETTLE_GAMMA * v, gain, margin, t, t + to_rest + self.rest.hold))
+                and self.rest.verifies(q, SETTLE_GAMMA * v, gain, margin + stray, t, t + to_rest + self.rest.hold))
 
     def _stage(self, q: np.ndarray, v: np.ndarray, h: float, i: int) -> None:
         """Stage i + 1 from stage i: its velocity kq[i+1] = v + h·ka[i], its acceleration ABA(q ⊕ h·kq[i], ·)."""
@@ -229,33 +236,47 @@ class BrakeRollout:
         qq, vv, prev = np.array(q, float), np.array(v, float), np.array(tau_prev, float)
         worst, still, last, drift = np.inf, 0.0, np.inf, np.inf
         decay, below = math.exp(-gain * dt), np.inf  # below: a settle's creep must be under it (halved on a refusal)
+        walk_after = 0.0  # a retreat's walk is tried from this step on (qpctl.safety.walk)
+        stray, q_min, q_max = 0.0, self.q_min, self.q_max  # after a walk: its allowance, the limits less it
         steps = round(horizon / dt)
-        for k in range(steps):
-            if lazy and last - drift > level:
-                worst = min(worst, last - drift)
+        k = 0
+        while k < steps:
+            if lazy and last - drift - stray > level:
+                worst = min(worst, last - drift - stray)
             else:
                 last, drift = world(qq, t + k * dt), 0.0
-                worst = min(worst, last)
-            code = K.state_code(self.robot.angles(qq, self._angles) if self.lie else qq, vv, self.q_min,
-                                self.q_max, REST_SPEED)
+                worst = min(worst, last - stray)
+            code = K.state_code(self.robot.angles(qq, self._angles) if self.lie else qq, vv, q_min, q_max, REST_SPEED)
             if worst < stop_below or code == K.OUTSIDE:
                 return Certificate(False, gain, worst, np.inf, k)
             tk = t + k * dt
             steering = retreat is not None and retreat.steering(tk)  # a retreat's rest is its brake's
             still = still + dt if code == K.AT_REST and not steering else 0.0
             if still >= REST_TIME:
-                return self.at_rest(qq, vv, gain, worst, margin, t, k)
+                return self.at_rest(qq, vv, gain, worst, margin, t, k, stray)
             self.torque(qq, vv, prev, gain, retreat, tk)
+            if settle and steering and k >= walk_after and np.array_equal(self.tau, self.raw):
+                assert retreat is not None
+                walk = self.walk
+                walk.tau[:] = self.tau
+                walked, walk_after = walk.attempt(qq, vv, retreat, gain, t, k, steps, (last, drift, worst), level, lazy)
+                if walked:  # on from the switch's state, every clearance and limit less the walk's stray
+                    qq[:], vv[:], prev[:] = walk.q, walk.v, walk.tau
+                    (last, drift, worst), stray = walk.bound, walk.stray
+                    q_min, q_max = self.q_min + walk.joint_stray, self.q_max - walk.joint_stray
+                    k += walk.steps
+                    continue
             if settle and not steering and np.array_equal(self.tau, self.raw):  # unclipped
                 creep = K.travel(vv, rho) * SETTLE_GAMMA / gain
                 if creep < below and self.settled(qq, vv, gain, decay):
-                    if self.settled_rest(qq, vv, gain, worst, margin, tk, rest_within - k * dt):
+                    if self.settled_rest(qq, vv, gain, worst, margin, tk, rest_within - k * dt, stray):
                         return Certificate(True, gain, worst, k * dt, k)
                     below = 0.5 * creep
             prev[:] = self.tau
             self.step(qq, vv)
             if lazy:
                 drift += (self.travel if self.fused else K.travel(self._dq, rho)) + self.obstacle_speed * dt
+            k += 1
         return Certificate(False, gain, worst, np.inf, steps)
 
 
@@ -319,9 +340,22 @@ class NativeBrake:
         while True:
             answer = advance(self.handle, *ptr)
             k = int(io[IO_K])
+            if answer == WALK:
+                assert retreat is not None
+                walk = self.owner.walk
+                walked, io[IO_WALK_AFTER] = walk.attempt(
+                    qq, vv, retreat, gain, t, k, steps, (float(io[IO_LAST]), float(io[IO_DRIFT]), float(io[IO_WORST])),
+                    level, lazy)
+                if walked:  # on from the switch's state, every clearance and limit less the walk's stray
+                    qq[:], vv[:], prev[:] = walk.q, walk.v, walk.tau
+                    io[IO_LAST], io[IO_DRIFT], io[IO_WORST] = walk.bound
+                    io[IO_K], io[IO_STRAY], io[IO_PENDING], io[IO_EVALUATED] = k + walk.steps, walk.stray, 0.0, 0.0
+                    self.limits[2] += walk.joint_stray
+                    self.limits[3] -= walk.joint_stray
+                continue
             if answer == SETTLED:
                 if self.owner.settled_rest(qq, vv, gain, float(io[IO_WORST]), margin, t + k * dt,
-                                           rest_within - k * dt):
+                                           rest_within - k * dt, float(io[IO_STRAY])):
                     return Certificate(True, gain, float(io[IO_WORST]), k * dt, k)
                 io[IO_SETTLE_BELOW] = 0.5 * io[IO_CREEP]
                 continue
@@ -329,10 +363,10 @@ class NativeBrake:
                 break
             last = world(qq, t + k * dt)
             io[IO_LAST], io[IO_DRIFT], io[IO_EVALUATED] = last, 0.0, 1.0
-            io[IO_WORST] = min(float(io[IO_WORST]), last)
+            io[IO_WORST] = min(float(io[IO_WORST]), last - float(io[IO_STRAY]))
         worst = float(io[IO_WORST])
         if answer == FAILED:
             return Certificate(False, gain, worst, np.inf, k)
         if answer == AT_REST_END:
-            return self.owner.at_rest(qq, vv, gain, worst, margin, t, k)
+            return self.owner.at_rest(qq, vv, gain, worst, margin, t, k, float(io[IO_STRAY]))
         return Certificate(False, gain, worst, np.inf, steps)

@@ -1,0 +1,167 @@
+"""A settled retreat's walk (qpctl.safety.walk): the steering walked in closed form instead of stepped.
+
+* the closed form against scipy's ODE solver on the steering's linear ODE;
+* the native walk against the Python one: the same certificates and the same clearance evaluations,
+  bit for bit, over random retreats of the soak's heavy planar arm and the Panda — with walks taken,
+  refused at a torque sample and refused at a clearance among them;
+* the assumption, measured: every walk a verified rollout took is held against the simulator's own
+  steps (the oracle's loop: Simulator and oracle.brake_torque, none of the rollout's code) — each
+  step's link points within the stray of the closed form's, no torque clipped while it walked — and
+  the oracle verifies the retreat the rollout vouched for.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pinocchio as pin
+import pytest
+from scipy.integrate import solve_ivp
+from test_settle import franka, heavy_planar
+
+from qpctl.kernels import walk as KW
+from qpctl.safety import walk as W
+from qpctl.safety.oracle import brake_torque, rollout
+from qpctl.safety.retreat import Retreat, switch_time
+from qpctl.safety.rollout import BrakeRollout
+from qpctl.simulation import Simulator
+
+
+def test_the_closed_form_is_the_steerings_ode(rng):
+    """q̈ = ω²(q* − q) − 2ωq̇ integrated by scipy (RK45, tight tolerances) from random states: the closed
+    form's (q, q̇) at 20 times within 1e-8."""
+    for _ in range(20):
+        n, w = 4, float(rng.choice([3.0, 6.0]))
+        q0, v0, target = rng.normal(0, 1, n), rng.normal(0, 2, n), rng.normal(0, 1, n)
+        times = np.sort(rng.uniform(0, 1.5, 20))
+
+        def rhs(_, y, n=n, w=w, target=target):
+            return np.concatenate([y[n:], w * w * (target - y[:n]) - 2 * w * y[n:]])
+
+        sol = solve_ivp(rhs, (0, 1.5), np.concatenate([q0, v0]), t_eval=times, rtol=1e-12, atol=1e-12)
+        q, v = np.zeros(n), np.zeros(n)
+        for i, s in enumerate(times):
+            KW.steer_state(q0, v0, target, w, float(s), q, v)
+            np.testing.assert_allclose(q, sol.y[:n, i], atol=1e-8)
+            np.testing.assert_allclose(v, sol.y[n:, i], atol=1e-8)
+
+
+def retreat_case(make, rng):
+    """A random state of ``make``'s arm, a retreat from it (a random target up to 0.6 rad a joint away, ω
+    3 or 6 rad/s, from t = 0.3 s) and the torque applied before (gravity, perturbed)."""
+    ctrl, q, v, dt = make(rng)
+    v = v * rng.uniform(0.0, 0.6)
+    robot = ctrl.robot
+    target = np.clip(q + rng.uniform(-0.6, 0.6, q.size), robot.q_min + 0.05, robot.q_max - 0.05)
+    omega = float(rng.choice([3.0, 6.0]))
+    retreat = Retreat(tuple(float(x) for x in target), omega, switch_time(0.3, dt, omega))
+    tau_prev = pin.computeGeneralizedGravity(robot.model, robot.model.createData(), q) + rng.normal(0, 5, q.size)
+    return ctrl, q, v, dt, retreat, tau_prev
+
+
+def walks_recorded(brake, monkeypatch):
+    """Each walk ``brake`` tries — (k, walked, steps walked, the stray, its start (q, q̇), what refused it)
+    — recorded."""
+    seen: list[tuple[int, bool, int, float, np.ndarray, np.ndarray, str | None]] = []
+    attempt = brake.walk.attempt
+
+    def recording(q, v, retreat, gain, t0, k, *a):
+        walked, after = attempt(q, v, retreat, gain, t0, k, *a)
+        seen.append((k, walked, brake.walk.steps, brake.walk.stray, np.array(q), np.array(v), brake.walk.refused))
+        return walked, after
+
+    monkeypatch.setattr(brake.walk, "attempt", recording)
+    return seen
+
+
+def test_native_walks_equal_the_python_ones(monkeypatch):
+    """30 random retreats of each arm × lazy/exact clearance × margin 0 and 0.05 m: the native loop's
+    certificates, clearance evaluation times and walks equal the Python loop's; walks are taken, refused
+    at a torque sample (to be tried again later) and refused at a clearance among them."""
+    rng = np.random.default_rng(5)
+    answers = set()
+    for make in [heavy_planar, franka] * 30:
+        ctrl, q, v, dt, retreat, tau_prev = retreat_case(make, rng)
+        sim = Simulator(ctrl, dt=dt, duration=dt)
+        fast, slow = BrakeRollout(ctrl.robot, sim.world, dt), BrakeRollout(ctrl.robot, sim.world, dt)
+        slow.native = None
+        assert fast.native is not None
+        for exact in (False, True):
+            for margin in (0.0, 0.05):
+                times: dict[str, list[float]] = {"fast": [], "slow": []}
+                for name, b in (("fast", fast), ("slow", slow)):
+                    world = b.world
+                    monkeypatch.setattr(b, "world", lambda x, t, w=world, r=times[name]: r.append(t) or w(x, t))
+                wf, ws = walks_recorded(fast, monkeypatch), walks_recorded(slow, monkeypatch)
+                kw = dict(margin=margin, stop_below=margin, exact=exact, retreat=retreat, settle=True)
+                a, b = fast.run(q, v, tau_prev, 0.3, 25.0, **kw), slow.run(q, v, tau_prev, 0.3, 25.0, **kw)
+                monkeypatch.undo()
+                assert a == b
+                assert times["fast"] == times["slow"]
+                assert [(k, ok, n, s) for k, ok, n, s, *_ in wf] == [(k, ok, n, s) for k, ok, n, s, *_ in ws]
+                answers |= {refused for *_, refused in wf}
+    assert {None, "a torque sample", "the clearance or a joint limit"} <= answers
+
+
+def sim_retreat(sim, q, v, tau_prev, t, gain, retreat, steps):
+    """The retreat in the simulator, step by step (the oracle's torque, Simulator's steps): the
+    configurations and whether each step's torque was clipped."""
+    robot, dt = sim.robot, sim.dt
+    data = robot.model.createData()
+    sim.reset(q, v)
+    qq, vv, tau = np.array(q, float), np.array(v, float), np.array(tau_prev, float)
+    qs, clipped = [qq], []
+    for k in range(steps):
+        tk = t + k * dt
+        qdd = retreat.accel(qq, vv, np.empty_like(vv)) if retreat.steering(tk) else -gain * vv
+        raw = pin.rnea(robot.model, data, qq, vv, qdd)
+        tau = brake_torque(robot, data, qq, vv, tau, gain, dt, retreat=retreat, t=tk)
+        clipped.append(not np.array_equal(raw, tau))
+        sim.apply(tau)
+        sim.step(tk)
+        qq, vv = (a.copy() for a in sim.read())
+        qs.append(qq)
+    return np.array(qs), np.array(clipped)
+
+
+@pytest.mark.parametrize("make,samples,seed", [
+    (heavy_planar, 60, 11), (franka, 40, 11),
+    pytest.param(heavy_planar, 300, 3, marks=pytest.mark.slow),
+    pytest.param(franka, 150, 3, marks=pytest.mark.slow)],
+    ids=["planar", "panda", "planar-300", "panda-150"])
+def test_a_walked_retreat_is_one_the_simulator_follows(make, samples, seed, monkeypatch):
+    """``samples`` random retreats (with make soak: 300 planar, 150 Panda) rolled out with walks (κ = 25,
+    lazy, margin 0): for each walk of a verified certificate, the simulator's own steps from the rollout's
+    start stay within the stray of the closed form at every walked step (Σᵢρᵢ|q − q_walk| ≤ stray ×
+    Σᵢρᵢ × the joints' travel so far) with no torque clipped, and the oracle verifies the retreat."""
+    rng = np.random.default_rng(seed)
+    walked, worst = 0, 0.0
+    for _ in range(samples):
+        ctrl, q, v, dt, retreat, tau_prev = retreat_case(make, rng)
+        sim = Simulator(ctrl, dt=dt, duration=dt)
+        if sim.clearance(q, 0.3) <= 0.02:
+            continue
+        brake = BrakeRollout(ctrl.robot, sim.world, dt)
+        seen = walks_recorded(brake, monkeypatch)
+        cert = brake.run(q, v, tau_prev, 0.3, 25.0, margin=0.0, stop_below=0.0, exact=False, retreat=retreat,
+                         settle=True)
+        monkeypatch.undo()
+        taken = [s for s in seen if s[1]]
+        if not cert.viable or not taken:
+            continue
+        (k, _, steps, _, q0, v0, _), = taken  # a rollout walks at most once
+        walked += 1
+        assert rollout(sim, q, v, tau_prev, 0.3, 25.0, margin=0.0, stop_below=0.0, retreat=retreat).viable
+        qs, clipped = sim_retreat(sim, q, v, tau_prev, 0.3, 25.0, retreat, k + steps)
+        np.testing.assert_allclose(qs[k], q0, atol=1e-12)  # the rollout's state at the walk's start is the simulator's
+        assert not clipped[k:].any(), "the torque was clipped while the rollout walked"
+        rho, stray = brake.rho, W.WALK_STRAY * dt / 1e-3
+        x, xv, prev, prog = np.zeros(q.size), np.zeros(q.size), q0.copy(), 0.0
+        for j in range(1, steps):
+            KW.steer_state(q0, v0, retreat.q, retreat.omega, j * dt, x, xv)
+            prog += float(rho @ np.abs(x - prev))
+            prev[:] = x
+            off = float(rho @ np.abs(qs[k + j] - x))
+            assert off <= stray * prog + 1e-12
+            worst = max(worst, off / (stray * prog))
+    assert walked >= samples // 5
+    assert worst < 0.9  # the measured path: within 90 % of the stray
