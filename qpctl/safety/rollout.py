@@ -238,22 +238,38 @@ class BrakeRollout:
         decay, below = math.exp(-gain * dt), np.inf  # below: a settle's creep must be under it (halved on a refusal)
         walk_after = 0.0  # a retreat's walk is tried from this step on (qpctl.safety.walk)
         stray, q_min, q_max = 0.0, self.q_min, self.q_max  # after a walk: its allowance, the limits less it
+        walked_from: tuple[Any, ...] | None = None  # the state a walk started from, while the rollout is on from it
         steps = round(horizon / dt)
         k = 0
-        while k < steps:
-            if lazy and last - drift - stray > level:
-                worst = min(worst, last - drift - stray)
+        while True:
+            end: Certificate | None = None
+            if k >= steps:
+                end = Certificate(False, gain, worst, np.inf, steps)
             else:
-                last, drift = world(qq, t + k * dt), 0.0
-                worst = min(worst, last - stray)
-            code = K.state_code(self.robot.angles(qq, self._angles) if self.lie else qq, vv, q_min, q_max, REST_SPEED)
-            if worst < stop_below or code == K.OUTSIDE:
-                return Certificate(False, gain, worst, np.inf, k)
-            tk = t + k * dt
-            steering = retreat is not None and retreat.steering(tk)  # a retreat's rest is its brake's
-            still = still + dt if code == K.AT_REST and not steering else 0.0
-            if still >= REST_TIME:
-                return self.at_rest(qq, vv, gain, worst, margin, t, k, stray)
+                if lazy and last - drift - stray > level:
+                    worst = min(worst, last - drift - stray)
+                else:
+                    last, drift = world(qq, t + k * dt), 0.0
+                    worst = min(worst, last - stray)
+                code = K.state_code(self.robot.angles(qq, self._angles) if self.lie else qq, vv, q_min, q_max,
+                                    REST_SPEED)
+                tk = t + k * dt
+                steering = retreat is not None and retreat.steering(tk)  # a retreat's rest is its brake's
+                still = still + dt if code == K.AT_REST and not steering else 0.0
+                if worst < stop_below or code == K.OUTSIDE:
+                    end = Certificate(False, gain, worst, np.inf, k)
+                elif still >= REST_TIME:
+                    end = self.at_rest(qq, vv, gain, worst, margin, t, k, stray)
+            if end is not None:
+                if end.viable or walked_from is None:
+                    return end
+                # a walked rollout that does not verify is stepped again from the walk's start, without walks:
+                # a walk may refute nothing the steps would verify
+                k, last, drift, worst, q0, v0, p0 = walked_from
+                qq[:], vv[:], prev[:] = q0, v0, p0
+                stray, q_min, q_max, walk_after, walked_from, below, still = 0.0, self.q_min, self.q_max, np.inf, \
+                    None, np.inf, 0.0
+                continue
             self.torque(qq, vv, prev, gain, retreat, tk)
             if settle and steering and k >= walk_after and np.array_equal(self.tau, self.raw):
                 assert retreat is not None
@@ -261,6 +277,7 @@ class BrakeRollout:
                 walk.tau[:] = self.tau
                 walked, walk_after = walk.attempt(qq, vv, retreat, gain, t, k, steps, (last, drift, worst), level, lazy)
                 if walked:  # on from the switch's state, every clearance and limit less the walk's stray
+                    walked_from = k, last, drift, worst, qq.copy(), vv.copy(), prev.copy()
                     qq[:], vv[:], prev[:] = walk.q, walk.v, walk.tau
                     (last, drift, worst), stray = walk.bound, walk.stray
                     q_min, q_max = self.q_min + walk.joint_stray, self.q_max - walk.joint_stray
@@ -277,7 +294,6 @@ class BrakeRollout:
             if lazy:
                 drift += (self.travel if self.fused else K.travel(self._dq, rho)) + self.obstacle_speed * dt
             k += 1
-        return Certificate(False, gain, worst, np.inf, steps)
 
 
 class NativeBrake:
@@ -337,6 +353,7 @@ class NativeBrake:
             dst[:] = src
         ptr = self.ptr
         advance, world, dt = self.lib.qpb_advance, self.owner.world, self.owner.dt
+        walked_from: tuple[Any, ...] | None = None  # as in BrakeRollout.run
         while True:
             answer = advance(self.handle, *ptr)
             k = int(io[IO_K])
@@ -347,6 +364,8 @@ class NativeBrake:
                     qq, vv, retreat, gain, t, k, steps, (float(io[IO_LAST]), float(io[IO_DRIFT]), float(io[IO_WORST])),
                     level, lazy)
                 if walked:  # on from the switch's state, every clearance and limit less the walk's stray
+                    walked_from = k, float(io[IO_LAST]), float(io[IO_DRIFT]), float(io[IO_WORST]), qq.copy(), \
+                        vv.copy(), prev.copy()
                     qq[:], vv[:], prev[:] = walk.q, walk.v, walk.tau
                     io[IO_LAST], io[IO_DRIFT], io[IO_WORST] = walk.bound
                     io[IO_K], io[IO_STRAY], io[IO_PENDING], io[IO_EVALUATED] = k + walk.steps, walk.stray, 0.0, 0.0
@@ -359,14 +378,24 @@ class NativeBrake:
                     return Certificate(True, gain, float(io[IO_WORST]), k * dt, k)
                 io[IO_SETTLE_BELOW] = 0.5 * io[IO_CREEP]
                 continue
-            if answer != NEED_CLEARANCE:
-                break
-            last = world(qq, t + k * dt)
-            io[IO_LAST], io[IO_DRIFT], io[IO_EVALUATED] = last, 0.0, 1.0
-            io[IO_WORST] = min(float(io[IO_WORST]), last - float(io[IO_STRAY]))
-        worst = float(io[IO_WORST])
-        if answer == FAILED:
-            return Certificate(False, gain, worst, np.inf, k)
-        if answer == AT_REST_END:
-            return self.owner.at_rest(qq, vv, gain, worst, margin, t, k, float(io[IO_STRAY]))
-        return Certificate(False, gain, worst, np.inf, steps)
+            if answer == NEED_CLEARANCE:
+                last = world(qq, t + k * dt)
+                io[IO_LAST], io[IO_DRIFT], io[IO_EVALUATED] = last, 0.0, 1.0
+                io[IO_WORST] = min(float(io[IO_WORST]), last - float(io[IO_STRAY]))
+                continue
+            worst = float(io[IO_WORST])
+            if answer == FAILED:
+                end = Certificate(False, gain, worst, np.inf, k)
+            elif answer == AT_REST_END:
+                end = self.owner.at_rest(qq, vv, gain, worst, margin, t, k, float(io[IO_STRAY]))
+            else:
+                end = Certificate(False, gain, worst, np.inf, steps)
+            if end.viable or walked_from is None:
+                return end
+            # a walked rollout that does not verify is stepped again from the walk's start, without walks
+            k0, io[IO_LAST], io[IO_DRIFT], io[IO_WORST], q0, v0, p0 = walked_from
+            qq[:], vv[:], prev[:] = q0, v0, p0
+            io[IO_K], io[IO_STRAY], io[IO_PENDING], io[IO_EVALUATED], io[IO_STILL] = k0, 0.0, 0.0, 0.0, 0.0
+            io[IO_SETTLE_BELOW], io[IO_WALK_AFTER] = np.inf, np.inf
+            self.limits[2][:], self.limits[3][:] = o.q_min, o.q_max
+            walked_from = None

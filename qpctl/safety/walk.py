@@ -26,7 +26,10 @@ clipped, the rollout may *walk* the rest of the steering instead of stepping it:
 3. *on*: at the switch the rollout goes on stepping the brake from the walked state, with the last
    sampled torque as the one applied before, every clearance, rest test and joint limit lowered by the
    stray at the switch plus ε·Σᵢρᵢ|q̇ᵢ|/κ (the brake's travel) — to its settle or its rest as any
-   rollout (a few to a few tens of steps: the brake's ramp under the rate limit).
+   rollout (a few to a few tens of steps: the brake's ramp under the rate limit). A walked rollout that
+   does not verify — its rest inside the stray of an obstacle, say — is stepped again from the walk's
+   start without walks: a walk may vouch for a retreat (under the assumption below), never refute one
+   the steps would verify.
 
 A refused walk costs its samples and its walked steps (no ABA) and the rollout goes on from its pending
 step exactly as it would have; the certificate of a walked rollout counts the walked steps in its steps
