@@ -127,12 +127,12 @@ def test_a_walk_changes_no_verdict(monkeypatch):
 
 def sim_retreat(sim, q, v, tau_prev, t, gain, retreat, steps):
     """The retreat in the simulator, step by step (the oracle's torque, Simulator's steps): the
-    configurations and whether each step's torque was clipped."""
+    configurations, the velocities and whether each step's torque was clipped."""
     robot, dt = sim.robot, sim.dt
     data = robot.model.createData()
     sim.reset(q, v)
     qq, vv, tau = np.array(q, float), np.array(v, float), np.array(tau_prev, float)
-    qs, clipped = [qq], []
+    qs, vs, clipped = [qq], [vv], []
     for k in range(steps):
         tk = t + k * dt
         qdd = retreat.accel(qq, vv, np.empty_like(vv)) if retreat.steering(tk) else -gain * vv
@@ -143,7 +143,8 @@ def sim_retreat(sim, q, v, tau_prev, t, gain, retreat, steps):
         sim.step(tk)
         qq, vv = (a.copy() for a in sim.read())
         qs.append(qq)
-    return np.array(qs), np.array(clipped)
+        vs.append(vv)
+    return np.array(qs), np.array(vs), np.array(clipped)
 
 
 @pytest.mark.parametrize("make,samples,seed", [
@@ -155,9 +156,10 @@ def test_a_walked_retreat_is_one_the_simulator_follows(make, samples, seed, monk
     """``samples`` random retreats (with make soak: 300 planar, 150 Panda) rolled out with walks (κ = 25,
     lazy, margin 0): for each walk of a verified certificate, the simulator's own steps from the rollout's
     start stay within the stray of the closed form at every walked step (Σᵢρᵢ|q − q_walk| ≤ stray ×
-    Σᵢρᵢ × the joints' travel so far) with no torque clipped, and the oracle verifies the retreat."""
+    Σᵢρᵢ × the joints' travel so far) with no torque clipped, the state at the switch within the switch's
+    stray (Σᵢρᵢ(|Δqᵢ| + |Δq̇ᵢ|/κ)), and the oracle verifies the retreat."""
     rng = np.random.default_rng(seed)
-    walked, worst = 0, 0.0
+    walked, worst, at_switch = 0, 0.0, 0.0
     for _ in range(samples):
         ctrl, q, v, dt, retreat, tau_prev = retreat_case(make, rng)
         sim = Simulator(ctrl, dt=dt, duration=dt)
@@ -171,10 +173,10 @@ def test_a_walked_retreat_is_one_the_simulator_follows(make, samples, seed, monk
         taken = [s for s in seen if s[1]]
         if not cert.viable or not taken:
             continue
-        (k, _, steps, _, q0, v0, _), = taken  # a rollout walks at most once
+        (k, _, steps, switch, q0, v0, _), = taken  # a rollout walks at most once
         walked += 1
         assert rollout(sim, q, v, tau_prev, 0.3, 25.0, margin=0.0, stop_below=0.0, retreat=retreat).viable
-        qs, clipped = sim_retreat(sim, q, v, tau_prev, 0.3, 25.0, retreat, k + steps)
+        qs, vs, clipped = sim_retreat(sim, q, v, tau_prev, 0.3, 25.0, retreat, k + steps)
         np.testing.assert_allclose(qs[k], q0, atol=1e-12)  # the rollout's state at the walk's start is the simulator's
         assert not clipped[k:].any(), "the torque was clipped while the rollout walked"
         rho, stray = brake.rho, W.WALK_STRAY * dt / 1e-3
@@ -186,5 +188,10 @@ def test_a_walked_retreat_is_one_the_simulator_follows(make, samples, seed, monk
             off = float(rho @ np.abs(qs[k + j] - x))
             assert off <= stray * prog + 1e-12
             worst = max(worst, off / (stray * prog))
+        # at the switch the state the rollout steps on from, position and the brake's travel, within the switch's stray
+        KW.steer_state(q0, v0, retreat.q, retreat.omega, steps * dt, x, xv)
+        off = float(rho @ (np.abs(qs[k + steps] - x) + np.abs(vs[k + steps] - xv) / 25.0))
+        assert off <= switch
+        at_switch = max(at_switch, off / switch)
     assert walked >= samples // 5
-    assert worst < 0.9  # the measured path: within 90 % of the stray
+    assert worst < 0.9 and at_switch < 0.9  # the measured path and switch: within 90 % of their strays
