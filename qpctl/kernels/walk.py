@@ -14,7 +14,7 @@ from numba import njit
 
 # the walk's io block (qpctl.safety.walk.W_*; brake_rollout.cpp's W_* order)
 (W_K, W_T0, W_DT, W_UNTIL, W_OMEGA, W_GAIN, W_BETA, W_EVERY, W_STRAY, W_STEPS, W_NSW, W_DEV, W_RETRY, W_J,
- W_LAST, W_DRIFT, W_WORST, W_EVALUATED, W_LEVEL, W_LAZY, W_MOVE, W_PROG, W_SIZE) = range(23)
+ W_LAST, W_DRIFT, W_WORST, W_EVALUATED, W_LEVEL, W_LAZY, W_MOVE, W_PROG, W_SWITCH_STRAY, W_SIZE) = range(24)
 #: :func:`walk_clear`'s answers (NEED_CLEARANCE is the rollout's 0)
 NEED_CLEARANCE, WALKED, REFUSED = 0, 1, 2
 
@@ -71,7 +71,7 @@ def walk_clear(q0, v0, target, q_min, q_max, rho, T, wq, wv, wprev, wio):  # typ
                 for i in range(n):
                     T[i] += abs(wv[i]) / wio[W_GAIN]
                     dev += rho[i] * T[i]
-                wio[W_DEV] = stray * dev
+                wio[W_DEV] = wio[W_SWITCH_STRAY] * dev
                 answer = WALKED
                 break
             if not (lazy and last - drift - stray * prog > level):

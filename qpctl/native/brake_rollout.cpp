@@ -158,7 +158,7 @@ enum { NEED_CLEARANCE = 0, AT_REST_END = 1, FAILED = 2, HORIZON = 3, SETTLED = 4
 // The walk's io block (qpb_walk_plan, qpb_walk_clear; qpctl/safety/walk.py's W_* order) and qpb_walk_clear's answers.
 enum {
   W_K, W_T0, W_DT, W_UNTIL, W_OMEGA, W_GAIN, W_BETA, W_EVERY, W_STRAY, W_STEPS, W_NSW, W_DEV, W_RETRY, W_J,
-  W_LAST, W_DRIFT, W_WORST, W_EVALUATED, W_LEVEL, W_LAZY, W_MOVE, W_PROG, W_SIZE
+  W_LAST, W_DRIFT, W_WORST, W_EVALUATED, W_LEVEL, W_LAZY, W_MOVE, W_PROG, W_SWITCH_STRAY, W_SIZE
 };
 enum { WALKED = 1, REFUSED = 2 };
 
@@ -351,8 +351,8 @@ int qpb_walk_plan(void* h, const double* q0, const double* v0, const double* tar
 // t0 + (k + j)·dt, sets wio[LAST], wio[DRIFT] = 0, wio[EVALUATED] = 1 and calls again), REFUSED where the
 // clearance less δ is not above wio[LEVEL] or a joint is within stray·Tᵢ of a limit (wio[RETRY]: the step
 // halfway there, at least every steps on); at j = nsw, WALKED
-// (wq, wv: the switch's state, its step's travel in wio[DRIFT]; Tᵢ += |q̇ᵢ|/κ and wio[DEV] = stray·ΣᵢρᵢTᵢ:
-// the stray the rollout goes on with; wio[WORST]: the least clearance less the strays).
+// (wq, wv: the switch's state, its step's travel in wio[DRIFT]; Tᵢ += |q̇ᵢ|/κ and wio[DEV] =
+// wio[SWITCH_STRAY]·ΣᵢρᵢTᵢ: the stray the rollout goes on with; wio[WORST]: the least clearance less the strays).
 int qpb_walk_clear(void* h, const double* q0, const double* v0, const double* target, const double* q_min,
                    const double* q_max, const double* rho, double* T, double* wq, double* wv, double* wio) {
   Brake& b = *static_cast<Brake*>(h);
@@ -384,7 +384,7 @@ int qpb_walk_clear(void* h, const double* q0, const double* v0, const double* ta
           T[i] += std::abs(wv[i]) / wio[W_GAIN];
           dev += rho[i] * T[i];
         }
-        wio[W_DEV] = stray * dev;
+        wio[W_DEV] = wio[W_SWITCH_STRAY] * dev;
         answer = WALKED;
         break;
       }

@@ -25,8 +25,9 @@ clipped, the rollout may *walk* the rest of the steering instead of stepping it:
    be tried again halfway there (the stray starts from zero at each walk's start);
 3. *on*: at the switch the rollout goes on stepping the brake from the walked state, with the last
    sampled torque as the one applied before, every clearance, rest test and joint limit lowered by the
-   stray at the switch plus ε·Σᵢρᵢ|q̇ᵢ|/κ (the brake's travel) — to its settle or its rest as any
-   rollout (a few to a few tens of steps: the brake's ramp under the rate limit). A walked rollout that
+   switch's stray ε_s·Σᵢρᵢ(Tᵢ + |q̇ᵢ|/κ) (Tᵢ joint i's travel along the walk, |q̇ᵢ|/κ its brake's; ε_s =
+   :data:`WALK_SWITCH_SHARE` × ε: the steering's feedback has pulled part of the lag back by then) —
+   to its settle or its rest as any rollout (a few to a few tens of steps: the brake's ramp under the rate limit). A walked rollout that
    does not verify — its rest inside the stray of an obstacle, say — is stepped again from the walk's
    start without walks: a walk may vouch for a retreat (under the assumption below), never refute one
    the steps would verify.
@@ -41,11 +42,12 @@ held over each step follow the continuous steering within the stray, and the lim
 torque between samples. The deviation is a lag of the held torque — the commanded acceleration's and
 the dynamics' change over a step, corrected by the steering's own feedback —, so it grows with the
 step and with the path; ε was set from 300 random unclipped steerings of both arms measured before the
-walk was written (Σᵢρᵢ|q − q_walk| at most 0.0151 × the travel so far at Δt = 2 ms, 0.0123 at 1 ms).
+walk was written (Σᵢρᵢ|q − q_walk| at most 0.0151 × the travel so far at Δt = 2 ms, 0.0123 at 1 ms;
+at the switch Σᵢρᵢ(|Δqᵢ| + |Δq̇ᵢ|/κ) at most 0.22 of ε·Σᵢρᵢ(Tᵢ + |q̇ᵢ|/κ), which ε_s halves).
 Measured, not proved: ``tests/test_walk.py`` rolls walked retreats on in the simulator from random
 states of the soak's heavy planar arm (500 Hz) and the Panda (1 kHz) and holds every walked step within
-the stray with no torque clipped, the oracle verifying each retreat (``make soak``: 210 walks of 300
-planar states, 95 of 150 Panda states, the path at most 0.40 of the stray).
+the stray with no torque clipped, the oracle verifying each retreat (``make soak``: 211 walks of 300
+planar states, 96 of 150 Panda states: the path at most 0.40 of its stray, the switch 0.44 of its own).
 """
 
 from __future__ import annotations
@@ -63,6 +65,8 @@ WALK_EVERY = 10
 #: The stray's share of the travel per millisecond of step (module docstring): the walked path's allowance for
 #: the stepped one.
 WALK_STRAY = 0.02
+#: The switch's stray, as a share of the path's at the end (module docstring, step 3).
+WALK_SWITCH_SHARE = 0.5
 
 
 class Walk:
@@ -108,6 +112,7 @@ class Walk:
         wio[KW.W_K], wio[KW.W_T0], wio[KW.W_DT], wio[KW.W_UNTIL] = k, t0, o.dt, retreat.until
         wio[KW.W_OMEGA], wio[KW.W_GAIN], wio[KW.W_BETA], wio[KW.W_EVERY] = retreat.omega, gain, o.beta, WALK_EVERY
         wio[KW.W_STRAY], wio[KW.W_STEPS] = WALK_STRAY * o.dt / 1e-3, steps
+        wio[KW.W_SWITCH_STRAY] = WALK_SWITCH_SHARE * WALK_STRAY * o.dt / 1e-3
         wio[KW.W_LAST], wio[KW.W_DRIFT], wio[KW.W_WORST] = lazy_state
         wio[KW.W_LEVEL], wio[KW.W_LAZY], wio[KW.W_MOVE] = level, float(lazy), o.obstacle_speed * o.dt
         if not self._plan():
@@ -134,14 +139,14 @@ class Walk:
 
     @property
     def stray(self) -> float:
-        """The stray the rollout goes on with after a walk [m]: ε·ΣᵢρᵢTᵢ, Tᵢ joint i's travel along the
+        """The stray the rollout goes on with after a walk [m]: ε_s·ΣᵢρᵢTᵢ, Tᵢ joint i's travel along the
         walk plus its |q̇ᵢ|/κ at the switch (module docstring, step 3)."""
         return float(self.wio[KW.W_DEV])
 
     @property
     def joint_stray(self) -> np.ndarray:
-        """ε·Tᵢ [rad] per joint: how far inside its limits each joint is kept after a walk."""
-        return float(self.wio[KW.W_STRAY]) * self.T
+        """ε_s·Tᵢ [rad] per joint: how far inside its limits each joint is kept after a walk."""
+        return float(self.wio[KW.W_SWITCH_STRAY]) * self.T
 
     def _plan(self) -> bool:
         native = self._native()
@@ -194,4 +199,4 @@ class Walk:
                                  self.prev, self.wio))
 
 
-__all__ = ["WALK_EVERY", "WALK_STRAY", "Walk"]
+__all__ = ["WALK_EVERY", "WALK_STRAY", "WALK_SWITCH_SHARE", "Walk"]
