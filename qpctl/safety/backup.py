@@ -10,7 +10,8 @@ then, where the world clearance (exact, every pair: :class:`qpctl.tick.WorldClea
    (:class:`qpctl.safety.rollout.BrakeRollout`) with the stored brake's gain first, then the others; a
    rollout ends at rest — with ``settle`` (default on) already where the brake has settled into its
    decay and the rest it decays to is bounded (:mod:`qpctl.safety.rollout`, "Settled": 7 steps instead
-   of 213 at the median on the Panda at 1 kHz) —, on the first step below ``margin`` [m] or past a
+   of 213 at the median on the Panda at 1 kHz), a retreat's unclipped steering walked in closed form
+   (:mod:`qpctl.safety.walk`) —, on the first step below ``margin`` [m] or past a
    joint limit; the first that comes to rest with the clearance above ``margin`` all along is stored
    and τ applied; with ``check_steps`` (default inf) the rollouts of one check, the retreat search from
    its successor included, take at most that many steps in

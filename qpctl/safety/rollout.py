@@ -45,6 +45,11 @@ proved**: ``tests/test_settle.py`` rolls settled stops on to rest in the simulat
 clipped again, each verified by the oracle, the tail at most 0.997 of Σᵢρᵢ|q̇ᵢ|/κ (γ leaves 25 %). The soak's oracle certifies the guard's
 states with full rollouts, so a settle that vouched for a bad stop would show there.
 
+**Walked retreats** (with ``settle``): a retreat's steering whose torque was not clipped is walked in
+closed form instead of stepped, every clearance and limit lowered by the walk's stray, and the rollout
+steps on from the switch — :mod:`qpctl.safety.walk`; a walked rollout that does not verify is stepped
+again from the walk's start without walks.
+
 **Native loop** (``native``, the default where :mod:`qpctl.native` builds): the loop of :meth:`run`
 — the brake's torque, the RK4 step, the state's checks and the lazy bound's bookkeeping — runs in
 C++ on Pinocchio's own ``rnea`` and ``aba`` (libpinocchio, the code the bindings call), returning to
