@@ -45,13 +45,19 @@ def test_the_closed_form_is_the_steerings_ode(rng):
             np.testing.assert_allclose(v, sol.y[n:, i], atol=1e-8)
 
 
-def retreat_case(make, rng):
+def retreat_case(make, rng, at_limit=False):
     """A random state of ``make``'s arm, a retreat from it (a random target up to 0.6 rad a joint away, ω
-    3 or 6 rad/s, from t = 0.3 s) and the torque applied before (gravity, perturbed)."""
+    3 or 6 rad/s, from t = 0.3 s) and the torque applied before (gravity, perturbed). ``at_limit``: one
+    joint resting at a limit in the state and the target (the search keeps a joint it does not move where
+    it is: soak-panda-600's retreat rested at joint 2's lower limit)."""
     ctrl, q, v, dt = make(rng)
     v = v * rng.uniform(0.0, 0.6)
     robot = ctrl.robot
     target = np.clip(q + rng.uniform(-0.6, 0.6, q.size), robot.q_min + 0.05, robot.q_max - 0.05)
+    if at_limit:
+        i = int(rng.integers(q.size))
+        q[i] = target[i] = robot.q_min[i] if rng.random() < 0.5 else robot.q_max[i]
+        v[i] = 0.0
     omega = float(rng.choice([3.0, 6.0]))
     retreat = Retreat(tuple(float(x) for x in target), omega, switch_time(0.3, dt, omega))
     tau_prev = pin.computeGeneralizedGravity(robot.model, robot.model.createData(), q) + rng.normal(0, 5, q.size)
@@ -103,13 +109,14 @@ def test_native_walks_equal_the_python_ones(monkeypatch):
 
 
 def test_a_walk_changes_no_verdict(monkeypatch):
-    """60 random retreats of both arms × margin 0 and 0.05 m: the verdict with walks is the verdict with
+    """80 random retreats of both arms (20 with a joint resting at a limit) × margin 0 and 0.05 m: the
+    verdict with walks is the verdict with
     every walk refused (the rollout stepped throughout) — a walked rollout that does not verify is stepped
     again from the walk's start — and walks are taken in a third of the verified rollouts at least."""
     rng = np.random.default_rng(8)
     verified, taken = 0, 0
-    for make in [heavy_planar, franka] * 30:
-        ctrl, q, v, dt, retreat, tau_prev = retreat_case(make, rng)
+    for i, make in enumerate([heavy_planar, franka] * 40):
+        ctrl, q, v, dt, retreat, tau_prev = retreat_case(make, rng, at_limit=i >= 60)
         brake = BrakeRollout(ctrl.robot, Simulator(ctrl, dt=dt, duration=dt).world, dt)
         for margin in (0.0, 0.05):
             kw = dict(margin=margin, stop_below=margin, exact=False, retreat=retreat, settle=True)
@@ -153,15 +160,16 @@ def sim_retreat(sim, q, v, tau_prev, t, gain, retreat, steps):
     pytest.param(franka, 150, 3, marks=pytest.mark.slow)],
     ids=["planar", "panda", "planar-300", "panda-150"])
 def test_a_walked_retreat_is_one_the_simulator_follows(make, samples, seed, monkeypatch):
-    """``samples`` random retreats (with make soak: 300 planar, 150 Panda) rolled out with walks (κ = 25,
+    """``samples`` random retreats (with make soak: 300 planar, 150 Panda; every 4th with a joint resting at
+    a limit) rolled out with walks (κ = 25,
     lazy, margin 0): for each walk of a verified certificate, the simulator's own steps from the rollout's
     start stay within the stray of the closed form at every walked step (Σᵢρᵢ|q − q_walk| ≤ stray ×
     Σᵢρᵢ × the joints' travel so far) with no torque clipped, the state at the switch within the switch's
     stray (Σᵢρᵢ(|Δqᵢ| + |Δq̇ᵢ|/κ)), and the oracle verifies the retreat."""
     rng = np.random.default_rng(seed)
-    walked, worst, at_switch = 0, 0.0, 0.0
-    for _ in range(samples):
-        ctrl, q, v, dt, retreat, tau_prev = retreat_case(make, rng)
+    walked, worst, at_switch, joints = 0, 0.0, 0.0, 0.0
+    for i in range(samples):
+        ctrl, q, v, dt, retreat, tau_prev = retreat_case(make, rng, at_limit=i % 4 == 3)
         sim = Simulator(ctrl, dt=dt, duration=dt)
         if sim.clearance(q, 0.3) <= 0.02:
             continue
@@ -180,18 +188,22 @@ def test_a_walked_retreat_is_one_the_simulator_follows(make, samples, seed, monk
         np.testing.assert_allclose(qs[k], q0, atol=1e-12)  # the rollout's state at the walk's start is the simulator's
         assert not clipped[k:].any(), "the torque was clipped while the rollout walked"
         rho, stray = brake.rho, W.WALK_STRAY * dt / 1e-3
-        x, xv, prev, prog = np.zeros(q.size), np.zeros(q.size), q0.copy(), 0.0
+        x, xv, prev, prog, turn = np.zeros(q.size), np.zeros(q.size), q0.copy(), 0.0, 0.0
         for j in range(1, steps):
             KW.steer_state(q0, v0, retreat.q, retreat.omega, j * dt, x, xv)
             prog += float(rho @ np.abs(x - prev))
+            turn += float(np.sum(np.abs(x - prev)))
             prev[:] = x
             off = float(rho @ np.abs(qs[k + j] - x))
             assert off <= stray * prog + 1e-12
             worst = max(worst, off / (stray * prog))
+            joint = float(np.abs(qs[k + j] - x).max())  # each joint within stray × every joint's travel [rad]
+            assert joint <= stray * turn + 1e-12
+            joints = max(joints, joint / (stray * turn))
         # at the switch the state the rollout steps on from, position and the brake's travel, within the switch's stray
         KW.steer_state(q0, v0, retreat.q, retreat.omega, steps * dt, x, xv)
         off = float(rho @ (np.abs(qs[k + steps] - x) + np.abs(vs[k + steps] - xv) / 25.0))
         assert off <= switch
         at_switch = max(at_switch, off / switch)
     assert walked >= samples // 5
-    assert worst < 0.9 and at_switch < 0.9  # the measured path and switch: within 90 % of their strays
+    assert worst < 0.9 and at_switch < 0.9 and joints < 0.9  # the measured path and switch: within 90 % of their strays

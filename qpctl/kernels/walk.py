@@ -84,9 +84,12 @@ def walk_clear(q0, v0, target, q_min, q_max, rho, T, wq, wv, wprev, wio):  # typ
             answer = REFUSED
             break
         worst = min(worst, bound - dev)
+        turn = 0.0  # every joint's travel so far [rad]: the dynamics couple the joints' strays
+        for i in range(n):
+            turn += T[i]
+        d = stray * turn
         inside = True
         for i in range(n):
-            d = stray * T[i]
             inside = inside and wq[i] - d >= q_min[i] and wq[i] + d <= q_max[i]
         if not inside:
             answer = REFUSED

@@ -349,7 +349,7 @@ int qpb_walk_plan(void* h, const double* q0, const double* v0, const double* tar
 // bound as the rollout keeps it; at j < nsw, that bound lowered by the stray δ = stray·wio[PROG]:
 // NEED_CLEARANCE where it no longer covers the level (the caller evaluates the clearance at wq at
 // t0 + (k + j)·dt, sets wio[LAST], wio[DRIFT] = 0, wio[EVALUATED] = 1 and calls again), REFUSED where the
-// clearance less δ is not above wio[LEVEL] or a joint is within stray·Tᵢ of a limit (wio[RETRY]: the step
+// clearance less δ is not above wio[LEVEL] or a joint is within stray·ΣᵢTᵢ of a limit (wio[RETRY]: the step
 // halfway there, at least every steps on); at j = nsw, WALKED
 // (wq, wv: the switch's state, its step's travel in wio[DRIFT]; Tᵢ += |q̇ᵢ|/κ and wio[DEV] =
 // wio[SWITCH_STRAY]·ΣᵢρᵢTᵢ: the stray the rollout goes on with; wio[WORST]: the least clearance less the strays).
@@ -401,11 +401,11 @@ int qpb_walk_clear(void* h, const double* q0, const double* v0, const double* ta
       break;
     }
     worst = std::min(worst, bound - dev);
+    double turn = 0.0;  // every joint's travel so far [rad]: the dynamics couple the joints' strays
+    for (int i = 0; i < n; ++i) turn += T[i];
+    const double d = stray * turn;
     bool inside = true;
-    for (int i = 0; i < n; ++i) {
-      const double d = stray * T[i];
-      inside = inside && wq[i] - d >= q_min[i] && wq[i] + d <= q_max[i];
-    }
+    for (int i = 0; i < n; ++i) inside = inside && wq[i] - d >= q_min[i] && wq[i] + d <= q_max[i];
     if (!inside) {
       answer = REFUSED;
       break;
