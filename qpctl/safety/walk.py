@@ -60,6 +60,7 @@ from typing import Any
 import numpy as np
 import pinocchio as pin
 
+import qpctl.native
 from qpctl.kernels import walk as KW
 from qpctl.safety.retreat import Retreat
 
@@ -94,7 +95,7 @@ class Walk:
             return None
         if self._ptr is None or self._ptr[0] is not nb:
             if nb.lib.qpb_walk_size() != KW.W_SIZE:
-                raise RuntimeError("the native walk's layout is not this module's")
+                raise qpctl.native.NativeBuildError("the native walk's layout is not this module's")
             tau_max, window, q_min, q_max, rho = nb.ptr[3:8]
             q0, v0, tg, T, wq, wv, tau, io = (a.ctypes.data for a in (self.q0, self.v0, self.target, self.T,
                                                                         self.q, self.v, self.tau, self.wio))
