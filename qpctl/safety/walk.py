@@ -115,8 +115,8 @@ class Walk:
         wio[:] = 0.0
         wio[KW.W_K], wio[KW.W_T0], wio[KW.W_DT], wio[KW.W_UNTIL] = k, t0, o.dt, retreat.until
         wio[KW.W_OMEGA], wio[KW.W_GAIN], wio[KW.W_BETA], wio[KW.W_EVERY] = retreat.omega, gain, o.beta, WALK_EVERY
-        wio[KW.W_STRAY], wio[KW.W_STEPS] = WALK_STRAY * o.dt / 1e-3, steps
-        wio[KW.W_SWITCH_STRAY] = WALK_SWITCH_SHARE * WALK_STRAY * o.dt / 1e-3
+        rate = WALK_STRAY * o.dt / 1e-3  # ε: the stray's share of the travel at this step
+        wio[KW.W_STRAY], wio[KW.W_SWITCH_STRAY], wio[KW.W_STEPS] = rate, WALK_SWITCH_SHARE * rate, steps
         wio[KW.W_LAST], wio[KW.W_DRIFT], wio[KW.W_WORST] = lazy_state
         wio[KW.W_LEVEL], wio[KW.W_LAZY], wio[KW.W_MOVE] = level, float(lazy), o.obstacle_speed * o.dt
         if not self._plan():
