@@ -14,7 +14,7 @@ import pinocchio as pin
 import pytest
 from test_native_rollout import lib_or_skip
 
-from qpctl import LawGains, Obstacle, Scenario, WaypointPath, planar_arm
+from qpctl import LawGains, Obstacle, Scenario, WaypointPath, panda, planar_arm
 from qpctl.constraints.constraints import TorqueLimit
 from qpctl.controllers.qp import QPConfig, QPController
 from qpctl.errors import ConfigError
@@ -22,7 +22,17 @@ from qpctl.geometry.distance import DistanceEngine
 from qpctl.safety import BackupGuard, certify, oracle, rollout
 from qpctl.safety.backup import GuardedOutput
 from qpctl.safety.oracle import BRAKE_GAINS, REST_SPEED
-from qpctl.safety.retreat import OMEGAS, RETRY_TICKS, SETTLE, Retreat, shown, switch_time, targets
+from qpctl.safety.retreat import (
+    INSIDE,
+    OMEGAS,
+    RETRY_TICKS,
+    SETTLE,
+    Retreat,
+    candidates,
+    shown,
+    switch_time,
+    targets,
+)
 from qpctl.safety.rollout import BrakeRollout
 from qpctl.safety.sweep import RestClearance, lever_arms
 from qpctl.simulation import Simulator
@@ -141,6 +151,27 @@ def test_targets_are_the_nearest_rests_clear_of_the_sweeps():
     assert {np.count_nonzero(x - Q) for x in found} == {1, 2}
     for x in found:
         assert capsule_clearance(robot, x, o) > 0
+
+
+def test_targets_keep_every_joint_inside_the_limits():
+    """The Panda with joints at (or past) their limits: every target lies INSIDE within every limit —
+    the joints the move leaves alone taken inside, not kept where they are — and differs from the
+    start taken inside in the move's one or two joints only."""
+    robot = panda()
+    lo, hi = robot.q_min + INSIDE, robot.q_max - INSIDE
+    home = robot.q_home.copy()
+    starts = [home.copy() for _ in range(3)]
+    starts[0][1] = robot.q_min[1]  # joint 2 at its lower limit
+    starts[1][3], starts[1][5] = robot.q_max[3] - 0.01, robot.q_min[5] - 1e-3  # one within INSIDE, one past
+    starts[2][6] = robot.q_max[6]
+    for q in starts:
+        near = (q < lo) | (q > hi)
+        assert near.any()
+        found = candidates(robot, q, lever_arms(robot))
+        assert len(found) > 50
+        for x in found:
+            assert np.all(x >= lo - 1e-12) and np.all(x <= hi + 1e-12), (q, x)
+            assert 1 <= np.count_nonzero(np.abs(x - np.clip(q, lo, hi)) > 1e-12) <= 2  # the move's joints only
 
 
 @pytest.mark.parametrize("retreats", [True, False])

@@ -19,7 +19,8 @@ a stored retreat at its own tick times and a rollout from any state on it take t
 step whatever the rounding of t.
 
 **The search** (:func:`search`): the targets are the configuration moved by one joint by ±0.3, ±0.6 or
-±1.2 rad, or by two joints by ±0.3 or ±0.6 rad each (within the limits, 0.05 rad inside), in order of
+±1.2 rad, or by two joints by ±0.3 or ±0.6 rad each (within the limits, 0.05 rad inside; the other
+joints, where nearer a limit than that, moved to 0.05 rad inside it), in order of
 how far they move the links (Σᵢρᵢ|Δqᵢ|, :func:`qpctl.safety.sweep.lever_arms`), kept where the arm at
 rest there clears the static obstacles and every sweep by the margin (:meth:`RestClearance.clear`);
 the first :data:`TRIES` of them are rolled out at each ω of :data:`OMEGAS`, switching to the brake
@@ -97,19 +98,23 @@ def switch_time(t: float, dt: float, omega: float) -> float:
 def candidates(robot: Any, q: np.ndarray, rho: np.ndarray | None) -> list[np.ndarray]:
     """The search's targets from q [rad] before the rest test (module docstring), nearest first: each
     joint moved by ±:data:`STEPS`, each pair of joints by ±:data:`PAIR_STEPS` each, within the limits
-    (:data:`INSIDE` inside them), ordered by Σᵢρᵢ|Δqᵢ| (ρ: the lever arms; 1 where None)."""
+    (:data:`INSIDE` inside them; a joint not moved that lies nearer a limit than that is moved to
+    :data:`INSIDE` inside it), ordered by Σᵢρᵢ|Δqᵢ| (ρ: the lever arms; 1 where None)."""
     lo, hi = np.asarray(robot.q_min, float) + INSIDE, np.asarray(robot.q_max, float) - INSIDE
     weight = rho if rho is not None else np.ones(robot.nv)
     moves: list[dict[int, float]] = [{i: sign * step} for i in range(robot.nv) for step in STEPS for sign in (1.0, -1.0)]
     moves += [{i: si * a, j: sj * b} for i in range(robot.nv) for j in range(i + 1, robot.nv)
               for a in PAIR_STEPS for b in PAIR_STEPS for si in (1.0, -1.0) for sj in (1.0, -1.0)]
+    # the joints a move leaves are kept INSIDE the limits too: a rest at a limit leaves a walk
+    # (qpctl.safety.walk) no room for its stray, and the whole steering is then stepped
+    base = np.clip(np.asarray(q, float), lo, np.maximum(lo, hi))
     found: list[tuple[float, int, np.ndarray]] = []
     for move in moves:
-        x = np.array(q, float)
+        x = base.copy()
         for i, d in move.items():
-            x[i] += d
+            x[i] = q[i] + d
         if all(lo[i] <= x[i] <= hi[i] for i in move):
-            found.append((float(sum(weight[i] * abs(d) for i, d in move.items())), len(found), x))
+            found.append((float(np.sum(weight * np.abs(x - q))), len(found), x))
     found.sort(key=lambda f: (f[0], f[1]))
     return [x for _, _, x in found]
 
