@@ -108,13 +108,16 @@ def candidates(robot: Any, q: np.ndarray, rho: np.ndarray | None) -> list[np.nda
     # the joints a move leaves are kept INSIDE the limits too: a rest at a limit leaves a walk
     # (qpctl.safety.walk) no room for its stray, and the whole steering is then stepped
     base = np.clip(np.asarray(q, float), lo, np.maximum(lo, hi))
+    taken = np.abs(base - q) * weight  # the joints taken inside, by how much they move the links
     found: list[tuple[float, int, np.ndarray]] = []
     for move in moves:
         x = base.copy()
         for i, d in move.items():
             x[i] = q[i] + d
         if all(lo[i] <= x[i] <= hi[i] for i in move):
-            found.append((float(np.sum(weight * np.abs(x - q))), len(found), x))
+            moved = sum(weight[i] * abs(d) for i, d in move.items())
+            found.append((float(moved + sum(taken[i] for i in range(len(x)) if i not in move and taken[i] > 0)),
+                          len(found), x))
     found.sort(key=lambda f: (f[0], f[1]))
     return [x for _, _, x in found]
 
