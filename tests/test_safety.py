@@ -336,6 +336,34 @@ def test_backup_guard_spends_at_most_its_check_steps_on_a_proposal():
     assert guard.stats["out_of_steps"] == 2 and guard.stats["unverified"] == 0
 
 
+def test_check_steps_bound_the_states_own_check_too():
+    """``check_steps`` bounds the whole check, step 3 included. Nothing stored and a proposal pushing the
+    tip into the sphere (1,000 N·m on the first joint): every brake from its successor is refuted, and
+    the state's own κ = 25 verifies (step 3) — S steps in all. S + 1 steps give the same verdict in S;
+    S − 1 and S // 2 end step 3's rollout: the tick is unverified, says the steps ran out, spends at most
+    its steps and keeps the arm on its stop (the family's first brake from this state)."""
+    robot, q, v, data, hold, guard, _, _ = closing_tip()
+    push = hold - np.array([1000.0, 0.0, 0.0])
+    spent = {}
+    for steps in (np.inf, None, "S-1", "S//2"):
+        budget = {None: spent.get(np.inf, 0) + 1, "S-1": spent.get(np.inf, 0) - 1,
+                  "S//2": spent.get(np.inf, 0) // 2}.get(steps, steps)
+        guard._reset_backup()
+        guard._tau_prev, guard.check_steps = hold.copy(), budget
+        info: dict = {}
+        out = guard.check(q, v, push, 0.0, info)
+        spent[steps] = guard.stats["check_steps"][-1]
+        assert spent[steps] <= budget
+        if steps in (np.inf, None):
+            assert info.get("backup") == 25.0 and "backup_out_of_steps" not in info
+            assert spent[steps] == spent[np.inf] > 1000
+            assert np.array_equal(out, brake_torque(robot, data, q, v, hold, 25.0, DT))
+        else:
+            assert info.get("backup_unverified") and info.get("backup_out_of_steps") and "backup" not in info
+            assert info["backup_stop"] == guard.gains[0] and guard._gain is None
+            assert np.array_equal(out, brake_torque(robot, data, q, v, hold, guard.gains[0], DT))
+
+
 def test_settled_rollouts_spend_fewer_steps_and_pass_their_budget_on():
     """With ``settle`` (the default) the same check applies the proposal and stores 25 in fewer steps
     than the rollouts to rest (n₄ + n₂₅ on the Simulator-based rollout), and a step budget of exactly

@@ -13,10 +13,12 @@ then, where the world clearance (exact, every pair: :class:`qpctl.tick.WorldClea
    of 213 at the median on the Panda at 1 kHz), a retreat's unclipped steering walked in closed form
    (:mod:`qpctl.safety.walk`) —, on the first step below ``margin`` [m] or past a
    joint limit; the first that comes to rest with the clearance above ``margin`` all along is stored
-   and τ applied; with ``check_steps`` (default inf) the rollouts of one check, the retreat search from
-   its successor included, take at most that many steps in
+   and τ applied; with ``check_steps`` (default inf) the rollouts of one check — the proposal's, the
+   retreat search from its successor, and steps 3 and 4 below — take at most that many steps in
    all — a proposal not verified within them is refuted, which bounds a check's cost (the guarantee is
-   untouched: a refuted proposal only means the stored brake continues); while the last tick applied
+   untouched: a refuted proposal only means the stored brake continues; step 3 cut short leaves the
+   tick unverified and the arm on its stop, step 4's re-verification cut short keeps the stop as
+   lapsed: ``info["backup_out_of_steps"]`` on every tick the steps ended a rollout); while the last tick applied
    the stored brake, only ``tries_on_brake`` gains are tried (default 2: the stored one and the first
    other) — the checks that refute every gain are the long ones (four rollouts, 2,000–4,000 steps on
    the soak's heavy arm), and they come in runs while the arm brakes; with ``retreat_proposals``
@@ -240,36 +242,43 @@ class BackupGuard:
                                                q1, v1, tau, t + self.dt, self.check_steps - spent)
         found, spent = found or escape, spent + more
         self._on_brake = False
-        if cut:
-            info["backup_out_of_steps"] = True
-            self.stats["out_of_steps"] += 1
         if found is not None:
+            self._count_cut(cut, info)
             self.stats["check_steps"].append(spent)
             self._gain, self._retreat = found
             self._note_retreat(info)
             return tau
         lapsed: tuple[float, Retreat | None] | None = None
+        full = round(self.horizon / self.dt)
         if self._gain is not None and self.brake.rest.drifts and np.all(np.abs(v) <= REST_SPEED):
             # at rest the stored stop's rest moves on with the time, and so does the window over which it must
-            # clear the drifting obstacles (hold): re-verified from this very state, else forgotten (step 3)
-            cert = self._roll(q, v, self._tau_prev, t, self._gain, self._retreat)
-            spent += cert.steps
-            if not cert.viable:
+            # clear the drifting obstacles (hold): re-verified from this very state, else forgotten (step 3);
+            # within the check's steps left (one they cut short counts as refuted: the stop is then kept as lapsed)
+            left = self.check_steps - spent
+            n = full if left >= full else int(left)
+            cert = self._roll(q, v, self._tau_prev, t, self._gain, self._retreat, n) if n >= 1 else None
+            spent += cert.steps if cert is not None else 0
+            if cert is None or not cert.viable:
+                cut = cut or cert is None or (n < full and cert.steps >= n)
                 lapsed = self._gain, self._retreat
                 self._gain, self._retreat = None, None
                 info["backup_rest_refuted"] = True
-        if self._gain is None:  # nothing stored: is the state itself verified? (step 3, no step limit)
-            found, more, _, here = self._first_verified(q, v, self._tau_prev, t)
-            spent += more
+        if self._gain is None:  # nothing stored: is the state itself verified? (step 3, in the check's steps left)
+            found, more, short, here = self._first_verified(q, v, self._tau_prev, t, steps=self.check_steps - spent)
+            spent, cut = spent + more, cut or short
             self._stop = self._stop or here  # (the start: no torque applied before it)
-            escape, more = self._throttled_retreat("state", found is None and self.retreats, q, v, self._tau_prev, t)
+            escape, more = self._throttled_retreat("state", found is None and self.retreats, q, v, self._tau_prev, t,
+                                                   self.check_steps - spent)
             found, spent = found or escape, spent + more
+            if found is None and self.check_steps - spent < 1 and self.retreats:
+                cut = True  # a search the steps left could not finish
             if found is not None:
                 self._gain, self._retreat = found
             elif lapsed is not None:  # no retreat either: the arm stays on its stop, verified as with no hold
                 self._gain, self._retreat = lapsed
                 info["backup_hold_lapsed"] = True
                 self.stats["hold_lapsed"] += 1
+        self._count_cut(cut, info)
         self.stats["check_steps"].append(spent)
         if self._gain is None:
             self.stats["unverified"] += 1
@@ -289,6 +298,12 @@ class BackupGuard:
         self._on_brake = True
         self.stats["backup"] += 1
         return self._apply(self.brake.torque(q, v, self._tau_prev, self._gain, self._retreat, t), t)
+
+    def _count_cut(self, cut: bool, info: dict[str, Any]) -> None:
+        """``info["backup_out_of_steps"]`` and its count where ``check_steps`` ended a rollout of the check."""
+        if cut:
+            info["backup_out_of_steps"] = True
+            self.stats["out_of_steps"] += 1
 
     def _apply(self, tau: np.ndarray, t: float) -> np.ndarray:
         """A copy of the backup's torque ``tau`` [N·m], remembered by the torque limit: the rate window
