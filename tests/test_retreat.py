@@ -285,6 +285,32 @@ def test_a_rest_must_clear_a_drifting_obstacle_for_its_hold():
     assert RestClearance(robot, [o], 0.0).clear(Q, 0.0, 2.4) and not RestClearance(robot, [o], 0.0)
 
 
+def test_check_steps_bound_a_stops_re_verification_at_rest():
+    """At rest at t = 0.6 s with a stop stored and a sphere drifting at the arm, whose rest there it
+    reaches within the hold (0.5 − 0.2·(0.6 + 2) < 0): the proposal (gravity's hold) is refused (no
+    retreat searched from its successor here), step 4
+    refutes the stop and step 3 searches a retreat — hundreds of steps. Within one step the check
+    spends at most that step: the re-verification and step 3 cut short, the stop is kept as lapsed
+    and the stored brake continues."""
+    robot = arm()
+    guard = BackupGuard(Hold(robot, [closing_sphere(robot)]), DT, retreat_proposals=False)
+    guard.warmup()
+    data = robot.model.createData()
+    gravity = pin.computeGeneralizedGravity(robot.model, data, Q)
+    for steps in (np.inf, 1):
+        guard._reset_backup()
+        guard._gain, guard._tau_prev, guard.check_steps = 25.0, gravity.copy(), steps
+        info: dict = {}
+        guard.check(Q, np.zeros(3), gravity, 0.6, info)
+        spent = guard.stats["check_steps"][-1]
+        assert info["backup_rest_refuted"]
+        if steps == np.inf:
+            assert spent > 100 and "backup_out_of_steps" not in info
+        else:
+            assert spent <= 1 and info["backup_out_of_steps"] and info["backup_rest_refuted"]
+            assert info["backup_hold_lapsed"] and info["backup"] == 25.0 and guard._gain == 25.0
+
+
 @pytest.mark.parametrize("hold", [0.0, 2.0])
 def test_a_drifting_obstacle_is_left_when_the_rest_must_clear_it_for_a_hold(hold):
     """The sphere closing on the tip of the arm held by a controller that proposes to stay: without a
