@@ -70,7 +70,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from qpctl.constraints.constraints import TorqueLimit
-from qpctl.safety.oracle import BRAKE_GAINS, REST_SPEED, Certificate
+from qpctl.safety.oracle import BRAKE_GAINS, REST_SPEED
 from qpctl.safety.retreat import RETRY_TICKS, Retreat, noted, search
 from qpctl.safety.rollout import BrakeRollout
 from qpctl.tick import WorldClearance
@@ -194,12 +194,14 @@ class BackupGuard:
         (a rollout they cut short is not verified), or None; the steps spent."""
         spent, gain = 0, self.gains[0]
         full = round(self.horizon / self.dt)
+        if steps < 1:
+            return None, 0  # no steps left: not searched (nor its targets' rest tests taken)
 
         def run(r: Retreat) -> Any:
             nonlocal spent
             n = int(min(full, steps - spent))
             if n < 1:
-                return Certificate(False, gain, -np.inf, np.inf, 0)  # out of steps: refused unrun
+                return None  # out of steps: the search ends here
             cert = self._roll(q, v, tau_prev, t, gain, r, n)
             spent += max(cert.steps, 1)
             return cert  # (one cut short by the steps left is not verified: its horizon ended it)

@@ -137,13 +137,23 @@ def targets(robot: Any, q: np.ndarray, rho: np.ndarray | None, clear: Callable[[
 
 def search(run: Callable[[Retreat], Any], robot: Any, q: np.ndarray, t: float, dt: float, rho: np.ndarray | None,
            clear: Callable[[np.ndarray], bool], tries: int = TRIES) -> Any | None:
-    """The first retreat from (q, t) that ``run`` (a rollout: Retreat → certificate with ``viable``)
-    verifies, as (retreat, certificate), or None: the first ``tries`` targets of :func:`targets`, each at
-    every ω of :data:`OMEGAS`."""
-    for x in targets(robot, q, rho, clear, tries):
+    """The first retreat from (q, t) that ``run`` (a rollout: Retreat → certificate with ``viable``, or
+    None where the caller's steps ran out: the search ends there) verifies, as (retreat, certificate), or
+    None: the first ``tries`` targets of :func:`targets`, each at every ω of :data:`OMEGAS` — the rest
+    test of each candidate taken as the search comes to it, so a search its steps end costs only the
+    tests before that."""
+    count = 0
+    for x in candidates(robot, q, rho):
+        if count >= tries:
+            break
+        if not clear(x):
+            continue
+        count += 1
         for omega in OMEGAS:
             r = Retreat(tuple(float(a) for a in x), omega, switch_time(t, dt, omega))
             cert = run(r)
+            if cert is None:
+                return None
             if cert.viable:
                 return r, cert
     return None
