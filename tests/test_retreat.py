@@ -460,9 +460,11 @@ def test_a_proposal_into_a_sweep_is_let_in_with_a_verified_retreat(retreat_propo
 
 def test_the_search_from_a_proposals_successor_keeps_to_the_checks_steps():
     """``check_steps`` bounds the retreat search from a proposal's successor too: from the successor the
-    search let in above (S steps spent finding its retreat), a budget of S + 1 finds the same retreat in S
-    steps (the verdict is taken at the step after the last one integrated, as a proposal's rollouts'),
-    S − 1 finds none and spends at most S − 1, and so does a budget of a tenth."""
+    search let in above (S steps spent finding its retreat), a budget of S + 1 + the rest tests (each
+    counted as a step; fewer than the 400 allowed here) finds the same retreat in S steps (the verdict
+    is taken at the step after the last one integrated, as a proposal's rollouts'), S − 1 finds none and
+    spends at most S − 1, and so does a budget of a tenth; S + 1 alone, the rest tests counted in it,
+    finds none."""
     robot = arm()
     o = swing(robot)
     ctrl = Push(robot, [o], Q, stiffness=4.0)
@@ -473,8 +475,10 @@ def test_the_search_from_a_proposals_successor_keeps_to_the_checks_steps():
     successor = (tr.q[k + 1], tr.v[k + 1], tr.tau[k], float(tr.t[k + 1]))
     found, spent = guard._retreat_from(*successor)
     assert found is not None and spent > 10
-    again, cost = guard._retreat_from(*successor, steps=spent + 1)
+    assert len(candidates(robot, successor[0], lever_arms(robot))) < 400
+    again, cost = guard._retreat_from(*successor, steps=spent + 1 + 400)
     assert again == found and cost == spent
+    assert guard._retreat_from(*successor, steps=spent + 1)[0] is None  # its rest tests counted too
     for budget in (spent - 1, spent // 10):
         none, cost = guard._retreat_from(*successor, steps=budget)
         assert none is None and cost <= budget

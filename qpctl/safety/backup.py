@@ -191,15 +191,17 @@ class BackupGuard:
                       steps: float = np.inf) -> tuple[tuple[float, Retreat] | None, int]:
         """A retreat verified from (q, q̇) after τ_prev at t (step 3; :func:`qpctl.safety.retreat.search`,
         braking at the first gain of the family once it stops steering) in at most ``steps`` rollout steps
-        (a rollout they cut short is not verified), or None; the steps spent."""
-        spent, gain = 0, self.gains[0]
+        (a rollout they cut short is not verified; each target's rest test counts as one step against
+        them — where most targets fail it, as beside two drifting obstacles, a search is hundreds of rest
+        tests), or None; the rollout steps spent."""
+        spent, tested, gain = 0, 0, self.gains[0]
         full = round(self.horizon / self.dt)
         if steps < 1:
             return None, 0  # no steps left: not searched (nor its targets' rest tests taken)
 
         def run(r: Retreat) -> Any:
             nonlocal spent
-            n = int(min(full, steps - spent))
+            n = int(min(full, steps - spent - tested))
             if n < 1:
                 return None  # out of steps: the search ends here
             cert = self._roll(q, v, tau_prev, t, gain, r, n)
@@ -207,7 +209,15 @@ class BackupGuard:
             return cert  # (one cut short by the steps left is not verified: its horizon ended it)
 
         rest = self.brake.rest
-        found = search(run, self.controller.robot, q, t, self.dt, rest.rho, lambda x: rest.clear(x, self.margin, t))
+
+        def clear(x: np.ndarray) -> bool:
+            nonlocal tested
+            if spent + tested >= steps:
+                return False  # out of steps: no more targets tested
+            tested += 1
+            return bool(rest.clear(x, self.margin, t))
+
+        found = search(run, self.controller.robot, q, t, self.dt, rest.rho, clear)
         return ((gain, found[0]) if found is not None else None), spent
 
     #: the stats each kind of search counts in: (searches, retreats found)
