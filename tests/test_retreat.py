@@ -477,11 +477,12 @@ def test_the_search_from_a_proposals_successor_keeps_to_the_checks_steps():
     assert found is not None and spent > 10
     assert len(candidates(robot, successor[0], lever_arms(robot))) < 400
     again, cost = guard._retreat_from(*successor, steps=spent + 1 + 400)
-    assert again == found and cost == spent
+    assert again == found and cost == spent and not guard._ran_out
     assert guard._retreat_from(*successor, steps=spent + 1)[0] is None  # its rest tests counted too
+    assert guard._ran_out  # the check says its steps ran out
     for budget in (spent - 1, spent // 10):
         none, cost = guard._retreat_from(*successor, steps=budget)
-        assert none is None and cost <= budget
+        assert none is None and cost <= budget and guard._ran_out
 
 
 def test_backup_unverified_is_a_scenario_key():

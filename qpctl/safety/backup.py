@@ -138,6 +138,7 @@ class BackupGuard:
         # leads to that comes to rest without contact, verified or not — the arm's stop where nothing verifies
         self._stop: tuple[float, Retreat | None] | None = None
         self._on_brake = False  # the last tick applied the stored brake
+        self._ran_out = False  # the last retreat search ended for want of steps
         self._tau_prev = np.full(self.controller.robot.nv, np.nan)
 
     def reset(self) -> None:
@@ -196,13 +197,15 @@ class BackupGuard:
         tests), or None; the rollout steps spent."""
         spent, tested, gain = 0, 0, self.gains[0]
         full = round(self.horizon / self.dt)
-        if steps < 1:
+        self._ran_out = steps < 1  # (read by check: the steps ended this search)
+        if self._ran_out:
             return None, 0  # no steps left: not searched (nor its targets' rest tests taken)
 
         def run(r: Retreat) -> Any:
             nonlocal spent
             n = int(min(full, steps - spent - tested))
             if n < 1:
+                self._ran_out = True
                 return None  # out of steps: the search ends here
             cert = self._roll(q, v, tau_prev, t, gain, r, n)
             spent += max(cert.steps, 1)
@@ -213,6 +216,7 @@ class BackupGuard:
         def clear(x: np.ndarray) -> bool:
             nonlocal tested
             if spent + tested >= steps:
+                self._ran_out = True
                 return False  # out of steps: no more targets tested
             tested += 1
             return bool(rest.clear(x, self.margin, t))
@@ -231,6 +235,7 @@ class BackupGuard:
         ``kind`` ("state": step 3, "proposal": from a proposal's successor) found nothing within the last
         ``RETRY_TICKS`` calls; every call counts one tick of the wait. (The retreat or None, the steps spent.)"""
         found, spent = None, 0
+        self._ran_out = False
         if wanted and self._wait[kind] <= 0:
             found, spent = self._retreat_from(q, v, tau_prev, t, steps)
             self._wait[kind] = RETRY_TICKS if found is None else 0
@@ -252,7 +257,7 @@ class BackupGuard:
         # retreat from the successor out of their way lets the proposal in (a dodge through a swing's sweep)
         escape, more = self._throttled_retreat("proposal", found is None and stop is not None and self.retreat_proposals,
                                                q1, v1, tau, t + self.dt, self.check_steps - spent)
-        found, spent = found or escape, spent + more
+        found, spent, cut = found or escape, spent + more, cut or self._ran_out
         self._on_brake = False
         if found is not None:
             self._count_cut(cut, info)
@@ -281,9 +286,7 @@ class BackupGuard:
             self._stop = self._stop or here  # (the start: no torque applied before it)
             escape, more = self._throttled_retreat("state", found is None and self.retreats, q, v, self._tau_prev, t,
                                                    self.check_steps - spent)
-            found, spent = found or escape, spent + more
-            if found is None and self.check_steps - spent < 1 and self.retreats:
-                cut = True  # a search the steps left could not finish
+            found, spent, cut = found or escape, spent + more, cut or self._ran_out
             if found is not None:
                 self._gain, self._retreat = found
             elif lapsed is not None:  # no retreat either: the arm stays on its stop, verified as with no hold
