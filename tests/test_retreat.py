@@ -473,16 +473,16 @@ def test_the_search_from_a_proposals_successor_keeps_to_the_checks_steps():
     tr = Simulator(guard, dt=DT, duration=3.0).run(Q + np.array([0.0, 0.0, 0.6]))
     k = next(k for k, i in enumerate(tr.infos) if "backup_retreat" in i and "backup" not in i)
     successor = (tr.q[k + 1], tr.v[k + 1], tr.tau[k], float(tr.t[k + 1]))
-    found, spent = guard._retreat_from(*successor)
-    assert found is not None and spent > 10
+    found, spent, short = guard._retreat_from(*successor)
+    assert found is not None and spent > 10 and not short
     assert len(candidates(robot, successor[0], lever_arms(robot))) < 400
-    again, cost = guard._retreat_from(*successor, steps=spent + 1 + 400)
-    assert again == found and cost == spent and not guard._ran_out
-    assert guard._retreat_from(*successor, steps=spent + 1)[0] is None  # its rest tests counted too
-    assert guard._ran_out  # the check says its steps ran out
+    again, cost, short = guard._retreat_from(*successor, steps=spent + 1 + 400)
+    assert again == found and cost == spent and not short
+    none, _, short = guard._retreat_from(*successor, steps=spent + 1)
+    assert none is None and short  # its rest tests counted too; the check is told its steps ran out
     for budget in (spent - 1, spent // 10):
-        none, cost = guard._retreat_from(*successor, steps=budget)
-        assert none is None and cost <= budget and guard._ran_out
+        none, cost, short = guard._retreat_from(*successor, steps=budget)
+        assert none is None and cost <= budget and short
 
 
 def test_backup_unverified_is_a_scenario_key():

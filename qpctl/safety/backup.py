@@ -138,7 +138,6 @@ class BackupGuard:
         # leads to that comes to rest without contact, verified or not — the arm's stop where nothing verifies
         self._stop: tuple[float, Retreat | None] | None = None
         self._on_brake = False  # the last tick applied the stored brake
-        self._ran_out = False  # the last retreat search ended for want of steps
         self._tau_prev = np.full(self.controller.robot.nv, np.nan)
 
     def reset(self) -> None:
@@ -189,23 +188,23 @@ class BackupGuard:
         return None, spent, False, stop
 
     def _retreat_from(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float,
-                      steps: float = np.inf) -> tuple[tuple[float, Retreat] | None, int]:
+                      steps: float = np.inf) -> tuple[tuple[float, Retreat] | None, int, bool]:
         """A retreat verified from (q, q̇) after τ_prev at t (step 3; :func:`qpctl.safety.retreat.search`,
         braking at the first gain of the family once it stops steering) in at most ``steps`` rollout steps
         (a rollout they cut short is not verified; each target's rest test counts as one step against
         them — where most targets fail it, as beside two drifting obstacles, a search is hundreds of rest
-        tests), or None; the rollout steps spent."""
+        tests), or None; the rollout steps spent; whether the steps ended the search."""
         spent, tested, gain = 0, 0, self.gains[0]
         full = round(self.horizon / self.dt)
-        self._ran_out = steps < 1  # (read by check: the steps ended this search)
-        if self._ran_out:
-            return None, 0  # no steps left: not searched (nor its targets' rest tests taken)
+        ran_out = steps < 1
+        if ran_out:
+            return None, 0, True  # no steps left: not searched (nor its targets' rest tests taken)
 
         def run(r: Retreat) -> Any:
-            nonlocal spent
+            nonlocal spent, ran_out
             n = int(min(full, steps - spent - tested))
             if n < 1:
-                self._ran_out = True
+                ran_out = True
                 return None  # out of steps: the search ends here
             cert = self._roll(q, v, tau_prev, t, gain, r, n)
             spent += max(cert.steps, 1)
@@ -214,15 +213,15 @@ class BackupGuard:
         rest = self.brake.rest
 
         def clear(x: np.ndarray) -> bool:
-            nonlocal tested
+            nonlocal tested, ran_out
             if spent + tested >= steps:
-                self._ran_out = True
+                ran_out = True
                 return False  # out of steps: no more targets tested
             tested += 1
             return bool(rest.clear(x, self.margin, t))
 
         found = search(run, self.controller.robot, q, t, self.dt, rest.rho, clear)
-        return ((gain, found[0]) if found is not None else None), spent
+        return ((gain, found[0]) if found is not None else None), spent, ran_out
 
     #: the stats each kind of search counts in: (searches, retreats found)
     SEARCH_STATS: ClassVar[dict[str, tuple[str, str]]] = {"state": ("retreat_searches", "retreats_found"),
@@ -230,20 +229,20 @@ class BackupGuard:
                                                                        "proposal_retreats_found")}
 
     def _throttled_retreat(self, kind: str, wanted: bool, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray,
-                           t: float, steps: float = np.inf) -> tuple[tuple[float, Retreat] | None, int]:
+                           t: float, steps: float = np.inf) -> tuple[tuple[float, Retreat] | None, int, bool]:
         """:meth:`_retreat_from` (in at most ``steps`` rollout steps) if ``wanted`` and no search of this
         ``kind`` ("state": step 3, "proposal": from a proposal's successor) found nothing within the last
-        ``RETRY_TICKS`` calls; every call counts one tick of the wait. (The retreat or None, the steps spent.)"""
-        found, spent = None, 0
-        self._ran_out = False
+        ``RETRY_TICKS`` calls; every call counts one tick of the wait. (The retreat or None, the steps spent,
+        whether the steps ended the search.)"""
+        found, spent, ran_out = None, 0, False
         if wanted and self._wait[kind] <= 0:
-            found, spent = self._retreat_from(q, v, tau_prev, t, steps)
+            found, spent, ran_out = self._retreat_from(q, v, tau_prev, t, steps)
             self._wait[kind] = RETRY_TICKS if found is None else 0
             searches, hits = self.SEARCH_STATS[kind]
             self.stats[searches] += 1
             self.stats[hits] += found is not None
         self._wait[kind] -= 1
-        return found, spent
+        return found, spent, ran_out
 
     def check(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float, info: dict[str, Any]) -> np.ndarray:
         """The check of one tick (module docstring, steps 1–3): the torque to apply [N·m] given the
@@ -255,9 +254,10 @@ class BackupGuard:
         found, spent, cut, stop = self._first_verified(q1, v1, tau, t + self.dt, tries, self.check_steps)
         # a stop from the successor comes to rest without contact but not clear of the sweeps (or the hold): a
         # retreat from the successor out of their way lets the proposal in (a dodge through a swing's sweep)
-        escape, more = self._throttled_retreat("proposal", found is None and stop is not None and self.retreat_proposals,
-                                               q1, v1, tau, t + self.dt, self.check_steps - spent)
-        found, spent, cut = found or escape, spent + more, cut or self._ran_out
+        escape, more, short = self._throttled_retreat("proposal", found is None and stop is not None and
+                                                      self.retreat_proposals, q1, v1, tau, t + self.dt,
+                                                      self.check_steps - spent)
+        found, spent, cut = found or escape, spent + more, cut or short
         self._on_brake = False
         if found is not None:
             self._count_cut(cut, info)
@@ -266,17 +266,13 @@ class BackupGuard:
             self._note_retreat(info)
             return tau
         lapsed: tuple[float, Retreat | None] | None = None
-        full = round(self.horizon / self.dt)
         if self._gain is not None and self.brake.rest.drifts and np.all(np.abs(v) <= REST_SPEED):
             # at rest the stored stop's rest moves on with the time, and so does the window over which it must
-            # clear the drifting obstacles (hold): re-verified from this very state, else forgotten (step 3);
-            # within the check's steps left (one they cut short counts as refuted: the stop is then kept as lapsed)
-            left = self.check_steps - spent
-            n = full if left >= full else int(left)
-            cert = self._roll(q, v, self._tau_prev, t, self._gain, self._retreat, n) if n >= 1 else None
-            spent += cert.steps if cert is not None else 0
-            if cert is None or not cert.viable:
-                cut = cut or cert is None or (n < full and cert.steps >= n)
+            # clear the drifting obstacles (hold): re-verified from this very state (the stored one alone), else
+            # forgotten (step 3); within the check's steps left (cut short: refuted, the stop then kept as lapsed)
+            kept, more, short, _ = self._first_verified(q, v, self._tau_prev, t, 1, self.check_steps - spent)
+            spent, cut = spent + more, cut or short
+            if kept is None:
                 lapsed = self._gain, self._retreat
                 self._gain, self._retreat = None, None
                 info["backup_rest_refuted"] = True
@@ -284,9 +280,9 @@ class BackupGuard:
             found, more, short, here = self._first_verified(q, v, self._tau_prev, t, steps=self.check_steps - spent)
             spent, cut = spent + more, cut or short
             self._stop = self._stop or here  # (the start: no torque applied before it)
-            escape, more = self._throttled_retreat("state", found is None and self.retreats, q, v, self._tau_prev, t,
-                                                   self.check_steps - spent)
-            found, spent, cut = found or escape, spent + more, cut or self._ran_out
+            escape, more, short = self._throttled_retreat("state", found is None and self.retreats, q, v,
+                                                          self._tau_prev, t, self.check_steps - spent)
+            found, spent, cut = found or escape, spent + more, cut or short
             if found is not None:
                 self._gain, self._retreat = found
             elif lapsed is not None:  # no retreat either: the arm stays on its stop, verified as with no hold

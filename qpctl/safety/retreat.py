@@ -30,7 +30,7 @@ next to a verified stop; the guard repeats a failed search only every :data:`RET
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -108,47 +108,46 @@ def candidates(robot: Any, q: np.ndarray, rho: np.ndarray | None) -> list[np.nda
     # the joints a move leaves are kept INSIDE the limits too: a rest at a limit leaves a walk
     # (qpctl.safety.walk) no room for its stray, and the whole steering is then stepped
     base = np.clip(np.asarray(q, float), lo, np.maximum(lo, hi))
-    taken = np.abs(base - q) * weight  # the joints taken inside, by how much they move the links
+    taken = {int(i): float(weight[i] * abs(base[i] - q[i])) for i in np.flatnonzero(base != q)}  # Σρ|Δq| each
     found: list[tuple[float, int, np.ndarray]] = []
     for move in moves:
         x = base.copy()
         for i, d in move.items():
             x[i] = q[i] + d
         if all(lo[i] <= x[i] <= hi[i] for i in move):
-            moved = sum(weight[i] * abs(d) for i, d in move.items())
-            found.append((float(moved + sum(taken[i] for i in range(len(x)) if i not in move and taken[i] > 0)),
-                          len(found), x))
+            key = sum(weight[i] * abs(d) for i, d in move.items()) + sum(w for i, w in taken.items() if i not in move)
+            found.append((float(key), len(found), x))
     found.sort(key=lambda f: (f[0], f[1]))
     return [x for _, _, x in found]
 
 
+def clear_targets(robot: Any, q: np.ndarray, rho: np.ndarray | None, clear: Callable[[np.ndarray], bool],
+                  count: float = np.inf) -> Iterator[np.ndarray]:
+    """The first ``count`` of :func:`candidates` that the rest test ``clear`` accepts (the arm at rest
+    there clear of the static obstacles and the sweeps), nearest first, each tested as it is asked for."""
+    found = 0
+    for x in candidates(robot, q, rho):
+        if found >= count:
+            return
+        if clear(x):
+            found += 1
+            yield x
+
+
 def targets(robot: Any, q: np.ndarray, rho: np.ndarray | None, clear: Callable[[np.ndarray], bool],
             count: float = np.inf) -> list[np.ndarray]:
-    """The first ``count`` of :func:`candidates` that the rest test ``clear`` accepts (the arm at rest
-    there clear of the static obstacles and the sweeps), nearest first."""
-    out: list[np.ndarray] = []
-    for x in candidates(robot, q, rho):
-        if len(out) >= count:
-            break
-        if clear(x):
-            out.append(x)
-    return out
+    """:func:`clear_targets` as a list."""
+    return list(clear_targets(robot, q, rho, clear, count))
 
 
 def search(run: Callable[[Retreat], Any], robot: Any, q: np.ndarray, t: float, dt: float, rho: np.ndarray | None,
            clear: Callable[[np.ndarray], bool], tries: int = TRIES) -> Any | None:
     """The first retreat from (q, t) that ``run`` (a rollout: Retreat → certificate with ``viable``, or
     None where the caller's steps ran out: the search ends there) verifies, as (retreat, certificate), or
-    None: the first ``tries`` targets of :func:`targets`, each at every ω of :data:`OMEGAS` — the rest
+    None: the first ``tries`` of :func:`clear_targets`, each at every ω of :data:`OMEGAS` — the rest
     test of each candidate taken as the search comes to it, so a search its steps end costs only the
     tests before that."""
-    count = 0
-    for x in candidates(robot, q, rho):
-        if count >= tries:
-            break
-        if not clear(x):
-            continue
-        count += 1
+    for x in clear_targets(robot, q, rho, clear, tries):
         for omega in OMEGAS:
             r = Retreat(tuple(float(a) for a in x), omega, switch_time(t, dt, omega))
             cert = run(r)
