@@ -742,6 +742,7 @@ class Scenario:
 
         return BackupGuard(ctrl, self.data["sim"]["dt"], check_distance=c["backup_check_distance"],
                            margin=c["backup_margin"], check_steps=c["backup_check_steps"],
+                           check_evaluations=c["backup_check_evaluations"],
                            tries_on_brake=c["backup_tries_on_brake"], retreats=c["backup_retreats"],
                            hold=c["backup_hold"], unverified=c["backup_unverified"],
                            retreat_proposals=c["backup_retreat_proposals"], settle=c["backup_settle"])

@@ -733,6 +733,9 @@ class WorldClearance:
         self._fcl = DistanceEngine(self.ws.cap_radius, others, broadphase=False) if others else None
         self.any = bool(obstacles)
         self.self_clearance = math.inf  # [m] between the self pairs' capsules, at the last call
+        # an owner's count of the evaluations (:meth:`at`), e.g. the verified backup's bound on its check
+        # (qpctl.safety.backup.Meter: ``spend()`` at each evaluation, which may raise to end the check's work)
+        self.meter: Any = None
 
     def __call__(self, q: np.ndarray, t: float) -> float:
         if not self.any and not len(self.ws.sc_pairs):
@@ -748,6 +751,8 @@ class WorldClearance:
         """The clearance [m] of the links as last posed (:meth:`pose`) with the obstacles at t [s]: an arm
         held still against moving obstacles needs its kinematics once."""
         ws = self.ws
+        if self.meter is not None:
+            self.meter.spend()
         best = float(K.min_distance(ws.work, float(t)))
         if len(ws.sc_pairs):
             self.self_clearance = float(K.min_self_distance(ws.work))

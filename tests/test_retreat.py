@@ -311,6 +311,51 @@ def test_check_steps_bound_a_stops_re_verification_at_rest():
             assert info["backup_hold_lapsed"] and info["backup"] == 25.0 and guard._gain == 25.0
 
 
+def test_check_evaluations_bound_the_whole_check(monkeypatch):
+    """``check_evaluations``: the world-clearance evaluations one check may spend, its rollouts' and its
+    rest tests' together. The state of the test above (at rest, the stored stop refuted by the drifting
+    sphere's hold, a retreat searched): every evaluation of the check, counted at
+    :meth:`WorldClearance.at` itself, is the meter's — the rest tests' worlds carry it too —, N of them
+    with no limit, most of them rest tests. N allowed: the same retreat stored. N − 1 and 5: the
+    evaluation past them ends the search, at most that many are made, the tick says so and the stop is
+    kept as lapsed."""
+    from qpctl.tick import WorldClearance
+
+    made = []
+    evaluate = WorldClearance.at
+
+    def counted(self, t):
+        d = evaluate(self, t)
+        made.append(self)  # an evaluation made (not the one the meter refuses)
+        return d
+
+    monkeypatch.setattr(WorldClearance, "at", counted)
+    robot = arm()
+    guard = BackupGuard(Hold(robot, [closing_sphere(robot)]), DT, retreat_proposals=False)
+    guard.warmup()
+    gravity = pin.computeGeneralizedGravity(robot.model, robot.model.createData(), Q)
+    kept, spent = None, {}
+    for limit in (np.inf, "N", "N-1", 5):
+        budget = {"N": spent.get(np.inf, 0), "N-1": spent.get(np.inf, 0) - 1}.get(limit, limit)
+        guard._reset_backup()
+        guard._gain, guard._tau_prev, guard.check_evaluations = 25.0, gravity.copy(), budget
+        info: dict = {}
+        made.clear()
+        guard.check(Q, np.zeros(3), gravity, 0.6, info)
+        spent[limit] = len(made)
+        assert guard.stats["check_evaluations"][-1] == len(made) <= budget
+        assert info["backup_rest_refuted"]
+        if limit in (np.inf, "N"):
+            assert guard._retreat is not None and "backup_out_of_steps" not in info
+            assert sum(w is not guard.world for w in made) > len(made) // 2  # mostly the rest tests'
+            kept = kept or (guard._gain, guard._retreat)
+            assert (guard._gain, guard._retreat) == kept and len(made) == spent[np.inf] > 50
+        else:
+            assert info["backup_out_of_steps"] and info["backup_hold_lapsed"]
+            assert guard._gain == 25.0 and guard._retreat is None
+    assert guard.meter.limit == np.inf  # the screen's evaluations outside a check are not limited
+
+
 @pytest.mark.parametrize("hold", [0.0, 2.0])
 def test_a_drifting_obstacle_is_left_when_the_rest_must_clear_it_for_a_hold(hold):
     """The sphere closing on the tip of the arm held by a controller that proposes to stay: without a

@@ -390,3 +390,16 @@ def test_backup_check_steps_is_a_whole_number_or_inf(value):
     assert exc.value.key == "controller.backup_check_steps"
     sc = Scenario.load("paper", overrides=["controller.backup=true", "controller.backup_check_steps=300"])
     assert sc.build_controller().check_steps == 300
+
+
+@pytest.mark.parametrize("value", ["0", "2.5", "-1", "nan"])
+def test_backup_check_evaluations_is_a_whole_number_or_inf(value):
+    from qpctl import ConfigError, Scenario
+
+    with pytest.raises(ConfigError) as exc:
+        Scenario.load("paper", overrides=[f"controller.backup_check_evaluations={value}"])
+    assert exc.value.key == "controller.backup_check_evaluations"
+    on = ["controller.backup=true"]
+    assert Scenario.load("paper", overrides=on).build_controller().check_evaluations == np.inf
+    sc = Scenario.load("paper", overrides=[*on, "controller.backup_check_evaluations=40"])
+    assert sc.build_controller().check_evaluations == 40

@@ -110,3 +110,59 @@ def test_the_real_cache_carries_the_current_digest():
     assert path is not None
     with open(os.path.join(path, "qpctl-kernels.sha256"), encoding="ascii") as fh:
         assert fh.read().strip() == kernels.sources_digest()
+
+
+GUARD_CHILD = textwrap.dedent("""
+    import importlib, json, pkgutil, sys
+    sys.path.insert(0, TESTS)
+    import numpy as np
+    import pinocchio as pin
+    import qpctl.kernels
+    from qpctl.safety import BackupGuard
+    from qpctl.safety.walk import Walk
+    from qpctl.simulation import Simulator
+    from qpctl.tick import WorldClearance
+    from test_retreat import DT, Q, Hold, Push, arm, closing_sphere, swing
+
+    walked = []
+    attempt = Walk.attempt
+    def counted(self, *args):
+        out = attempt(self, *args)
+        walked.append(out[0])
+        return out
+    Walk.attempt = counted
+
+    robot = arm()
+    swung = BackupGuard(Push(robot, [swing(robot)], Q, stiffness=4.0), DT)
+    drift = BackupGuard(Hold(robot, [closing_sphere(robot)]), DT)
+    for guard in (swung, drift):
+        guard.warmup()
+    WorldClearance(robot, [swing(robot)], self_pairs=[(0, 2)])(Q, 0.0)  # the simulator's recorded clearance
+    modules = [importlib.import_module("qpctl.kernels." + m.name) for m in pkgutil.iter_modules(qpctl.kernels.__path__)]
+    kernels = {f"{mod.__name__}.{name}": k for mod in modules for name, k in vars(mod).items() if hasattr(k, "signatures")}
+    before = {name: len(k.signatures) for name, k in kernels.items()}
+    walked.clear()
+    Simulator(swung, dt=DT, duration=2.0).run(Q + np.array([0.0, 0.0, 0.6]))
+    Simulator(drift, dt=DT, duration=3.0).run(Q)
+    after = {name: len(k.signatures) for name, k in kernels.items()}
+    stats = {key: swung.stats[key] + drift.stats[key] for key in ("backup", "retreats_found", "proposal_retreats_found")}
+    print(json.dumps({"new": {n: after[n] - before[n] for n in kernels if after[n] != before[n]}, "stats": stats,
+                      "walks": sum(walked)}))
+""")
+
+
+def test_the_guards_warmup_leaves_nothing_to_compile():
+    """:meth:`BackupGuard.warmup` covers every kernel the check calls from Python: in a fresh interpreter,
+    after two guards' warmups (a swaying and a drifting sphere on the planar arm; the simulator's own
+    clearance with its self pairs evaluated once), their runs — the stored
+    brake applied, retreats found and walked, stops settled, rests tested against the sweep and the drift —
+    load no further kernel signature (each a numba cache load of ~5 ms in the middle of a control loop)."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    tests = os.path.dirname(os.path.abspath(__file__))
+    proc = subprocess.run([sys.executable, "-c", f"TESTS = {tests!r}\n" + GUARD_CHILD], env=env,
+                          capture_output=True, text=True, timeout=600, check=False)
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out["stats"]["backup"] > 0 and out["stats"]["retreats_found"] + out["stats"]["proposal_retreats_found"] > 0
+    assert out["walks"] > 0  # the paths the runs were to take
+    assert out["new"] == {}, f"kernel signatures loaded after the guards' warmup(): {out['new']}"

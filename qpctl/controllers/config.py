@@ -34,6 +34,9 @@ class ControllerConfig:
     world clearance is at least this are not checked (inf: every tick, the default); backup_check_steps:
     the rollout steps one check may spend on a proposal, all its gains together (inf: no limit, the
     default) — one not verified within them is refused and the stored brake continues;
+    backup_check_evaluations: the world-clearance evaluations one check may spend, its rollouts' and its
+    rest tests' together (inf: no limit, the default) — the evaluation past them ends the check's work as
+    the steps do; with backup_check_steps a bound on the check's whole cost;
     backup_tries_on_brake: the gains a check tries while the last tick applied the stored brake (2, the
     default: the stored one and the first other; inf: the whole family).
     backup_retreats: where no brake verifies from the state itself (a start inside a swaying obstacle's
@@ -65,6 +68,7 @@ class ControllerConfig:
     backup_margin: float = setting(0.0, valid="nonnegative", unit="m")
     backup_check_distance: float = setting(float("inf"), valid="distance_or_inf", unit="m")
     backup_check_steps: float = setting(float("inf"), valid="count_or_inf")
+    backup_check_evaluations: float = setting(float("inf"), valid="count_or_inf")
     backup_tries_on_brake: float = setting(2.0, valid="count_or_inf")
     backup_retreats: bool = True
     backup_hold: float = setting(2.0, valid="nonnegative", unit="s")

@@ -18,7 +18,12 @@ then, where the world clearance (exact, every pair: :class:`qpctl.tick.WorldClea
    all — a proposal not verified within them is refuted, which bounds a check's cost (the guarantee is
    untouched: a refuted proposal only means the stored brake continues; step 3 cut short leaves the
    tick unverified and the arm on its stop, step 4's re-verification cut short keeps the stop as
-   lapsed: ``info["backup_out_of_steps"]`` on every tick the steps ended a rollout); while the last tick applied
+   lapsed: ``info["backup_out_of_steps"]`` on every tick the steps ended a rollout); with
+   ``check_evaluations`` (default inf) the check evaluates the world clearance at most that many times
+   in all — the rollouts' lazy clearance, the walks' and every rest test's (:class:`Meter`) —, and the
+   evaluation past them ends the rollout or search it was in, as the steps do (the same flag): the two
+   limits together bound the check's whole cost (steps × a step's time + evaluations × an evaluation's);
+   while the last tick applied
    the stored brake, only ``tries_on_brake`` gains are tried (default 2: the stored one and the first
    other) — the checks that refute every gain are the long ones (four rollouts, 2,000–4,000 steps on
    the soak's heavy arm), and they come in runs while the arm brakes; with ``retreat_proposals``
@@ -70,8 +75,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 from qpctl.constraints.constraints import TorqueLimit
-from qpctl.safety.oracle import BRAKE_GAINS, REST_SPEED
-from qpctl.safety.retreat import RETRY_TICKS, Retreat, noted, search
+from qpctl.safety.oracle import BRAKE_GAINS, REST_SPEED, Certificate
+from qpctl.safety.retreat import OMEGAS, RETRY_TICKS, SETTLE, Retreat, noted, search, switch_time
 from qpctl.safety.rollout import BrakeRollout
 from qpctl.tick import WorldClearance
 
@@ -80,6 +85,31 @@ from qpctl.tick import WorldClearance
 #: ~100 on the planar arm), and the first verified is the one stored and tried first next tick.
 GUARD_GAINS = (25.0, 60.0, 10.0, 4.0)
 assert sorted(GUARD_GAINS) == sorted(BRAKE_GAINS)  # the oracle's family, in another order
+
+
+class OutOfEvaluations(Exception):
+    """The check's world-clearance evaluations ran out (raised by :meth:`Meter.spend` in the evaluation
+    past the limit; the guard ends the rollout or search it was in: never an error of a run)."""
+
+
+class Meter:
+    """The world-clearance evaluations of one check against its limit: every
+    :class:`~qpctl.tick.WorldClearance` the guard's rollouts and rest tests evaluate carries it
+    (``world.meter``) and calls :meth:`spend` at each evaluation."""
+
+    def __init__(self) -> None:
+        self.used, self.limit, self.out = 0, np.inf, False
+
+    def start(self, limit: float) -> None:
+        """A check begins with ``limit`` evaluations (inf: no limit)."""
+        self.used, self.limit, self.out = 0, float(limit), False
+
+    def spend(self) -> None:
+        """One evaluation counted, or :class:`OutOfEvaluations` (and ``out`` from then on) where the limit is spent."""
+        if self.used >= self.limit:
+            self.out = True
+            raise OutOfEvaluations
+        self.used += 1
 
 
 class GuardedOutput:
@@ -100,12 +130,13 @@ class BackupGuard:
 
     def __init__(self, controller: Any, dt: float, *, check_distance: float = np.inf, margin: float = 0.0,
                  horizon: float = 3.0, gains: tuple[float, ...] = GUARD_GAINS, check_steps: float = np.inf,
-                 tries_on_brake: float = 2, retreats: bool = True, hold: float = 2.0,
+                 check_evaluations: float = np.inf, tries_on_brake: float = 2, retreats: bool = True, hold: float = 2.0,
                  unverified: str = "stop", retreat_proposals: bool = True, settle: bool = True) -> None:
         self.controller = controller
         self.dt, self.check_distance, self.margin, self.horizon = float(dt), float(check_distance), float(margin), \
             float(horizon)
         self.check_steps = float(check_steps)  # rollout steps a proposal's check may spend (module docstring)
+        self.check_evaluations = float(check_evaluations)  # world-clearance evaluations a check may spend
         self.gains = tuple(gains)
         self.exact = False  # the lazy clearance (True: every step's clearance evaluated; the same verdicts)
         self.tries = np.inf  # gains tried from a proposal's successor (inf: the whole family)
@@ -119,10 +150,13 @@ class BackupGuard:
         # step 1 also searches a retreat from a refused proposal's successor whose stop is refused by the rest test
         self.retreat_proposals = bool(retreat_proposals) and self.retreats
         self.brake = BrakeRollout(controller.robot, self.world, self.dt, self.hold)
+        self.meter = Meter()  # the check's evaluations: every world the rollouts and the rest tests evaluate
+        for world in (self.world, *self.brake.rest.worlds()):
+            world.meter = self.meter
         self.settle = bool(settle)  # a rollout ends where its brake settles (qpctl.safety.rollout, "Settled")
         self._limit = next((c for c in getattr(controller, "constraints", []) if isinstance(c, TorqueLimit)), None)
         self.stats: dict[str, Any] = {"checked": 0, "backup": 0, "unverified": 0, "out_of_steps": 0, "check_us": [],
-                                      "check_steps": [], "retreat_searches": 0,
+                                      "check_steps": [], "check_evaluations": [], "retreat_searches": 0,
                                       "retreats_found": 0, "hold_lapsed": 0,
                                       "stops": 0, "proposal_searches": 0, "proposal_retreats_found": 0}
         self._reset_backup()
@@ -145,9 +179,26 @@ class BackupGuard:
         self._reset_backup()
 
     def warmup(self) -> float:
+        """The controller's warmup, then every kernel the check calls compiled or loaded (numba's cache) —
+        without it, the first tick that applies the stored brake, settles a stop or walks a retreat loads
+        its kernel mid-loop (5 ms each on the 2-core EPYC): the native loop's and the Python loop's (robots
+        with continuous joints; a machine without the native build), each with a settled brake and a walked
+        retreat. Returns the controller's warmup's."""
         out = self.controller.warmup()
-        self.brake.run(self.controller.robot.q_home, np.zeros(self.controller.robot.nv), self._tau_prev, 0.0,
-                       self.gains[0], horizon=2 * self.dt)  # the rollout's kernels compiled or loaded
+        robot, b, gain = self.controller.robot, self.brake, self.gains[0]
+        q, v, prev = robot.q_home.astype(float), np.full(robot.nv, 0.05), np.zeros(robot.nv)
+        sway = Retreat(tuple(robot.q_home), OMEGAS[0], switch_time(0.0, self.dt, OMEGAS[0]))
+        native = b.native
+        for loop in ((native, None) if native is not None else (None,)):
+            b.native = loop
+            try:
+                for retreat in (None, sway):
+                    b.run(q, v, prev, 0.0, gain, horizon=1.0 + SETTLE / OMEGAS[0], exact=False, retreat=retreat,
+                          settle=True, margin=-np.inf)
+            finally:
+                b.native = native
+        b.torque(q, v, prev, gain)  # the stored brake applied (outside the loops)
+        b.successor(q, v, prev)
         self._reset_backup()
         return float(out)
 
@@ -157,8 +208,12 @@ class BackupGuard:
         below ``margin``, kept above it, settled where ``settle``, in at most ``steps`` steps (default: the
         horizon's) — the rest of a settled stop still due within the horizon, not the steps."""
         horizon = self.horizon if steps is None else steps * self.dt
-        return self.brake.run(q, v, tau_prev, t, gain, horizon=horizon, margin=self.margin, stop_below=self.margin,
-                              exact=self.exact, retreat=retreat, settle=self.settle, rest_within=self.horizon)
+        try:
+            return self.brake.run(q, v, tau_prev, t, gain, horizon=horizon, margin=self.margin,
+                                  stop_below=self.margin, exact=self.exact, retreat=retreat, settle=self.settle,
+                                  rest_within=self.horizon)
+        except OutOfEvaluations:  # not verified; the check does no more work (every rollout after it ends at its
+            return Certificate(False, gain, -np.inf, np.inf, 0)  # first evaluation): its steps are not counted
 
     def _first_verified(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float,
                         tries: float = np.inf, steps: float = np.inf
@@ -182,7 +237,7 @@ class BackupGuard:
                 return (g, r), spent, False, (g, r)
             if stop is None and np.isfinite(cert.t_rest) and cert.min_clearance > self.margin:
                 stop = g, r  # at rest without contact, its rest refuted by the rest test
-            if n < full and cert.steps >= n:  # the step limit ended this rollout, not the brake
+            if (n < full and cert.steps >= n) or self.meter.out:  # a limit ended this rollout, not the brake
                 return None, spent, True, stop
             left -= max(cert.steps, 1)
         return None, spent, False, stop
@@ -208,17 +263,24 @@ class BackupGuard:
                 return None  # out of steps: the search ends here
             cert = self._roll(q, v, tau_prev, t, gain, r, n)
             spent += max(cert.steps, 1)
+            if self.meter.out:
+                ran_out = True
+                return None  # out of evaluations: the search ends here
             return cert  # (one cut short by the steps left is not verified: its horizon ended it)
 
         rest = self.brake.rest
 
-        def clear(x: np.ndarray) -> bool:
+        def clear(x: np.ndarray) -> bool | None:
             nonlocal tested, ran_out
-            if spent + tested >= steps:
+            if spent + tested >= steps or self.meter.out:
                 ran_out = True
-                return False  # out of steps: no more targets tested
+                return None  # out of steps or evaluations: the search ends here
             tested += 1
-            return bool(rest.clear(x, self.margin, t))
+            try:
+                return bool(rest.clear(x, self.margin, t))
+            except OutOfEvaluations:
+                ran_out = True
+                return None
 
         found = search(run, self.controller.robot, q, t, self.dt, rest.rho, clear)
         return ((gain, found[0]) if found is not None else None), spent, ran_out
@@ -248,7 +310,15 @@ class BackupGuard:
         """The check of one tick (module docstring, steps 1–3): the torque to apply [N·m] given the
         proposal ``tau`` at (q, q̇, t), the stored gain and the torque applied last; ``info`` gets
         ``backup`` / ``backup_unverified`` / ``backup_out_of_steps`` where they apply; ``stats["check_steps"]``
-        the rollout steps the check spent."""
+        the rollout steps the check spent, ``stats["check_evaluations"]`` its world-clearance evaluations."""
+        self.meter.start(self.check_evaluations)
+        try:
+            return self._check(q, v, tau, t, info)
+        finally:
+            self.stats["check_evaluations"].append(self.meter.used)
+            self.meter.limit = np.inf  # the screen's evaluations (check_distance) are not the check's
+
+    def _check(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float, info: dict[str, Any]) -> np.ndarray:
         q1, v1 = self.brake.successor(q, v, tau)
         tries = min(self.tries, self.tries_on_brake) if self._on_brake else self.tries
         found, spent, cut, stop = self._first_verified(q1, v1, tau, t + self.dt, tries, self.check_steps)
@@ -311,8 +381,9 @@ class BackupGuard:
         return self._apply(self.brake.torque(q, v, self._tau_prev, self._gain, self._retreat, t), t)
 
     def _count_cut(self, cut: bool, info: dict[str, Any]) -> None:
-        """``info["backup_out_of_steps"]`` and its count where ``check_steps`` ended a rollout of the check."""
-        if cut:
+        """``info["backup_out_of_steps"]`` and its count where ``check_steps`` or ``check_evaluations`` ended a
+        rollout or search of the check."""
+        if cut or self.meter.out:
             info["backup_out_of_steps"] = True
             self.stats["out_of_steps"] += 1
 

@@ -121,27 +121,31 @@ def candidates(robot: Any, q: np.ndarray, rho: np.ndarray | None) -> list[np.nda
     return [x for _, _, x in found]
 
 
-def clear_targets(robot: Any, q: np.ndarray, rho: np.ndarray | None, clear: Callable[[np.ndarray], bool],
+def clear_targets(robot: Any, q: np.ndarray, rho: np.ndarray | None, clear: Callable[[np.ndarray], bool | None],
                   count: float = np.inf) -> Iterator[np.ndarray]:
     """The first ``count`` of :func:`candidates` that the rest test ``clear`` accepts (the arm at rest
-    there clear of the static obstacles and the sweeps), nearest first, each tested as it is asked for."""
+    there clear of the static obstacles and the sweeps), nearest first, each tested as it is asked for;
+    none after ``clear`` answers None (its caller's work ran out)."""
     found = 0
     for x in candidates(robot, q, rho):
         if found >= count:
             return
-        if clear(x):
+        ok = clear(x)
+        if ok is None:
+            return
+        if ok:
             found += 1
             yield x
 
 
-def targets(robot: Any, q: np.ndarray, rho: np.ndarray | None, clear: Callable[[np.ndarray], bool],
+def targets(robot: Any, q: np.ndarray, rho: np.ndarray | None, clear: Callable[[np.ndarray], bool | None],
             count: float = np.inf) -> list[np.ndarray]:
     """:func:`clear_targets` as a list."""
     return list(clear_targets(robot, q, rho, clear, count))
 
 
 def search(run: Callable[[Retreat], Any], robot: Any, q: np.ndarray, t: float, dt: float, rho: np.ndarray | None,
-           clear: Callable[[np.ndarray], bool], tries: int = TRIES) -> Any | None:
+           clear: Callable[[np.ndarray], bool | None], tries: int = TRIES) -> Any | None:
     """The first retreat from (q, t) that ``run`` (a rollout: Retreat → certificate with ``viable``, or
     None where the caller's steps ran out: the search ends there) verifies, as (retreat, certificate), or
     None: the first ``tries`` of :func:`clear_targets`, each at every ω of :data:`OMEGAS` — the rest

@@ -135,6 +135,11 @@ class RestClearance:
     def __bool__(self) -> bool:
         return self.static is not None or bool(self.sweeps) or bool(self.drifts)
 
+    def worlds(self) -> list[WorldClearance]:
+        """Every world clearance the rest test evaluates (the static obstacles', each sweep's, each drift's)."""
+        return ([self.static] if self.static is not None else []) + [w for w, _, _ in self.sweeps] + \
+            [w for w, _ in self.drifts]
+
     def verifies(self, q: np.ndarray, v: np.ndarray, gain: float, margin: float, t: float = 0.0,
                  until: float | None = None) -> bool:
         """True if a brake of gain κ [1/s] at rest at (q [rad], q̇ [rad/s]) at t [s] may end there: on a
