@@ -174,6 +174,49 @@ def test_targets_keep_every_joint_inside_the_limits():
             assert 1 <= np.count_nonzero(np.abs(x - np.clip(q, lo, hi)) > 1e-12) <= 2  # the move's joints only
 
 
+def looped_candidates(robot, q, rho):
+    """The search's targets by a loop over the moves, one dict each (the module docstring's recipe
+    written out; what ``candidates`` was before it took arrays): the reference for the arrays."""
+    lo, hi = np.asarray(robot.q_min, float) + INSIDE, np.asarray(robot.q_max, float) - INSIDE
+    weight = rho if rho is not None else np.ones(robot.nv)
+    moves = [{i: sign * step} for i in range(robot.nv) for step in (0.3, 0.6, 1.2) for sign in (1.0, -1.0)]
+    moves += [{i: si * a, j: sj * b} for i in range(robot.nv) for j in range(i + 1, robot.nv)
+              for a in (0.3, 0.6) for b in (0.3, 0.6) for si in (1.0, -1.0) for sj in (1.0, -1.0)]
+    base = np.clip(np.asarray(q, float), lo, np.maximum(lo, hi))
+    taken = {int(i): float(weight[i] * abs(base[i] - q[i])) for i in np.flatnonzero(base != q)}
+    found = []
+    for move in moves:
+        x = base.copy()
+        for i, d in move.items():
+            x[i] = q[i] + d
+        if all(lo[i] <= x[i] <= hi[i] for i in move):
+            key = sum(weight[i] * abs(d) for i, d in move.items()) + sum(w for i, w in taken.items() if i not in move)
+            found.append((float(key), len(found), x))
+    found.sort(key=lambda f: (f[0], f[1]))
+    return [x for _, _, x in found]
+
+
+def test_the_targets_are_the_looped_recipes_bit_for_bit():
+    """``candidates`` (arrays) gives the targets of the recipe looped move by move, in the same order,
+    bit for bit: the Panda at random states — some joints at, near or past a limit (taken inside), some
+    moves out of the limits — and the planar arm (no limits: every move, ties in the moves' order)."""
+    rng = np.random.default_rng(57)
+    robot = panda()
+    for k in range(40):
+        q = rng.uniform(robot.q_min, robot.q_max)
+        near = rng.choice(robot.nv, size=k % 4, replace=False)
+        q[near] = np.where(rng.random(near.size) < 0.5, robot.q_min[near], robot.q_max[near]) + \
+            rng.uniform(-0.06, 0.06, near.size)
+        for rho in (lever_arms(robot), None):
+            got, want = candidates(robot, q, rho), looped_candidates(robot, q, rho)
+            assert len(got) == len(want) > 0
+            assert all(np.array_equal(a, b) for a, b in zip(got, want, strict=True)), k
+    flat = arm()
+    q = Q + rng.normal(0.0, 0.3, 3)
+    got, want = candidates(flat, q, lever_arms(flat)), looped_candidates(flat, q, lever_arms(flat))
+    assert len(got) == 3 * 6 + 3 * 16 and all(np.array_equal(a, b) for a, b in zip(got, want, strict=True))
+
+
 @pytest.mark.parametrize("retreats", [True, False])
 def test_a_start_inside_a_sweep_is_left_by_a_verified_retreat(retreats):
     """The arm at rest at Q, the sphere's swing reaching it at 0.36 s (held there, it is struck): no
