@@ -207,3 +207,71 @@ def test_a_walked_retreat_is_one_the_simulator_follows(make, samples, seed, monk
         at_switch = max(at_switch, off / switch)
     assert walked >= samples // 5
     assert worst < 0.9 and at_switch < 0.9 and joints < 0.9  # the measured path and switch: within 90 % of their strays
+
+
+class TickBudget:
+    """Work allowed per tick for a rollout spread over ticks: a random number of steps (1–40) and clearance
+    evaluations (0–3) each tick, drawn anew at each pause; counts the pauses and the steps integrated."""
+
+    def __init__(self, rng, world):
+        self.rng, self.world, self.pauses, self.integrated = rng, world, 0, 0
+        self.refill()
+
+    def refill(self):
+        self.step_left = int(self.rng.integers(1, 41))
+        self.eval_end = self.world.evaluations + int(self.rng.integers(0, 4))
+
+    def steps(self):
+        return self.step_left
+
+    def evaluations(self):
+        return self.eval_end - self.world.evaluations
+
+    def spend_steps(self, n):
+        assert 0 <= n <= self.step_left  # a stretch integrates no more than its tick allows
+        self.step_left -= n
+        self.integrated += n
+
+
+class CountedWorld:
+    """A world clearance counting its evaluations (the carried search's meter, here by hand)."""
+
+    def __init__(self, world):
+        self.inner, self.evaluations = world, 0
+        self.ws = world.ws
+
+    def __call__(self, q, t):
+        self.evaluations += 1
+        return self.inner(q, t)
+
+
+def test_a_rollout_spread_over_ticks_is_the_rollout():
+    """``run_iter`` paused wherever a random per-tick allowance of steps (1–40) and evaluations (0–3) runs
+    out, resumed a tick later: the same certificate as ``run`` bit for bit (the native loop's state kept
+    across the pauses), and each stretch between two pauses within its tick's steps — over 30 random
+    retreats and brakes of each arm, lazy clearance, margin 0 and 0.05 m, with walks and settles."""
+    rng = np.random.default_rng(57)
+    paused = 0
+    for make in [heavy_planar, franka] * 15:
+        ctrl, q, v, dt, retreat, tau_prev = retreat_case(make, rng)
+        sim = Simulator(ctrl, dt=dt, duration=dt)
+        world = CountedWorld(sim.world)
+        whole, spread = BrakeRollout(ctrl.robot, sim.world, dt), BrakeRollout(ctrl.robot, world, dt)
+        for r in (retreat, None):
+            for margin in (0.0, 0.05):
+                kw = dict(margin=margin, stop_below=margin, exact=False, retreat=r, settle=True)
+                want = whole.run(q, v, tau_prev, 0.3, 25.0, **kw)
+                budget = TickBudget(rng, world)
+                gen = spread.run_iter(q, v, tau_prev, 0.3, 25.0, budget, **kw)
+                while True:
+                    try:
+                        next(gen)
+                    except StopIteration as done:
+                        got = done.value
+                        break
+                    assert budget.step_left < 1 or budget.evaluations() < 1  # paused only where the tick's work is spent
+                    budget.pauses += 1
+                    budget.refill()
+                assert got == want
+                paused += budget.pauses > 0
+    assert paused >= 100

@@ -63,6 +63,7 @@ from __future__ import annotations
 
 import math
 import weakref
+from collections.abc import Generator
 from typing import Any
 
 import numpy as np
@@ -217,6 +218,24 @@ class BrakeRollout:
         self.step(qq, vv)
         return qq, vv
 
+    def run_iter(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, budget: Any, *,
+                 horizon: float = 3.0, margin: float = 0.0, stop_below: float = -np.inf, exact: bool = True,
+                 retreat: Retreat | None = None, settle: bool = False,
+                 rest_within: float | None = None) -> Generator[None, None, Certificate]:
+        """:meth:`run` as a generator that pauses (yields) wherever ``budget`` has no work left for now — before
+        integrating a step (``budget.steps()`` < 1) and before evaluating a clearance, testing a rest or
+        trying a walk (``budget.evaluations()`` < 1) — and is resumed where it paused (the work spread over
+        several ticks: :class:`qpctl.safety.backup.BackupGuard`'s carried search); the certificate is its
+        return value, bit for bit :meth:`run`'s. ``budget.spend_steps(n)`` is told each stretch of integrated
+        steps (a walk's steps are not integrated). Native loop only (None where this robot has none)."""
+        dt, rho = self.dt, self.rho
+        if self.native is None:
+            raise ValueError("a rollout spread over ticks needs the native loop")
+        rest_within = horizon if rest_within is None else rest_within
+        return (yield from self.native.run_iter(
+            q, v, tau_prev, t, gain, round(horizon / dt), margin, stop_below, max(margin, stop_below),
+            not exact and rho is not None, retreat, settle and self.settles, rest_within, budget))
+
     def run(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, *,
             horizon: float = 3.0, margin: float = 0.0, stop_below: float = -np.inf,
             exact: bool = True, retreat: Retreat | None = None, settle: bool = False,
@@ -301,6 +320,15 @@ class BrakeRollout:
             k += 1
 
 
+def finish(gen: Generator[None, None, Any]) -> Any:
+    """The return value of a generator run to its end (every pause passed over)."""
+    while True:
+        try:
+            next(gen)
+        except StopIteration as done:
+            return done.value
+
+
 class NativeBrake:
     """:meth:`BrakeRollout.run`'s loop in :mod:`qpctl.native`'s C++ (module docstring): one handle on
     a copy of the robot's Pinocchio model (serialized and loaded there) and the rollout's arrays."""
@@ -340,6 +368,13 @@ class NativeBrake:
     def run(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, steps: int,
             margin: float, stop_below: float, level: float, lazy: bool, retreat: Retreat | None = None,
             settle: bool = False, rest_within: float = np.inf) -> Certificate:
+        return finish(self.run_iter(q, v, tau_prev, t, gain, steps, margin, stop_below, level, lazy, retreat, settle,
+                                    rest_within, None))
+
+    def run_iter(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, steps: int,
+                 margin: float, stop_below: float, level: float, lazy: bool, retreat: Retreat | None,
+                 settle: bool, rest_within: float, budget: Any) -> Generator[None, None, Certificate]:
+        """The loop of :meth:`run`, pausing where ``budget`` (None: never) says so (:meth:`BrakeRollout.run_iter`)."""
         io, qq, vv, prev = self.io, self.q, self.v, self.prev
         qq[:], vv[:], prev[:] = q, v, tau_prev
         io[:] = 0.0
@@ -360,8 +395,21 @@ class NativeBrake:
         advance, world, dt = self.lib.qpb_advance, self.owner.world, self.owner.dt
         walked_from: tuple[Any, ...] | None = None  # as in BrakeRollout.run
         while True:
+            if budget is not None:  # integrate no more steps than the budget has now (the horizon a chunk's end)
+                while budget.steps() < 1:
+                    yield
+                k0 = int(io[IO_K])
+                io[IO_STEPS] = min(steps, k0 + budget.steps())  # (the native loop takes its whole part)
             answer = advance(self.handle, *ptr)
             k = int(io[IO_K])
+            if budget is not None:
+                budget.spend_steps(k - k0)
+                io[IO_STEPS] = steps
+                if answer == HORIZON and k < steps:
+                    continue  # the chunk's end, not the rollout's
+                if answer in (WALK, SETTLED, NEED_CLEARANCE, AT_REST_END):
+                    while budget.evaluations() < 1:
+                        yield
             if answer == WALK:
                 assert retreat is not None
                 walk = self.owner.walk
