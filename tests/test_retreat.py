@@ -374,7 +374,8 @@ def test_check_evaluations_bound_the_whole_check(monkeypatch):
 
     monkeypatch.setattr(WorldClearance, "at", counted)
     robot = arm()
-    guard = BackupGuard(Hold(robot, [closing_sphere(robot)]), DT, retreat_proposals=False)
+    # the search within the tick (carry=False: under a limit it is otherwise carried over the ticks)
+    guard = BackupGuard(Hold(robot, [closing_sphere(robot)]), DT, retreat_proposals=False, carry=False)
     guard.warmup()
     gravity = pin.computeGeneralizedGravity(robot.model, robot.model.createData(), Q)
     kept, spent = None, {}
@@ -423,6 +424,53 @@ def test_a_drifting_obstacle_is_left_when_the_rest_must_clear_it_for_a_hold(hold
     for k in range(10, len(tr.t), 10):
         assert certify(hold_ctrl, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), DT,
                        retreats=shown(tr.infos[k - 1]), hold=hold - DT).viable, tr.t[k]
+
+
+def test_under_a_limit_the_states_search_is_carried_over_the_ticks():
+    """The start inside the swing's sweep (the test above: the sphere strikes the held arm at 0.36 s), the
+    check limited to 60 steps and 30 evaluations a tick. Searched within each tick (``carry=False``) the
+    retreat search never ends: every tick unverified, the arm struck. Carried (the default under a
+    limit): the arm follows its stop for CARRY_TICKS ticks to the anchor while the search runs on what the
+    ticks leave, the retreat found is stored at exactly that tick — the oracle's Simulator-based rollout
+    verifies it from that state —, no tick after it is unverified, nothing touches, and no tick spends
+    more than its steps, nor more evaluations than its limit and one rest test (the carried search takes
+    a rest test whole once it has begun it: counted here at the rest test itself)."""
+    from qpctl.safety.backup import CARRY_TICKS
+
+    robot = arm()
+    o = swing(robot)
+    hold = Hold(robot, [o])
+    runs, rest_tests = {}, [0]
+    clear = RestClearance.clear
+
+    def counted(self, *args, **kw):  # the most evaluations one rest test made
+        meter = self.worlds()[0].meter
+        before = meter.used
+        out = clear(self, *args, **kw)
+        rest_tests[0] = max(rest_tests[0], meter.used - before)
+        return out
+
+    for carry in (False, True):
+        guard = BackupGuard(hold, DT, retreat_proposals=False, check_steps=60, check_evaluations=30, carry=carry)
+        guard.warmup()
+        RestClearance.clear = counted
+        try:
+            tr = Simulator(guard, dt=DT, duration=1.0).run(Q)
+        finally:
+            RestClearance.clear = clear
+        runs[carry] = guard, tr, compute_metrics(tr)
+        assert max(guard.stats["check_steps"]) <= 60
+        assert max(guard.stats["check_evaluations"]) <= 30 + (rest_tests[0] if carry else 0)
+    _, _, m = runs[False]
+    assert m["collided"] and m["backup_unverified_ticks"] > 400
+    guard, tr, m = runs[True]
+    assert not m["collided"] and guard.stats["carried_adopted"] == 1
+    [k] = [k for k, i in enumerate(tr.infos) if i.get("backup_carried_adopted")]
+    unverified = [j for j, i in enumerate(tr.infos) if i.get("backup_unverified")]
+    assert k == CARRY_TICKS and unverified == list(range(CARRY_TICKS))  # on its stop to the anchor, then verified
+    assert all(i.get("backup_carried") for i in tr.infos[:k])
+    r, gain = shown(tr.infos[k])[0]
+    assert certify(hold, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), DT, gains=(), retreats=[(r, gain)]).viable
 
 
 def test_where_no_retreat_escapes_a_drifting_obstacle_the_arm_keeps_its_stop():

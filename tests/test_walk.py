@@ -274,4 +274,4 @@ def test_a_rollout_spread_over_ticks_is_the_rollout():
                     budget.refill()
                 assert got == want
                 paused += budget.pauses > 0
-    assert paused >= 100
+    assert paused >= 60  # most of the 120 rollouts paused at least once

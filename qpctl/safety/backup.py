@@ -70,13 +70,14 @@ once a stop has come to rest and an obstacle reaches the arm there (``collisions
 from __future__ import annotations
 
 import time
+from collections.abc import Generator
 from typing import Any, ClassVar
 
 import numpy as np
 
 from qpctl.constraints.constraints import TorqueLimit
 from qpctl.safety.oracle import BRAKE_GAINS, REST_SPEED, Certificate
-from qpctl.safety.retreat import OMEGAS, RETRY_TICKS, SETTLE, Retreat, noted, search, switch_time
+from qpctl.safety.retreat import OMEGAS, RETRY_TICKS, SETTLE, Retreat, noted, search, search_iter, switch_time
 from qpctl.safety.rollout import BrakeRollout
 from qpctl.tick import WorldClearance
 
@@ -112,6 +113,48 @@ class Meter:
         self.used += 1
 
 
+class TickWork:
+    """What the check's limits leave a tick for the carried search (:meth:`BackupGuard._carry`): steps to
+    integrate and clearance evaluations (counted by ``meter``, the carried search's own worlds'), the
+    interface :meth:`qpctl.safety.rollout.BrakeRollout.run_iter` pauses on."""
+
+    def __init__(self, meter: Meter) -> None:
+        self.meter, self._steps, self._end, self.integrated = meter, 0.0, 0, 0
+
+    def start(self, steps: float, evaluations: float) -> None:
+        self._steps, self._end = max(float(steps), 0.0), self.meter.used + max(evaluations, 0.0)
+
+    def steps(self) -> float:
+        return self._steps
+
+    def evaluations(self) -> float:
+        return self._end - self.meter.used
+
+    def spend_steps(self, n: int) -> None:
+        self._steps -= n
+        self.integrated += n
+
+
+class Carried:
+    """A retreat search carried over the ticks (module docstring, "Carried search"): the stop the arm follows
+    meanwhile (gain, retreat), the tick its anchor is reached (``due``), the anchor (q, q̇, τ_prev, t) once
+    computed, the search (a generator) and what it found."""
+
+    def __init__(self, follow: tuple[float, Retreat | None], due: int) -> None:
+        self.follow, self.due = follow, due
+        self.anchor: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None
+        self.work: Generator[None, None, None] | None = None
+        self.found: tuple[float, Retreat] | None = None
+        self.done = False
+
+
+#: The first carried search's anchor lies this many ticks ahead; each one not done by its anchor doubles it
+#: for the next (up to CARRY_MAX), one done resets it.
+CARRY_TICKS, CARRY_MAX = 20, 2000
+#: While a search is carried, this share of the check's limits is left to it (the tick's own check takes the rest).
+CARRY_SHARE = 0.5
+
+
 class GuardedOutput:
     """A controller's output with the torque the guard applied (every other attribute the output's)."""
 
@@ -131,7 +174,8 @@ class BackupGuard:
     def __init__(self, controller: Any, dt: float, *, check_distance: float = np.inf, margin: float = 0.0,
                  horizon: float = 3.0, gains: tuple[float, ...] = GUARD_GAINS, check_steps: float = np.inf,
                  check_evaluations: float = np.inf, tries_on_brake: float = 2, retreats: bool = True, hold: float = 2.0,
-                 unverified: str = "stop", retreat_proposals: bool = True, settle: bool = True) -> None:
+                 unverified: str = "stop", retreat_proposals: bool = True, settle: bool = True,
+                 carry: bool = True) -> None:
         self.controller = controller
         self.dt, self.check_distance, self.margin, self.horizon = float(dt), float(check_distance), float(margin), \
             float(horizon)
@@ -153,12 +197,18 @@ class BackupGuard:
         self.meter = Meter()  # the check's evaluations: every world the rollouts and the rest tests evaluate
         for world in (self.world, *self.brake.rest.worlds()):
             world.meter = self.meter
+        # the carried search's own rollout (its native state kept across ticks) and the count of its evaluations
+        self.ahead: BrakeRollout | None = None
+        self.ahead_meter = Meter()
+        self._work = TickWork(self.ahead_meter)
         self.settle = bool(settle)  # a rollout ends where its brake settles (qpctl.safety.rollout, "Settled")
+        self.carry = bool(carry)  # under a limit, step 3's retreat search is carried over the ticks
         self._limit = next((c for c in getattr(controller, "constraints", []) if isinstance(c, TorqueLimit)), None)
         self.stats: dict[str, Any] = {"checked": 0, "backup": 0, "unverified": 0, "out_of_steps": 0, "check_us": [],
                                       "check_steps": [], "check_evaluations": [], "retreat_searches": 0,
                                       "retreats_found": 0, "hold_lapsed": 0,
-                                      "stops": 0, "proposal_searches": 0, "proposal_retreats_found": 0}
+                                      "stops": 0, "proposal_searches": 0, "proposal_retreats_found": 0,
+                                      "carried_searches": 0, "carried_found": 0, "carried_adopted": 0}
         self._reset_backup()
 
     def __getattr__(self, name: str) -> Any:
@@ -173,6 +223,9 @@ class BackupGuard:
         self._stop: tuple[float, Retreat | None] | None = None
         self._on_brake = False  # the last tick applied the stored brake
         self._tau_prev = np.full(self.controller.robot.nv, np.nan)
+        self._carried: Carried | None = None  # a retreat search carried over the ticks
+        self._carry_ticks = CARRY_TICKS
+        self._ticks = 0  # the checks so far (the carried search's clock)
 
     def reset(self) -> None:
         self.controller.reset()
@@ -199,6 +252,8 @@ class BackupGuard:
                 b.native = native
         b.torque(q, v, prev, gain)  # the stored brake applied (outside the loops)
         b.successor(q, v, prev)
+        if self._carries():  # the carried search's rollout made now (its native handle: milliseconds)
+            self._ahead_rollout()
         self._reset_backup()
         return float(out)
 
@@ -311,28 +366,132 @@ class BackupGuard:
         proposal ``tau`` at (q, q̇, t), the stored gain and the torque applied last; ``info`` gets
         ``backup`` / ``backup_unverified`` / ``backup_out_of_steps`` where they apply; ``stats["check_steps"]``
         the rollout steps the check spent, ``stats["check_evaluations"]`` its world-clearance evaluations."""
-        self.meter.start(self.check_evaluations)
+        self._ticks += 1
+        self._adopt(q, v, info)
+        # while a search is carried, the tick's own check takes CARRY_SHARE less of the limits: the rest is the
+        # carried search's at least (else the proposals' rollouts spend them all and the search never ends)
+        c = self._carried
+        share = 1.0 - CARRY_SHARE if c is not None and not c.done else 1.0
+        steps, evaluations = np.floor(share * self.check_steps), np.floor(share * self.check_evaluations)
+        self.meter.start(evaluations)
+        extra = 0
         try:
-            return self._check(q, v, tau, t, info)
+            tau = self._check(q, v, tau, t, info, steps)
+            extra = self._carry_on()
+            return tau
         finally:
-            self.stats["check_evaluations"].append(self.meter.used)
+            self.stats["check_evaluations"].append(self.meter.used + extra)
             self.meter.limit = np.inf  # the screen's evaluations (check_distance) are not the check's
 
-    def _check(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float, info: dict[str, Any]) -> np.ndarray:
+    def _carries(self) -> bool:
+        """True where step 3's retreat search is carried over the ticks (module docstring, "Carried search"):
+        a limit on the check, retreats on, the arm kept on its stop where nothing verifies, the native loop."""
+        return (self.carry and self.retreats and self.unverified == "stop" and self.brake.native is not None
+                and (self.check_steps < np.inf or self.check_evaluations < np.inf))
+
+    def _ahead_rollout(self) -> BrakeRollout:
+        """The carried search's own rollout (made once: its native state lives across the ticks)."""
+        if self.ahead is None:
+            robot = self.controller.robot
+            self.ahead = BrakeRollout(robot, WorldClearance(robot, self.controller.obstacles), self.dt, self.hold)
+            for world in (self.ahead.world, *self.ahead.rest.worlds()):
+                world.meter = self.ahead_meter
+        return self.ahead
+
+    def _carry(self, q: np.ndarray, v: np.ndarray, t: float, follow: tuple[float, Retreat | None]) -> None:
+        """A carried search from this tick: the arm follows ``follow`` for the next ``_carry_ticks`` ticks to
+        the anchor, from which the search runs on what the ticks' limits leave."""
+        c = Carried(follow, self._ticks + self._carry_ticks)
+        c.work = self._carry_work(c, q.copy(), v.copy(), self._tau_prev.copy(), t)
+        self._carried = c
+        self.stats["carried_searches"] += 1
+
+    def _carry_work(self, c: Carried, q: np.ndarray, v: np.ndarray, prev: np.ndarray,
+                    t: float) -> Generator[None, None, None]:
+        """The carried search's work, paused wherever the tick's work is spent: the anchor — the state the
+        follow's torque leads to at the due tick, step by step as the guard applies it (its torque at each
+        state, the rollout's RK4 step) —, then :func:`qpctl.safety.retreat.search_iter` from there."""
+        b, work = self._ahead_rollout(), self._work
+        g, r = c.follow
+        ahead = c.due - self._ticks
+        for i in range(ahead):
+            while work.steps() < 1:
+                yield
+            tau = b.torque(q, v, prev, g, r, t + i * self.dt).copy()
+            q, v = b.successor(q, v, tau)
+            prev = tau
+            work.spend_steps(1)
+        ta = t + ahead * self.dt
+        c.anchor = (q, v, prev, ta)
+        gain = self.gains[0]
+
+        def run(retreat: Retreat) -> Generator[None, None, Any]:
+            return b.run_iter(q, v, prev, ta, gain, work, horizon=self.horizon, margin=self.margin,
+                              stop_below=self.margin, exact=self.exact, retreat=retreat, settle=self.settle,
+                              rest_within=self.horizon)
+
+        found = yield from search_iter(run, self.controller.robot, q, ta, self.dt, b.rest.rho,
+                                       lambda x: bool(b.rest.clear(x, self.margin, ta)),
+                                       lambda: work.evaluations() >= 1)
+        c.found = (gain, found[0]) if found is not None else None
+        c.done = True
+        self.stats["carried_found"] += c.found is not None
+
+    def _carry_on(self) -> int:
+        """The carried search resumed on what this tick's limits left (its steps added to the tick's
+        ``check_steps``); returns its evaluations."""
+        c = self._carried
+        if c is None or c.done or c.work is None:
+            return 0
+        spent = self.stats["check_steps"][-1]
+        self._work.start(self.check_steps - spent, self.check_evaluations - self.meter.used)
+        used, integrated = self.ahead_meter.used, self._work.integrated
+        try:
+            next(c.work)
+        except StopIteration:
+            pass
+        self.stats["check_steps"][-1] = spent + self._work.integrated - integrated
+        return self.ahead_meter.used - used
+
+    def _adopt(self, q: np.ndarray, v: np.ndarray, info: dict[str, Any]) -> None:
+        """At its due tick a carried search ends: its retreat is stored if it verified one from this very state
+        (the anchor: the arm followed the stop to it) and the stored backup is none or that stop."""
+        c = self._carried
+        if c is None or self._ticks < c.due:
+            return
+        self._carried = None
+        if not c.done:  # the ticks' work did not finish it: the next one looks further ahead
+            self._carry_ticks = min(2 * self._carry_ticks, CARRY_MAX)
+            return
+        self._carry_ticks = CARRY_TICKS
+        if c.found is None or c.anchor is None or self._ticks != c.due:
+            return
+        aq, av, ap, _ = c.anchor
+        stored = None if self._gain is None else (self._gain, self._retreat)
+        if (stored in (None, c.follow) and np.array_equal(q, aq) and np.array_equal(v, av)
+                and np.array_equal(self._tau_prev, ap)):
+            self._gain, self._retreat = c.found
+            self.stats["carried_adopted"] += 1
+            info["backup_carried_adopted"] = True
+
+    def _check(self, q: np.ndarray, v: np.ndarray, tau: np.ndarray, t: float, info: dict[str, Any],
+               limit: float) -> np.ndarray:
+        """:meth:`check`'s work within ``limit`` rollout steps."""
         q1, v1 = self.brake.successor(q, v, tau)
         tries = min(self.tries, self.tries_on_brake) if self._on_brake else self.tries
-        found, spent, cut, stop = self._first_verified(q1, v1, tau, t + self.dt, tries, self.check_steps)
+        found, spent, cut, stop = self._first_verified(q1, v1, tau, t + self.dt, tries, limit)
         # a stop from the successor comes to rest without contact but not clear of the sweeps (or the hold): a
         # retreat from the successor out of their way lets the proposal in (a dodge through a swing's sweep)
         escape, more, short = self._throttled_retreat("proposal", found is None and stop is not None and
                                                       self.retreat_proposals, q1, v1, tau, t + self.dt,
-                                                      self.check_steps - spent)
+                                                      limit - spent)
         found, spent, cut = found or escape, spent + more, cut or short
         self._on_brake = False
         if found is not None:
             self._count_cut(cut, info)
             self.stats["check_steps"].append(spent)
             self._gain, self._retreat = found
+            self._carried = None  # a verified backup: the carried search is moot
             self._note_retreat(info)
             return tau
         lapsed: tuple[float, Retreat | None] | None = None
@@ -340,21 +499,27 @@ class BackupGuard:
             # at rest the stored stop's rest moves on with the time, and so does the window over which it must
             # clear the drifting obstacles (hold): re-verified from this very state (the stored one alone), else
             # forgotten (step 3); within the check's steps left (cut short: refuted, the stop then kept as lapsed)
-            kept, more, short, _ = self._first_verified(q, v, self._tau_prev, t, 1, self.check_steps - spent)
+            kept, more, short, _ = self._first_verified(q, v, self._tau_prev, t, 1, limit - spent)
             spent, cut = spent + more, cut or short
             if kept is None:
                 lapsed = self._gain, self._retreat
                 self._gain, self._retreat = None, None
                 info["backup_rest_refuted"] = True
         if self._gain is None:  # nothing stored: is the state itself verified? (step 3, in the check's steps left)
-            found, more, short, here = self._first_verified(q, v, self._tau_prev, t, steps=self.check_steps - spent)
+            found, more, short, here = self._first_verified(q, v, self._tau_prev, t, steps=limit - spent)
             spent, cut = spent + more, cut or short
             self._stop = self._stop or here  # (the start: no torque applied before it)
-            escape, more, short = self._throttled_retreat("state", found is None and self.retreats, q, v,
-                                                          self._tau_prev, t, self.check_steps - spent)
+            if self._carries():  # the state's retreat search carried over the ticks (module docstring)
+                escape, more, short = None, 0, False
+                if found is None and self._carried is None:
+                    self._carry(q, v, t, lapsed or self._stop or (self.gains[0], None))
+            else:
+                escape, more, short = self._throttled_retreat("state", found is None and self.retreats, q, v,
+                                                              self._tau_prev, t, limit - spent)
             found, spent, cut = found or escape, spent + more, cut or short
             if found is not None:
                 self._gain, self._retreat = found
+                self._carried = None
             elif lapsed is not None:  # no retreat either: the arm stays on its stop, verified as with no hold
                 self._gain, self._retreat = lapsed
                 info["backup_hold_lapsed"] = True
@@ -364,6 +529,11 @@ class BackupGuard:
         if self._gain is None:
             self.stats["unverified"] += 1
             info["backup_unverified"] = True
+            if self._carried is not None:  # the arm follows the carried search's stop to its anchor
+                g, r = self._carried.follow
+                info["backup_stop"], info["backup_carried"] = g, True
+                self.stats["stops"] += 1
+                return self._apply(self.brake.torque(q, v, self._tau_prev, g, r, t), t)
             if self.unverified == "proposal" or stop is not None:
                 self._stop = stop
                 return tau
@@ -413,7 +583,7 @@ class BackupGuard:
         if near:
             tau = self.check(q, v, tau, t, info)
         else:
-            self._gain, self._retreat, self._on_brake, self._stop = None, None, False, None
+            self._gain, self._retreat, self._on_brake, self._stop, self._carried = None, None, False, None, None
         us = (time.perf_counter() - t0) * 1e6
         if near:
             self.stats["check_us"].append(us)

@@ -30,7 +30,7 @@ next to a verified stop; the guard repeats a failed search only every :data:`RET
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -167,19 +167,54 @@ def targets(robot: Any, q: np.ndarray, rho: np.ndarray | None, clear: Callable[[
     return list(clear_targets(robot, q, rho, clear, count))
 
 
-def search(run: Callable[[Retreat], Any], robot: Any, q: np.ndarray, t: float, dt: float, rho: np.ndarray | None,
-           clear: Callable[[np.ndarray], bool | None], tries: int = TRIES) -> Any | None:
-    """The first retreat from (q, t) that ``run`` (a rollout: Retreat → certificate with ``viable``, or
-    None where the caller's steps ran out: the search ends there) verifies, as (retreat, certificate), or
-    None: the first ``tries`` of :func:`clear_targets`, each at every ω of :data:`OMEGAS` — the rest
-    test of each candidate taken as the search comes to it, so a search its steps end costs only the
-    tests before that."""
-    for x in clear_targets(robot, q, rho, clear, tries):
+def search_iter(run: Callable[[Retreat], Generator[None, None, Any]], robot: Any, q: np.ndarray, t: float, dt: float,
+                rho: np.ndarray | None, clear: Callable[[np.ndarray], bool | None], ready: Callable[[], bool],
+                tries: int = TRIES) -> Generator[None, None, Any | None]:
+    """:func:`search` as a generator: ``run(r)`` is itself a generator rollout (its pauses passed on), and
+    the search pauses (yields) before each rest test while ``ready()`` is False — a search spread over the
+    ticks (:class:`qpctl.safety.backup.BackupGuard`'s carried search). Its return value is :func:`search`'s."""
+    found = 0
+    for x in candidates(robot, q, rho):
+        if found >= tries:
+            return None
+        while not ready():
+            yield
+        ok = clear(x)
+        if ok is None:
+            return None
+        if not ok:
+            continue
+        found += 1
         for omega in OMEGAS:
             r = Retreat(tuple(float(a) for a in x), omega, switch_time(t, dt, omega))
-            cert = run(r)
+            cert = yield from run(r)
             if cert is None:
                 return None
             if cert.viable:
                 return r, cert
     return None
+
+
+def finish(gen: Generator[None, None, Any]) -> Any:
+    """The return value of a generator run to its end (every pause passed over)."""
+    while True:
+        try:
+            next(gen)
+        except StopIteration as done:
+            return done.value
+
+
+def _at_once(value: Any) -> Generator[None, None, Any]:
+    """A generator that returns ``value`` without pausing."""
+    return value
+    yield  # pragma: no cover (makes this a generator)
+
+
+def search(run: Callable[[Retreat], Any], robot: Any, q: np.ndarray, t: float, dt: float, rho: np.ndarray | None,
+           clear: Callable[[np.ndarray], bool | None], tries: int = TRIES) -> Any | None:
+    """The first retreat from (q, t) that ``run`` (a rollout: Retreat → certificate with ``viable``, or
+    None where the caller's steps ran out: the search ends there) verifies, as (retreat, certificate), or
+    None: the first ``tries`` of :func:`clear_targets`, each at every ω of :data:`OMEGAS` — the rest
+    test of each candidate taken as the search comes to it (``clear`` answering None ends the search), so
+    a search its steps end costs only the tests before that. (:func:`search_iter` without pauses.)"""
+    return finish(search_iter(lambda r: _at_once(run(r)), robot, q, t, dt, rho, clear, lambda: True, tries))

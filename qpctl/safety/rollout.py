@@ -72,7 +72,7 @@ import pinocchio as pin
 import qpctl.native
 from qpctl.kernels import rollout as K
 from qpctl.safety.oracle import REST_SPEED, REST_TIME, Certificate
-from qpctl.safety.retreat import Retreat
+from qpctl.safety.retreat import Retreat, finish
 from qpctl.safety.sweep import RestClearance, swaying
 from qpctl.safety.walk import Walk
 from qpctl.tick import WorldClearance
@@ -320,15 +320,6 @@ class BrakeRollout:
             k += 1
 
 
-def finish(gen: Generator[None, None, Any]) -> Any:
-    """The return value of a generator run to its end (every pause passed over)."""
-    while True:
-        try:
-            next(gen)
-        except StopIteration as done:
-            return done.value
-
-
 class NativeBrake:
     """:meth:`BrakeRollout.run`'s loop in :mod:`qpctl.native`'s C++ (module docstring): one handle on
     a copy of the robot's Pinocchio model (serialized and loaded there) and the rollout's arrays."""
@@ -413,9 +404,12 @@ class NativeBrake:
             if answer == WALK:
                 assert retreat is not None
                 walk = self.owner.walk
-                walked, io[IO_WALK_AFTER] = walk.attempt(
-                    qq, vv, retreat, gain, t, k, steps, (float(io[IO_LAST]), float(io[IO_DRIFT]), float(io[IO_WORST])),
-                    level, lazy)
+                bound = (float(io[IO_LAST]), float(io[IO_DRIFT]), float(io[IO_WORST]))
+                if budget is None:
+                    walked, io[IO_WALK_AFTER] = walk.attempt(qq, vv, retreat, gain, t, k, steps, bound, level, lazy)
+                else:  # its clearance evaluations paused on as the rollout's are
+                    walked, io[IO_WALK_AFTER] = yield from walk.attempt_iter(qq, vv, retreat, gain, t, k, steps, bound,
+                                                                            level, lazy, budget)
                 if walked:  # on from the switch's state, every clearance and limit less the walk's stray
                     walked_from = k, float(io[IO_LAST]), float(io[IO_DRIFT]), float(io[IO_WORST]), qq.copy(), \
                         vv.copy(), prev.copy()

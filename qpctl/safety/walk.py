@@ -55,6 +55,7 @@ of its stray, the switch 0.50 of its own, every joint 0.28 of its own).
 
 from __future__ import annotations
 
+from collections.abc import Generator
 from typing import Any
 
 import numpy as np
@@ -62,7 +63,7 @@ import pinocchio as pin
 
 import qpctl.native
 from qpctl.kernels import walk as KW
-from qpctl.safety.retreat import Retreat
+from qpctl.safety.retreat import Retreat, finish
 
 #: The steering's torque is sampled every this many steps (and at the first and the last steering step).
 WALK_EVERY = 10
@@ -105,6 +106,12 @@ class Walk:
 
     def attempt(self, q: np.ndarray, v: np.ndarray, retreat: Retreat, gain: float, t0: float, k: int, steps: int,
                 lazy_state: tuple[float, float, float], level: float, lazy: bool) -> tuple[bool, float]:
+        """:meth:`attempt_iter` without pauses."""
+        return finish(self.attempt_iter(q, v, retreat, gain, t0, k, steps, lazy_state, level, lazy, None))
+
+    def attempt_iter(self, q: np.ndarray, v: np.ndarray, retreat: Retreat, gain: float, t0: float, k: int,
+                     steps: int, lazy_state: tuple[float, float, float], level: float, lazy: bool,
+                     budget: Any) -> Generator[None, None, tuple[bool, float]]:
         """A walk from step k of a rollout from t0 [s] at (q, q̇) — the step's torque, unclipped, in
         ``self.tau`` (the native handle's pending one where the loop is native) —, the lazy bound
         (last, drift, worst) [m]: (walked, the step from which a walk may be tried again). Walked: the
@@ -126,6 +133,8 @@ class Walk:
             answer = self._clear()
             if answer != KW.NEED_CLEARANCE:
                 break
+            while budget is not None and budget.evaluations() < 1:  # paused before an evaluation (run_iter)
+                yield
             wio[KW.W_LAST] = o.world(self.q, t0 + (k + int(wio[KW.W_J])) * o.dt)
             wio[KW.W_DRIFT], wio[KW.W_EVALUATED] = 0.0, 1.0
         self.refused = None if answer == KW.WALKED else "the clearance or a joint limit"
