@@ -469,6 +469,7 @@ def test_under_a_limit_the_states_search_is_carried_over_the_ticks():
     unverified = [j for j, i in enumerate(tr.infos) if i.get("backup_unverified")]
     assert k == CARRY_TICKS and unverified == list(range(CARRY_TICKS))  # on its stop to the anchor, then verified
     assert all(i.get("backup_carried") for i in tr.infos[:k])
+    assert m["backup_carried_ticks"] == CARRY_TICKS and m["backup_carried_adopted"] == 1
     r, gain = shown(tr.infos[k])[0]
     assert certify(hold, tr.q[k], tr.v[k], tr.tau[k - 1], float(tr.t[k]), DT, gains=(), retreats=[(r, gain)]).viable
 

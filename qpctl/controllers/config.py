@@ -36,7 +36,9 @@ class ControllerConfig:
     default) — one not verified within them is refused and the stored brake continues;
     backup_check_evaluations: the world-clearance evaluations one check may spend, its rollouts' and its
     rest tests' together (inf: no limit, the default) — the evaluation past them ends the check's work as
-    the steps do; with backup_check_steps a bound on the check's whole cost;
+    the steps do; with backup_check_steps a bound on the check's whole cost. Under either limit a
+    retreat search from the state that does not fit a tick is carried over the ticks while the arm
+    follows its stop (:mod:`qpctl.safety.backup`, "Carried search");
     backup_tries_on_brake: the gains a check tries while the last tick applied the stored brake (2, the
     default: the stored one and the first other; inf: the whole family).
     backup_retreats: where no brake verifies from the state itself (a start inside a swaying obstacle's

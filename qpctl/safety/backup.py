@@ -55,6 +55,21 @@ then, where the world clearance (exact, every pair: :class:`qpctl.tick.WorldClea
    retreat out of the obstacle's way) — or, where nothing verifies, the stop is kept
    (``info["backup_hold_lapsed"]``: verified as it is with no hold, not for the hold).
 
+**Carried search** (``carry``, default on; only under a limit — ``check_steps`` or ``check_evaluations``
+finite —, with retreats, ``unverified = "stop"`` and the native loop): a state whose retreat search
+(step 3) does not fit one tick's limits would have it cut every tick, nothing stored, every tick
+unverified. Instead the search is carried over the ticks. The arm keeps the stop it is on (the stored
+stop whose hold lapsed, or the unverified tick's stop) for the next ``CARRY_TICKS`` ticks — so the state
+at that *anchor* tick is known exactly: it is computed from this state as the guard applies the stop,
+its torque at each state and the rollout's RK4 step — and the search runs from the anchor on what the
+ticks leave (while it runs a tick's own check takes ``1 − CARRY_SHARE`` of the limits; its rollouts and
+walks pause where the tick's steps or evaluations are spent and resume the next tick, bit for bit the
+rollout run at once: :meth:`BrakeRollout.run_iter`; a rest test, once begun, is taken whole). At the
+anchor tick its retreat is stored if the state is the anchor bit for bit (the arm followed the stop)
+and nothing else was stored meanwhile: a verified backup from this very state, as step 3's would be. A
+search not done by its anchor is dropped and the next looks twice as far ahead (up to ``CARRY_MAX``
+ticks). The ticks on the way are unverified (the arm on its stop), as they would be anyway.
+
 Beyond ``check_distance`` τ is applied unchecked and the stored brake forgotten. **What is proved**
 (exact model: the built-in simulator's RK4 at the guard's Δt; obstacles static or moving as the scene
 says): every state from a verified tick on admits a verified brake, so a run without an unverified tick
@@ -455,9 +470,10 @@ class BackupGuard:
 
     def _adopt(self, q: np.ndarray, v: np.ndarray, info: dict[str, Any]) -> None:
         """At its due tick a carried search ends: its retreat is stored if it verified one from this very state
-        (the anchor: the arm followed the stop to it) and the stored backup is none or that stop."""
+        (the anchor: the arm followed the stop to it) and the stored backup is none or that stop. One that
+        ended without a retreat ends at once (the next may begin this tick)."""
         c = self._carried
-        if c is None or self._ticks < c.due:
+        if c is None or (self._ticks < c.due and not (c.done and c.found is None)):
             return
         self._carried = None
         if not c.done:  # the ticks' work did not finish it: the next one looks further ahead

@@ -33,8 +33,9 @@ def collisions_at_rest(traj: Trajectory) -> int:
 
 def backup_metrics(infos: list[dict[str, Any]]) -> dict[str, Any]:
     """The verified backup's counts: ticks checked, on the stored brake, unverified (the guarantee
-    holds for a run without one; of them on the arm's unverified stop: ``backup_stop_ticks``), and the
-    check's cost per checked tick [µs]."""
+    holds for a run without one; of them on the arm's unverified stop: ``backup_stop_ticks``, of those on
+    the way to a carried search's anchor: ``backup_carried_ticks``), the carried searches' retreats stored,
+    and the check's cost per checked tick [µs]."""
     us = [float(i["backup_check_us"]) for i in infos if "backup_check_us" in i]
     return {"backup_checked_ticks": sum(bool(i["backup_checked"]) for i in infos),
             "backup_ticks": sum("backup" in i for i in infos),
@@ -44,7 +45,10 @@ def backup_metrics(infos: list[dict[str, Any]]) -> dict[str, Any]:
             "backup_check_us_p99": float(np.percentile(us, 99)) if us else 0.0,
             "backup_out_of_steps_ticks": sum(bool(i.get("backup_out_of_steps")) for i in infos),
             "backup_hold_lapsed_ticks": sum(bool(i.get("backup_hold_lapsed")) for i in infos),
-            "backup_stop_ticks": sum("backup_stop" in i for i in infos)}
+            "backup_stop_ticks": sum("backup_stop" in i for i in infos),
+            # under a check limit: ticks on the stop to a carried search's anchor; the carried retreats stored
+            "backup_carried_ticks": sum(bool(i.get("backup_carried")) for i in infos),
+            "backup_carried_adopted": sum(bool(i.get("backup_carried_adopted")) for i in infos)}
 
 
 def rms_jerk(t: np.ndarray, v: np.ndarray) -> np.ndarray:
