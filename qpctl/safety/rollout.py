@@ -227,7 +227,7 @@ class BrakeRollout:
         trying a walk (``budget.evaluations()`` < 1) — and is resumed where it paused (the work spread over
         several ticks: :class:`qpctl.safety.backup.BackupGuard`'s carried search); the certificate is its
         return value, bit for bit :meth:`run`'s. ``budget.spend_steps(n)`` is told each stretch of integrated
-        steps (a walk's steps are not integrated). Native loop only (None where this robot has none)."""
+        steps (a walk's steps are not integrated). Native loop only (a ValueError where this robot has none)."""
         dt, rho = self.dt, self.rho
         if self.native is None:
             raise ValueError("a rollout spread over ticks needs the native loop")
