@@ -745,7 +745,8 @@ class Scenario:
                            check_evaluations=c["backup_check_evaluations"],
                            tries_on_brake=c["backup_tries_on_brake"], retreats=c["backup_retreats"],
                            hold=c["backup_hold"], unverified=c["backup_unverified"],
-                           retreat_proposals=c["backup_retreat_proposals"], settle=c["backup_settle"])
+                           retreat_proposals=c["backup_retreat_proposals"], settle=c["backup_settle"],
+                           carry=c["backup_carry"])
 
     def to_toml(self, **changes: dict[str, Any]) -> str:
         """The validated scenario as a TOML file that :meth:`load` reads back to the same ``data``:

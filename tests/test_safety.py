@@ -403,3 +403,14 @@ def test_backup_check_evaluations_is_a_whole_number_or_inf(value):
     assert Scenario.load("paper", overrides=on).build_controller().check_evaluations == np.inf
     sc = Scenario.load("paper", overrides=[*on, "controller.backup_check_evaluations=40"])
     assert sc.build_controller().check_evaluations == 40
+
+
+def test_backup_carry_is_a_scenario_key():
+    from qpctl import ConfigError, Scenario
+
+    on = ["controller.backup=true"]
+    assert Scenario.load("paper", overrides=on).build_controller().carry is True
+    assert Scenario.load("paper", overrides=[*on, "controller.backup_carry=false"]).build_controller().carry is False
+    with pytest.raises(ConfigError) as exc:
+        Scenario.load("paper", overrides=[*on, 'controller.backup_carry="later"'])
+    assert exc.value.key == "controller.backup_carry"

@@ -38,7 +38,8 @@ class ControllerConfig:
     rest tests' together (inf: no limit, the default) — the evaluation past them ends the check's work as
     the steps do; with backup_check_steps a bound on the check's whole cost. Under either limit a
     retreat search from the state that does not fit a tick is carried over the ticks while the arm
-    follows its stop (:mod:`qpctl.safety.backup`, "Carried search");
+    follows its stop (:mod:`qpctl.safety.backup`, "Carried search"; backup_carry: true, the default;
+    false: searched within each tick, cut short by the limits);
     backup_tries_on_brake: the gains a check tries while the last tick applied the stored brake (2, the
     default: the stored one and the first other; inf: the whole family).
     backup_retreats: where no brake verifies from the state itself (a start inside a swaying obstacle's
@@ -77,6 +78,7 @@ class ControllerConfig:
     backup_unverified: str = setting("stop", choices=("stop", "proposal"))
     backup_retreat_proposals: bool = True
     backup_settle: bool = True
+    backup_carry: bool = True
 
     def __post_init__(self) -> None:
         check_fields(self, "controller")
