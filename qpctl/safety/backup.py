@@ -134,10 +134,11 @@ class TickWork:
     interface :meth:`qpctl.safety.rollout.BrakeRollout.run_iter` pauses on."""
 
     def __init__(self, meter: Meter) -> None:
-        self.meter, self._steps, self._end, self.integrated = meter, 0.0, 0, 0
+        self.meter, self._steps, self._end, self.spent = meter, 0.0, 0, 0
 
     def start(self, steps: float, evaluations: float) -> None:
-        self._steps, self._end = max(float(steps), 0.0), self.meter.used + max(evaluations, 0.0)
+        """A tick's allowance; ``spent`` counts its integrated steps from here."""
+        self._steps, self._end, self.spent = max(float(steps), 0.0), self.meter.used + max(evaluations, 0.0), 0
 
     def steps(self) -> float:
         return self._steps
@@ -147,17 +148,17 @@ class TickWork:
 
     def spend_steps(self, n: int) -> None:
         self._steps -= n
-        self.integrated += n
+        self.spent += n
 
 
 class Carried:
     """A retreat search carried over the ticks (module docstring, "Carried search"): the stop the arm follows
-    meanwhile (gain, retreat), the tick its anchor is reached (``due``), the anchor (q, q̇, τ_prev, t) once
-    computed, the search (a generator) and what it found."""
+    meanwhile (gain, retreat), the tick its anchor is reached (``due``), the anchor once computed, the
+    search (a generator) and what it found."""
 
     def __init__(self, follow: tuple[float, Retreat | None], due: int) -> None:
         self.follow, self.due = follow, due
-        self.anchor: tuple[np.ndarray, np.ndarray, np.ndarray, float] | None = None
+        self.anchor: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # (q, q̇, τ_prev) at the due tick
         self.work: Generator[None, None, None] | None = None
         self.found: tuple[float, Retreat] | None = None
         self.done = False
@@ -386,8 +387,9 @@ class BackupGuard:
         # while a search is carried, the tick's own check takes CARRY_SHARE less of the limits: the rest is the
         # carried search's at least (else the proposals' rollouts spend them all and the search never ends)
         c = self._carried
-        share = 1.0 - CARRY_SHARE if c is not None and not c.done else 1.0
-        steps, evaluations = np.floor(share * self.check_steps), np.floor(share * self.check_evaluations)
+        steps, evaluations = self.check_steps, self.check_evaluations
+        if c is not None and not c.done:
+            steps, evaluations = np.floor((1.0 - CARRY_SHARE) * steps), np.floor((1.0 - CARRY_SHARE) * evaluations)
         self.meter.start(evaluations)
         extra = 0
         try:
@@ -437,7 +439,7 @@ class BackupGuard:
             prev = tau
             work.spend_steps(1)
         ta = t + ahead * self.dt
-        c.anchor = (q, v, prev, ta)
+        c.anchor = (q, v, prev)
         gain = self.gains[0]
 
         def run(retreat: Retreat) -> Generator[None, None, Any]:
@@ -460,12 +462,12 @@ class BackupGuard:
             return 0
         spent = self.stats["check_steps"][-1]
         self._work.start(self.check_steps - spent, self.check_evaluations - self.meter.used)
-        used, integrated = self.ahead_meter.used, self._work.integrated
+        used = self.ahead_meter.used
         try:
             next(c.work)
         except StopIteration:
             pass
-        self.stats["check_steps"][-1] = spent + self._work.integrated - integrated
+        self.stats["check_steps"][-1] = spent + self._work.spent
         return self.ahead_meter.used - used
 
     def _adopt(self, q: np.ndarray, v: np.ndarray, info: dict[str, Any]) -> None:
@@ -480,9 +482,10 @@ class BackupGuard:
             self._carry_ticks = min(2 * self._carry_ticks, CARRY_MAX)
             return
         self._carry_ticks = CARRY_TICKS
-        if c.found is None or c.anchor is None or self._ticks != c.due:
+        if c.found is None:
             return
-        aq, av, ap, _ = c.anchor
+        assert c.anchor is not None and self._ticks == c.due  # (a search is done only from its anchor)
+        aq, av, ap = c.anchor
         stored = None if self._gain is None else (self._gain, self._retreat)
         if (stored in (None, c.follow) and np.array_equal(q, aq) and np.array_equal(v, av)
                 and np.array_equal(self._tau_prev, ap)):

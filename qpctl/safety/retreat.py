@@ -145,14 +145,17 @@ def candidates(robot: Any, q: np.ndarray, rho: np.ndarray | None) -> list[np.nda
 
 
 def clear_targets(robot: Any, q: np.ndarray, rho: np.ndarray | None, clear: Callable[[np.ndarray], bool | None],
-                  count: float = np.inf) -> Iterator[np.ndarray]:
+                  count: float = np.inf, ready: Callable[[], bool] | None = None) -> Iterator[np.ndarray | None]:
     """The first ``count`` of :func:`candidates` that the rest test ``clear`` accepts (the arm at rest
     there clear of the static obstacles and the sweeps), nearest first, each tested as it is asked for;
-    none after ``clear`` answers None (its caller's work ran out)."""
+    none after ``clear`` answers None (its caller's work ran out). With ``ready``, a None is yielded
+    before a rest test for as long as ``ready()`` is False (a pause: :func:`search_iter`)."""
     found = 0
     for x in candidates(robot, q, rho):
         if found >= count:
             return
+        while ready is not None and not ready():
+            yield None
         ok = clear(x)
         if ok is None:
             return
@@ -164,27 +167,19 @@ def clear_targets(robot: Any, q: np.ndarray, rho: np.ndarray | None, clear: Call
 def targets(robot: Any, q: np.ndarray, rho: np.ndarray | None, clear: Callable[[np.ndarray], bool | None],
             count: float = np.inf) -> list[np.ndarray]:
     """:func:`clear_targets` as a list."""
-    return list(clear_targets(robot, q, rho, clear, count))
+    return [x for x in clear_targets(robot, q, rho, clear, count) if x is not None]
 
 
 def search_iter(run: Callable[[Retreat], Generator[None, None, Any]], robot: Any, q: np.ndarray, t: float, dt: float,
-                rho: np.ndarray | None, clear: Callable[[np.ndarray], bool | None], ready: Callable[[], bool],
-                tries: int = TRIES) -> Generator[None, None, Any | None]:
+                rho: np.ndarray | None, clear: Callable[[np.ndarray], bool | None],
+                ready: Callable[[], bool] | None = None, tries: int = TRIES) -> Generator[None, None, Any | None]:
     """:func:`search` as a generator: ``run(r)`` is itself a generator rollout (its pauses passed on), and
     the search pauses (yields) before each rest test while ``ready()`` is False — a search spread over the
     ticks (:class:`qpctl.safety.backup.BackupGuard`'s carried search). Its return value is :func:`search`'s."""
-    found = 0
-    for x in candidates(robot, q, rho):
-        if found >= tries:
-            return None
-        while not ready():
-            yield
-        ok = clear(x)
-        if ok is None:
-            return None
-        if not ok:
+    for x in clear_targets(robot, q, rho, clear, tries, ready):
+        if x is None:
+            yield  # paused before a rest test
             continue
-        found += 1
         for omega in OMEGAS:
             r = Retreat(tuple(float(a) for a in x), omega, switch_time(t, dt, omega))
             cert = yield from run(r)
@@ -217,4 +212,4 @@ def search(run: Callable[[Retreat], Any], robot: Any, q: np.ndarray, t: float, d
     None: the first ``tries`` of :func:`clear_targets`, each at every ω of :data:`OMEGAS` — the rest
     test of each candidate taken as the search comes to it (``clear`` answering None ends the search), so
     a search its steps end costs only the tests before that. (:func:`search_iter` without pauses.)"""
-    return finish(search_iter(lambda r: _at_once(run(r)), robot, q, t, dt, rho, clear, lambda: True, tries))
+    return finish(search_iter(lambda r: _at_once(run(r)), robot, q, t, dt, rho, clear, tries=tries))

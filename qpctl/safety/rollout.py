@@ -218,24 +218,6 @@ class BrakeRollout:
         self.step(qq, vv)
         return qq, vv
 
-    def run_iter(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, budget: Any, *,
-                 horizon: float = 3.0, margin: float = 0.0, stop_below: float = -np.inf, exact: bool = True,
-                 retreat: Retreat | None = None, settle: bool = False,
-                 rest_within: float | None = None) -> Generator[None, None, Certificate]:
-        """:meth:`run` as a generator that pauses (yields) wherever ``budget`` has no work left for now — before
-        integrating a step (``budget.steps()`` < 1) and before evaluating a clearance, testing a rest or
-        trying a walk (``budget.evaluations()`` < 1) — and is resumed where it paused (the work spread over
-        several ticks: :class:`qpctl.safety.backup.BackupGuard`'s carried search); the certificate is its
-        return value, bit for bit :meth:`run`'s. ``budget.spend_steps(n)`` is told each stretch of integrated
-        steps (a walk's steps are not integrated). Native loop only (a ValueError where this robot has none)."""
-        dt, rho = self.dt, self.rho
-        if self.native is None:
-            raise ValueError("a rollout spread over ticks needs the native loop")
-        rest_within = horizon if rest_within is None else rest_within
-        return (yield from self.native.run_iter(
-            q, v, tau_prev, t, gain, round(horizon / dt), margin, stop_below, max(margin, stop_below),
-            not exact and rho is not None, retreat, settle and self.settles, rest_within, budget))
-
     def run(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, *,
             horizon: float = 3.0, margin: float = 0.0, stop_below: float = -np.inf,
             exact: bool = True, retreat: Retreat | None = None, settle: bool = False,
@@ -249,21 +231,45 @@ class BrakeRollout:
         certificate's time and steps are then the settle's), if its decay reaches rest within
         ``rest_within`` [s] of t (default: the horizon; a rollout cut short by a step budget passes the
         horizon the full one would have had)."""
-        dt, world, rho = self.dt, self.world, self.rho
-        lazy = not exact and rho is not None
+        return finish(self.run_iter(q, v, tau_prev, t, gain, None, horizon=horizon, margin=margin,
+                                    stop_below=stop_below, exact=exact, retreat=retreat, settle=settle,
+                                    rest_within=rest_within))
+
+    def run_iter(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, budget: Any, *,
+                 horizon: float = 3.0, margin: float = 0.0, stop_below: float = -np.inf, exact: bool = True,
+                 retreat: Retreat | None = None, settle: bool = False,
+                 rest_within: float | None = None) -> Generator[None, None, Certificate]:
+        """:meth:`run` as a generator that pauses (yields) wherever ``budget`` (None: never) has no work left
+        for now — before integrating a step (``budget.steps()`` < 1) and before evaluating a clearance,
+        testing a rest or trying a walk (``budget.evaluations()`` < 1) — and is resumed where it paused (the
+        work spread over several ticks: :class:`qpctl.safety.backup.BackupGuard`'s carried search); the
+        certificate is its return value, bit for bit :meth:`run`'s. ``budget.spend_steps(n)`` is told each
+        stretch of integrated steps (a walk's steps are not integrated). A budget needs the native loop (a
+        ValueError where this robot has none)."""
+        lazy = not exact and self.rho is not None
         level = max(margin, stop_below)
         settle = settle and self.settles
         rest_within = horizon if rest_within is None else rest_within
+        steps = round(horizon / self.dt)
         if self.native is not None:
-            return self.native.run(q, v, tau_prev, t, gain, round(horizon / dt), margin, stop_below, level, lazy,
-                                   retreat, settle, rest_within)
+            return (yield from self.native.run_iter(q, v, tau_prev, t, gain, steps, margin, stop_below, level, lazy,
+                                                    retreat, settle, rest_within, budget))
+        if budget is not None:
+            raise ValueError("a rollout spread over ticks needs the native loop")
+        return self._stepped(q, v, tau_prev, t, gain, steps, margin, stop_below, level, lazy, retreat, settle,
+                             rest_within)
+
+    def _stepped(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, steps: int,
+                 margin: float, stop_below: float, level: float, lazy: bool, retreat: Retreat | None, settle: bool,
+                 rest_within: float) -> Certificate:
+        """:meth:`run`'s loop in Python (robots without the native loop; the arguments prepared by :meth:`run_iter`)."""
+        dt, world, rho = self.dt, self.world, self.rho
         qq, vv, prev = np.array(q, float), np.array(v, float), np.array(tau_prev, float)
         worst, still, last, drift = np.inf, 0.0, np.inf, np.inf
         decay, below = math.exp(-gain * dt), np.inf  # below: a settle's creep must be under it (halved on a refusal)
         walk_after = 0.0  # a retreat's walk is tried from this step on (qpctl.safety.walk)
         stray, q_min, q_max = 0.0, self.q_min, self.q_max  # after a walk: its allowance, the limits less it
         walked_from: tuple[Any, ...] | None = None  # the state a walk started from, while the rollout is on from it
-        steps = round(horizon / dt)
         k = 0
         while True:
             end: Certificate | None = None
@@ -356,16 +362,11 @@ class NativeBrake:
         self.lib.qpb_step(self.handle, ptr[0], ptr[1], ptr[2], self.owner.dt, ptr[7])
         return self.q.copy(), self.v.copy()
 
-    def run(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, steps: int,
-            margin: float, stop_below: float, level: float, lazy: bool, retreat: Retreat | None = None,
-            settle: bool = False, rest_within: float = np.inf) -> Certificate:
-        return finish(self.run_iter(q, v, tau_prev, t, gain, steps, margin, stop_below, level, lazy, retreat, settle,
-                                    rest_within, None))
-
     def run_iter(self, q: np.ndarray, v: np.ndarray, tau_prev: np.ndarray, t: float, gain: float, steps: int,
                  margin: float, stop_below: float, level: float, lazy: bool, retreat: Retreat | None,
                  settle: bool, rest_within: float, budget: Any) -> Generator[None, None, Certificate]:
-        """The loop of :meth:`run`, pausing where ``budget`` (None: never) says so (:meth:`BrakeRollout.run_iter`)."""
+        """:meth:`BrakeRollout.run`'s loop in C++, pausing where ``budget`` (None: never) says so
+        (:meth:`BrakeRollout.run_iter`)."""
         io, qq, vv, prev = self.io, self.q, self.v, self.prev
         qq[:], vv[:], prev[:] = q, v, tau_prev
         io[:] = 0.0
